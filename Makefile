@@ -1,0 +1,43 @@
+# The README's commands. Each installs what is missing, then runs; a second
+# run skips what is already there.
+SHELL := /bin/bash
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+# Debian packages: libusb for Open3D, EGL/Mesa for headless OpenGL, Xvfb for window tests.
+DEB_PACKAGES := libusb-1.0-0 libgomp1 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri xvfb xauth
+SYSDEPS_STAMP := $(VENV)/.sysdeps
+INSTALL_STAMP := $(VENV)/.installed
+DEMO_DIR ?= demo
+BENCH_DIR ?= bench
+
+.PHONY: demo test bench setup sysdeps clean
+
+setup: $(INSTALL_STAMP)
+
+$(SYSDEPS_STAMP):
+	@missing=$$(for p in $(DEB_PACKAGES); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+		echo "installing Debian packages: $$missing"; \
+		SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+		$$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q $$missing; \
+	fi
+	@[ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV)
+	@touch $@
+
+$(INSTALL_STAMP): $(SYSDEPS_STAMP) pyproject.toml
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	@touch $@
+
+demo: $(INSTALL_STAMP)
+	$(BIN)/bbcity synth street --out $(DEMO_DIR)/street
+
+test: $(INSTALL_STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(INSTALL_STAMP)
+	$(BIN)/bbcity bench --out $(BENCH_DIR)
+
+clean:
+	rm -rf $(VENV) $(DEMO_DIR) $(BENCH_DIR) *.egg-info

@@ -1,0 +1,123 @@
+"""The ``bbcity`` command line. The only place that configures logging."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import sys
+import time
+from pathlib import Path
+
+from . import __version__
+
+logger = logging.getLogger("bbcity")
+
+
+def _add_synth(sub) -> None:
+    p = sub.add_parser(
+        "synth", help="generate a synthetic dataset (street or town) with ground truth",
+        description="Generate a synthetic scene, drive the three-camera rig through it and write "
+                    "images, rig.json, poses.json, a COLMAP model and ground truth (gt/).")
+    p.add_argument("scene", choices=["street", "town"], help="scene to generate")
+    p.add_argument("--out", type=Path, required=True, help="output dataset directory (new, or one to resume)")
+    p.add_argument("--frames", type=int, default=100, help="frames per pass (default 100); a return pass doubles it")
+    p.add_argument("--length", type=float, default=300.0,
+                   help="street length, or the town drive's length, in metres (default 300)")
+    p.add_argument("--width", type=int, default=640, help="image width in pixels (default 640)")
+    p.add_argument("--height", type=int, default=480, help="image height in pixels (default 480)")
+    p.add_argument("--seed", type=int, default=0, help="scene seed; same seed, same bytes (default 0)")
+    p.add_argument("--hfov", type=float, default=75.0, help="horizontal field of view in degrees (default 75)")
+    p.add_argument("--spp", type=int, default=2, help="anti-aliasing: spp×spp rays per pixel (default 2)")
+    p.add_argument("--no-return", action="store_true", help="drive one pass only (one side of the street)")
+    p.add_argument("--no-gt-depth", action="store_true", help="skip per-image ground-truth depth and ids")
+    p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
+    p.set_defaults(func=_run_synth)
+
+
+def _run_synth(args) -> int:
+    from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig, write_dataset
+
+    from .executor import make_executor
+
+    cfg = SynthConfig(
+        scene=args.scene,
+        street=StreetConfig(length=args.length, seed=args.seed),
+        town=TownConfig(seed=args.seed),
+        rig=RigConfig(width=args.width, height=args.height, hfov_deg=args.hfov),
+        frames=args.frames, return_pass=not args.no_return, town_path_length=args.length,
+        spp=args.spp, ground_truth_depth=not args.no_gt_depth)
+    start = time.perf_counter()
+    with make_executor(args.workers) as executor:
+        out = write_dataset(cfg, args.out, executor=executor)
+    size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+    logger.info("wrote %s: %.1f MB in %.1f s", out, size / 1e6, time.perf_counter() - start)
+    return 0
+
+
+def _add_check(sub) -> None:
+    p = sub.add_parser("check", help="validate a dataset (rig, poses, every image)",
+                       description="Validate rig.json, poses.json and that every image exists; "
+                                   "with --deep also decode every image and ground-truth array.")
+    p.add_argument("dataset", type=Path, help="dataset directory")
+    p.add_argument("--deep", action="store_true", help="decode every image (slow)")
+    p.set_defaults(func=_run_check)
+
+
+def _run_check(args) -> int:
+    from data_synth import load_dataset
+
+    ds = load_dataset(args.dataset)
+    if args.deep:
+        ds.verify()
+    w, h = ds.rig.sizes[0]
+    print(f"{ds.root}: {ds.num_frames} frames × {ds.rig.num_cameras} cameras, {w}x{h}, "
+          f"ground truth: {'yes' if ds.has_ground_truth else 'no'}")
+    return 0
+
+
+def _add_bench(sub) -> None:
+    p = sub.add_parser("bench", help="measure the stages against same-run baselines; write a report",
+                       description="Run the benchmark and write report.md, report.json and plots to --out.")
+    p.add_argument("--out", type=Path, required=True, help="report directory")
+    p.add_argument("--quick", action="store_true", help="small inputs, for a smoke run")
+    p.add_argument("--repeats", type=int, default=3, help="timings are the median of this many runs")
+    p.set_defaults(func=_run_bench)
+
+
+def _run_bench(args) -> int:
+    from .bench import BenchConfig, run_bench
+
+    run_bench(BenchConfig(quick=args.quick, repeats=args.repeats), args.out)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="bbcity", description="Street captures from a three-camera rig to a compact billboard city model.")
+    parser.add_argument("--version", action="version", version=f"bbcity {__version__}")
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_synth(sub)
+    _add_check(sub)
+    _add_bench(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    from data_synth import DataFormatError
+
+    try:
+        return args.func(args)
+    except (DataFormatError, FileExistsError, ValueError) as e:
+        logger.error("%s", e)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,46 @@
+"""The one executor interface every parallel stage runs through.
+
+Stages take a ``concurrent.futures.Executor`` and use only ``submit``; a
+process pool today, and tomorrow any other implementation of the same
+interface (a Dask ``Client.get_executor()``), runs the same code.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import Executor, Future, ProcessPoolExecutor
+
+
+class SerialExecutor(Executor):
+    """Runs each task immediately in this process (workers = 1, debugging, profiling)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # delivered through the future, like a pool would
+            future.set_exception(e)
+        return future
+
+
+def default_workers() -> int:
+    """One worker per usable core."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)
+
+
+def make_executor(workers: int | None = None) -> Executor:
+    """A process pool of ``workers`` (default: one per core), or serial for 1.
+
+    Workers are spawned, not forked: Open3D and OpenCV keep thread pools that
+    do not survive a fork.
+    """
+    workers = default_workers() if workers is None else workers
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    if workers == 1:
+        return SerialExecutor()
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))

@@ -1,0 +1,1 @@
+"""Octree, angular sampling, PCA eigen-textures and atlases (built by a later issue)."""

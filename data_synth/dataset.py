@@ -1,0 +1,311 @@
+"""Dataset writer and reader.
+
+Layout of a dataset directory::
+
+    dataset.json              manifest, written last: its presence marks a complete dataset
+    rig.json                  intrinsics (distortion none) and cam_from_rig per camera
+    poses.json                world_from_rig per frame, float64
+    images/cam{c}/NNNNNN.png  RGB images
+    colmap/                   the same cameras and poses as a COLMAP text model
+    gt/scene.json             the generator's configuration (re-creates the scene) and digest
+    gt/mesh.ply               the scene's triangle mesh
+    gt/objects/*.npy          kind (k,) int16, seed (k,) uint32, bounds (k, 2, 3) float64
+    gt/triangle_object.npy    object id per mesh triangle (m,) int32
+    gt/depth/cam{c}/NNNNNN.npy  z-depth (h, w) float32, NaN = sky
+    gt/ids/cam{c}/NNNNNN.npy    object id (h, w) int32, −1 = sky
+
+A user's own capture needs only ``rig.json``, ``poses.json`` and ``images/``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from concurrent.futures import Executor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from tqdm import tqdm
+
+from .colmap_export import write_colmap_text
+from .fileio import DataFormatError, atomic_path, load_npy, read_json, read_png, save_npy, write_json, write_png
+from .raycast import Renderer
+from .rig import Rig, RigConfig, drive_path, load_poses, make_rig, save_poses
+from .scene import Scene
+from .street import StreetConfig, build_street
+from .town import TownConfig, build_town, street_centres
+
+logger = logging.getLogger(__name__)
+
+DATASET_FORMAT = "bbcity-dataset"
+SCENE_FORMAT = "bbcity-scene"
+FORMAT_VERSION = 1
+SCENES = ("street", "town")
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    scene: str = "street"  # "street" or "town"
+    street: StreetConfig = field(default_factory=StreetConfig)  # used when scene == "street"
+    town: TownConfig = field(default_factory=TownConfig)  # used when scene == "town"
+    rig: RigConfig = field(default_factory=RigConfig)  # cameras and their mounting
+    frames: int = 100  # frames per pass, evenly spaced along the path
+    return_pass: bool = True  # drive back in the other lane so both sides are captured
+    lane_offset: float = 1.75  # path distance from the street's centre line, metres
+    town_path_length: float = 300.0  # town: length of the drive along its middle street, metres
+    spp: int = 2  # supersampling per pixel axis (spp² colour rays per pixel)
+    ground_truth_depth: bool = True  # write gt/depth and gt/ids for every image
+
+
+def _from_dict(cls, data: dict):
+    """Rebuild a flat config dataclass from JSON (lists back to tuples)."""
+    fields = cls.__dataclass_fields__
+    unknown = set(data) - set(fields)
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} fields: {sorted(unknown)}")
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+
+
+def build_scene(name: str, config: dict) -> Scene:
+    """Generate the scene ``name`` ("street" or "town") from its configuration dict."""
+    if name == "street":
+        return build_street(_from_dict(StreetConfig, config))
+    if name == "town":
+        return build_town(_from_dict(TownConfig, config))
+    raise ValueError(f"unknown scene {name!r}; expected one of {SCENES}")
+
+
+def capture_path(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The rig's trajectory: world_from_rig (n, 4, 4) float64 and pass index (n,) int32."""
+    if cfg.scene == "street":
+        return drive_path(0.0, cfg.street.length, 0.0, cfg.frames, cfg.lane_offset, cfg.return_pass)
+    y = street_centres(cfg.town)[cfg.town.path_street]
+    half = cfg.town_path_length / 2
+    return drive_path(-half, half, y, cfg.frames, cfg.town.street_width / 4, cfg.return_pass)
+
+
+def _config_json(cfg: SynthConfig) -> dict:
+    return json.loads(json.dumps(asdict(cfg)))
+
+
+def config_from_json(data: dict) -> SynthConfig:
+    """Inverse of the configuration stored in ``dataset.json``."""
+    data = dict(data)
+    nested = {"street": StreetConfig, "town": TownConfig, "rig": RigConfig}
+    for key, cls in nested.items():
+        if key in data:
+            data[key] = _from_dict(cls, data[key])
+    return _from_dict(SynthConfig, data)
+
+
+# --------------------------------------------------------------------------- writing
+
+_WORKER_STATE: dict[str, tuple[Renderer, Rig]] = {}
+
+
+def _worker_state(cfg_json: str) -> tuple[Renderer, Rig]:
+    """Scene renderer and rig, built once per worker process and configuration."""
+    if cfg_json not in _WORKER_STATE:
+        cfg = config_from_json(json.loads(cfg_json))
+        scene = build_scene(cfg.scene, asdict(cfg.street if cfg.scene == "street" else cfg.town))
+        _WORKER_STATE.clear()
+        _WORKER_STATE[cfg_json] = (Renderer(scene), make_rig(cfg.rig))
+    return _WORKER_STATE[cfg_json]
+
+
+def _frame_files(root: Path, name: str, cams: int, gt: bool) -> list[Path]:
+    files = [root / "images" / f"cam{c}" / f"{name}.png" for c in range(cams)]
+    if gt:
+        files += [root / "gt" / kind / f"cam{c}" / f"{name}.npy" for kind in ("depth", "ids") for c in range(cams)]
+    return files
+
+
+def _render_frame(task: tuple[str, str, str, list, bool, int]) -> float:
+    """Render and write one frame's images (and ground truth). Returns seconds spent."""
+    root_str, cfg_json, name, world_from_rig, gt, spp = task
+    start = time.perf_counter()
+    renderer, rig = _worker_state(cfg_json)
+    root = Path(root_str)
+    pose = np.asarray(world_from_rig, dtype=np.float64)
+    for c in range(rig.num_cameras):
+        result = renderer.render(rig.intrinsics[c], rig.world_from_cam(pose, c), rig.sizes[c], spp=spp)
+        if gt:
+            save_npy(root / "gt" / "depth" / f"cam{c}" / f"{name}.npy", result.depth)
+            save_npy(root / "gt" / "ids" / f"cam{c}" / f"{name}.npy", result.ids)
+        # the image goes last: a frame is complete when all its files exist
+        write_png(root / "images" / f"cam{c}" / f"{name}.png", result.rgb)
+    return time.perf_counter() - start
+
+
+def write_mesh_ply(path: Path, scene: Scene) -> Path:
+    """Atomically write the scene's triangle mesh (float64 vertices) as binary PLY."""
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(scene.vertices),
+                                     o3d.utility.Vector3iVector(scene.triangles))
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False,
+                                          write_vertex_normals=False, write_vertex_colors=False):
+            raise OSError(f"{path}: Open3D could not write the mesh")
+    return path
+
+
+def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Executor | None = None,
+                  progress: bool | None = None) -> Path:
+    """Generate the scene, render every frame and write the dataset to ``out_dir``.
+
+    executor: runs frames in parallel (any ``concurrent.futures.Executor``); None
+    renders in this process. An interrupted run is resumed: frames whose files
+    all exist are kept (every file is written atomically). A directory holding
+    a dataset with a different configuration is refused, never mixed.
+    Returns ``out_dir``.
+    """
+    root = Path(out_dir)
+    cfg_dict = _config_json(cfg)
+    existing = root / "gt" / "scene.json"
+    if existing.exists():
+        stored = read_json(existing).get("synth")
+        if stored != cfg_dict:
+            raise FileExistsError(f"{root} holds a dataset made with other settings; choose a new --out")
+        logger.info("resuming the dataset in %s", root)
+    elif root.exists() and any(root.iterdir()):
+        raise FileExistsError(f"{root} exists and is not an empty directory or a bbcity dataset")
+
+    t0 = time.perf_counter()
+    scene = build_scene(cfg.scene, asdict(cfg.street if cfg.scene == "street" else cfg.town))
+    rig = make_rig(cfg.rig)
+    world_from_rig, passes = capture_path(cfg)
+    t_scene = time.perf_counter() - t0
+    logger.info("%s scene: %d objects, %d triangles (%.2f s)", cfg.scene, scene.num_objects,
+                len(scene.triangles), t_scene)
+
+    write_json(existing, {"format": SCENE_FORMAT, "version": FORMAT_VERSION, "scene": scene.name,
+                          "config": scene.config, "digest": scene.digest(), "synth": cfg_dict})
+    save_npy(root / "gt" / "objects" / "kind.npy", scene.object_kind)
+    save_npy(root / "gt" / "objects" / "seed.npy", scene.object_seed)
+    save_npy(root / "gt" / "objects" / "bounds.npy", scene.object_bounds)
+    save_npy(root / "gt" / "triangle_object.npy", scene.triangle_object)
+    write_mesh_ply(root / "gt" / "mesh.ply", scene)
+    rig.save(root / "rig.json")
+    save_poses(root / "poses.json", world_from_rig, passes)
+    names = [f"{i:06d}" for i in range(len(world_from_rig))]
+    write_colmap_text(root / "colmap", rig.intrinsics, list(rig.sizes), rig.cam_from_rig, world_from_rig,
+                      [[f"cam{c}/{n}.png" for c in range(rig.num_cameras)] for n in names])
+
+    cfg_json = json.dumps(cfg_dict, sort_keys=True)
+    todo = [(str(root), cfg_json, n, T.tolist(), cfg.ground_truth_depth, cfg.spp)
+            for n, T in zip(names, world_from_rig)
+            if not all(p.exists() for p in _frame_files(root, n, rig.num_cameras, cfg.ground_truth_depth))]
+    logger.info("rendering %d of %d frames × %d cameras", len(todo), len(names), rig.num_cameras)
+    t1 = time.perf_counter()
+    frame_seconds = []
+    bar = tqdm(total=len(todo), desc="render", unit="frame", disable=None if progress is None else not progress)
+    if executor is None:
+        for task in todo:
+            frame_seconds.append(_render_frame(task))
+            bar.update()
+    else:
+        for future in as_completed([executor.submit(_render_frame, t) for t in todo]):
+            frame_seconds.append(future.result())
+            bar.update()
+    bar.close()
+    t_render = time.perf_counter() - t1
+
+    write_json(root / "dataset.json", {
+        "format": DATASET_FORMAT, "version": FORMAT_VERSION, "scene": cfg.scene,
+        "frames": len(names), "cameras": rig.num_cameras, "image_size": list(rig.sizes[0]),
+        "objects": scene.num_objects, "triangles": int(len(scene.triangles)),
+        "ground_truth": True, "synth": cfg_dict,
+        "timing": {"scene_seconds": t_scene, "render_seconds": t_render, "frames_rendered": len(todo),
+                   "median_frame_seconds": float(np.median(frame_seconds)) if frame_seconds else None},
+    })
+    return root
+
+
+# --------------------------------------------------------------------------- reading
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A validated dataset. world_from_rig: (n, 4, 4) float64; frame_names: n stems."""
+
+    root: Path
+    rig: Rig
+    world_from_rig: np.ndarray
+    frame_names: tuple[str, ...]
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frame_names)
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return (self.root / "gt" / "scene.json").is_file()
+
+    def image_path(self, frame: int, cam: int) -> Path:
+        return self.root / "images" / f"cam{cam}" / f"{self.frame_names[frame]}.png"
+
+    def image(self, frame: int, cam: int) -> np.ndarray:
+        """(h, w, 3) uint8 RGB; a missing, truncated or wrongly sized file raises DataFormatError."""
+        return read_png(self.image_path(frame, cam), self.rig.sizes[cam])
+
+    def world_from_cam(self, frame: int, cam: int) -> np.ndarray:
+        """(4, 4) float64 camera pose."""
+        return self.rig.world_from_cam(self.world_from_rig[frame], cam)
+
+    def _gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
+        w, h = self.rig.sizes[cam]
+        path = self.root / "gt" / kind / f"cam{cam}" / f"{self.frame_names[frame]}.npy"
+        return load_npy(path, dtype=dtype, shape=(h, w))
+
+    def gt_depth(self, frame: int, cam: int) -> np.ndarray:
+        """(h, w) float32 ground-truth z-depth, NaN where nothing is hit."""
+        return self._gt("depth", frame, cam, np.float32)
+
+    def gt_ids(self, frame: int, cam: int) -> np.ndarray:
+        """(h, w) int32 ground-truth object id, −1 where nothing is hit."""
+        return self._gt("ids", frame, cam, np.int32)
+
+    def verify(self) -> None:
+        """Decode every image (slow, thorough); the first bad file raises DataFormatError."""
+        for f in range(self.num_frames):
+            for c in range(self.rig.num_cameras):
+                self.image(f, c)
+
+
+def load_dataset(path: os.PathLike | str) -> Dataset:
+    """Open a dataset directory: validate ``rig.json``, ``poses.json`` and that
+    every image exists. Errors name the offending file."""
+    root = Path(path)
+    if not root.is_dir():
+        raise DataFormatError(root, "dataset directory does not exist")
+    rig = Rig.load(root / "rig.json")
+    world_from_rig, names = load_poses(root / "poses.json")
+    if not names:
+        raise DataFormatError(root / "poses.json", "has no frames")
+    dataset = Dataset(root, rig, world_from_rig, tuple(names))
+    for f in range(dataset.num_frames):
+        for c in range(rig.num_cameras):
+            p = dataset.image_path(f, c)
+            if not p.is_file():
+                raise DataFormatError(p, f"image of frame {names[f]} camera {c} is missing")
+    return dataset
+
+
+def load_scene(dataset_dir: os.PathLike | str) -> Scene:
+    """Re-create a dataset's scene from its ``gt/`` (regenerated, then checked
+    against the stored digest so that a changed generator cannot go unnoticed)."""
+    path = Path(dataset_dir) / "gt" / "scene.json"
+    data = read_json(path)
+    if not isinstance(data, dict) or data.get("format") != SCENE_FORMAT:
+        raise DataFormatError(path, f"not a scene file (expected \"format\": \"{SCENE_FORMAT}\")")
+    try:
+        scene = build_scene(data["scene"], data["config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataFormatError(path, f"cannot re-create the scene ({e})") from None
+    if scene.digest() != data.get("digest"):
+        raise DataFormatError(path, "the re-created scene differs from the one the dataset was made with "
+                                    "(generator changed since)")
+    return scene

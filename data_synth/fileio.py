@@ -1,0 +1,200 @@
+"""Atomic writers and validating readers for the project's file formats.
+
+Every writer writes to a temporary sibling and renames, so an interrupted run
+never leaves a half-written file under the final name. Every reader checks what
+it reads and raises :class:`DataFormatError` naming the file and the problem.
+The other stages (recon, billboards) read datasets through these functions too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, Iterator
+
+import cv2
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+#: Refuse .npy arrays larger than this unless the caller allows more.
+DEFAULT_MAX_NPY_BYTES = 1 << 31
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_IEND = b"IEND\xaeB`\x82"
+
+
+class DataFormatError(ValueError):
+    """A file is missing, malformed or inconsistent; the message names it."""
+
+    def __init__(self, path: os.PathLike | str, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+@contextlib.contextmanager
+def atomic_path(path: os.PathLike | str) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it to ``path`` on success.
+
+    On an exception the temporary file is removed and ``path`` is untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def write_bytes(path: os.PathLike | str, data: bytes) -> Path:
+    """Atomically write ``data`` to ``path``."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
+    return Path(path)
+
+
+def write_json(path: os.PathLike | str, obj: Any) -> Path:
+    """Atomically write ``obj`` as indented JSON (float64 values round-trip exactly)."""
+    text = json.dumps(obj, indent=1, allow_nan=False)
+    return write_bytes(path, (text + "\n").encode())
+
+
+def read_json(path: os.PathLike | str) -> Any:
+    """Read a JSON file; a missing or malformed file raises :class:`DataFormatError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "file is missing")
+    try:
+        return json.loads(path.read_text(), parse_constant=_reject_constant)
+    except (json.JSONDecodeError, UnicodeDecodeError, ValueError) as e:
+        raise DataFormatError(path, f"not valid JSON ({e})") from None
+
+
+def _reject_constant(name: str) -> None:
+    raise ValueError(f"{name} is not allowed")
+
+
+def save_npy(path: os.PathLike | str, array: np.ndarray) -> Path:
+    """Atomically save ``array`` as ``.npy`` (never pickled)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, np.ascontiguousarray(array), allow_pickle=False)
+    return Path(path)
+
+
+def load_npy(
+    path: os.PathLike | str,
+    dtype: np.dtype | type | None = None,
+    shape: tuple[int | None, ...] | None = None,
+    finite: bool = False,
+    max_bytes: int = DEFAULT_MAX_NPY_BYTES,
+) -> np.ndarray:
+    """Load a ``.npy`` array after checking its header.
+
+    dtype: required dtype (exact), or None for any non-object dtype.
+    shape: required shape; ``None`` entries match any length.
+    finite: reject NaN/inf (floating arrays only).
+    max_bytes: refuse arrays whose header claims more bytes than this.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "file is missing")
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read_header = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
+            file_shape, _, file_dtype = read_header(f, max_header_size=10000)
+            if file_dtype.hasobject:
+                raise DataFormatError(path, "holds Python objects (pickles are not loaded)")
+            nbytes = int(np.prod(file_shape, dtype=np.int64)) * file_dtype.itemsize
+            if nbytes > max_bytes:
+                raise DataFormatError(path, f"array of {nbytes} bytes exceeds the limit of {max_bytes}")
+            f.seek(0)
+            array = np.load(f, allow_pickle=False)
+    except DataFormatError:
+        raise
+    except (ValueError, OSError, EOFError) as e:
+        raise DataFormatError(path, f"not a valid .npy array ({e})") from None
+    if dtype is not None and array.dtype != np.dtype(dtype):
+        raise DataFormatError(path, f"dtype {array.dtype}, expected {np.dtype(dtype)}")
+    if shape is not None:
+        ok = array.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, array.shape))
+        if not ok:
+            want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+            raise DataFormatError(path, f"shape {array.shape}, expected {want}")
+    if finite and array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+        raise DataFormatError(path, "contains NaN or inf")
+    return array
+
+
+def write_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
+    """Atomically write an RGB image ``(h, w, 3) uint8`` (or grey ``(h, w)``) as PNG."""
+    if rgb.dtype != np.uint8 or rgb.ndim not in (2, 3):
+        raise ValueError(f"write_png wants (h, w[, 3]) uint8, got {rgb.shape} {rgb.dtype}")
+    image = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else rgb
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    return write_bytes(path, buf.tobytes())
+
+
+def read_png(path: os.PathLike | str, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a PNG as RGB ``(h, w, 3) uint8``.
+
+    size: expected ``(width, height)``; a mismatch raises :class:`DataFormatError`,
+    as do a missing, truncated or non-PNG file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "image file is missing")
+    data = path.read_bytes()
+    if not data.startswith(_PNG_SIGNATURE):
+        raise DataFormatError(path, "not a PNG file")
+    # libpng may decode a cut-off file into a partly grey image; the IEND chunk
+    # at the very end is the cheap, exact test that the file is complete.
+    if not data.endswith(_PNG_IEND):
+        raise DataFormatError(path, "PNG is truncated (no IEND chunk at the end)")
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise DataFormatError(path, "PNG could not be decoded")
+    rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(size):
+        raise DataFormatError(
+            path, f"image is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]}"
+        )
+    return rgb
+
+
+def as_matrix(value: Any, shape: tuple[int, ...], path: Path, what: str) -> np.ndarray:
+    """Convert a JSON value to a finite float64 array of ``shape`` or raise naming ``what``."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataFormatError(path, f"{what} is not a numeric array") from None
+    if array.shape != shape:
+        raise DataFormatError(path, f"{what} has shape {array.shape}, expected {shape}")
+    if not np.all(np.isfinite(array)):
+        raise DataFormatError(path, f"{what} contains NaN or inf")
+    return array
+
+
+def check_rigid(T: np.ndarray, path: Path, what: str, tol: float = 1e-6) -> np.ndarray:
+    """Check that ``T`` (4, 4) float64 is a rigid transform; return it."""
+    R = T[:3, :3]
+    if np.abs(T[3] - [0, 0, 0, 1]).max() > tol:
+        raise DataFormatError(path, f"{what} last row is not [0, 0, 0, 1]")
+    if np.abs(R.T @ R - np.eye(3)).max() > tol or abs(np.linalg.det(R) - 1) > tol:
+        raise DataFormatError(path, f"{what} rotation is not orthonormal with det +1")
+    return T

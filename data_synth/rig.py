@@ -1,0 +1,192 @@
+"""The three-camera rig and the capture trajectory.
+
+Rig frame: x forward (driving direction), y left, z up, origin on the road
+below the rig. The cameras sit in a row on the roof, optical axes parallel,
+looking to the right of the car (−y), so that successive cameras are displaced
+along their own x axis: a rectified horizontal stereo rig. Camera frames follow
+OpenCV (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .fileio import DataFormatError, as_matrix, check_rigid, read_json, write_json
+
+RIG_FORMAT = "bbcity-rig"
+POSES_FORMAT = "bbcity-poses"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    width: int = 640  # image width, pixels
+    height: int = 480  # image height, pixels
+    hfov_deg: float = 75.0  # horizontal field of view, degrees
+    baselines: tuple[float, ...] = (0.0, 0.4, 0.8)  # offset of each camera from cam0 along the row, metres
+    mount_height: float = 2.0  # height of the optical centres above the road, metres
+    pitch_deg: float = 10.0  # upward tilt of the (parallel) optical axes, degrees
+
+
+@dataclass(frozen=True)
+class Rig:
+    """Calibrated cameras of a rig.
+
+    intrinsics: (c, 3, 3) float64 OpenCV pinhole matrices (pixel centres at integers).
+    sizes: c × (width, height) in pixels.
+    cam_from_rig: (c, 4, 4) float64 rigid transforms.
+    """
+
+    intrinsics: np.ndarray
+    sizes: tuple[tuple[int, int], ...]
+    cam_from_rig: np.ndarray
+
+    @property
+    def num_cameras(self) -> int:
+        return len(self.sizes)
+
+    def world_from_cam(self, world_from_rig: np.ndarray, cam: int) -> np.ndarray:
+        """(4, 4) float64 pose of camera ``cam`` for a rig pose (4, 4) float64."""
+        return world_from_rig @ np.linalg.inv(self.cam_from_rig[cam])
+
+    def to_json(self) -> dict:
+        cams = []
+        for i, (K, (w, h), T) in enumerate(zip(self.intrinsics, self.sizes, self.cam_from_rig)):
+            cams.append({
+                "name": f"cam{i}", "model": "pinhole", "width": int(w), "height": int(h),
+                "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+                "distortion": "none", "cam_from_rig": T.tolist(),
+            })
+        return {"format": RIG_FORMAT, "version": FORMAT_VERSION, "pixel_centre": "integer (OpenCV)",
+                "reference_camera": 0, "cameras": cams}
+
+    def save(self, path: os.PathLike | str) -> Path:
+        return write_json(path, self.to_json())
+
+    @classmethod
+    def load(cls, path: os.PathLike | str) -> "Rig":
+        """Read and validate ``rig.json``; errors name the file and the field."""
+        path = Path(path)
+        data = read_json(path)
+        if not isinstance(data, dict) or data.get("format") != RIG_FORMAT:
+            raise DataFormatError(path, f"not a rig file (expected \"format\": \"{RIG_FORMAT}\")")
+        if data.get("version") != FORMAT_VERSION:
+            raise DataFormatError(path, f"unsupported version {data.get('version')!r}")
+        cams = data.get("cameras")
+        if not isinstance(cams, list) or not cams:
+            raise DataFormatError(path, "\"cameras\" must be a non-empty list")
+        Ks, sizes, Ts = [], [], []
+        for i, cam in enumerate(cams):
+            where = f"cameras[{i}]"
+            if not isinstance(cam, dict):
+                raise DataFormatError(path, f"{where} is not an object")
+            missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy", "cam_from_rig") if k not in cam]
+            if missing:
+                raise DataFormatError(path, f"{where} lacks {', '.join(missing)}")
+            if cam.get("distortion", "none") != "none":
+                raise DataFormatError(path, f"{where}.distortion must be \"none\" (undistort images first)")
+            w, h = cam["width"], cam["height"]
+            if not (isinstance(w, int) and isinstance(h, int) and 0 < w <= 65536 and 0 < h <= 65536):
+                raise DataFormatError(path, f"{where} width/height must be positive integers, got {w!r}x{h!r}")
+            f = as_matrix([cam["fx"], cam["fy"], cam["cx"], cam["cy"]], (4,), path, f"{where} intrinsics")
+            if f[0] <= 0 or f[1] <= 0:
+                raise DataFormatError(path, f"{where} focal lengths must be positive")
+            Ks.append(np.array([[f[0], 0, f[2]], [0, f[1], f[3]], [0, 0, 1]]))
+            sizes.append((w, h))
+            Ts.append(check_rigid(as_matrix(cam["cam_from_rig"], (4, 4), path, f"{where}.cam_from_rig"),
+                                  path, f"{where}.cam_from_rig"))
+        return cls(np.array(Ks), tuple(sizes), np.array(Ts))
+
+
+def pinhole(width: int, height: int, hfov_deg: float) -> np.ndarray:
+    """(3, 3) float64 K with square pixels and the principal point at the image centre."""
+    f = 0.5 * width / np.tan(np.radians(hfov_deg) / 2)
+    return np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
+
+
+def make_rig(cfg: RigConfig) -> Rig:
+    """Cameras in a row looking right (−y of the rig), pitched up by ``cfg.pitch_deg``."""
+    if not (0 < cfg.hfov_deg < 170):
+        raise ValueError(f"hfov_deg must be in (0, 170), got {cfg.hfov_deg}")
+    if cfg.width < 8 or cfg.height < 8:
+        raise ValueError(f"image size {cfg.width}x{cfg.height} is too small")
+    a = np.radians(cfg.pitch_deg)
+    z_axis = np.array([0.0, -np.cos(a), np.sin(a)])  # forward: right of the car, tilted up
+    y_axis = np.array([0.0, -np.sin(a), -np.cos(a)])  # down in the image
+    x_axis = np.cross(y_axis, z_axis)  # = −x of the rig: the row runs backwards
+    rig_from_cam_rot = np.stack([x_axis, y_axis, z_axis], axis=1)
+    K = pinhole(cfg.width, cfg.height, cfg.hfov_deg)
+    Ts = []
+    for b in cfg.baselines:
+        T = np.eye(4)
+        T[:3, :3] = rig_from_cam_rot
+        T[:3, 3] = np.array([0.0, 0.0, cfg.mount_height]) + b * x_axis
+        Ts.append(np.linalg.inv(T))
+    n = len(cfg.baselines)
+    return Rig(np.repeat(K[None], n, axis=0), ((cfg.width, cfg.height),) * n, np.array(Ts))
+
+
+def yaw_pose(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) float64 poses on the ground plane. x, y, yaw (radians): (n,)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.zeros((len(x), 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 2, 2] = T[:, 3, 3] = 1.0
+    T[:, 0, 3], T[:, 1, 3] = x, y
+    return T
+
+
+def drive_path(x_start: float, x_end: float, y_centre: float, frames: int, lane_offset: float,
+               return_pass: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Drive along +x in the right lane, then back along −x in the other lane.
+
+    Frames are evenly spaced along each pass; the rig's cameras look right,
+    so the outbound pass sees the y < y_centre side and the return pass the other.
+    Returns world_from_rig (n, 4, 4) float64 and the pass of each frame (n,) int32.
+    """
+    if frames < 1:
+        raise ValueError(f"frames must be at least 1, got {frames}")
+    x = np.linspace(x_start, x_end, frames) if frames > 1 else np.array([(x_start + x_end) / 2])
+    out = yaw_pose(x, np.full(frames, y_centre - lane_offset), np.zeros(frames))
+    passes = [out]
+    if return_pass:
+        passes.append(yaw_pose(x[::-1], np.full(frames, y_centre + lane_offset), np.full(frames, np.pi)))
+    poses = np.concatenate(passes)
+    which = np.repeat(np.arange(len(passes), dtype=np.int32), frames)
+    return poses, which
+
+
+def save_poses(path: os.PathLike | str, world_from_rig: np.ndarray, passes: np.ndarray) -> Path:
+    """Write ``poses.json``: one ``world_from_rig`` (4, 4) float64 per frame."""
+    frames = [{"index": i, "name": f"{i:06d}", "pass": int(p), "world_from_rig": T.tolist()}
+              for i, (T, p) in enumerate(zip(world_from_rig, passes))]
+    return write_json(path, {"format": POSES_FORMAT, "version": FORMAT_VERSION, "frames": frames})
+
+
+def load_poses(path: os.PathLike | str) -> tuple[np.ndarray, list[str]]:
+    """Read and validate ``poses.json`` → world_from_rig (n, 4, 4) float64 and frame names."""
+    path = Path(path)
+    data = read_json(path)
+    if not isinstance(data, dict) or data.get("format") != POSES_FORMAT:
+        raise DataFormatError(path, f"not a poses file (expected \"format\": \"{POSES_FORMAT}\")")
+    if data.get("version") != FORMAT_VERSION:
+        raise DataFormatError(path, f"unsupported version {data.get('version')!r}")
+    frames = data.get("frames")
+    if not isinstance(frames, list):
+        raise DataFormatError(path, "\"frames\" must be a list")
+    poses, names = [], []
+    for i, fr in enumerate(frames):
+        if not isinstance(fr, dict) or "world_from_rig" not in fr or not isinstance(fr.get("name"), str):
+            raise DataFormatError(path, f"frames[{i}] needs \"name\" and \"world_from_rig\"")
+        if not fr["name"] or any(c in fr["name"] for c in "/\\\0") or fr["name"] in (".", ".."):
+            raise DataFormatError(path, f"frames[{i}].name {fr['name']!r} is not a plain file stem")
+        T = as_matrix(fr["world_from_rig"], (4, 4), path, f"frames[{i}].world_from_rig")
+        poses.append(check_rigid(T, path, f"frames[{i}].world_from_rig"))
+        names.append(fr["name"])
+    if len(set(names)) != len(names):
+        raise DataFormatError(path, "frame names are not unique")
+    return np.array(poses).reshape(-1, 4, 4), names

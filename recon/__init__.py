@@ -1,0 +1,1 @@
+"""Three-camera stereo, fusion and poses (built by a later issue)."""

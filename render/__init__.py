@@ -1,0 +1,1 @@
+"""moderngl renderer, culling and viewer (built by a later issue)."""
