@@ -3,6 +3,7 @@
 Layout of a dataset directory::
 
     dataset.json              manifest, written last: its presence marks a complete dataset
+    synth_report.json         timings of the run that wrote it (the only file that varies)
     rig.json                  intrinsics (distortion none) and cam_from_rig per camera
     poses.json                world_from_rig per frame, float64
     images/cam{c}/NNNNNN.png  RGB images
@@ -218,8 +219,11 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
         "frames": len(names), "cameras": rig.num_cameras, "image_size": list(rig.sizes[0]),
         "objects": scene.num_objects, "triangles": int(len(scene.triangles)),
         "ground_truth": True, "synth": cfg_dict,
-        "timing": {"scene_seconds": t_scene, "render_seconds": t_render, "frames_rendered": len(todo),
-                   "median_frame_seconds": float(np.median(frame_seconds)) if frame_seconds else None},
+    })
+    # timings vary run to run, so they live apart from the byte-reproducible dataset files
+    write_json(root / "synth_report.json", {
+        "scene_seconds": t_scene, "render_seconds": t_render, "frames_rendered": len(todo),
+        "median_frame_seconds": float(np.median(frame_seconds)) if frame_seconds else None,
     })
     return root
 

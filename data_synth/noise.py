@@ -36,6 +36,15 @@ def rand01(seed: np.ndarray | int, *keys: np.ndarray | int) -> np.ndarray:
     return hash_u32(seed, *keys).astype(np.float64) * (1.0 / 4294967296.0)
 
 
+_TABLE_BITS = 10
+_TABLE_MASK = (1 << _TABLE_BITS) - 1
+# Lattice values for value noise: a fixed 1024×1024 table (PCG64 is the same
+# on every platform). A gather is several times cheaper than hashing each
+# lattice corner; per-seed offsets decorrelate objects, and the period
+# (1024 lattice cells, 10 m at 1 cm) is far beyond any stereo search range.
+_TABLE = np.random.default_rng(0x5EED).random(1 << (2 * _TABLE_BITS))
+
+
 def value_noise(u: np.ndarray, v: np.ndarray, scale: float, seed: np.ndarray | int) -> np.ndarray:
     """Smooth 2-D value noise in [0, 1).
 
@@ -44,18 +53,23 @@ def value_noise(u: np.ndarray, v: np.ndarray, scale: float, seed: np.ndarray | i
     """
     x = u / scale
     y = v / scale
-    ix = np.floor(x)
-    iy = np.floor(y)
-    fx = x - ix
-    fy = y - iy
-    ix = ix.astype(np.int64)
-    iy = iy.astype(np.int64)
+    fx = np.floor(x)
+    fy = np.floor(y)
+    offset = hash_u32(seed).astype(np.int64)
+    ix = fx.astype(np.int64) + offset
+    iy = fy.astype(np.int64) + (offset >> _TABLE_BITS)
+    fx = x - fx
+    fy = y - fy
+    row0 = (ix & _TABLE_MASK) << _TABLE_BITS
+    row1 = ((ix + 1) & _TABLE_MASK) << _TABLE_BITS
+    col0 = iy & _TABLE_MASK
+    col1 = (iy + 1) & _TABLE_MASK
+    a = _TABLE[row0 | col0]
+    b = _TABLE[row1 | col0]
+    c = _TABLE[row0 | col1]
+    d = _TABLE[row1 | col1]
     sx = fx * fx * (3.0 - 2.0 * fx)
     sy = fy * fy * (3.0 - 2.0 * fy)
-    a = rand01(seed, ix, iy)
-    b = rand01(seed, ix + 1, iy)
-    c = rand01(seed, ix, iy + 1)
-    d = rand01(seed, ix + 1, iy + 1)
     return (a + (b - a) * sx) * (1.0 - sy) + (c + (d - c) * sx) * sy
 
 

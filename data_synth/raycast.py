@@ -55,7 +55,8 @@ class Renderer:
         """Shaded colour (n, 3) float64 of rays from ``origin``."""
         t, prim, normal = self._cast(origin, directions)
         hit = np.isfinite(t)
-        colour = sky(directions)
+        colour = np.empty((len(t), 3))
+        colour[~hit] = sky(directions[~hit])
         if hit.any():
             p = origin + t[hit, None] * directions[hit]
             colour[hit] = shade(self.scene, p, normal[hit], self.scene.triangle_object[prim[hit]])

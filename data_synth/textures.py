@@ -179,7 +179,8 @@ def facade(h: Hits, house: bool = False) -> np.ndarray:
     door = ground & (col == np.floor(h.param(9, 0, 1) * n_cols)) & (np.abs(fx) < 0.55) & (fy < 2.2)
     panel = door & ((np.abs(np.abs(fx) - 0.25) < 0.025) | (np.abs(fy - 1.1) < 0.025) | (np.abs(fx) < 0.02))
     door_rgb = h.palette(10, _DOORS)
-    colour = _mix(colour, door_rgb * (0.85 + 0.3 * value_noise(u * 5, v, 0.05, seed + 8))[:, None], door)
+    _where(door, colour, lambda x, y, s, c: c * (0.85 + 0.3 * value_noise(x * 5, y, 0.05, s))[:, None],
+           u, v, seed + 8, door_rgb)
     colour = _mix(colour, door_rgb * 0.6, panel)
     if not house:
         shop = ground & ~door & (np.abs(fx) < pitch / 2 - 0.3) & (fy > 0.5) & (fy < 2.3)

@@ -1,0 +1,21 @@
+"""Shared fixtures: tiny synthetic datasets made on the fly."""
+
+from __future__ import annotations
+
+import pytest
+
+from data_synth import RigConfig, StreetConfig, SynthConfig, write_dataset
+
+
+def tiny_config(seed: int = 0, **overrides) -> SynthConfig:
+    """A 30 m street, 3 frames per pass, 160×120 images: renders in about a second."""
+    base = dict(scene="street", street=StreetConfig(length=30.0, seed=seed),
+                rig=RigConfig(width=160, height=120), frames=3, spp=2)
+    base.update(overrides)
+    return SynthConfig(**base)
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+    """Path of a tiny street dataset, written once per test session (read-only for tests)."""
+    return write_dataset(tiny_config(), tmp_path_factory.mktemp("tiny") / "street", progress=False)
