@@ -17,7 +17,7 @@ from .scene import Scene
 from .textures import shade, sky
 
 #: Upper bound on rays cast at once (bounds memory: about 100 bytes per ray).
-MAX_RAYS_PER_CHUNK = 1 << 20
+MAX_RAYS_PER_CHUNK = 1 << 16
 
 
 @dataclass(frozen=True)
