@@ -55,6 +55,55 @@ def _run_synth(args) -> int:
     return 0
 
 
+def _add_recon(sub) -> None:
+    p = sub.add_parser(
+        "recon", help="three-camera stereo → fused coloured point cloud (cloud.ply)",
+        description="Rectify each camera pair, match by SGBM with a left-right check, fuse the three "
+                    "pairs per frame, merge all frames by voxel hashing, remove outliers and write "
+                    "WORK/cloud.ply and WORK/recon_report.json (with accuracy and completeness when "
+                    "the dataset has ground truth).")
+    p.add_argument("dataset", type=Path, help="dataset directory (rig.json, poses.json, images/)")
+    p.add_argument("--out", type=Path, required=True, help="work directory")
+    p.add_argument("--poses", nargs="+", default=["given"], metavar="SOURCE",
+                   help="given (poses.json), colmap DIR (import a COLMAP model) or sfm (pycolmap)")
+    p.add_argument("--preset", default="default", help="stereo preset: fast, default or accurate")
+    p.add_argument("--voxel-size", type=float, default=0.02, help="fused cloud resolution in metres (default 0.02)")
+    p.add_argument("--min-depth", type=float, default=None, help="nearest depth to match, metres")
+    p.add_argument("--max-depth", type=float, default=None, help="farthest depth to match, metres")
+    p.add_argument("--frame-stride", type=int, default=1, help="use every n-th frame (default 1)")
+    p.add_argument("--wls", action="store_true", help="WLS-filter the disparities (smoother, slower)")
+    p.add_argument("--no-eval", action="store_true", help="skip the ground-truth evaluation")
+    p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
+    p.set_defaults(func=_run_recon)
+
+
+def _run_recon(args) -> int:
+    from recon.fusion import FusionConfig
+    from recon.pipeline import POSE_SOURCES, ReconConfig, main as recon_main
+    from recon.stereo import PRESETS
+    from recon.trinocular import TrinocularConfig
+
+    source, *rest = args.poses
+    if source not in POSE_SOURCES or (source == "colmap") != (len(rest) == 1) or len(rest) > 1:
+        raise ValueError(f"--poses takes given, sfm or colmap DIR; got {' '.join(args.poses)}")
+    if args.preset not in PRESETS:
+        raise ValueError(f"unknown --preset {args.preset!r}; choose from {', '.join(PRESETS)}")
+    stereo = PRESETS[args.preset]
+    overrides = {k: v for k, v in (("min_depth", args.min_depth), ("max_depth", args.max_depth)) if v is not None}
+    if args.wls:
+        overrides["wls"] = True
+    stereo = dataclasses.replace(stereo, **overrides)
+    conf = ReconConfig(trinocular=TrinocularConfig(stereo=stereo), fusion=FusionConfig(voxel_size=args.voxel_size),
+                       poses=source, colmap_model=rest[0] if rest else None, frame_stride=args.frame_stride,
+                       evaluate=not args.no_eval)
+    from .executor import make_executor
+
+    with make_executor(args.workers) as executor:
+        cloud = recon_main(conf, args.dataset, args.out, executor=executor)
+    logger.info("wrote %s and %s", cloud, cloud.with_name("recon_report.json"))
+    return 0
+
+
 def _add_check(sub) -> None:
     p = sub.add_parser("check", help="validate a dataset (rig, poses, every image)",
                        description="Validate rig.json, poses.json and that every image exists; "
@@ -101,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_synth(sub)
+    _add_recon(sub)
     _add_check(sub)
     _add_bench(sub)
     return parser

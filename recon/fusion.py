@@ -1,0 +1,220 @@
+"""Fusing per-frame points into one world cloud with bounded memory.
+
+Frames are independent until the merge. Each frame's points are first
+averaged per voxel (sums and counts, keyed by packed voxel indices), then
+spilled to spatial tiles on disk. The merge then works tile by tile: sum the
+tile's voxel records, take means, remove outliers with the neighbouring tiles
+as context, estimate normals. Peak memory is bounded by a frame and a 3×3
+block of tiles, whatever the street's length; only the final cloud, which is
+the output, grows with it.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from data_synth.fileio import load_npy, save_npy
+
+logger = logging.getLogger(__name__)
+
+_BITS = 21  # bits per axis in a packed voxel key: ±2^20 voxels (±21 km at 2 cm)
+_HALF = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    voxel_size: float = 0.02  # fused cloud resolution, metres
+    tile_size: float = 16.0  # side of the on-disk spill tiles, metres (memory per tile)
+    outlier_neighbours: int = 16  # statistical outlier removal: neighbours considered (0 = off)
+    outlier_std_ratio: float = 2.5  # ... and the distance threshold in standard deviations
+    radius_min_points: int = 4  # radius outlier removal: neighbours needed within 3 voxels (0 = off)
+    min_observations: int = 2  # drop voxels supported by fewer raw points than this
+    normals: bool = True  # estimate normals (oriented towards the capture path)
+
+
+def pack_keys(index: np.ndarray) -> np.ndarray:
+    """Voxel indices (n, 3) int64, each in [−2^20, 2^20) → packed keys (n,) int64."""
+    if len(index) and (index.min() < -_HALF or index.max() >= _HALF):
+        raise ValueError("points lie more than 2^20 voxels from the model origin; use a coarser voxel "
+                         "size or a nearer origin")
+    u = (index + _HALF).astype(np.int64)
+    return (u[:, 0] << (2 * _BITS)) | (u[:, 1] << _BITS) | u[:, 2]
+
+
+def unpack_keys(keys: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`pack_keys`: (n,) int64 → (n, 3) int64."""
+    return np.stack([(keys >> (2 * _BITS)) & _MASK, (keys >> _BITS) & _MASK, keys & _MASK], -1) - _HALF
+
+
+def voxel_sums(points: np.ndarray, colours: np.ndarray, weights: np.ndarray, origin: np.ndarray,
+               voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Aggregate points per voxel.
+
+    points: (n, 3) float64 world; colours: (n, 3) uint8; weights: (n,) float32 ≥ 0;
+    origin: (3,) float64 model origin. Returns sorted unique keys (k,) int64 and
+    records (k, 8) float64: weighted sums of position relative to the origin (3)
+    and colour (3), the weight sum, and the raw point count.
+    """
+    rel = points - origin
+    keys = pack_keys(np.floor(rel / voxel).astype(np.int64))
+    return reduce_records(keys, np.concatenate([
+        rel * weights[:, None], colours.astype(np.float64) * weights[:, None],
+        weights[:, None].astype(np.float64), np.ones((len(points), 1))], axis=1))
+
+
+def reduce_records(keys: np.ndarray, records: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sum records (n, 8) float64 that share a key (n,) int64 → sorted unique keys, sums."""
+    unique, inverse = np.unique(keys, return_inverse=True)
+    sums = np.zeros((len(unique), records.shape[1]))
+    for j in range(records.shape[1]):  # bincount per column: much faster than np.add.at
+        sums[:, j] = np.bincount(inverse, weights=records[:, j], minlength=len(unique))
+    return unique, sums
+
+
+def reduce_records_reference(keys: np.ndarray, records: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Slow, obvious dict version of :func:`reduce_records` for tests."""
+    acc: dict[int, np.ndarray] = {}
+    for k, r in zip(keys.tolist(), records):
+        acc[k] = acc.get(k, 0) + r
+    order = sorted(acc)
+    return np.array(order, dtype=np.int64), np.array([acc[k] for k in order]).reshape(-1, records.shape[1])
+
+
+class TileSpill:
+    """Per-frame voxel records spilled to spatial tiles under ``root``.
+
+    Safe for concurrent writers: each frame writes its own files.
+    """
+
+    def __init__(self, root: Path, origin: np.ndarray, cfg: FusionConfig):
+        self.root = Path(root)
+        self.origin = np.asarray(origin, dtype=np.float64)
+        self.cfg = cfg
+        self.tile_voxels = max(1, int(round(cfg.tile_size / cfg.voxel_size)))
+
+    def tile_of(self, keys: np.ndarray) -> np.ndarray:
+        """(k,) keys → (k, 2) int64 tile xy index."""
+        return np.floor_divide(unpack_keys(keys)[:, :2], self.tile_voxels)
+
+    def add_frame(self, name: str, points: np.ndarray, colours: np.ndarray, weights: np.ndarray) -> int:
+        """Aggregate one frame's points and write them to their tiles. Returns voxels written."""
+        keys, sums = voxel_sums(points, colours, weights, self.origin, self.cfg.voxel_size)
+        tiles = self.tile_of(keys)
+        for tx, ty in np.unique(tiles, axis=0):
+            m = (tiles[:, 0] == tx) & (tiles[:, 1] == ty)
+            d = self.root / f"tile_{tx}_{ty}"
+            save_npy(d / f"{name}.keys.npy", keys[m])
+            save_npy(d / f"{name}.sums.npy", sums[m])
+        return len(keys)
+
+    def tiles(self) -> list[tuple[int, int]]:
+        return sorted(tuple(int(x) for x in d.name.split("_")[1:]) for d in self.root.glob("tile_*"))
+
+    def _reduced_path(self, tile: tuple[int, int]) -> Path:
+        return self.root / "reduced" / f"{tile[0]}_{tile[1]}.npy"
+
+    def reduce_tile(self, tile: tuple[int, int]) -> np.ndarray:
+        """Merge a tile's frame records → voxel means (k, 7) float64: position relative
+        to the origin (3), colour 0..255 (3), raw count; cached on disk."""
+        path = self._reduced_path(tile)
+        if path.exists():
+            return load_npy(path, dtype=np.float64, shape=(None, 7))
+        d = self.root / f"tile_{tile[0]}_{tile[1]}"
+        keys = [load_npy(p, dtype=np.int64) for p in sorted(d.glob("*.keys.npy"))]
+        sums = [load_npy(p.with_name(p.name.replace(".keys", ".sums")), dtype=np.float64, shape=(None, 8))
+                for p in sorted(d.glob("*.keys.npy"))]
+        k, s = reduce_records(np.concatenate(keys), np.concatenate(sums))
+        keep = (s[:, 6] > 0) & (s[:, 7] >= self.cfg.min_observations)
+        s = s[keep]
+        means = np.concatenate([s[:, 0:3] / s[:, 6:7], s[:, 3:6] / s[:, 6:7], s[:, 7:8]], axis=1)
+        save_npy(path, means)
+        return means
+
+    def cleanup(self) -> None:
+        shutil.rmtree(self.root, ignore_errors=True)
+
+
+def _filter_and_normals(points: np.ndarray, colours: np.ndarray, own: np.ndarray, cfg: FusionConfig,
+                        cameras: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Outlier removal and normals on a tile with context. points: (n, 3) float64
+    relative to the origin; own: (n,) bool, the tile's own points. Returns the own
+    points kept, their colours and normals (or None)."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    keep = np.ones(len(points), bool)
+    if cfg.outlier_neighbours > 0 and len(points) > cfg.outlier_neighbours:
+        _, idx = pcd.remove_statistical_outlier(cfg.outlier_neighbours, cfg.outlier_std_ratio)
+        m = np.zeros(len(points), bool)
+        m[np.asarray(idx, dtype=np.int64)] = True
+        keep &= m
+    if cfg.radius_min_points > 0 and len(points):
+        _, idx = pcd.remove_radius_outlier(cfg.radius_min_points, 3.0 * cfg.voxel_size)
+        m = np.zeros(len(points), bool)
+        m[np.asarray(idx, dtype=np.int64)] = True
+        keep &= m
+    sel = keep & own
+    normals = None
+    if cfg.normals and sel.any():
+        kept = pcd.select_by_index(np.flatnonzero(keep))
+        kept.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * cfg.voxel_size, max_nn=16))
+        n_all = np.asarray(kept.normals)
+        normals = n_all[own[keep]]
+        p = points[sel]
+        nearest = _nearest_camera(p, cameras)
+        flip = np.einsum("ij,ij->i", normals, nearest - p) < 0
+        normals[flip] *= -1
+    return points[sel], colours[sel], normals
+
+
+def _nearest_camera(points: np.ndarray, cameras: np.ndarray, chunk: int = 65536) -> np.ndarray:
+    """For points (n, 3), the nearest of cameras (c, 3) → (n, 3). Chunked brute force."""
+    out = np.empty_like(points)
+    for i in range(0, len(points), chunk):
+        p = points[i:i + chunk]
+        d = ((p[:, None, :] - cameras[None, :, :]) ** 2).sum(-1)
+        out[i:i + chunk] = cameras[np.argmin(d, axis=1)]
+    return out
+
+
+def merge_tiles(spill: TileSpill, camera_centres: np.ndarray) -> o3d.geometry.PointCloud:
+    """Finish the fusion: per tile, reduce, filter with neighbour context, estimate
+    normals. camera_centres: (c, 3) float64 world (orients normals).
+    Returns an Open3D cloud with float64 world positions, colours (and normals)."""
+    cfg = spill.cfg
+    tiles = spill.tiles()
+    present = set(tiles)
+    margin = 6 * cfg.voxel_size  # context: enough for the neighbourhood statistics
+    cams_rel = np.asarray(camera_centres, dtype=np.float64) - spill.origin
+    out_p, out_c, out_n = [], [], []
+    for tile in tiles:
+        own = spill.reduce_tile(tile)
+        lo = np.array(tile, dtype=np.float64) * spill.tile_voxels * cfg.voxel_size - margin
+        hi = lo + spill.tile_voxels * cfg.voxel_size + 2 * margin
+        ctx = [own]
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                nb = (tile[0] + dx, tile[1] + dy)
+                if (dx or dy) and nb in present:
+                    m = spill.reduce_tile(nb)
+                    inside = np.all((m[:, :2] >= lo[:2]) & (m[:, :2] < hi[:2]), axis=1)
+                    ctx.append(m[inside])
+        block = np.concatenate(ctx)
+        is_own = np.zeros(len(block), bool)
+        is_own[:len(own)] = True
+        p, c, n = _filter_and_normals(block[:, :3], block[:, 3:6], is_own, cfg, cams_rel)
+        out_p.append(p)
+        out_c.append(c)
+        if n is not None:
+            out_n.append(n)
+    points = np.concatenate(out_p) if out_p else np.zeros((0, 3))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points + spill.origin))
+    pcd.colors = o3d.utility.Vector3dVector((np.concatenate(out_c) if out_c else np.zeros((0, 3))) / 255.0)
+    if cfg.normals and len(out_n) == len(out_p) and out_n:
+        pcd.normals = o3d.utility.Vector3dVector(np.concatenate(out_n))
+    return pcd

@@ -1,0 +1,186 @@
+"""The reconstruction stage: dataset → ``cloud.ply`` + ``recon_report.json``.
+
+Frames are independent until the merge: each is rectified, matched by
+trinocular stereo, back-projected and spilled to voxel tiles by a task that
+runs on any ``concurrent.futures.Executor``. The merge then fuses the tiles
+(see :mod:`recon.fusion`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import resource
+import time
+from concurrent.futures import Executor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from data_synth import load_dataset, load_scene
+from data_synth.fileio import write_json
+
+from .evaluate import evaluate_cloud
+from .cloud_io import write_cloud
+from .fusion import FusionConfig, TileSpill, merge_tiles
+from .points import depth_to_points
+from .rectify import rectify_rig
+from .trinocular import TrinocularConfig, frame_depth
+
+logger = logging.getLogger(__name__)
+
+POSE_SOURCES = ("given", "colmap", "sfm")
+
+
+@dataclass(frozen=True)
+class ReconConfig:
+    trinocular: TrinocularConfig = field(default_factory=TrinocularConfig)  # stereo and pair agreement
+    fusion: FusionConfig = field(default_factory=FusionConfig)  # voxel merge and outlier removal
+    poses: str = "given"  # "given" (poses.json), "colmap" (import colmap_model) or "sfm" (pycolmap)
+    colmap_model: str | None = None  # COLMAP model directory for poses == "colmap"
+    frame_stride: int = 1  # use every n-th frame
+    pixel_stride: int = 1  # back-project every n-th pixel of each depth map
+    evaluate: bool = True  # compare with ground truth when the dataset has it
+    keep_spill: bool = False  # keep the voxel tiles under WORK/spill after the merge
+
+
+@dataclass(frozen=True)
+class _FrameTask:
+    dataset: str
+    frame: int
+    world_from_rig: list
+    spill_root: str
+    origin: list
+    trinocular: TrinocularConfig
+    fusion: FusionConfig
+    pixel_stride: int
+
+
+_PAIRS_CACHE: dict[str, dict] = {}
+
+
+def _process_frame(task: _FrameTask) -> dict:
+    """Stereo for one frame, then spill its points. Runs in a worker process."""
+    t0 = time.perf_counter()
+    ds = load_dataset(task.dataset)
+    if task.dataset not in _PAIRS_CACHE:  # rectification maps: once per rig and worker
+        _PAIRS_CACHE.clear()
+        _PAIRS_CACHE[task.dataset] = rectify_rig(ds.rig)
+    pairs = _PAIRS_CACHE[task.dataset]
+    images = [ds.image(task.frame, c) for c in range(ds.rig.num_cameras)]
+    t_read = time.perf_counter()
+    fd = frame_depth(images, pairs, task.trinocular)
+    t_stereo = time.perf_counter()
+    world_from_rig = np.asarray(task.world_from_rig, dtype=np.float64)
+    world_from_cam = world_from_rig @ np.linalg.inv(ds.rig.cam_from_rig[0])
+    points, colours, conf = depth_to_points(fd.depth, ds.rig.intrinsics[0], world_from_cam, images[0],
+                                            fd.confidence, stride=task.pixel_stride)
+    spill = TileSpill(Path(task.spill_root), np.asarray(task.origin), task.fusion)
+    voxels = spill.add_frame(ds.frame_names[task.frame], points, colours, conf)
+    return {"frame": task.frame, "points": int(len(points)), "voxels": voxels,
+            "read_s": t_read - t0, "stereo_s": t_stereo - t_read, "total_s": time.perf_counter() - t0}
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process and its finished children, MB (max of the two)."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(own, kids) / 1024.0
+
+
+def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np.ndarray, dict]:
+    """world_from_rig (n, 4, 4) float64 from the configured source, and a report."""
+    from . import poses
+
+    ds = load_dataset(dataset_dir)
+    if conf.poses == "given":
+        return poses.poses_given(ds), {"source": "given"}
+    if conf.poses == "colmap":
+        if not conf.colmap_model:
+            raise ValueError("--poses colmap needs a COLMAP model directory")
+        return poses.poses_from_colmap(Path(conf.colmap_model), ds), {"source": "colmap",
+                                                                       "model": str(conf.colmap_model)}
+    if conf.poses == "sfm":
+        result = poses.poses_sfm(ds, work / "sfm", poses.SfmConfig())
+        report = {"source": "sfm", **{k: v for k, v in asdict(result).items() if k != "world_from_rig"}}
+        report["trajectory_vs_dataset"] = poses.trajectory_rmse(result.world_from_rig, ds.world_from_rig)
+        return result.world_from_rig, report
+    raise ValueError(f"unknown pose source {conf.poses!r}; expected one of {POSE_SOURCES}")
+
+
+def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLike | str,
+         executor: Executor | None = None, progress: bool | None = None) -> Path:
+    """Reconstruct ``dataset_dir`` into ``work_dir/cloud.ply``; write ``recon_report.json``.
+
+    executor: runs frames in parallel; None runs them in this process.
+    Returns the cloud's path.
+    """
+    dataset_dir, work = Path(dataset_dir), Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    ds = load_dataset(dataset_dir)
+    stages: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    world_from_rig, pose_report = estimate_poses(conf, dataset_dir, work)
+    stages["poses_s"] = time.perf_counter() - t0
+
+    frames = list(range(0, ds.num_frames, conf.frame_stride))
+    frames = [f for f in frames if np.all(np.isfinite(world_from_rig[f]))]
+    # The model origin: float64 world coordinates stay on the CPU, everything
+    # stored in voxels is relative to it (a city's UTM coordinates survive).
+    origin = np.round(world_from_rig[frames, :3, 3].mean(axis=0), 3)
+    spill_root = work / "spill"
+    if spill_root.exists():
+        TileSpill(spill_root, origin, conf.fusion).cleanup()  # never mix with an earlier run
+    tasks = [_FrameTask(str(dataset_dir), f, world_from_rig[f].tolist(), str(spill_root), origin.tolist(),
+                        conf.trinocular, conf.fusion, conf.pixel_stride) for f in frames]
+
+    t1 = time.perf_counter()
+    frame_stats = []
+    bar = tqdm(total=len(tasks), desc="stereo", unit="frame", disable=None if progress is None else not progress)
+    if executor is None:
+        for t in tasks:
+            frame_stats.append(_process_frame(t))
+            bar.update()
+    else:
+        for fut in as_completed([executor.submit(_process_frame, t) for t in tasks]):
+            frame_stats.append(fut.result())
+            bar.update()
+    bar.close()
+    stages["frames_s"] = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    spill = TileSpill(spill_root, origin, conf.fusion)
+    centres = np.array([(world_from_rig[f] @ np.linalg.inv(ds.rig.cam_from_rig[0]))[:3, 3] for f in frames])
+    pcd = merge_tiles(spill, centres)
+    stages["merge_s"] = time.perf_counter() - t2
+    cloud_path = write_cloud(work / "cloud.ply", pcd)
+    if not conf.keep_spill:
+        spill.cleanup()
+
+    report = {
+        "dataset": str(dataset_dir), "config": json.loads(json.dumps(asdict(conf), default=str)),
+        "frames": len(frames), "points": int(len(pcd.points)), "origin": origin.tolist(),
+        "poses": pose_report, "stages": stages,
+        "seconds_per_frame": float(np.median([s["total_s"] for s in frame_stats])) if frame_stats else None,
+        "stereo_seconds_per_frame": float(np.median([s["stereo_s"] for s in frame_stats])) if frame_stats else None,
+        "peak_rss_mb": _peak_rss_mb(),
+    }
+    if conf.evaluate and ds.has_ground_truth:
+        t3 = time.perf_counter()
+        scene = load_scene(dataset_dir)
+        points = np.asarray(pcd.points)
+        if conf.poses == "sfm":  # the SfM frame is arbitrary: bring the cloud into the dataset's frame
+            from .poses import align_trajectory
+
+            _, T, scale = align_trajectory(world_from_rig[frames], ds.world_from_rig[frames], with_scale=False)
+            points = points @ T[:3, :3].T * scale + T[:3, 3]
+        max_depth = conf.trinocular.stereo.max_depth
+        report["accuracy"] = evaluate_cloud(points, ds, scene, max_depth=max_depth)
+        stages["evaluate_s"] = time.perf_counter() - t3
+    write_json(work / "recon_report.json", report)
+    logger.info("cloud: %d points → %s", len(pcd.points), cloud_path)
+    return cloud_path
