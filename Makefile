@@ -32,6 +32,7 @@ $(INSTALL_STAMP): $(SYSDEPS_STAMP) pyproject.toml
 
 demo: $(INSTALL_STAMP)
 	$(BIN)/bbcity synth street --out $(DEMO_DIR)/street
+	$(BIN)/bbcity recon $(DEMO_DIR)/street --out $(DEMO_DIR)/work
 
 test: $(INSTALL_STAMP)
 	$(BIN)/python -m pytest -q

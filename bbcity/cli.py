@@ -104,6 +104,24 @@ def _run_recon(args) -> int:
     return 0
 
 
+def _add_stereo_sweep(sub) -> None:
+    p = sub.add_parser("stereo-sweep", help="stereo error against seconds per frame over SGBM settings",
+                       description="Run trinocular stereo on a few frames of a dataset with ground truth for "
+                                   "several SGBM settings; write a table, JSON and a work-precision plot.")
+    p.add_argument("dataset", type=Path, help="dataset directory with gt/")
+    p.add_argument("--out", type=Path, required=True, help="report directory")
+    p.add_argument("--frames", type=int, default=4, help="frames to evaluate, spread along the path (default 4)")
+    p.set_defaults(func=_run_stereo_sweep)
+
+
+def _run_stereo_sweep(args) -> int:
+    from .sweeps import stereo_sweep
+
+    stereo_sweep(args.dataset, args.out, args.frames)
+    print((args.out / "stereo_sweep.md").read_text())
+    return 0
+
+
 def _add_check(sub) -> None:
     p = sub.add_parser("check", help="validate a dataset (rig, poses, every image)",
                        description="Validate rig.json, poses.json and that every image exists; "
@@ -151,6 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_synth(sub)
     _add_recon(sub)
+    _add_stereo_sweep(sub)
     _add_check(sub)
     _add_bench(sub)
     return parser

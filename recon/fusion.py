@@ -159,7 +159,7 @@ def _filter_and_normals(points: np.ndarray, colours: np.ndarray, own: np.ndarray
         m[np.asarray(idx, dtype=np.int64)] = True
         keep &= m
     sel = keep & own
-    normals = None
+    normals = np.zeros((0, 3)) if cfg.normals else None
     if cfg.normals and sel.any():
         kept = pcd.select_by_index(np.flatnonzero(keep))
         kept.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * cfg.voxel_size, max_nn=16))

@@ -176,8 +176,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         if conf.poses == "sfm":  # the SfM frame is arbitrary: bring the cloud into the dataset's frame
             from .poses import align_trajectory
 
-            _, T, scale = align_trajectory(world_from_rig[frames], ds.world_from_rig[frames], with_scale=False)
-            points = points @ T[:3, :3].T * scale + T[:3, 3]
+            _, T, _ = align_trajectory(world_from_rig[frames], ds.world_from_rig[frames], with_scale=False)
+            points = points @ T[:3, :3].T + T[:3, 3]
         max_depth = conf.trinocular.stereo.max_depth
         report["accuracy"] = evaluate_cloud(points, ds, scene, max_depth=max_depth)
         stages["evaluate_s"] = time.perf_counter() - t3

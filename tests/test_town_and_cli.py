@@ -49,9 +49,10 @@ def test_town_dataset_renders(tmp_path):
 
 def test_help_lists_subcommands():
     out = subprocess.run([sys.executable, "-m", "bbcity.cli", "--help"], capture_output=True, text=True, check=True)
-    for cmd in ("synth", "check", "bench"):
+    commands = ("synth", "recon", "stereo-sweep", "check", "bench")
+    for cmd in commands:
         assert cmd in out.stdout
-    for cmd in ("synth", "check", "bench"):
+    for cmd in commands:
         with pytest.raises(SystemExit) as e:
             main([cmd, "--help"])
         assert e.value.code == 0
