@@ -66,7 +66,7 @@ def _add_recon(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="work directory")
     p.add_argument("--poses", nargs="+", default=["given"], metavar="SOURCE",
                    help="given (poses.json), colmap DIR (import a COLMAP model) or sfm (pycolmap)")
-    p.add_argument("--preset", default="default", help="stereo preset: fast, default or accurate")
+    p.add_argument("--preset", default="accurate", help="stereo preset: fast, default or accurate (default: accurate)")
     p.add_argument("--voxel-size", type=float, default=0.02, help="fused cloud resolution in metres (default 0.02)")
     p.add_argument("--min-depth", type=float, default=None, help="nearest depth to match, metres")
     p.add_argument("--max-depth", type=float, default=None, help="farthest depth to match, metres")

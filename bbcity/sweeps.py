@@ -21,19 +21,24 @@ from data_synth.fileio import atomic_path, write_bytes, write_json
 logger = logging.getLogger(__name__)
 
 
+PIPELINE_SETTING = "accurate (preset, recon's default)"
+
+
 def stereo_settings() -> dict:
     """Named StereoConfig variants for the sweep (from the presets)."""
     from recon.stereo import PRESETS
 
-    base = PRESETS["default"]
+    base = PRESETS["accurate"]  # what `bbcity recon` uses unless told otherwise
     return {
         "fast (preset)": PRESETS["fast"],
-        "default (preset)": base,
-        "accurate (preset)": PRESETS["accurate"],
-        "block 3": dataclasses.replace(base, block_size=3),
-        "block 9": dataclasses.replace(base, block_size=9),
-        "half scale": dataclasses.replace(base, image_scale=0.5),
-        "default + WLS": dataclasses.replace(base, wls=True),
+        "default (preset)": PRESETS["default"],
+        PIPELINE_SETTING: base,
+        "accurate, block 5": dataclasses.replace(base, block_size=5),
+        "accurate, block 9": dataclasses.replace(base, block_size=9),
+        "accurate, half scale": dataclasses.replace(base, image_scale=0.5),
+        "accurate, 3 paths (sgbm_3way)": dataclasses.replace(base, mode="sgbm_3way"),
+        "accurate, search from 4 m": dataclasses.replace(base, min_depth=4.0),
+        "accurate + WLS": dataclasses.replace(base, wls=True),
     }
 
 
@@ -67,11 +72,11 @@ def stereo_sweep(dataset_dir: Path, out_dir: Path, num_frames: int = 4) -> dict:
                **{k: float(np.nanmean([e[k] for e in evals])) for k in evals[0]}}
         rows.append(row)
         logger.info("stereo sweep %s: %s", name, row)
-        if name == "default (preset)":
+        if name == PIPELINE_SETTING:
             for key, ev in per_pair.items():
                 pair_rows.append({"depth from": f"pair {key[0]}-{key[1]} only",
                                   **{k: float(np.nanmean([e[k] for e in ev])) for k in ev[0]}})
-            pair_rows.append({"depth from": "trinocular (≥ 2 pairs agree)",
+            pair_rows.append({"depth from": "trinocular (≥ 2 of 3 pairs agree)",
                               **{k: v for k, v in row.items() if k not in ("setting", "seconds_per_frame")}})
 
     result = {"dataset": str(dataset_dir), "frames": frames, "focal_px": f, "wide_baseline_m": B,

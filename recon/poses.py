@@ -28,6 +28,7 @@ from __future__ import annotations
 # with pycolmap first, OpenCV's PNG writer crashes (clashing bundled libpng).
 import data_synth  # noqa: F401  (import order, see above)
 from data_synth import Dataset, DataFormatError
+from data_synth.fileio import read_json
 
 import contextlib
 import logging
@@ -48,7 +49,7 @@ from tqdm import tqdm
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "MissingFramesError", "SfmConfig", "SfmResult", "align_trajectory", "colmap_log_to_logging",
+    "MissingFramesError", "SfmConfig", "SfmResult", "align_trajectory", "colmap_log_to_logging", "frame_passes",
     "poses_from_colmap", "poses_from_reconstruction", "poses_given", "poses_sfm", "rig_baseline_ratio",
     "trajectory_rmse",
 ]
@@ -340,9 +341,11 @@ class SfmConfig:
     overlap: int = 5  # sequential matching: each frame is matched with the next `overlap` frames (all rig images)
     quadratic_overlap: bool = False  # also match frames 2^k apart (helps loops, costs pairs)
     max_ratio: float = 0.8  # Lowe ratio test of SIFT matching
-    rig_verification: bool = False  # verify pairs of whole frames with the known rig (COLMAP ≥ 4)
+    split_passes: bool = True  # never match frames of different passes (poses.json "pass"): they see opposite sides
+    rig_verification: bool = False  # verify pairs of whole frames with the known rig (about 10× slower matching)
     refine_rig: bool = False  # let bundle adjustment refine sensor_from_rig (scale then restored from the baseline)
     min_model_frames: int = 3  # smallest reconstruction kept, in frames
+    min_num_inliers: int = 15  # geometric verification: inlier matches needed to keep an image pair
     min_num_matches: int = 15  # verified matches needed to use an image pair in mapping
     num_threads: int = -1  # CPU threads for COLMAP (-1: all cores)
     seed: int = 0  # COLMAP's random seed (RANSAC, mapping)
@@ -444,16 +447,60 @@ def _extract(db: Path, dataset: Dataset, image_names: list[str], cfg: SfmConfig)
                 n_img, n_kp / max(n_img, 1), n_frames, n_rigs)
 
 
-def _match(db: Path, cfg: SfmConfig) -> None:
+def frame_passes(dataset: Dataset) -> np.ndarray:
+    """(n,) int64 pass of each frame from ``poses.json`` (``"pass"``; 0 where absent).
+
+    A pass is one continuous drive; frames of different passes are different
+    sequences (the return pass of a street looks at the other side).
+    """
+    path = dataset.root / "poses.json"
+    frames = read_json(path).get("frames", [])
+    by_name = {fr.get("name"): fr.get("pass", 0) for fr in frames if isinstance(fr, dict)}
+    passes = np.zeros(dataset.num_frames, dtype=np.int64)
+    for i, name in enumerate(dataset.frame_names):
+        p = by_name.get(name, 0)
+        if not isinstance(p, int) or isinstance(p, bool):
+            raise DataFormatError(path, f"frame {name}: \"pass\" must be an integer, got {p!r}")
+        passes[i] = p
+    return passes
+
+
+def _drop_cross_pass_pairs(db: Path, dataset: Dataset) -> int:
+    """Delete matches between images of different passes; returns the number of pairs removed."""
+    passes = frame_passes(dataset)
+    if len(np.unique(passes)) < 2:
+        return 0
+    frame_index = {name: i for i, name in enumerate(dataset.frame_names)}
+    removed = 0
+    with pycolmap.Database.open(db) as database:
+        image_pass = {}
+        for image in database.read_all_images():
+            where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
+            image_pass[image.image_id] = passes[where[0]] if where else -1
+        pair_ids, _ = database.read_two_view_geometry_num_inliers()
+        for pair_id in pair_ids:
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            if image_pass[a] != image_pass[b]:
+                database.delete_two_view_geometry(a, b)
+                database.delete_matches(a, b)
+                removed += 1
+    return removed
+
+
+def _match(db: Path, dataset: Dataset, cfg: SfmConfig) -> None:
     matching = pycolmap.FeatureMatchingOptions(
         num_threads=cfg.num_threads, use_gpu=False, rig_verification=cfg.rig_verification,
         sift=pycolmap.SiftMatchingOptions(max_ratio=cfg.max_ratio))
     pairing = pycolmap.SequentialPairingOptions(overlap=cfg.overlap, quadratic_overlap=cfg.quadratic_overlap,
                                                 expand_rig_images=True, loop_detection=False)
-    verification = pycolmap.TwoViewGeometryOptions()
+    verification = pycolmap.TwoViewGeometryOptions(min_num_inliers=cfg.min_num_inliers)
     verification.ransac.random_seed = cfg.seed
     pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                               verification_options=verification, device=pycolmap.Device.cpu)
+    if cfg.split_passes:
+        removed = _drop_cross_pass_pairs(db, dataset)
+        if removed:
+            logger.info("matching: dropped %d image pairs between different passes", removed)
     with pycolmap.Database.open(db) as database:
         logger.info("matching: %d image pairs matched, %d verified",
                     database.num_matched_image_pairs(), database.num_verified_image_pairs())
@@ -520,7 +567,7 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
             _extract(db, dataset, image_names, cfg)
             seconds["extract"] = time.perf_counter() - t
             t = time.perf_counter()
-            _match(db, cfg)
+            _match(db, dataset, cfg)
             seconds["match"] = time.perf_counter() - t
             t = time.perf_counter()
             recs = _map(db, dataset, tmp_out, cfg, progress)

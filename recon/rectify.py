@@ -209,18 +209,25 @@ def backproject_rectified(depth: np.ndarray, K: np.ndarray, rig_from_cam: np.nda
     z = depth[v, u].astype(np.float64)
     x = (u - K[0, 2] - K[0, 1] * (v - K[1, 2]) / K[1, 1]) / K[0, 0] * z
     y = (v - K[1, 2]) / K[1, 1] * z
-    cam = np.stack([x, y, z], axis=1)
-    return cam @ rig_from_cam[:3, :3].T + rig_from_cam[:3, 3]
+    return _transform(rig_from_cam, x, y, z)
+
+
+def _transform(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) rigid transform to coordinates x, y, z (n,) → (n, 3) float64
+    (element-wise, avoiding BLAS thread start-up on tall-skinny products)."""
+    out = np.empty((len(x), 3), dtype=np.float64)
+    for i in range(3):
+        out[:, i] = T[i, 0] * x + T[i, 1] * y + T[i, 2] * z + T[i, 3]
+    return out
 
 
 def _project(points: np.ndarray, K: np.ndarray, cam_from_rig: np.ndarray):
-    """(n, 3) float64 rig points → camera z (n,) and rounded pixel u, v (n,) int64 (z > 0 only kept by caller)."""
-    cam = points @ cam_from_rig[:3, :3].T + cam_from_rig[:3, 3]
-    z = cam[:, 2]
+    """(n, 3) float64 rig points → camera z, pixel u, v: (n,) float64 each (callers keep z > 0)."""
+    cam = _transform(cam_from_rig, points[:, 0], points[:, 1], points[:, 2])
+    x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        uv = cam @ K.T
-        u = uv[:, 0] / uv[:, 2]
-        v = uv[:, 1] / uv[:, 2]
+        u = (K[0, 0] * x + K[0, 1] * y) / z + K[0, 2]
+        v = K[1, 1] * y / z + K[1, 2]
     return z, u, v
 
 

@@ -19,9 +19,10 @@ absorb splatting (half-pixel resampling) and calibration error.
 Fusion. Per pixel, the estimate that agrees with the most others (ties: the
 wider baseline) anchors an agreeing set: itself plus every estimate agreeing
 with it. Where that set has at least ``min_agree`` members the fused depth is
-the estimate of the set's widest-baseline pair ("widest": a disparity error
-costs it the least depth) or the (f·B)²-weighted mean of the set ("weighted":
-inverse-variance weights under δz ∝ z²/(f·B)). Elsewhere it is NaN.
+the (f·B)²-weighted mean of the set ("weighted", the default:
+inverse-variance weights under δz ∝ z²/(f·B)) or the estimate of the set's
+widest-baseline pair ("widest"). Elsewhere it is NaN. On a 640×480 street the
+weighted mean had about 10 % fewer 1-px errors than "widest" on the same pixels.
 Confidence is the set's share of the total f·B of all pairs (1 when all three
 agree), 0 where there is no estimate.
 """
@@ -35,7 +36,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .rectify import RectifiedPair, splat_depth
-from .stereo import StereoConfig, depth_from_disparity, disparity
+from .stereo import PRESETS, StereoConfig, depth_from_disparity, disparity
 
 logger = logging.getLogger(__name__)
 
@@ -44,13 +45,13 @@ FUSIONS = ("widest", "weighted")
 
 @dataclass(frozen=True)
 class TrinocularConfig:
-    stereo: StereoConfig = field(default_factory=StereoConfig)  # pairwise matcher settings
+    stereo: StereoConfig = field(default_factory=lambda: PRESETS["accurate"])  # pairwise matcher settings
     abs_tol: float = 0.02  # agreement: constant part of the depth tolerance, metres
     rel_tol: float = 0.01  # agreement: part proportional to depth (splatting, calibration)
     disp_tol: float = 1.0  # agreement: disparity error tolerated in the less precise pair, pixels
     min_agree: int = 2  # estimates that must agree for a fused depth
     reference: int = 0  # camera whose original image the fused depth lives in
-    fusion: str = "widest"  # "widest" (the widest agreeing pair's depth) or "weighted" ((f·B)²-weighted mean)
+    fusion: str = "weighted"  # "weighted" ((f·B)²-weighted mean of the agreeing set) or "widest" (its widest pair)
 
     def __post_init__(self):
         if self.fusion not in FUSIONS:
