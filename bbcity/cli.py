@@ -181,6 +181,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     from data_synth import DataFormatError
 
+    from .executor import tune_allocator
+
+    tune_allocator()
     try:
         return args.func(args)
     except (DataFormatError, FileExistsError, ValueError) as e:

@@ -7,9 +7,35 @@ interface (a Dask ``Client.get_executor()``), runs the same code.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import multiprocessing
 import os
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
+
+
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+
+
+def tune_allocator(threshold: int = 256 << 20) -> bool:
+    """Keep glibc from returning freed memory to the kernel after every large numpy temporary.
+
+    The stages allocate and free megabyte arrays in tight loops; with glibc's
+    defaults each one is a fresh mmap whose pages fault in again (a fifth of
+    the renderer's time went to the kernel). Process-wide, so only the
+    composition root calls it, for the CLI process and every pool worker.
+    Returns False where the C library has no mallopt (not glibc).
+    """
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        mallopt = libc.mallopt if libc is not None else None
+    except (OSError, AttributeError):
+        return False
+    if mallopt is None:
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, threshold)) and bool(mallopt(_M_TRIM_THRESHOLD, 2 * threshold))
 
 
 class SerialExecutor(Executor):
@@ -43,4 +69,5 @@ def make_executor(workers: int | None = None) -> Executor:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if workers == 1:
         return SerialExecutor()
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=tune_allocator)

@@ -206,7 +206,9 @@ _ROOFS = np.array([[0.55, 0.22, 0.15], [0.30, 0.30, 0.33], [0.45, 0.30, 0.22]])
 def pillar(h: Hits) -> np.ndarray:
     """Concrete or painted pillars and beams: joints every half metre, bands, fine grain."""
     u, v = facade_uv(h.p, h.normal, h.lo)
-    u = u + h.p[:, 2] * (np.abs(h.normal[:, 2]) > 0.5)  # beams' undersides: vary along both axes
+    flat = np.abs(h.normal[:, 2]) > 0.5  # tops and undersides (of beams): texture over x and y
+    u = np.where(flat, h.p[:, 0] - h.lo[:, 0], u)
+    v = np.where(flat, h.p[:, 1] - h.lo[:, 1], v)
     seed = h.seed
     grain = 0.85 + 0.25 * value_noise(u, v, 0.015, seed) + 0.1 * (value_noise(u, v, 0.2, seed + 1) - 0.5)
     colour = h.palette(1, _PILLARS) * grain[:, None]

@@ -35,7 +35,7 @@ class FusionConfig:
     outlier_neighbours: int = 16  # statistical outlier removal: neighbours considered (0 = off)
     outlier_std_ratio: float = 2.5  # ... and the distance threshold in standard deviations
     radius_min_points: int = 4  # radius outlier removal: neighbours needed within 3 voxels (0 = off)
-    min_observations: int = 2  # drop voxels supported by fewer raw points than this
+    min_observations: int = 1  # drop voxels with fewer raw points (trinocular agreement already vetted each)
     normals: bool = True  # estimate normals (oriented towards the capture path)
 
 

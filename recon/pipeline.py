@@ -138,6 +138,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     tasks = [_FrameTask(str(dataset_dir), f, world_from_rig[f].tolist(), str(spill_root), origin.tolist(),
                         conf.trinocular, conf.fusion, conf.pixel_stride) for f in frames]
 
+    logger.info("stereo on %d frames × %d cameras, poses: %s", len(tasks), ds.rig.num_cameras, conf.poses)
     t1 = time.perf_counter()
     frame_stats = []
     bar = tqdm(total=len(tasks), desc="stereo", unit="frame", disable=None if progress is None else not progress)
@@ -152,6 +153,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     bar.close()
     stages["frames_s"] = time.perf_counter() - t1
 
+    logger.info("merging %d frames (%.1f s of stereo)", len(frame_stats), stages["frames_s"])
     t2 = time.perf_counter()
     spill = TileSpill(spill_root, origin, conf.fusion)
     centres = np.array([(world_from_rig[f] @ np.linalg.inv(ds.rig.cam_from_rig[0]))[:3, 3] for f in frames])

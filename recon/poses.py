@@ -7,13 +7,17 @@ order of ``dataset.frame_names`` (rig frame: x forward, y left, z up; see
 * :func:`poses_given` — the dataset's ``poses.json`` (GPS/IMU in a real capture).
 * :func:`poses_from_colmap` — a COLMAP model the user already has (text or
   binary; with rigs and frames, COLMAP ≥ 3.12, or one image per camera).
-* :func:`poses_sfm` — incremental structure from motion with pycolmap on the
-  CPU: SIFT, sequential matching across the rig, the rig as a *known* rig
-  (calibrated intrinsics and ``sensor_from_rig`` kept fixed), so the
-  reconstruction comes out in metres. Its world frame is arbitrary.
+* :func:`poses_sfm` — structure from motion with pycolmap on the CPU: SIFT,
+  sequential matching across the rig, the rig as a *known* rig (calibrated
+  intrinsics and ``sensor_from_rig`` kept fixed), global (or incremental)
+  mapping, so the reconstruction comes out in metres. Its world frame is
+  arbitrary, one per connected component (a street's two passes see opposite
+  sides and share nothing).
 
-Evaluation: :func:`align_trajectory` (Umeyama, SE(3) or Sim(3)) and
-:func:`trajectory_rmse` (position and rotation errors after alignment).
+Evaluation: :func:`align_trajectory` (Umeyama, SE(3) or Sim(3)),
+:func:`trajectory_rmse` (position and rotation errors after alignment) and
+:func:`align_components` (each SfM component placed on reference poses,
+e.g. GPS).
 
 COLMAP conventions bridged here (see ``data_synth/colmap_export.py``): COLMAP
 cameras use OpenCV's axes but put the top-left pixel centre at (0.5, 0.5), so
@@ -24,38 +28,39 @@ with our calibrated ``cam_from_rig`` of the reference camera.
 
 from __future__ import annotations
 
-# data_synth imports open3d and OpenCV; they must be loaded before pycolmap:
-# with pycolmap first, OpenCV's PNG writer crashes (clashing bundled libpng).
-import data_synth  # noqa: F401  (import order, see above)
-from data_synth import Dataset, DataFormatError
-from data_synth.fileio import read_json
-
 import contextlib
 import logging
 import os
 import re
 import shutil
+import tempfile
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Iterator
 
 import numpy as np
-import pycolmap
 from tqdm import tqdm
+
+# data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
+# pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
+from data_synth import DataFormatError, Dataset
+from data_synth.fileio import read_json
+
+import pycolmap  # noqa: E402  (after data_synth, see above)
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "MissingFramesError", "SfmConfig", "SfmResult", "align_trajectory", "colmap_log_to_logging", "frame_passes",
-    "poses_from_colmap", "poses_from_reconstruction", "poses_given", "poses_sfm", "rig_baseline_ratio",
-    "trajectory_rmse",
+    "MissingFramesError", "SfmConfig", "SfmResult", "align_components", "align_trajectory",
+    "colmap_log_to_logging", "frame_passes", "poses_from_colmap", "poses_from_reconstruction", "poses_given",
+    "poses_sfm", "rig_baseline_ratio", "trajectory_rmse",
 ]
 
 COLMAP_PIXEL_OFFSET = 0.5  # cx_colmap = cx_opencv + 0.5 (and the same for cy)
-ORIENTATION_TIE_BREAK = 1e-3  # weight of orientations against normalised positions in align_trajectory
+COLLINEAR_RATIO = 1e-4  # align_trajectory: positions count as one line when the 2nd/1st singular value is below this
 
 
 class MissingFramesError(DataFormatError):
@@ -213,41 +218,52 @@ def poses_from_reconstruction(rec: pycolmap.Reconstruction, dataset: Dataset,
     return world_from_rig, world_from_cam
 
 
+_LOG_LOCK = threading.Lock()
+_log_depth = 0  # nesting depth of colmap_log_to_logging (only the outermost block redirects)
+
+
 @contextlib.contextmanager
-def colmap_log_to_logging(log: logging.Logger = logger, log_dir: os.PathLike | str | None = None,
-                          keep: bool = False) -> Iterator[Path]:
+def colmap_log_to_logging(log: logging.Logger = logger) -> Iterator[None]:
     """Route COLMAP's (glog) messages through Python logging while the block runs.
 
     COLMAP writes to stderr from C++; inside this block its messages go to a
-    log file under ``log_dir`` (a temporary folder when None) that a thread
-    forwards line by line: I → ``log.debug``, W → ``log.warning``, E/F →
-    ``log.error``. glog is process-global: after the block COLMAP logs to
-    stderr again as before, and no longer writes its default log files to
-    /tmp. Yields the log folder; it is deleted afterwards unless ``keep`` or
-    ``log_dir`` was given.
+    temporary log file that a thread forwards line by line: I → ``log.debug``,
+    W → ``log.warning``, E/F → ``log.error``. glog is process-global: after
+    the block COLMAP logs to stderr again as before (and no longer writes its
+    default log files to /tmp). Nested blocks forward through the outermost.
     """
+    global _log_depth
+    with _LOG_LOCK:
+        _log_depth += 1
+        outermost = _log_depth == 1
+    if not outermost:
+        try:
+            yield
+        finally:
+            with _LOG_LOCK:
+                _log_depth -= 1
+        return
+
     L = pycolmap.logging
-    own = log_dir is None
-    folder = Path(log_dir) if log_dir is not None else Path(
-        os.environ.get("TMPDIR", "/tmp")) / f"bbcity-colmap-log-{uuid.uuid4().hex}"
-    folder.mkdir(parents=True, exist_ok=True)
-    prefix = folder / f"colmap-{uuid.uuid4().hex[:8]}."
+    folder = Path(tempfile.mkdtemp(prefix="bbcity-colmap-log-"))
+    prefix = folder / "colmap."
     saved = (L.logtostderr, L.alsologtostderr, L.stderrthreshold)
     levels = {"I": logging.DEBUG, "W": logging.WARNING, "E": logging.ERROR, "F": logging.ERROR}
     stop = threading.Event()
-    state = {"offset": 0, "rest": ""}
+    state = {"offset": 0, "rest": b""}
 
-    def pump() -> None:
+    def pump(final: bool = False) -> None:
         files = sorted(folder.glob(prefix.name + "*"))
-        if not files:
-            return
-        with open(files[-1], "r", errors="replace") as fh:
-            fh.seek(state["offset"])
-            chunk = fh.read()
-            state["offset"] = fh.tell()
-        lines = (state["rest"] + chunk).split("\n")
-        state["rest"] = lines.pop()
-        for line in lines:
+        chunk = b""
+        if files:
+            with open(files[-1], "rb") as fh:
+                fh.seek(state["offset"])
+                chunk = fh.read()
+                state["offset"] = fh.tell()
+        lines = (state["rest"] + chunk).split(b"\n")
+        state["rest"] = b"" if final else lines.pop()
+        for raw in lines:
+            line = raw.decode("utf-8", errors="replace")
             if not line or line[0] not in levels or "] " not in line:
                 continue  # the file's header
             log.log(levels[line[0]], "colmap: %s", line.split("] ", 1)[1])
@@ -265,18 +281,16 @@ def colmap_log_to_logging(log: logging.Logger = logger, log_dir: os.PathLike | s
     thread = threading.Thread(target=run, name="colmap-log", daemon=True)
     thread.start()
     try:
-        yield folder
+        yield
     finally:
         L.set_log_destination(L.INFO, "")  # closes (flushes) the file
         L.logtostderr, L.alsologtostderr, L.stderrthreshold = saved
         stop.set()
         thread.join()
-        pump()
-        if state["rest"]:
-            state["rest"] += "\n"
-            pump()
-        if own and not keep:
-            shutil.rmtree(folder, ignore_errors=True)
+        pump(final=True)
+        shutil.rmtree(folder, ignore_errors=True)
+        with _LOG_LOCK:
+            _log_depth -= 1
 
 
 def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
@@ -338,11 +352,13 @@ class SfmConfig:
     max_num_features: int = 4096  # SIFT features kept per image
     first_octave: int = -1  # SIFT first octave; -1 upsamples once (more features on small images)
     peak_threshold: float = 0.02 / 3  # SIFT detection threshold (COLMAP's default)
-    overlap: int = 5  # sequential matching: each frame is matched with the next `overlap` frames (all rig images)
+    overlap: int = 3  # sequential matching: each frame is matched with the next `overlap` frames (all rig images)
     quadratic_overlap: bool = False  # also match frames 2^k apart (helps loops, costs pairs)
     max_ratio: float = 0.8  # Lowe ratio test of SIFT matching
     split_passes: bool = True  # never match frames of different passes (poses.json "pass"): they see opposite sides
-    rig_verification: bool = False  # verify pairs of whole frames with the known rig (about 10× slower matching)
+    rig_verification: bool = False  # verify pairs of whole frames with the known rig (metric; ~5-10x slower matching)
+    ransac_max_trials: int = 10000  # RANSAC iterations at most per verified pair (frame pair with rig_verification)
+    mapper: str = "global"  # "global" (COLMAP 4's GLOMAP-style global SfM) or "incremental" (COLMAP's mapper)
     refine_rig: bool = False  # let bundle adjustment refine sensor_from_rig (scale then restored from the baseline)
     min_model_frames: int = 3  # smallest reconstruction kept, in frames
     min_num_inliers: int = 15  # geometric verification: inlier matches needed to keep an image pair
@@ -350,6 +366,12 @@ class SfmConfig:
     num_threads: int = -1  # CPU threads for COLMAP (-1: all cores)
     seed: int = 0  # COLMAP's random seed (RANSAC, mapping)
     keep_database: bool = True  # keep work_dir/database.db (features and matches) after the run
+
+    def __post_init__(self):
+        if self.mapper not in ("global", "incremental"):
+            raise ValueError(f"mapper must be \"global\" or \"incremental\", got {self.mapper!r}")
+        if self.overlap < 1 or self.max_num_features < 1 or self.min_model_frames < 1:
+            raise ValueError("overlap, max_num_features and min_model_frames must be positive")
 
 
 @dataclass
@@ -418,7 +440,7 @@ def _rig_config(dataset: Dataset) -> pycolmap.RigConfig:
 
 
 def _extract(db: Path, dataset: Dataset, image_names: list[str], cfg: SfmConfig) -> None:
-    K, (w, h) = dataset.rig.intrinsics[0], dataset.rig.sizes[0]
+    K = dataset.rig.intrinsics[0]
     reader = pycolmap.ImageReaderOptions(
         camera_model="PINHOLE",
         # replaced per camera by the rig config; given here so COLMAP marks the focal length as known
@@ -495,6 +517,7 @@ def _match(db: Path, dataset: Dataset, cfg: SfmConfig) -> None:
                                                 expand_rig_images=True, loop_detection=False)
     verification = pycolmap.TwoViewGeometryOptions(min_num_inliers=cfg.min_num_inliers)
     verification.ransac.random_seed = cfg.seed
+    verification.ransac.max_num_trials = cfg.ransac_max_trials
     pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                               verification_options=verification, device=pycolmap.Device.cpu)
     if cfg.split_passes:
@@ -527,24 +550,51 @@ def _map(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig, progress: bool |
     return recs
 
 
+def _map_global(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig) -> dict[int, pycolmap.Reconstruction]:
+    options = pycolmap.GlobalPipelineOptions(
+        num_threads=cfg.num_threads, random_seed=cfg.seed, min_num_matches=cfg.min_num_matches,
+        multiple_models=True, min_model_size=cfg.min_model_frames)
+    mapper = options.mapper
+    mapper.num_threads, mapper.random_seed = cfg.num_threads, cfg.seed
+    mapper.refine_sensor_from_rig = cfg.refine_rig
+    mapper.rotation_averaging.refine_sensor_from_rig = cfg.refine_rig
+    mapper.rotation_averaging.random_seed = cfg.seed
+    mapper.global_positioning.refine_sensor_from_rig = cfg.refine_rig
+    mapper.global_positioning.use_gpu = False
+    mapper.global_positioning.random_seed = cfg.seed
+    ba = mapper.bundle_adjustment
+    ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
+    ba.refine_sensor_from_rig = cfg.refine_rig
+    ba.ceres.use_gpu = False
+    return pycolmap.global_mapping(db, dataset.root / "images", out, options)
+
+
 def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig | None = None,
               progress: bool | None = None) -> SfmResult:
-    """Rig poses by incremental structure from motion (pycolmap, CPU).
+    """Rig poses by structure from motion (pycolmap, CPU), metric through the known rig.
 
     Steps: SIFT on every image (one PINHOLE camera per rig camera, calibrated
-    intrinsics), the rig applied as a known COLMAP rig (cam0 the reference
-    sensor, ``sensor_from_rig`` from ``cam_from_rig``), sequential matching of
-    each frame's images with each other and with the next ``overlap`` frames,
-    then incremental mapping with intrinsics fixed and, unless
+    intrinsics); the rig applied as a known COLMAP rig (cam0 the reference
+    sensor, ``sensor_from_rig`` from ``cam_from_rig``; one frame per
+    ``frame_names`` entry); sequential matching of each frame's images with
+    each other and with all images of the next ``overlap`` frames (pairs
+    between different passes dropped, see ``split_passes``); then global
+    (default) or incremental mapping with intrinsics fixed and, unless
     ``config.refine_rig``, ``sensor_from_rig`` fixed — which makes the
-    reconstruction metric (checked: the reconstructed camera spacing over the
-    calibrated baseline is logged and returned; with ``refine_rig`` each model
-    is rescaled by its inverse).
+    reconstruction metric. The reconstructed camera spacing over the
+    calibrated baseline is checked (1 with a fixed rig) and returned; with
+    ``refine_rig`` each model is rescaled by its inverse.
 
-    work_dir receives ``database.db`` (replaced if present), the models in
-    ``sparse/{k}`` (binary COLMAP, k = component) and nothing else. COLMAP's
-    messages are forwarded to logging; mapping shows a tqdm bar (``progress``:
-    None = only on a terminal).
+    The incremental mapper starts from a two-view pair of unit baseline
+    while the fixed rig is metric; on planar facades that start can settle
+    in a wrong minimum (a block of frames rotated by tens of degrees), which
+    the global mapper does not suffer from (``rig_verification`` helps the
+    incremental one, at a high matching cost).
+
+    work_dir receives ``database.db`` (replaced if present) and the models in
+    ``sparse/{k}`` (binary COLMAP, k = component). COLMAP's messages are
+    forwarded to logging; the incremental mapper shows a tqdm bar of
+    registered frames (``progress``: None = only on a terminal).
 
     Returns an :class:`SfmResult`; frames that do not register are NaN.
     """
@@ -570,7 +620,10 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
             _match(db, dataset, cfg)
             seconds["match"] = time.perf_counter() - t
             t = time.perf_counter()
-            recs = _map(db, dataset, tmp_out, cfg, progress)
+            if cfg.mapper == "global":
+                recs = _map_global(db, dataset, tmp_out, cfg)
+            else:
+                recs = _map(db, dataset, tmp_out, cfg, progress)
             seconds["map"] = time.perf_counter() - t
     finally:
         shutil.rmtree(tmp_out, ignore_errors=True)
@@ -629,23 +682,55 @@ def _kabsch(H: np.ndarray) -> np.ndarray:
     return Vt.T @ D @ U.T
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` radians about the unit vector ``axis`` (3,)."""
+    K = _skew(axis)
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
+
+
+def _rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Smallest rotation (3, 3) taking unit vector u (3,) to unit vector v (3,)."""
+    w = np.cross(u, v)
+    s, c = np.linalg.norm(w), float(u @ v)
+    if s > 1e-15:
+        return _axis_angle(w / s, np.arctan2(s, c))
+    if c > 0:
+        return np.eye(3)
+    a = np.cross(u, np.eye(3)[np.argmin(np.abs(u))])  # any axis perpendicular to u: half a turn
+    a /= np.linalg.norm(a)
+    return 2.0 * np.outer(a, a) - np.eye(3)
+
+
 def _similarity(est: np.ndarray, ref: np.ndarray, with_scale: bool) -> tuple[np.ndarray, float, np.ndarray]:
-    """R (3, 3), s, t (3,) minimising Σ|ref_p − (s R est_p + t)|² over valid poses (m, 4, 4) each."""
+    """R (3, 3), s, t (3,) minimising Σ|ref_p − (s R est_p + t)|² over valid poses (m, 4, 4) each.
+
+    Umeyama on positions. Where positions leave the rotation free — all on one
+    line (a straight drive: the roll about the line) or all at one point —
+    the free part maximises the agreement of orientations, Σ trace(R_ref^T R R_est).
+    """
     pe, pr = est[:, :3, 3], ref[:, :3, 3]
     me, mr = pe.mean(axis=0), pr.mean(axis=0)
     xe, xr = pe - me, pr - mr
-    re = np.sqrt((xe ** 2).sum(axis=1).mean())
-    rr = np.sqrt((xr ** 2).sum(axis=1).mean())
-    H = np.zeros((3, 3))
-    if re > 0 and rr > 0:
-        H += xe.T @ xr / (len(pe) * re * rr)
-    # Orientations break ties where positions cannot fix the rotation (a straight
-    # drive leaves the roll about the line free): maximise Σ trace(R_ref^T R R_est).
-    H += ORIENTATION_TIE_BREAK * np.einsum("mij,mkj->ik", est[:, :3, :3], ref[:, :3, :3]) / len(pe)
-    R = _kabsch(H)
+    H = xe.T @ xr  # (3, 3): trace(R @ H) = Σ xr · R xe
+    A = np.einsum("mij,mkj->ik", est[:, :3, :3], ref[:, :3, :3])  # trace(R @ A) = Σ trace(R_ref^T R R_est)
+    U, sv, Vt = np.linalg.svd(H)
+    scale_h = max(np.sqrt((xe ** 2).sum() * (xr ** 2).sum()), 1e-300)
+    if sv[0] <= 1e-12 * scale_h:  # one point: orientations alone
+        R = _kabsch(A)
+    elif sv[1] <= COLLINEAR_RATIO * sv[0]:  # one line: align it, then roll about it by orientations
+        d = Vt[0]
+        R0 = _rotation_between(U[:, 0], d)
+        B = R0 @ A
+        R = _axis_angle(d, np.arctan2(np.trace(_skew(d) @ B), np.trace(B) - d @ B @ d)) @ R0
+    else:
+        R = _kabsch(H)
     s = 1.0
     if with_scale:
-        s = float(np.einsum("mi,mi->", xr, xe @ R.T) / (xe ** 2).sum()) if re > 0 else float("nan")
+        s = float(np.einsum("mi,mi->", xr, xe @ R.T) / (xe ** 2).sum()) if (xe ** 2).sum() > 0 else float("nan")
     return R, s, mr - s * R @ me
 
 
@@ -655,9 +740,12 @@ def align_trajectory(estimated: np.ndarray, reference: np.ndarray,
 
     estimated, reference: (n, 4, 4) float64 world_from_rig of the same frames;
     frames with any NaN in either are ignored. Rotation and translation (and
-    with ``with_scale`` a scale) minimise the squared position error;
-    orientations only break the tie when positions leave the rotation free
-    (all on one line). Needs ≥ 1 valid frame (≥ 2 for a scale).
+    with ``with_scale`` a scale) minimise the squared position error
+    (Umeyama); orientations decide only what positions leave free: the roll
+    about the line when all positions are on one line (a straight drive;
+    perpendicular spread below about 1 % of the extent, see
+    ``COLLINEAR_RATIO``), the whole rotation for a single position. Needs ≥ 1
+    valid frame (≥ 2 for a scale).
 
     Returns aligned (n, 4, 4) float64 = the estimated poses moved into the
     reference frame (rotation R @ R_est, position s R p + t; NaN frames stay
@@ -682,6 +770,37 @@ def align_trajectory(estimated: np.ndarray, reference: np.ndarray,
     aligned[ok, :3, 3] = s * est[ok, :3, 3] @ R.T + t
     aligned[ok, 3] = [0.0, 0.0, 0.0, 1.0]
     return aligned, transform, s
+
+
+def align_components(world_from_rig: np.ndarray, component: np.ndarray, reference: np.ndarray,
+                     with_scale: bool = False) -> np.ndarray:
+    """Place each component of an SfM trajectory onto reference poses (e.g. GPS/IMU).
+
+    world_from_rig: (n, 4, 4) float64, each component in its own frame (NaN = no pose).
+    component: (n,) int, component per frame (negative = none), e.g. ``SfmResult.component``.
+    reference: (n, 4, 4) float64 poses in the target frame; NaN frames are not used.
+    Each component is moved by the SE(3) (Sim(3) with ``with_scale``) that
+    best fits its frames to the reference (:func:`align_trajectory`); a
+    component with no reference frame stays NaN.
+    Returns (n, 4, 4) float64 in the reference frame.
+    """
+    est = np.asarray(world_from_rig, dtype=np.float64)
+    ref = np.asarray(reference, dtype=np.float64)
+    comp = np.asarray(component)
+    out = _nan_poses(len(est))
+    for label in np.unique(comp[comp >= 0]):
+        sel = (comp == label) & _valid(est)
+        usable = sel & _valid(ref)
+        if not usable.any() or (with_scale and usable.sum() < 2):
+            continue
+        # fit on frames with both poses, then move every frame of the component
+        _, T, s = align_trajectory(np.where(usable[:, None, None], est, np.nan),
+                                   np.where(usable[:, None, None], ref, np.nan), with_scale)
+        R = T[:3, :3] / s
+        out[sel, :3, :3] = R @ est[sel, :3, :3]
+        out[sel, :3, 3] = est[sel, :3, 3] @ T[:3, :3].T + T[:3, 3]
+        out[sel, 3] = [0.0, 0.0, 0.0, 1.0]
+    return out
 
 
 def _rotation_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
