@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,61 @@ def write_cloud(path: os.PathLike | str, pcd: o3d.geometry.PointCloud) -> Path:
         if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False):
             raise OSError(f"{path}: Open3D could not write the point cloud")
     return path
+
+
+class PlyStreamWriter:
+    """Write a binary PLY cloud chunk by chunk, so that memory is bounded by a chunk.
+
+    Rows go to a temporary body file; closing writes the header (whose vertex
+    count is only known at the end) and the body to a temporary name and renames
+    it into place. An exception inside the ``with`` block leaves nothing behind.
+    Layout: double x, y, z; float nx, ny, nz (if ``normals``); uchar red, green, blue
+    (what Open3D writes and reads).
+    """
+
+    def __init__(self, path: os.PathLike | str, normals: bool = True):
+        self.path = Path(path)
+        if self.path.suffix.lower() != ".ply":
+            raise ValueError(f"{self.path}: streamed clouds are PLY")
+        fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+        if normals:
+            fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        self.dtype = np.dtype(fields)
+        self.normals = normals
+        self.count = 0
+        self._body = None
+
+    def __enter__(self) -> "PlyStreamWriter":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._body_path = self.path.with_name(f".{self.path.name}.body-{os.getpid()}")
+        self._body = open(self._body_path, "wb")
+        return self
+
+    def append(self, points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None = None) -> None:
+        """points (n, 3) float64, colours (n, 3) uint8, normals (n, 3) float (if enabled)."""
+        rows = np.empty(len(points), self.dtype)
+        for i, axis in enumerate("xyz"):
+            rows[axis] = points[:, i]
+            if self.normals:
+                rows["n" + axis] = normals[:, i]
+        for i, name in enumerate(("red", "green", "blue")):
+            rows[name] = colours[:, i]
+        self._body.write(rows.tobytes())
+        self.count += len(rows)
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self._body.close()
+        try:
+            if exc_type is None:
+                props = "".join(f"property {'double' if self.dtype[n] == np.float64 else 'float' if self.dtype[n] == np.float32 else 'uchar'} {n}\n"
+                                for n in self.dtype.names)
+                header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {self.count}\n{props}end_header\n")
+                with atomic_path(self.path) as tmp, open(tmp, "wb") as out, open(self._body_path, "rb") as body:
+                    out.write(header.encode("ascii"))
+                    shutil.copyfileobj(body, out, 16 << 20)
+        finally:
+            self._body_path.unlink(missing_ok=True)
 
 
 def read_cloud(path: os.PathLike | str, require_colours: bool = True) -> o3d.geometry.PointCloud:

@@ -15,6 +15,7 @@ import logging
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import open3d as o3d
@@ -182,16 +183,20 @@ def _nearest_camera(points: np.ndarray, cameras: np.ndarray, chunk: int = 65536)
     return out
 
 
-def merge_tiles(spill: TileSpill, camera_centres: np.ndarray) -> o3d.geometry.PointCloud:
-    """Finish the fusion: per tile, reduce, filter with neighbour context, estimate
-    normals. camera_centres: (c, 3) float64 world (orients normals).
-    Returns an Open3D cloud with float64 world positions, colours (and normals)."""
+def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
+                sink: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None]) -> int:
+    """Finish the fusion tile by tile: reduce, filter with neighbour context,
+    estimate normals, and hand each tile's points to ``sink(points (k, 3) float64
+    world, colours (k, 3) uint8, normals (k, 3) float64 or None)``.
+    camera_centres: (c, 3) float64 world (orients normals). Returns the points written.
+    Memory is bounded by a 3×3 block of tiles.
+    """
     cfg = spill.cfg
     tiles = spill.tiles()
     present = set(tiles)
     margin = 6 * cfg.voxel_size  # context: enough for the neighbourhood statistics
     cams_rel = np.asarray(camera_centres, dtype=np.float64) - spill.origin
-    out_p, out_c, out_n = [], [], []
+    total = 0
     for tile in tiles:
         own = spill.reduce_tile(tile)
         lo = np.array(tile, dtype=np.float64) * spill.tile_voxels * cfg.voxel_size - margin
@@ -208,13 +213,17 @@ def merge_tiles(spill: TileSpill, camera_centres: np.ndarray) -> o3d.geometry.Po
         is_own = np.zeros(len(block), bool)
         is_own[:len(own)] = True
         p, c, n = _filter_and_normals(block[:, :3], block[:, 3:6], is_own, cfg, cams_rel)
-        out_p.append(p)
-        out_c.append(c)
-        if n is not None:
-            out_n.append(n)
-    points = np.concatenate(out_p) if out_p else np.zeros((0, 3))
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points + spill.origin))
-    pcd.colors = o3d.utility.Vector3dVector((np.concatenate(out_c) if out_c else np.zeros((0, 3))) / 255.0)
-    if cfg.normals and len(out_n) == len(out_p) and out_n:
-        pcd.normals = o3d.utility.Vector3dVector(np.concatenate(out_n))
+        sink(p + spill.origin, np.clip(np.rint(c), 0, 255).astype(np.uint8), n)
+        total += len(p)
+    return total
+
+
+def merge_to_cloud(spill: TileSpill, camera_centres: np.ndarray) -> o3d.geometry.PointCloud:
+    """:func:`merge_tiles` into one in-memory Open3D cloud (tests, small scenes)."""
+    parts: list = []
+    merge_tiles(spill, camera_centres, lambda p, c, n: parts.append((p, c, n)))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate([p for p, _, _ in parts])))
+    pcd.colors = o3d.utility.Vector3dVector(np.concatenate([c for _, c, _ in parts]) / 255.0)
+    if spill.cfg.normals:
+        pcd.normals = o3d.utility.Vector3dVector(np.concatenate([n for _, _, n in parts]))
     return pcd

@@ -24,7 +24,7 @@ from data_synth import load_dataset, load_scene
 from data_synth.fileio import write_json
 
 from .evaluate import evaluate_cloud
-from .cloud_io import write_cloud
+from .cloud_io import PlyStreamWriter, read_cloud
 from .fusion import FusionConfig, TileSpill, merge_tiles
 from .points import depth_to_points
 from .rectify import rectify_rig
@@ -157,15 +157,16 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     t2 = time.perf_counter()
     spill = TileSpill(spill_root, origin, conf.fusion)
     centres = np.array([(world_from_rig[f] @ np.linalg.inv(ds.rig.cam_from_rig[0]))[:3, 3] for f in frames])
-    pcd = merge_tiles(spill, centres)
+    cloud_path = work / "cloud.ply"
+    with PlyStreamWriter(cloud_path, normals=conf.fusion.normals) as writer:
+        num_points = merge_tiles(spill, centres, writer.append)
     stages["merge_s"] = time.perf_counter() - t2
-    cloud_path = write_cloud(work / "cloud.ply", pcd)
     if not conf.keep_spill:
         spill.cleanup()
 
     report = {
         "dataset": str(dataset_dir), "config": json.loads(json.dumps(asdict(conf), default=str)),
-        "frames": len(frames), "points": int(len(pcd.points)), "origin": origin.tolist(),
+        "frames": len(frames), "points": num_points, "origin": origin.tolist(),
         "poses": pose_report, "stages": stages,
         "seconds_per_frame": float(np.median([s["total_s"] for s in frame_stats])) if frame_stats else None,
         "stereo_seconds_per_frame": float(np.median([s["stereo_s"] for s in frame_stats])) if frame_stats else None,
@@ -174,7 +175,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     if conf.evaluate and ds.has_ground_truth:
         t3 = time.perf_counter()
         scene = load_scene(dataset_dir)
-        points = np.asarray(pcd.points)
+        points = np.asarray(read_cloud(cloud_path).points)  # evaluation holds the whole cloud
         if conf.poses == "sfm":  # the SfM frame is arbitrary: bring the cloud into the dataset's frame
             from .poses import align_trajectory
 
@@ -184,5 +185,5 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         report["accuracy"] = evaluate_cloud(points, ds, scene, max_depth=max_depth)
         stages["evaluate_s"] = time.perf_counter() - t3
     write_json(work / "recon_report.json", report)
-    logger.info("cloud: %d points → %s", len(pcd.points), cloud_path)
+    logger.info("cloud: %d points → %s", num_points, cloud_path)
     return cloud_path

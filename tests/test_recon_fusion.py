@@ -7,8 +7,8 @@ import open3d as o3d
 import pytest
 
 from data_synth import DataFormatError
-from recon.cloud_io import read_cloud, write_cloud
-from recon.fusion import (FusionConfig, TileSpill, merge_tiles, pack_keys, reduce_records,
+from recon.cloud_io import PlyStreamWriter, read_cloud, write_cloud
+from recon.fusion import (FusionConfig, TileSpill, merge_to_cloud, pack_keys, reduce_records,
                           reduce_records_reference, unpack_keys, voxel_sums)
 from recon.points import depth_to_points, depth_to_points_reference
 
@@ -71,7 +71,7 @@ def test_tiles_merge_a_noisy_plane_and_drop_outliers(tmp_path):
     for i, chunk in enumerate(np.array_split(np.concatenate([pts, outliers]), 4)):  # four "frames"
         spill.add_frame(f"{i:06d}", chunk, np.full((len(chunk), 3), 128, np.uint8), np.ones(len(chunk), np.float32))
     assert len(spill.tiles()) >= 4
-    pcd = merge_tiles(spill, np.array([[15.0, 15.0, 10.0]]))
+    pcd = merge_to_cloud(spill, np.array([[15.0, 15.0, 10.0]]))
     p = np.asarray(pcd.points)
     assert np.abs(p[:, 2]).max() < 0.05  # the outliers floating above are gone
     assert len(p) > 0.95 * (300 * 300)  # nearly every 10 cm cell of the plane survives, seams included
@@ -95,3 +95,29 @@ def test_cloud_io_roundtrip_and_errors(tmp_path):
         read_cloud(tmp_path / "junk.ply")
     with pytest.raises(DataFormatError, match="missing"):
         read_cloud(tmp_path / "nope.ply")
+
+
+@pytest.mark.parametrize("normals", [True, False])
+def test_streamed_ply_reads_back_in_open3d(tmp_path, normals):
+    rng = np.random.default_rng(2)
+    chunks = [(rng.normal(size=(n, 3)) * 100 + 1e6, rng.integers(0, 256, (n, 3), dtype=np.uint8),
+               rng.normal(size=(n, 3))) for n in (5, 0, 17)]
+    path = tmp_path / "s.ply"
+    with PlyStreamWriter(path, normals=normals) as w:
+        for p, c, n in chunks:
+            w.append(p, c, n if normals else None)
+    pcd = read_cloud(path)
+    np.testing.assert_array_equal(np.asarray(pcd.points), np.concatenate([p for p, _, _ in chunks]))
+    np.testing.assert_allclose(np.asarray(pcd.colors) * 255, np.concatenate([c for _, c, _ in chunks]), atol=1e-9)
+    assert pcd.has_normals() == normals
+    if normals:
+        np.testing.assert_allclose(np.asarray(pcd.normals), np.concatenate([n for _, _, n in chunks]), rtol=1e-6)
+    assert [f.name for f in tmp_path.iterdir()] == ["s.ply"]  # no body or temporary file left
+
+
+def test_streamed_ply_leaves_nothing_when_interrupted(tmp_path):
+    with pytest.raises(RuntimeError):
+        with PlyStreamWriter(tmp_path / "s.ply") as w:
+            w.append(np.zeros((3, 3)), np.zeros((3, 3), np.uint8), np.zeros((3, 3)))
+            raise RuntimeError("killed")
+    assert list(tmp_path.iterdir()) == []
