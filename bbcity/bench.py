@@ -168,7 +168,7 @@ def bench_synthesis(cfg: BenchConfig, report: Report) -> None:
     report.add("Ground-truth renderer", {"what": f"render, spp {spp} (cast + shade)", "image": f"{width}x{height}",
                                          "rays": n_rays, "wall s": ours.wall, "Mrays/s": n_rays / ours.wall / 1e6,
                                          "ratio to baseline": ours.wall / base.wall, "peak MB": ours.peak_rss / 1e6})
-    report.notes["Ground-truth renderer"] = ("One 3-camera image; the ratio is the cost of procedural shading "
+    report.notes["Ground-truth renderer"] = ("One camera image; the ratio is the cost of procedural shading "
                                              "and supersampling over bare ray casting.")
 
     # Whole dataset: one process vs a process pool, same frames.
