@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -183,37 +184,59 @@ def _nearest_camera(points: np.ndarray, cameras: np.ndarray, chunk: int = 65536)
     return out
 
 
-def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
-                sink: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None]) -> int:
-    """Finish the fusion tile by tile: reduce, filter with neighbour context,
-    estimate normals, and hand each tile's points to ``sink(points (k, 3) float64
-    world, colours (k, 3) uint8, normals (k, 3) float64 or None)``.
-    camera_centres: (c, 3) float64 world (orients normals). Returns the points written.
-    Memory is bounded by a 3×3 block of tiles.
-    """
+def _tile_with_context(spill: TileSpill, tile: tuple[int, int], present: set) -> tuple[np.ndarray, np.ndarray]:
+    """A tile's reduced voxels (k, 7) followed by its neighbours' within a margin,
+    and a mask (n,) bool of the tile's own rows."""
     cfg = spill.cfg
+    margin = 6 * cfg.voxel_size  # context: enough for the neighbourhood statistics
+    own = spill.reduce_tile(tile)
+    lo = np.array(tile, dtype=np.float64) * spill.tile_voxels * cfg.voxel_size - margin
+    hi = lo + spill.tile_voxels * cfg.voxel_size + 2 * margin
+    ctx = [own]
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            nb = (tile[0] + dx, tile[1] + dy)
+            if (dx or dy) and nb in present:
+                m = spill.reduce_tile(nb)
+                ctx.append(m[np.all((m[:, :2] >= lo[:2]) & (m[:, :2] < hi[:2]), axis=1)])
+    block = np.concatenate(ctx)
+    is_own = np.zeros(len(block), bool)
+    is_own[:len(own)] = True
+    return block, is_own
+
+
+def _finish_tile(task: tuple[TileSpill, tuple[int, int], set, np.ndarray]):
+    """Filter one tile with context and estimate its normals (runs in a worker)."""
+    spill, tile, present, cams_rel = task
+    block, is_own = _tile_with_context(spill, tile, present)
+    p, c, n = _filter_and_normals(block[:, :3], block[:, 3:6], is_own, spill.cfg, cams_rel)
+    return p + spill.origin, np.clip(np.rint(c), 0, 255).astype(np.uint8), n
+
+
+def _reduce_tile(task: tuple[TileSpill, tuple[int, int]]) -> int:
+    spill, tile = task
+    return len(spill.reduce_tile(tile))
+
+
+def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
+                sink: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None],
+                executor: Executor | None = None) -> int:
+    """Finish the fusion tile by tile: reduce, filter with neighbour context,
+    estimate normals, and hand each tile's points, in tile order, to
+    ``sink(points (k, 3) float64 world, colours (k, 3) uint8, normals (k, 3) float64 or None)``.
+    camera_centres: (c, 3) float64 world (orients normals). executor: tiles run
+    in parallel (all are reduced before any is filtered, since filtering reads
+    the neighbours). Returns the points written. Memory per worker is bounded
+    by a 3×3 block of tiles.
+    """
     tiles = spill.tiles()
     present = set(tiles)
-    margin = 6 * cfg.voxel_size  # context: enough for the neighbourhood statistics
     cams_rel = np.asarray(camera_centres, dtype=np.float64) - spill.origin
+    run = map if executor is None else executor.map
+    list(run(_reduce_tile, [(spill, t) for t in tiles]))
     total = 0
-    for tile in tiles:
-        own = spill.reduce_tile(tile)
-        lo = np.array(tile, dtype=np.float64) * spill.tile_voxels * cfg.voxel_size - margin
-        hi = lo + spill.tile_voxels * cfg.voxel_size + 2 * margin
-        ctx = [own]
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                nb = (tile[0] + dx, tile[1] + dy)
-                if (dx or dy) and nb in present:
-                    m = spill.reduce_tile(nb)
-                    inside = np.all((m[:, :2] >= lo[:2]) & (m[:, :2] < hi[:2]), axis=1)
-                    ctx.append(m[inside])
-        block = np.concatenate(ctx)
-        is_own = np.zeros(len(block), bool)
-        is_own[:len(own)] = True
-        p, c, n = _filter_and_normals(block[:, :3], block[:, 3:6], is_own, cfg, cams_rel)
-        sink(p + spill.origin, np.clip(np.rint(c), 0, 255).astype(np.uint8), n)
+    for p, c, n in run(_finish_tile, [(spill, t, present, cams_rel) for t in tiles]):
+        sink(p, c, n)
         total += len(p)
     return total
 

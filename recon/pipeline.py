@@ -159,7 +159,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     centres = np.array([(world_from_rig[f] @ np.linalg.inv(ds.rig.cam_from_rig[0]))[:3, 3] for f in frames])
     cloud_path = work / "cloud.ply"
     with PlyStreamWriter(cloud_path, normals=conf.fusion.normals) as writer:
-        num_points = merge_tiles(spill, centres, writer.append)
+        num_points = merge_tiles(spill, centres, writer.append, executor)
     stages["merge_s"] = time.perf_counter() - t2
     if not conf.keep_spill:
         spill.cleanup()

@@ -9,8 +9,8 @@ order of ``dataset.frame_names`` (rig frame: x forward, y left, z up; see
   binary; with rigs and frames, COLMAP ≥ 3.12, or one image per camera).
 * :func:`poses_sfm` — structure from motion with pycolmap on the CPU: SIFT,
   sequential matching across the rig, the rig as a *known* rig (calibrated
-  intrinsics and ``sensor_from_rig`` kept fixed), global (or incremental)
-  mapping, so the reconstruction comes out in metres. Its world frame is
+  intrinsics and ``sensor_from_rig`` kept fixed), a global-SfM seed grown by
+  incremental mapping, so the reconstruction comes out in metres. Its world frame is
   arbitrary, one per connected component (a street's two passes see opposite
   sides and share nothing).
 
@@ -60,7 +60,7 @@ __all__ = [
 ]
 
 COLMAP_PIXEL_OFFSET = 0.5  # cx_colmap = cx_opencv + 0.5 (and the same for cy)
-COLLINEAR_RATIO = 1e-4  # align_trajectory: positions count as one line when the 2nd/1st singular value is below this
+COLLINEAR_RATIO = 1e-4  # align_trajectory: positions are one line when singular values 2nd/1st fall below this
 
 
 class MissingFramesError(DataFormatError):
@@ -355,11 +355,13 @@ class SfmConfig:
     overlap: int = 3  # sequential matching: each frame is matched with the next `overlap` frames (all rig images)
     quadratic_overlap: bool = False  # also match frames 2^k apart (helps loops, costs pairs)
     max_ratio: float = 0.8  # Lowe ratio test of SIFT matching
-    split_passes: bool = True  # never match frames of different passes (poses.json "pass"): they see opposite sides
-    rig_verification: bool = False  # verify pairs of whole frames with the known rig (metric; ~5-10x slower matching)
-    ransac_max_trials: int = 10000  # RANSAC iterations at most per verified pair (frame pair with rig_verification)
-    mapper: str = "global"  # "global" (COLMAP 4's GLOMAP-style global SfM) or "incremental" (COLMAP's mapper)
-    refine_rig: bool = False  # let bundle adjustment refine sensor_from_rig (scale then restored from the baseline)
+    split_passes: bool = True  # never match frames of different passes (poses.json "pass"): opposite sides
+    rig_verification: bool = False  # verify whole frame pairs with the known rig (metric; 5-10x slower matching)
+    ransac_max_trials: int = 10000  # RANSAC iterations at most per verified image (or frame) pair
+    mapper: str = "seeded"  # "seeded" (global SfM seed grown incrementally), "global" or "incremental"
+    seed_frames: int = 8  # seeded mapper: frames in the seed window (the best-connected run of a pass)
+    max_seeds: int = 10  # seeded mapper: seeds tried at most (a pass broken by a featureless gap needs more)
+    refine_rig: bool = False  # bundle adjustment refines sensor_from_rig (scale then restored from the baseline)
     min_model_frames: int = 3  # smallest reconstruction kept, in frames
     min_num_inliers: int = 15  # geometric verification: inlier matches needed to keep an image pair
     min_num_matches: int = 15  # verified matches needed to use an image pair in mapping
@@ -368,8 +370,8 @@ class SfmConfig:
     keep_database: bool = True  # keep work_dir/database.db (features and matches) after the run
 
     def __post_init__(self):
-        if self.mapper not in ("global", "incremental"):
-            raise ValueError(f"mapper must be \"global\" or \"incremental\", got {self.mapper!r}")
+        if self.mapper not in ("seeded", "global", "incremental"):
+            raise ValueError(f"mapper must be \"seeded\", \"global\" or \"incremental\", got {self.mapper!r}")
         if self.overlap < 1 or self.max_num_features < 1 or self.min_model_frames < 1:
             raise ValueError("overlap, max_num_features and min_model_frames must be positive")
 
@@ -529,31 +531,22 @@ def _match(db: Path, dataset: Dataset, cfg: SfmConfig) -> None:
                     database.num_matched_image_pairs(), database.num_verified_image_pairs())
 
 
-def _map(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig, progress: bool | None) -> dict[int, pycolmap.Reconstruction]:
+def _incremental_options(cfg: SfmConfig, image_names: list[str], multiple_models: bool
+                         ) -> pycolmap.IncrementalPipelineOptions:
     options = pycolmap.IncrementalPipelineOptions(
         num_threads=cfg.num_threads, random_seed=cfg.seed, min_num_matches=cfg.min_num_matches,
-        multiple_models=True, min_model_size=cfg.min_model_frames, extract_colors=False,
-        ba_refine_sensor_from_rig=cfg.refine_rig, ba_refine_focal_length=False,
+        multiple_models=multiple_models, min_model_size=cfg.min_model_frames, extract_colors=False,
+        image_names=image_names, ba_refine_sensor_from_rig=cfg.refine_rig, ba_refine_focal_length=False,
         ba_refine_principal_point=False, ba_refine_extra_params=False)
     options.mapper.abs_pose_refine_focal_length = False
     options.mapper.abs_pose_refine_extra_params = False
-    bar = tqdm(total=dataset.num_frames, desc="sfm", unit="frame",
-               disable=None if progress is None else not progress)
-    try:
-        # with a rig, COLMAP registers whole frames: the initial pair, then one frame per callback
-        recs = pycolmap.incremental_mapping(
-            db, dataset.root / "images", out, options,
-            initial_image_pair_callback=lambda: bar.update(2),
-            next_image_callback=lambda: bar.update(1))
-    finally:
-        bar.close()
-    return recs
+    return options
 
 
-def _map_global(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig) -> dict[int, pycolmap.Reconstruction]:
+def _global_options(cfg: SfmConfig, image_names: list[str]) -> pycolmap.GlobalPipelineOptions:
     options = pycolmap.GlobalPipelineOptions(
         num_threads=cfg.num_threads, random_seed=cfg.seed, min_num_matches=cfg.min_num_matches,
-        multiple_models=True, min_model_size=cfg.min_model_frames)
+        multiple_models=True, min_model_size=cfg.min_model_frames, image_names=image_names)
     mapper = options.mapper
     mapper.num_threads, mapper.random_seed = cfg.num_threads, cfg.seed
     mapper.refine_sensor_from_rig = cfg.refine_rig
@@ -566,7 +559,102 @@ def _map_global(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig) -> dict[i
     ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
     ba.refine_sensor_from_rig = cfg.refine_rig
     ba.ceres.use_gpu = False
-    return pycolmap.global_mapping(db, dataset.root / "images", out, options)
+    return options
+
+
+def _incremental(db: Path, dataset: Dataset, out: Path, options: pycolmap.IncrementalPipelineOptions,
+                 bar: tqdm, input_path: Path | None = None) -> list[pycolmap.Reconstruction]:
+    out.mkdir(parents=True, exist_ok=True)
+    # with a rig, COLMAP registers whole frames: the initial pair, then one frame per callback
+    recs = pycolmap.incremental_mapping(
+        db, dataset.root / "images", out, options, input_path="" if input_path is None else input_path,
+        initial_image_pair_callback=lambda: bar.update(2), next_image_callback=lambda: bar.update(1))
+    return list(recs.values())
+
+
+def _global(db: Path, dataset: Dataset, out: Path, options: pycolmap.GlobalPipelineOptions
+            ) -> list[pycolmap.Reconstruction]:
+    out.mkdir(parents=True, exist_ok=True)
+    return list(pycolmap.global_mapping(db, dataset.root / "images", out, options).values())
+
+
+def _frame_links(db: Path, dataset: Dataset) -> np.ndarray:
+    """(n - 1,) int64: verified inlier matches between frame i and frame i + 1, over all their image pairs."""
+    frame_index = {name: i for i, name in enumerate(dataset.frame_names)}
+    links = np.zeros(max(dataset.num_frames - 1, 0), dtype=np.int64)
+    with pycolmap.Database.open(db) as database:
+        frame_of = {}
+        for image in database.read_all_images():
+            where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
+            frame_of[image.image_id] = where[0] if where else -1
+        pair_ids, counts = database.read_two_view_geometry_num_inliers()
+    for pair_id, count in zip(pair_ids, counts):
+        a, b = pycolmap.pair_id_to_image_pair(pair_id)
+        fa, fb = sorted((frame_of[a], frame_of[b]))
+        if fa >= 0 and fb == fa + 1:
+            links[fa] += count
+    return links
+
+
+def _seed_window(candidates: np.ndarray, links: np.ndarray, size: int) -> np.ndarray | None:
+    """The best seed among candidate frames (m,) int, sorted: ``size`` consecutive frames (fewer when
+    no run of candidates is that long) whose weakest link (``links`` (n - 1,), see _frame_links) is
+    strongest. Returns (k,) int64 frames, or None without candidates."""
+    best, best_score = None, (0, -1)
+    runs = np.split(candidates, np.flatnonzero(np.diff(candidates) != 1) + 1) if candidates.size else []
+    for run in runs:
+        k = min(size, len(run))
+        for start in range(len(run) - k + 1):
+            window = run[start:start + k]
+            score = (k, int(links[window[:-1]].min()) if k > 1 else 0)
+            if best is None or score > best_score:
+                best, best_score = window.astype(np.int64), score
+    return best
+
+
+def _map_seeded(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig, bar: tqdm
+                ) -> list[pycolmap.Reconstruction]:
+    """Per pass: global SfM on a short, well-connected window (metric through the rig), then the
+    incremental mapper grows that seed over the pass; repeated on frames left over."""
+    c = dataset.rig.num_cameras
+    names = np.array([[f"cam{cam}/{f}.png" for cam in range(c)] for f in dataset.frame_names])
+    links = _frame_links(db, dataset)
+    passes = frame_passes(dataset) if cfg.split_passes else np.zeros(dataset.num_frames, dtype=np.int64)
+    models: list[pycolmap.Reconstruction] = []
+    attempt = 0
+    for p in np.unique(passes):
+        todo = np.flatnonzero(passes == p)
+        tried: set[int] = set()
+        while todo.size >= cfg.min_model_frames and attempt < cfg.max_seeds:
+            seed = _seed_window(np.array([f for f in todo if f not in tried]), links, cfg.seed_frames)
+            if seed is None or seed.size < cfg.min_model_frames:
+                break
+            attempt += 1
+            tried.update(seed.tolist())
+            seeds = _global(db, dataset, out / f"seed{attempt}",
+                            _global_options(cfg, names[seed].ravel().tolist()))
+            if not seeds:
+                logger.info("SfM seed %d (frames %s–%s) did not reconstruct", attempt,
+                            dataset.frame_names[seed[0]], dataset.frame_names[seed[-1]])
+                continue
+            seed_rec = max(seeds, key=lambda r: r.num_reg_frames())
+            seed_dir = out / f"seed{attempt}" / "best"
+            seed_dir.mkdir(parents=True, exist_ok=True)
+            seed_rec.write_binary(str(seed_dir))
+            bar.update(seed_rec.num_reg_frames())
+            logger.info("SfM seed %d: %d frames (%s–%s) by global SfM; growing it over %d frames", attempt,
+                        seed_rec.num_reg_frames(), dataset.frame_names[seed[0]], dataset.frame_names[seed[-1]],
+                        todo.size)
+            grown = _incremental(db, dataset, out / f"grow{attempt}",
+                                 _incremental_options(cfg, names[todo].ravel().tolist(), multiple_models=False),
+                                 bar, input_path=seed_dir)
+            if not grown:
+                continue
+            rec = max(grown, key=lambda r: r.num_reg_frames())
+            models.append(rec)
+            done, _ = poses_from_reconstruction(rec, dataset, "SfM")
+            todo = np.array([f for f in todo if not np.isfinite(done[f]).all()], dtype=np.int64)
+    return models
 
 
 def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig | None = None,
@@ -578,23 +666,27 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
     sensor, ``sensor_from_rig`` from ``cam_from_rig``; one frame per
     ``frame_names`` entry); sequential matching of each frame's images with
     each other and with all images of the next ``overlap`` frames (pairs
-    between different passes dropped, see ``split_passes``); then global
-    (default) or incremental mapping with intrinsics fixed and, unless
-    ``config.refine_rig``, ``sensor_from_rig`` fixed — which makes the
-    reconstruction metric. The reconstructed camera spacing over the
-    calibrated baseline is checked (1 with a fixed rig) and returned; with
-    ``refine_rig`` each model is rescaled by its inverse.
+    between different passes dropped, see ``split_passes``); then mapping
+    with intrinsics fixed and, unless ``config.refine_rig``,
+    ``sensor_from_rig`` fixed — which makes the reconstruction metric. The
+    reconstructed camera spacing over the calibrated baseline is checked (1
+    with a fixed rig) and returned; with ``refine_rig`` each model is rescaled
+    by its inverse.
 
-    The incremental mapper starts from a two-view pair of unit baseline
-    while the fixed rig is metric; on planar facades that start can settle
-    in a wrong minimum (a block of frames rotated by tens of degrees), which
-    the global mapper does not suffer from (``rig_verification`` helps the
-    incremental one, at a high matching cost).
+    Mappers (``config.mapper``): COLMAP's incremental mapper starts from a
+    two-view pair of unit baseline while the fixed rig is metric, and on
+    planar facades that start can settle in a wrong minimum (a block of
+    frames rotated by tens of degrees). COLMAP 4's global mapper avoids it but
+    on a long straight drive places parts of the street tens of metres apart
+    at weak links (repetitive, low-texture facades). The default "seeded"
+    mapper takes the best of both: per pass, global SfM on the
+    ``seed_frames`` best-connected consecutive frames, grown over the pass by
+    the incremental mapper (new seeds for frames left over).
 
     work_dir receives ``database.db`` (replaced if present) and the models in
     ``sparse/{k}`` (binary COLMAP, k = component). COLMAP's messages are
-    forwarded to logging; the incremental mapper shows a tqdm bar of
-    registered frames (``progress``: None = only on a terminal).
+    forwarded to logging; incremental mapping shows a tqdm bar of registered
+    frames (``progress``: None = only on a terminal).
 
     Returns an :class:`SfmResult`; frames that do not register are NaN.
     """
@@ -620,16 +712,22 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
             _match(db, dataset, cfg)
             seconds["match"] = time.perf_counter() - t
             t = time.perf_counter()
-            if cfg.mapper == "global":
-                recs = _map_global(db, dataset, tmp_out, cfg)
-            else:
-                recs = _map(db, dataset, tmp_out, cfg, progress)
+            bar = tqdm(total=n, desc="sfm", unit="frame", disable=None if progress is None else not progress)
+            try:
+                if cfg.mapper == "seeded":
+                    recs = _map_seeded(db, dataset, tmp_out, cfg, bar)
+                elif cfg.mapper == "global":
+                    recs = _global(db, dataset, tmp_out, _global_options(cfg, []))
+                else:
+                    recs = _incremental(db, dataset, tmp_out, _incremental_options(cfg, [], True), bar)
+            finally:
+                bar.close()
             seconds["map"] = time.perf_counter() - t
     finally:
         shutil.rmtree(tmp_out, ignore_errors=True)
 
     # components, largest first; a frame in two models (COLMAP allows small overlaps) goes to the larger
-    models = sorted(recs.values(), key=lambda r: r.num_reg_frames(), reverse=True)
+    models = sorted(recs, key=lambda r: r.num_reg_frames(), reverse=True)
     world_from_rig = _nan_poses(n)
     component = np.full(n, -1, dtype=np.int32)
     ratios, scales, model_dirs = [], [], []

@@ -366,6 +366,18 @@ def test_sfm_registers_every_frame_metric_and_accurate(sfm_dataset, tmp_path):
     assert np.abs(T - res.world_from_rig).max() < 1e-6
 
 
+def test_seed_window_is_the_best_connected_run():
+    from recon.poses import _seed_window
+    links = np.array([50, 400, 300, 500, 20, 900, 900, 900, 10])  # links[i]: frame i to frame i + 1
+    frames = np.arange(10)
+    np.testing.assert_array_equal(_seed_window(frames, links, 3), [5, 6, 7])
+    np.testing.assert_array_equal(_seed_window(frames, links, 4), [5, 6, 7, 8])
+    np.testing.assert_array_equal(_seed_window(frames, links, 5), [0, 1, 2, 3, 4])  # weakest link 50
+    np.testing.assert_array_equal(_seed_window(np.array([0, 1, 2, 7, 8]), links, 3), [0, 1, 2])
+    np.testing.assert_array_equal(_seed_window(np.array([3, 4]), links, 8), [3, 4])  # shorter than asked
+    assert _seed_window(np.array([], dtype=np.int64), links, 3) is None
+
+
 def test_sfm_config_rejects_an_unknown_mapper():
     with pytest.raises(ValueError, match="mapper"):
         SfmConfig(mapper="magic")

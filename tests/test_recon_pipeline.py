@@ -75,3 +75,11 @@ def test_wrong_image_size_names_the_file(tiny_dataset, tmp_path):
     with pytest.raises(DataFormatError, match=f"{victim}.*80x60, expected 160x120"):
         recon_main(dataclasses.replace(TINY, evaluate=False), broken, tmp_path / "w", progress=False)
     assert not (tmp_path / "w" / "cloud.ply").exists()
+
+
+def test_cli_with_a_process_pool_writes_the_same_cloud(tiny_dataset, tiny_recon, tmp_path):
+    from bbcity.cli import main as cli
+
+    assert cli(["-q", "recon", str(tiny_dataset), "--out", str(tmp_path / "w"), "--workers", "2",
+                "--voxel-size", "0.05", "--no-eval"]) == 0
+    assert (tmp_path / "w" / "cloud.ply").read_bytes() == tiny_recon[0].read_bytes()
