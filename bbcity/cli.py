@@ -72,6 +72,8 @@ def _add_recon(sub) -> None:
     p.add_argument("--max-depth", type=float, default=None, help="farthest depth to match, metres")
     p.add_argument("--frame-stride", type=int, default=1, help="use every n-th frame (default 1)")
     p.add_argument("--wls", action="store_true", help="WLS-filter the disparities (smoother, slower)")
+    p.add_argument("--min-agree", type=int, choices=(2, 3), default=3,
+                   help="pairs that must agree on a pixel's depth (default 3; 2 keeps more, with more errors)")
     p.add_argument("--no-eval", action="store_true", help="skip the ground-truth evaluation")
     p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_recon)
@@ -93,7 +95,7 @@ def _run_recon(args) -> int:
     if args.wls:
         overrides["wls"] = True
     stereo = dataclasses.replace(stereo, **overrides)
-    conf = ReconConfig(trinocular=TrinocularConfig(stereo=stereo), fusion=FusionConfig(voxel_size=args.voxel_size),
+    conf = ReconConfig(trinocular=TrinocularConfig(stereo=stereo, min_agree=args.min_agree), fusion=FusionConfig(voxel_size=args.voxel_size),
                        poses=source, colmap_model=rest[0] if rest else None, frame_stride=args.frame_stride,
                        evaluate=not args.no_eval)
     from .executor import make_executor

@@ -23,10 +23,12 @@ from tqdm import tqdm
 from data_synth import load_dataset, load_scene
 from data_synth.fileio import write_json
 
-from .evaluate import evaluate_cloud
+from . import poses
 from .cloud_io import PlyStreamWriter, read_cloud
+from .evaluate import evaluate_cloud
 from .fusion import FusionConfig, TileSpill, merge_tiles
 from .points import depth_to_points
+from .poses import SfmConfig
 from .rectify import rectify_rig
 from .trinocular import TrinocularConfig, frame_depth
 
@@ -41,6 +43,7 @@ class ReconConfig:
     fusion: FusionConfig = field(default_factory=FusionConfig)  # voxel merge and outlier removal
     poses: str = "given"  # "given" (poses.json), "colmap" (import colmap_model) or "sfm" (pycolmap)
     colmap_model: str | None = None  # COLMAP model directory for poses == "colmap"
+    sfm: SfmConfig = field(default_factory=SfmConfig)  # pycolmap settings for poses == "sfm"
     frame_stride: int = 1  # use every n-th frame
     pixel_stride: int = 1  # back-project every n-th pixel of each depth map
     evaluate: bool = True  # compare with ground truth when the dataset has it
@@ -93,8 +96,6 @@ def _peak_rss_mb() -> float:
 
 def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np.ndarray, dict]:
     """world_from_rig (n, 4, 4) float64 from the configured source, and a report."""
-    from . import poses
-
     ds = load_dataset(dataset_dir)
     if conf.poses == "given":
         return poses.poses_given(ds), {"source": "given"}
@@ -104,10 +105,21 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
         return poses.poses_from_colmap(Path(conf.colmap_model), ds), {"source": "colmap",
                                                                        "model": str(conf.colmap_model)}
     if conf.poses == "sfm":
-        result = poses.poses_sfm(ds, work / "sfm", poses.SfmConfig())
-        report = {"source": "sfm", **{k: v for k, v in asdict(result).items() if k != "world_from_rig"}}
-        report["trajectory_vs_dataset"] = poses.trajectory_rmse(result.world_from_rig, ds.world_from_rig)
-        return result.world_from_rig, report
+        result = poses.poses_sfm(ds, work / "sfm", conf.sfm)
+        report = {"source": "sfm", "registered_frames": result.num_registered,
+                  "components": result.num_components, "points": result.num_points,
+                  "mean_reprojection_error_px": result.mean_reprojection_error,
+                  "baseline_ratio": result.baseline_ratio, "seconds": result.seconds,
+                  "models": [str(p) for p in result.model_dirs],
+                  # each component aligned on its own (SE(3), no scale): SfM's frame is arbitrary
+                  "trajectory_vs_dataset": poses.trajectory_rmse(result.world_from_rig, ds.world_from_rig,
+                                                                 groups=result.component)}
+        for per_frame in ("position_error_m", "rotation_error_deg"):  # arrays: the report keeps the summary
+            report["trajectory_vs_dataset"].pop(per_frame)
+        # The passes of a street see opposite sides and share no features, so SfM
+        # returns unrelated components; poses.json (GPS/IMU in a real capture)
+        # places each one, SfM keeps its own relative poses.
+        return poses.align_components(result.world_from_rig, result.component, ds.world_from_rig), report
     raise ValueError(f"unknown pose source {conf.poses!r}; expected one of {POSE_SOURCES}")
 
 
@@ -176,11 +188,6 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         t3 = time.perf_counter()
         scene = load_scene(dataset_dir)
         points = np.asarray(read_cloud(cloud_path).points)  # evaluation holds the whole cloud
-        if conf.poses == "sfm":  # the SfM frame is arbitrary: bring the cloud into the dataset's frame
-            from .poses import align_trajectory
-
-            _, T, _ = align_trajectory(world_from_rig[frames], ds.world_from_rig[frames], with_scale=False)
-            points = points @ T[:3, :3].T + T[:3, 3]
         max_depth = conf.trinocular.stereo.max_depth
         report["accuracy"] = evaluate_cloud(points, ds, scene, max_depth=max_depth)
         stages["evaluate_s"] = time.perf_counter() - t3

@@ -49,7 +49,7 @@ class TrinocularConfig:
     abs_tol: float = 0.02  # agreement: constant part of the depth tolerance, metres
     rel_tol: float = 0.01  # agreement: part proportional to depth (splatting, calibration)
     disp_tol: float = 1.0  # agreement: disparity error tolerated in the less precise pair, pixels
-    min_agree: int = 2  # estimates that must agree for a fused depth
+    min_agree: int = 3  # estimates that must agree for a fused depth (3: all pairs; 2 keeps more, errs more)
     reference: int = 0  # camera whose original image the fused depth lives in
     fusion: str = "weighted"  # "weighted" ((f·B)²-weighted mean of the agreeing set) or "widest" (its widest pair)
 

@@ -13,14 +13,18 @@ from recon.trinocular import (FrameDepth, TrinocularConfig, evaluate_depth, fram
                               fuse_depths_reference)
 
 
+LOOSE = TrinocularConfig(min_agree=2)
+
+
 @pytest.fixture(scope="module")
 def tiny_frames(tiny_dataset):
-    """Every frame of the tiny street: (dataset, pairs, [(FrameDepth, gt depth of cam0)])."""
+    """Every frame of the tiny street: (dataset, pairs, [(FrameDepth, gt depth of cam0)]), fused with
+    min_agree=2 (the looser setting; the default, 3, is checked as "strict" below)."""
     ds = load_dataset(tiny_dataset)
     pairs = rectify_rig(ds.rig)
     out = []
     for f in range(ds.num_frames):
-        fd = frame_depth([ds.image(f, c) for c in range(3)], pairs, TrinocularConfig())
+        fd = frame_depth([ds.image(f, c) for c in range(3)], pairs, LOOSE)
         out.append((fd, ds.gt_depth(f, 0)))
     return ds, pairs, out
 
@@ -34,7 +38,7 @@ def _pooled(results: list[dict]) -> tuple[float, float]:
 
 def test_frame_depth_invariants(tiny_frames):
     ds, pairs, frames = tiny_frames
-    cfg = TrinocularConfig()
+    cfg = LOOSE
     w, h = ds.rig.sizes[0]
     for fd, _gt in frames:
         assert isinstance(fd, FrameDepth)
@@ -78,7 +82,7 @@ def test_fusion_quality_on_tiny_street(tiny_frames):
     ds, pairs, frames = tiny_frames
     wide = pairs[(0, 2)]
     ev = {k: [] for k in ("fused", "strict", (0, 1), (1, 2), (0, 2))}
-    strict = replace(TrinocularConfig(), min_agree=3)
+    strict = replace(LOOSE, min_agree=3)
     for fd, gt in frames:
         keys = list(fd.pair_depth)
         for k in keys:
@@ -150,13 +154,13 @@ def test_fuse_matches_reference(seed, fusion, min_agree):
 
 def test_fuse_degenerate_inputs():
     D = np.full((3, 4, 5), np.nan, np.float32)
-    depth, conf, num = fuse_depths(D, [1.0, 1.0, 2.0])
+    depth, conf, num = fuse_depths(D, [1.0, 1.0, 2.0], LOOSE)
     assert np.isnan(depth).all() and (conf == 0).all() and (num == 0).all()
     D[:, 0, 0] = [5.0, 5.0, 5.0]
     D[:2, 1, 1] = [5.0, 5.01]
     D[1:, 2, 2] = [np.inf, 5.0]  # inf is no measurement
     D[:, 3, 3] = [-1.0, 0.0, 7.0]  # neither are ≤ 0
-    depth, conf, num = fuse_depths(D, [1.0, 1.0, 2.0])
+    depth, conf, num = fuse_depths(D, [1.0, 1.0, 2.0], LOOSE)
     assert depth[0, 0] == pytest.approx(5.0) and conf[0, 0] == pytest.approx(1.0) and num[0, 0] == 3
     assert np.isfinite(depth[1, 1]) and conf[1, 1] == pytest.approx(0.5)
     assert np.isnan(depth[2, 2]) and num[2, 2] == 1 and np.isnan(depth[3, 3])
