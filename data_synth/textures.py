@@ -280,7 +280,8 @@ def house(h: Hits) -> np.ndarray:
     """Small town houses: plain facades below, tiled gable roofs (sloped faces) above."""
     colour = facade(h, house=True)
     sloped = (h.normal[:, 2] > 0.2) & (h.normal[:, 2] < 0.99)
-    _where(sloped, colour, lambda m: roof(h.subset(m)), sloped)
+    if sloped.any():
+        colour[sloped] = roof(h.subset(sloped))
     return colour
 
 
