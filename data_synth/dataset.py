@@ -84,9 +84,11 @@ def capture_path(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
     """The rig's trajectory: world_from_rig (n, 4, 4) float64 and pass index (n,) int32."""
     if cfg.scene == "street":
         return drive_path(0.0, cfg.street.length, 0.0, cfg.frames, cfg.lane_offset, cfg.return_pass)
-    y = street_centres(cfg.town)[cfg.town.path_street]
+    centres = street_centres(cfg.town)
+    y = centres[len(centres) // 2 if cfg.town.path_street < 0 else cfg.town.path_street]
     half = cfg.town_path_length / 2
-    return drive_path(-half, half, y, cfg.frames, cfg.town.street_width / 4, cfg.return_pass)
+    # narrow streets: drive near the middle, so that the facades are not at arm's length
+    return drive_path(-half, half, y, cfg.frames, cfg.town.street_width / 8, cfg.return_pass)
 
 
 def _config_json(cfg: SynthConfig) -> dict:

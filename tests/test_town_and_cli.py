@@ -40,11 +40,13 @@ def test_town_has_thirty_thousand_separate_objects():
 
 def test_town_dataset_renders(tmp_path):
     cfg = SynthConfig(scene="town", town=TownConfig(size=300.0), rig=RigConfig(width=64, height=48),
-                      frames=1, town_path_length=20.0, spp=1)
+                      frames=1, town_path_length=20.0, spp=1)  # one frame per pass
     ds = load_dataset(write_dataset(cfg, tmp_path / "town", progress=False))
     ids = ds.gt_ids(0, 0)
     kinds = np.load(tmp_path / "town" / "gt" / "objects" / "kind.npy")
-    assert np.mean(kinds[ids[ids >= 0]] == Kind.HOUSE) > 0.3
+    for frame in (0, 1):  # out and back: houses on both sides of the middle street
+        ids = ds.gt_ids(frame, 0)
+        assert np.mean(kinds[ids[ids >= 0]] == Kind.HOUSE) > 0.3
 
 
 def test_town_roofs_render_from_above():
