@@ -101,3 +101,14 @@ def test_sfm_poses_reconstruct_the_street(tmp_path):
     assert report["poses"]["registered_frames"] == 8
     assert traj["rmse_m"] < 0.1  # measured about 4 cm over 21 m
     assert report["accuracy"]["accuracy_median_m"] < 0.05
+
+
+def test_stereo_sweep_writes_its_table_and_plot(tiny_dataset, tmp_path):
+    from bbcity.sweeps import stereo_sweep
+
+    result = stereo_sweep(tiny_dataset, tmp_path, num_frames=1)
+    assert len(result["sweep"]) >= 6 and len(result["pairs_vs_trinocular"]) == 5
+    for row in result["sweep"]:
+        assert row["seconds_per_frame"] > 0 and 0 <= row["bad_pixel_rate"] <= 1
+    for name in ("stereo_sweep.json", "stereo_sweep.md", "stereo_sweep.png"):
+        assert (tmp_path / name).stat().st_size > 100
