@@ -24,19 +24,19 @@ import json
 import logging
 import os
 import time
-from concurrent.futures import Executor, as_completed
+from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-from tqdm import tqdm
 
 from .colmap_export import write_colmap_text
 from .fileio import DataFormatError, atomic_path, load_npy, read_json, read_png, save_npy, write_json, write_png
 from .raycast import Renderer
 from .rig import Rig, RigConfig, drive_path, load_poses, make_rig, save_poses
 from .scene import Scene
+from .tasks import run_tasks
 from .street import StreetConfig, build_street
 from .town import TownConfig, build_town, street_centres
 
@@ -203,17 +203,7 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
             if not all(p.exists() for p in _frame_files(root, n, rig.num_cameras, cfg.ground_truth_depth))]
     logger.info("rendering %d of %d frames × %d cameras", len(todo), len(names), rig.num_cameras)
     t1 = time.perf_counter()
-    frame_seconds = []
-    bar = tqdm(total=len(todo), desc="render", unit="frame", disable=None if progress is None else not progress)
-    if executor is None:
-        for task in todo:
-            frame_seconds.append(_render_frame(task))
-            bar.update()
-    else:
-        for future in as_completed([executor.submit(_render_frame, t) for t in todo]):
-            frame_seconds.append(future.result())
-            bar.update()
-    bar.close()
+    frame_seconds = run_tasks(_render_frame, todo, executor, desc="render", progress=progress)
     t_render = time.perf_counter() - t1
 
     write_json(root / "dataset.json", {

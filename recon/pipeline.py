@@ -13,15 +13,15 @@ import logging
 import os
 import resource
 import time
-from concurrent.futures import Executor, as_completed
+from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from data_synth import load_dataset, load_scene
 from data_synth.fileio import write_json
+from data_synth.tasks import run_tasks
 
 from . import poses
 from .cloud_io import PlyStreamWriter, read_cloud
@@ -152,17 +152,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
 
     logger.info("stereo on %d frames × %d cameras, poses: %s", len(tasks), ds.rig.num_cameras, conf.poses)
     t1 = time.perf_counter()
-    frame_stats = []
-    bar = tqdm(total=len(tasks), desc="stereo", unit="frame", disable=None if progress is None else not progress)
-    if executor is None:
-        for t in tasks:
-            frame_stats.append(_process_frame(t))
-            bar.update()
-    else:
-        for fut in as_completed([executor.submit(_process_frame, t) for t in tasks]):
-            frame_stats.append(fut.result())
-            bar.update()
-    bar.close()
+    frame_stats = run_tasks(_process_frame, tasks, executor, desc="stereo", progress=progress)
     stages["frames_s"] = time.perf_counter() - t1
 
     logger.info("merging %d frames (%.1f s of stereo)", len(frame_stats), stages["frames_s"])
