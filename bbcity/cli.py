@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -38,7 +39,7 @@ def _add_synth(sub) -> None:
 def _run_synth(args) -> int:
     from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig, write_dataset
 
-    from .executor import make_executor
+    from .executor import executor_scope
 
     cfg = SynthConfig(
         scene=args.scene,
@@ -48,7 +49,7 @@ def _run_synth(args) -> int:
         frames=args.frames, return_pass=not args.no_return, town_path_length=args.length,
         spp=args.spp, ground_truth_depth=not args.no_gt_depth)
     start = time.perf_counter()
-    with make_executor(args.workers) as executor:
+    with executor_scope(args.workers) as executor:
         out = write_dataset(cfg, args.out, executor=executor)
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     logger.info("wrote %s: %.1f MB in %.1f s", out, size / 1e6, time.perf_counter() - start)
@@ -98,9 +99,9 @@ def _run_recon(args) -> int:
     conf = ReconConfig(trinocular=TrinocularConfig(stereo=stereo, min_agree=args.min_agree), fusion=FusionConfig(voxel_size=args.voxel_size),
                        poses=source, colmap_model=rest[0] if rest else None, frame_stride=args.frame_stride,
                        evaluate=not args.no_eval)
-    from .executor import make_executor
+    from .executor import executor_scope
 
-    with make_executor(args.workers) as executor:
+    with executor_scope(args.workers) as executor:
         cloud = recon_main(conf, args.dataset, args.out, executor=executor)
     logger.info("wrote %s and %s", cloud, cloud.with_name("recon_report.json"))
     return 0
@@ -186,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     from .executor import tune_allocator
 
     tune_allocator()
+    # SIGTERM unwinds like Ctrl-C: atomic writers clean up and pool workers are joined
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     try:
         return args.func(args)
     except (DataFormatError, FileExistsError, ValueError) as e:

@@ -12,6 +12,8 @@ import ctypes.util
 import multiprocessing
 import os
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from contextlib import contextmanager
+from typing import Iterator
 
 
 _M_TRIM_THRESHOLD = -1
@@ -71,3 +73,20 @@ def make_executor(workers: int | None = None) -> Executor:
         return SerialExecutor()
     return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=tune_allocator)
+
+
+@contextmanager
+def executor_scope(workers: int | None = None) -> Iterator[Executor]:
+    """:func:`make_executor` for a ``with`` block that cleans up after failures too.
+
+    On an exception (an error, Ctrl-C, or SIGTERM turned into SystemExit by the
+    CLI) queued tasks are cancelled and the workers are joined, so no pool
+    process outlives the command.
+    """
+    executor = make_executor(workers)
+    try:
+        yield executor
+    except BaseException:
+        executor.shutdown(wait=True, cancel_futures=True)
+        raise
+    executor.shutdown(wait=True)
