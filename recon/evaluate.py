@@ -47,12 +47,12 @@ def seen_surface(dataset: Dataset, scene: Scene, voxel: float = 0.05, stride: in
             depth = dataset.gt_depth(f, c).copy()
             depth[depth > max_depth] = np.nan
             ids = dataset.gt_ids(f, c)
-            # object ids ride along as the 'confidence' channel (exact in float32 below 2^24)
-            p, _, obj = depth_to_points(depth, dataset.rig.intrinsics[c], dataset.world_from_cam(f, c),
-                                        np.zeros(depth.shape + (3,), np.uint8),
-                                        confidence=ids.astype(np.float32), stride=stride)
+            p, _, _ = depth_to_points(depth, dataset.rig.intrinsics[c], dataset.world_from_cam(f, c),
+                                      np.zeros(depth.shape + (3,), np.uint8), stride=stride)
+            d = depth[::stride, ::stride]
+            obj = ids[::stride, ::stride][np.isfinite(d) & (d > 0)]  # same pixels, same row-major order
             pts.append(p)
-            kinds.append(scene.object_kind[obj.astype(np.int64)])
+            kinds.append(scene.object_kind[obj])
     points = np.concatenate(pts) if pts else np.zeros((0, 3))
     kind = np.concatenate(kinds) if kinds else np.zeros(0, np.int16)
     if not len(points):
