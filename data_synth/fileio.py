@@ -12,6 +12,7 @@ import contextlib
 import json
 import logging
 import os
+import tokenize
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -125,7 +126,8 @@ def load_npy(
             array = np.load(f, allow_pickle=False)
     except DataFormatError:
         raise
-    except (ValueError, OSError, EOFError) as e:
+    # numpy parses the header with Python's tokenizer: garbage surfaces as SyntaxError/TokenError
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError) as e:
         raise DataFormatError(path, f"not a valid .npy array ({e})") from None
     if dtype is not None and array.dtype != np.dtype(dtype):
         raise DataFormatError(path, f"dtype {array.dtype}, expected {np.dtype(dtype)}")
