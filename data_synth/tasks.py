@@ -6,8 +6,10 @@ any ``concurrent.futures.Executor`` (None runs in this process).
 
 from __future__ import annotations
 
+from collections import deque
 from concurrent.futures import Executor, as_completed
-from typing import Callable, Sequence, TypeVar
+from itertools import islice
+from typing import Callable, Iterator, Sequence, TypeVar
 
 from tqdm import tqdm
 
@@ -33,3 +35,27 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: Executor | Non
                 results.append(future.result())
                 bar.update()
     return results
+
+
+def ordered_results(fn: Callable[[T], R], tasks: Sequence[T], executor: Executor | None = None,
+                    window: int = 4, desc: str = "", progress: bool | None = None) -> Iterator[R]:
+    """Yield ``fn(task)`` for every task in task order, with at most ``window`` tasks
+    submitted ahead, so a consumer that writes results as they come holds only a
+    window of them in memory. Exceptions propagate at the task that raised."""
+    with tqdm(total=len(tasks), desc=desc, unit="item", disable=None if progress is None else not progress) as bar:
+        if executor is None:
+            for task in tasks:
+                result = fn(task)
+                bar.update()
+                yield result
+            return
+        pending: deque = deque()
+        queue = iter(tasks)
+        for task in islice(queue, max(1, window)):
+            pending.append(executor.submit(fn, task))
+        while pending:
+            result = pending.popleft().result()
+            bar.update()
+            for task in islice(queue, 1):
+                pending.append(executor.submit(fn, task))
+            yield result

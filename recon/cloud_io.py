@@ -103,3 +103,85 @@ def read_cloud(path: os.PathLike | str, require_colours: bool = True) -> o3d.geo
     if pcd.has_colors() and not np.all(np.isfinite(np.asarray(pcd.colors))):
         raise DataFormatError(path, "colours contain NaN or inf")
     return pcd
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
+              "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+              "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
+
+
+def _binary_ply_layout(path: Path) -> tuple[int, np.dtype, int] | None:
+    """(header bytes, vertex dtype, vertex count) of a binary little-endian PLY whose
+    first element is ``vertex`` with scalar properties; None for anything else."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    end = head.find(b"end_header\n")
+    if not head.startswith(b"ply\n") or end < 0:
+        return None
+    lines = head[:end].decode("ascii", "replace").splitlines()[1:]
+    if not lines or lines[0].strip() != "format binary_little_endian 1.0":
+        return None
+    fields, count, in_vertex = [], None, False
+    for line in lines[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "element":
+            if count is not None:
+                break  # later elements (faces) are not read
+            if words[1:2] != ["vertex"] or len(words) != 3 or not words[2].isdigit():
+                return None
+            count, in_vertex = int(words[2]), True
+        elif words[0] == "property" and in_vertex:
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                return None
+            fields.append((words[2], _PLY_TYPES[words[1]]))
+        else:
+            return None
+    names = [n for n, _ in fields]
+    if count is None or len(set(names)) != len(names) or not {"x", "y", "z"} <= set(names):
+        return None
+    return end + len(b"end_header\n"), np.dtype(fields), count
+
+
+def read_cloud_arrays(path: os.PathLike | str, require_colours: bool = True
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a PLY/PCD cloud as arrays: points (n, 3) float64, colours (n, 3) uint8 or None.
+
+    Binary little-endian PLY (what ``recon`` writes) is read straight into numpy,
+    about ten times faster than Open3D; any other file goes through
+    :func:`read_cloud`. Validation and errors are those of :func:`read_cloud`.
+    """
+    path = Path(path)
+    layout = _binary_ply_layout(path) if path.is_file() and path.suffix.lower() == ".ply" else None
+    if layout is None:
+        pcd = read_cloud(path, require_colours)
+        colours = (np.clip(np.rint(np.asarray(pcd.colors) * 255), 0, 255).astype(np.uint8)
+                   if pcd.has_colors() else None)
+        return np.asarray(pcd.points), colours
+    offset, dtype, count = layout
+    size = path.stat().st_size
+    if size < offset + count * dtype.itemsize:
+        raise DataFormatError(path, f"truncated: header promises {count} points "
+                                    f"({offset + count * dtype.itemsize} bytes), file has {size}")
+    if count == 0:
+        raise DataFormatError(path, "no points (empty, truncated or not a point cloud)")
+    rows = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,))
+    points = np.empty((count, 3), dtype=np.float64)
+    for i, axis in enumerate("xyz"):
+        points[:, i] = rows[axis]
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise DataFormatError(path, f"{int(bad.sum())} of {count} points have NaN or inf coordinates")
+    colours = None
+    if {"red", "green", "blue"} <= set(dtype.names):
+        colours = np.empty((count, 3), dtype=np.uint8)
+        for i, name in enumerate(("red", "green", "blue")):
+            channel = rows[name]
+            if channel.dtype != np.uint8:
+                raise DataFormatError(path, f"colour property {name} is {channel.dtype}, expected uchar")
+            colours[:, i] = channel
+    elif require_colours:
+        raise DataFormatError(path, "points have no colours")
+    del rows
+    return points, colours

@@ -1,0 +1,146 @@
+"""Billboard geometry: the view-direction table and each billboard's quad frame.
+
+A billboard is a square of the voxel's edge ``s``, centred at the voxel centre,
+facing a viewer direction ω (unit vector from the billboard toward the viewer).
+Directions are sampled per billboard relative to its *base yaw* ψ₀ (the world yaw
+from the voxel toward the capture path): direction ``j = p·d_yaw + y`` has yaw
+ψ₀ + yaw_offsets[y] and pitch pitches[p].
+
+Quad frame for a viewer at yaw ψ, pitch φ (world, z up):
+  normal n = (cos φ cos ψ, cos φ sin ψ, sin φ)  (toward the viewer)
+  right  r = (−sin ψ, cos ψ, 0)                 (the viewer's right)
+  up     u = (0, 0, 1), or n × r when quads are pitched too.
+Texel (row, col) of a t×t texture lies at
+  centre + ((col + ½)/t − ½)·s·r + (½ − (row + ½)/t)·s·u,
+so row 0 is the top and the texture reads like an image seen from the viewer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DirectionConfig:
+    count: int = 32              # yaw directions per billboard
+    spacing_deg: float = 6.0     # angle between neighbouring yaw directions
+    pitches_deg: tuple[float, ...] = (0.0,)  # pitch rows (elevation of the viewer, degrees)
+    pitched_quads: bool = False  # quads also tilt toward the viewer's elevation
+
+    def __post_init__(self):
+        if self.count < 1 or not np.isfinite(self.spacing_deg) or self.spacing_deg <= 0:
+            raise ValueError(f"need count ≥ 1 and spacing > 0, got {self.count}, {self.spacing_deg}")
+        if self.count * self.spacing_deg > 360.0 + 1e-9:
+            raise ValueError(f"{self.count} directions {self.spacing_deg}° apart span more than 360°")
+        p = np.asarray(self.pitches_deg, dtype=np.float64)
+        if p.size < 1 or not np.all(np.isfinite(p)) or np.any(np.abs(p) >= 90) or np.any(np.diff(p) <= 0):
+            raise ValueError(f"pitches must be ascending, finite and within (−90°, 90°), got {self.pitches_deg}")
+
+    @property
+    def yaw_offsets(self) -> np.ndarray:
+        """(d_yaw,) float64 radians, symmetric about 0 and ascending."""
+        k = np.arange(self.count, dtype=np.float64) - (self.count - 1) / 2
+        return np.deg2rad(k * self.spacing_deg)
+
+    @property
+    def pitches(self) -> np.ndarray:
+        """(d_pitch,) float64 radians."""
+        return np.deg2rad(np.asarray(self.pitches_deg, dtype=np.float64))
+
+    @property
+    def num_directions(self) -> int:
+        return self.count * len(self.pitches_deg)
+
+
+def direction_angles(base_yaw: np.ndarray, yaw_offsets: np.ndarray, pitches: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """World yaw and pitch of every sampled direction.
+
+    base_yaw (n,) float64; yaw_offsets (d_yaw,), pitches (d_pitch,) radians →
+    yaw (n, d), pitch (n, d) float64 with d = d_pitch·d_yaw, index p·d_yaw + y.
+    """
+    base_yaw = np.asarray(base_yaw, dtype=np.float64)
+    yaw = base_yaw[:, None, None] + np.asarray(yaw_offsets)[None, None, :]
+    pitch = np.broadcast_to(np.asarray(pitches)[None, :, None], yaw.shape[:1] + (len(pitches), len(yaw_offsets)))
+    yaw = np.broadcast_to(yaw, pitch.shape)
+    return yaw.reshape(len(base_yaw), -1).copy(), pitch.reshape(len(base_yaw), -1).copy()
+
+
+def unit_vectors(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """yaw, pitch (...) radians → (..., 3) float64 unit vectors."""
+    cp = np.cos(pitch)
+    return np.stack([cp * np.cos(yaw), cp * np.sin(yaw), np.sin(pitch) * np.ones_like(yaw)], axis=-1)
+
+
+def quad_frames(yaw: np.ndarray, pitch: np.ndarray, pitched: bool = False
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normal, right and up axes (..., 3) float64 of quads facing yaw/pitch (...)."""
+    normal = unit_vectors(yaw, pitch if pitched else np.zeros_like(yaw))
+    right = np.stack([-np.sin(yaw), np.cos(yaw), np.zeros_like(yaw)], axis=-1)
+    if pitched:
+        up = np.cross(normal, right)
+    else:
+        up = np.zeros_like(right)
+        up[..., 2] = 1.0
+    return normal, right, up
+
+
+def texel_offsets(tile: int) -> np.ndarray:
+    """(t,) float64 texel-centre coordinates in units of the quad edge, from −½ to ½."""
+    return (np.arange(tile, dtype=np.float64) + 0.5) / tile - 0.5
+
+
+def texel_points(centres: np.ndarray, size: float, right: np.ndarray, up: np.ndarray, tile: int) -> np.ndarray:
+    """World positions of every texel centre.
+
+    centres (m, 3) float64, right/up (m, 3) unit axes, size = quad edge (m) →
+    (m, t, t, 3) float64, [:, row, col].
+    """
+    a = texel_offsets(tile) * size
+    return (centres[:, None, None, :]
+            + a[None, None, :, None] * right[:, None, None, :]
+            - a[None, :, None, None] * up[:, None, None, :])
+
+
+def base_yaw_toward(centres: np.ndarray, viewpoints: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """Base yaw of each billboard: the world yaw from it toward the nearest viewpoint (in xy).
+
+    centres (n, 3) float64, viewpoints (v, 3) float64 (camera centres) → (n,) float64.
+    With no viewpoints every base yaw is 0.
+    """
+    centres = np.asarray(centres, dtype=np.float64)
+    viewpoints = np.asarray(viewpoints, dtype=np.float64)
+    out = np.zeros(len(centres))
+    if len(viewpoints) == 0:
+        return out
+    for s in range(0, len(centres), chunk):
+        c = centres[s:s + chunk, None, :2]
+        d2 = np.sum((viewpoints[None, :, :2] - c) ** 2, axis=-1)
+        nearest = viewpoints[np.argmin(d2, axis=1), :2] - c[:, 0]
+        out[s:s + chunk] = np.arctan2(nearest[:, 1], nearest[:, 0])
+    return out
+
+
+def ray_box_interval(origin: np.ndarray, direction: np.ndarray, box_min: np.ndarray, box_max: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Slab test: parameters where rays ``origin + t·direction`` enter and leave boxes.
+
+    origin, direction, box_min, box_max broadcast to (..., 3) → t_in, t_out (...)
+    in the dtype of the inputs; t_in > t_out where the ray misses. A zero direction
+    component gives ±inf or NaN for that axis, which fmin/fmax skip.
+    """
+    origin, direction = np.asarray(origin), np.asarray(direction)
+    box_min, box_max = np.asarray(box_min), np.asarray(box_max)
+    t_in = t_out = None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for axis in range(3):
+            o = origin[..., axis] if origin.ndim else origin
+            inv = 1 / direction[..., axis]
+            t0 = (box_min[..., axis] - o) * inv
+            t1 = (box_max[..., axis] - o) * inv
+            near, far = np.fmin(t0, t1), np.fmax(t0, t1)
+            t_in = near if t_in is None else np.fmax(t_in, near)
+            t_out = far if t_out is None else np.fmin(t_out, far)
+    return t_in, t_out

@@ -1,0 +1,386 @@
+"""Occlusion-aware angular sampling of billboard textures from the captured images.
+
+For every billboard and sampled direction the quad is oriented toward that
+direction and each texel is looked up in the image of the camera whose ray to the
+voxel is closest in angle. A texel is *accepted* only when what the camera sees
+there lies inside the voxel: the depth of the cloud's z-buffer at that pixel is
+compared with the interval where the texel's ray crosses the voxel cube.
+  - in the interval → the image colour, alpha 1;
+  - behind it (or nothing there) → seen through the voxel: alpha 0;
+  - in front of it → hidden by an occluder: the next-best camera is tried, and
+    texels no camera sees are filled from the neighbouring directions, never
+    from the occluder (the failure of the billboard paper at pillars).
+``occlusion=False`` gives the naive nearest-frame sampling for comparison.
+
+The z-buffer is the fused cloud splatted at reduced resolution: a min-reduction
+per pixel, small holes inside surfaces closed from their neighbours, and a 3×3
+minimum (one z-buffer pixel of safety margin) for the occlusion test.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from data_synth.fileio import read_png
+
+from .geometry import DirectionConfig, direction_angles, quad_frames, ray_box_interval, texel_points
+
+logger = logging.getLogger(__name__)
+
+# Texel status while sampling.
+VISIBLE, TRANSPARENT, OCCLUDED, UNSEEN = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    tile: int = 32                  # texels per side
+    directions: DirectionConfig = field(default_factory=DirectionConfig)
+    occlusion: bool = True          # False: naive nearest-frame sampling (no occlusion test, one camera)
+    candidates: int = 4             # cameras tried per direction, best first, while texels stay hidden
+    max_angle_deg: float = 15.0     # a camera farther than this from a direction does not sample it
+    max_distance: float = 60.0      # cameras farther from the voxel than this (m) are not used
+    abs_tolerance: float = 0.05     # depth slack of the in-voxel test (m) ...
+    rel_tolerance: float = 0.01     # ... plus this fraction of the depth
+    zbuffer_scale: int = 2          # z-buffer pixel = this many image pixels per side
+    cache_views: int = 48           # images and z-buffers kept per process
+
+    def __post_init__(self):
+        if self.tile < 1 or self.candidates < 1 or self.zbuffer_scale < 1:
+            raise ValueError("tile, candidates and zbuffer_scale must be ≥ 1")
+        if not (0 < self.max_angle_deg <= 180) or self.max_distance <= 0:
+            raise ValueError("max_angle_deg must be in (0, 180] and max_distance > 0")
+
+
+@dataclass(frozen=True, eq=False)
+class Views:
+    """The captured images. K (v, 3, 3) float64; world_from_cam (v, 4, 4) float64;
+    sizes (v, 2) int (width, height); paths: PNG file per view."""
+
+    K: np.ndarray
+    world_from_cam: np.ndarray
+    sizes: np.ndarray
+    paths: tuple[Path, ...]
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    @property
+    def centres(self) -> np.ndarray:
+        """(v, 3) float64 camera centres."""
+        return self.world_from_cam[:, :3, 3]
+
+    def image(self, i: int) -> np.ndarray:
+        """(h, w, 3) uint8 RGB; a bad file raises DataFormatError naming it."""
+        return read_png(self.paths[i], tuple(int(s) for s in self.sizes[i]))
+
+
+def views_from_dataset(dataset) -> Views:
+    """Every (frame, camera) image of a :class:`data_synth.Dataset`."""
+    K, poses, sizes, paths = [], [], [], []
+    for f in range(dataset.num_frames):
+        for c in range(dataset.rig.num_cameras):
+            K.append(dataset.rig.intrinsics[c])
+            poses.append(dataset.world_from_cam(f, c))
+            sizes.append(dataset.rig.sizes[c])
+            paths.append(dataset.image_path(f, c))
+    return Views(np.asarray(K, dtype=np.float64), np.asarray(poses, dtype=np.float64),
+                 np.asarray(sizes, dtype=np.int64), tuple(paths))
+
+
+@dataclass(frozen=True, eq=False)
+class VoxelPoints:
+    """The cloud grouped by voxel, for z-buffers: points (N, 3) float32 relative to
+    ``origin`` sorted by voxel; begin (n + 1,) int64 offsets of each voxel's run;
+    centres (n, 3) float64 world voxel centres; size = voxel edge (m)."""
+
+    origin: np.ndarray
+    points: np.ndarray
+    begin: np.ndarray
+    centres: np.ndarray
+    size: float
+
+    def in_view(self, K: np.ndarray, world_from_cam: np.ndarray, image_size, max_distance: float) -> np.ndarray:
+        """(m, 3) float32 points (relative to origin) of the voxels that may appear in the view."""
+        w, h = image_size
+        R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
+        cam = (self.centres - C) @ R
+        radius = self.size * 0.8660254
+        z = cam[:, 2]
+        # Conservative frustum test of the voxel's bounding sphere.
+        ok = (z > -radius) & (np.linalg.norm(cam, axis=1) < max_distance + radius)
+        zc = np.maximum(z, 1e-6)
+        for axis, focal, centre, extent in ((0, K[0, 0], K[0, 2], w), (1, K[1, 1], K[1, 2], h)):
+            margin = radius * focal / zc + 1
+            pix = focal * cam[:, axis] / zc + centre
+            ok &= (z < radius) | ((pix > -margin - 0.5) & (pix < extent - 0.5 + margin))
+        voxels = np.flatnonzero(ok)
+        starts, ends = self.begin[voxels], self.begin[voxels + 1]
+        lengths = ends - starts
+        index = np.arange(int(lengths.sum())) + np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
+        return self.points[index]
+
+
+def voxel_points(points: np.ndarray, leaf: np.ndarray, centres: np.ndarray, origin: np.ndarray,
+                 size: float) -> VoxelPoints:
+    """Group cloud points (N, 3) float64 by their voxel ``leaf`` (N,) int64 (−1 = none)."""
+    keep = leaf >= 0
+    order = np.argsort(leaf[keep], kind="stable")
+    rel = (points[keep][order] - origin).astype(np.float32)
+    counts = np.bincount(leaf[keep], minlength=len(centres))
+    begin = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return VoxelPoints(np.asarray(origin, dtype=np.float64), rel, begin, np.asarray(centres, np.float64), float(size))
+
+
+def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
+            image_size, scale: int) -> tuple[np.ndarray, np.ndarray]:
+    """Splat points into a reduced-resolution depth buffer.
+
+    points (m, 3) float32 relative to ``origin`` (3,) float64 → (filled, nearest), each
+    (ceil(h/scale), ceil(w/scale)) float32 z-depth with inf where empty. ``filled``
+    closes one-pixel holes inside surfaces (pixels with at least 5 of 8 neighbours
+    set); ``nearest`` is the 3×3 minimum of ``filled``, a conservative occluder depth.
+    """
+    w, h = (int(s) for s in image_size)
+    zw, zh = -(-w // scale), -(-h // scale)
+    R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
+    cam = points @ R.astype(np.float32) + ((origin - C) @ R).astype(np.float32)
+    z = cam[:, 2]
+    front = z > 1e-3
+    cam, z = cam[front], z[front]
+    u = (K[0, 0] * cam[:, 0] / z + K[0, 2] + 0.5) / scale
+    v = (K[1, 1] * cam[:, 1] / z + K[1, 2] + 0.5) / scale
+    inside = (u >= 0) & (u < zw) & (v >= 0) & (v < zh)
+    pix = v[inside].astype(np.int64) * zw + u[inside].astype(np.int64)
+    depth = np.full(zw * zh, np.inf, dtype=np.float32)
+    np.minimum.at(depth, pix, z[inside])
+    depth = depth.reshape(zh, zw)
+    valid = np.isfinite(depth).astype(np.float32)
+    neighbours = cv2.boxFilter(valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT) - valid
+    kernel = np.ones((3, 3), np.uint8)
+    local_min = cv2.erode(depth, kernel, borderType=cv2.BORDER_REPLICATE)
+    filled = np.where(np.isfinite(depth) | (neighbours < 5), depth, local_min)
+    nearest = cv2.erode(filled, kernel, borderType=cv2.BORDER_REPLICATE)
+    return filled, nearest
+
+
+class _ViewCache:
+    """Per-process LRU of decoded image pyramids and z-buffers."""
+
+    def __init__(self, views: Views, voxels: VoxelPoints | None, config: SamplingConfig):
+        self.views, self.voxels, self.config = views, voxels, config
+        self._entries: OrderedDict[int, tuple] = OrderedDict()
+
+    def get(self, i: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+        if i in self._entries:
+            self._entries.move_to_end(i)
+            return self._entries[i]
+        image = self.views.image(i)
+        pyramid = [image]
+        while min(pyramid[-1].shape[:2]) >= 16 and len(pyramid) < 6:
+            pyramid.append(cv2.pyrDown(pyramid[-1]))
+        K, pose, size = self.views.K[i], self.views.world_from_cam[i], self.views.sizes[i]
+        if self.voxels is not None:
+            pts = self.voxels.in_view(K, pose, size, self.config.max_distance)
+            filled, nearest = zbuffer(pts, self.voxels.origin, K, pose, size, self.config.zbuffer_scale)
+        else:
+            filled = nearest = None
+        entry = (pyramid, filled, nearest)
+        self._entries[i] = entry
+        if len(self._entries) > self.config.cache_views:
+            self._entries.popitem(last=False)
+        return entry
+
+
+@dataclass(frozen=True, eq=False)
+class SampledTextures:
+    """rgba (B, d, t, t, 4) uint8 (alpha 0 or 255); view (B, d) int64 first
+    camera used (−1: none); distance (B, d) float64 from that camera to the voxel
+    centre (NaN: none); stats: texel counts by outcome."""
+
+    rgba: np.ndarray
+    view: np.ndarray
+    distance: np.ndarray
+    stats: dict
+
+
+class ImageSampler:
+    """Samples billboard textures from ``views``; holds the per-process caches.
+
+    centres (n, 3) float64 world voxel centres; size: voxel edge (m); base_yaw (n,)
+    float64; voxels: the cloud grouped by voxel (for z-buffers; required when
+    ``config.occlusion``, and used for transparency in both modes).
+    """
+
+    def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,
+                 voxels: VoxelPoints, config: SamplingConfig = SamplingConfig()):
+        self.views, self.config = views, config
+        self.centres = np.asarray(centres, dtype=np.float64)
+        self.size = float(size)
+        self.base_yaw = np.asarray(base_yaw, dtype=np.float64)
+        self.cache = _ViewCache(views, voxels, config)
+
+    # -- choosing cameras ------------------------------------------------------------
+    def _candidates(self, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+        """(B, d, k) int64 view indices ranked by angle to each direction, −1 = none."""
+        cfg = self.config
+        c = self.centres[ids]
+        C = self.views.centres
+        to_cam = C[None, :, :] - c[:, None, :]                       # (B, V, 3)
+        dist = np.linalg.norm(to_cam, axis=-1)
+        cam_yaw = np.arctan2(to_cam[..., 1], to_cam[..., 0])
+        cam_pitch = np.arcsin(np.clip(to_cam[..., 2] / np.maximum(dist, 1e-12), -1, 1))
+        # The voxel centre must project inside the image, in front of the camera.
+        R = self.views.world_from_cam[:, :3, :3]
+        cam = np.einsum("bvk,vkj->bvj", -to_cam, R)                   # camera coordinates
+        z = cam[..., 2]
+        K = self.views.K
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[None, :, 0, 0] * cam[..., 0] / z + K[None, :, 0, 2]
+            v = K[None, :, 1, 1] * cam[..., 1] / z + K[None, :, 1, 2]
+        w, h = self.views.sizes[:, 0], self.views.sizes[:, 1]
+        usable = ((z > 0.3) & (dist < cfg.max_distance) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1))
+        dyaw = np.angle(np.exp(1j * (cam_yaw[:, None, :] - yaw[:, :, None])))  # (B, d, V), wrapped
+        several_rows = len(cfg.directions.pitches_deg) > 1
+        dpitch = cam_pitch[:, None, :] - pitch[:, :, None]
+        cost = np.abs(dyaw) + (1.0 if several_rows else 0.1) * np.abs(dpitch)
+        limit = np.deg2rad(cfg.max_angle_deg)
+        bad = ~usable[:, None, :] | (np.abs(dyaw) > limit) | (several_rows & (np.abs(dpitch) > limit))
+        cost = np.where(bad, np.inf, cost)
+        k = min(cfg.candidates if cfg.occlusion else 1, cost.shape[-1])
+        best = np.argsort(cost, axis=-1, kind="stable")[..., :k]
+        return np.where(np.isfinite(np.take_along_axis(cost, best, -1)), best, -1)
+
+    # -- sampling one camera ---------------------------------------------------------
+    def _sample_view(self, view: int, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Texels of the quads (m,) for one camera → colour (m, t, t, 3) uint8, status (m, t, t) uint8."""
+        cfg = self.config
+        t, s = cfg.tile, self.size
+        pyramid, filled, nearest = self.cache.get(view)
+        K, pose = self.views.K[view], self.views.world_from_cam[view]
+        R, C = pose[:3, :3].astype(np.float32), pose[:3, 3]
+        # Everything relative to the camera centre, in float32 (metres near the camera).
+        c = (self.centres[ids] - C).astype(np.float32)
+        _, right, up = quad_frames(yaw, pitch, cfg.directions.pitched_quads)
+        p = texel_points(c, s, right.astype(np.float32), up.astype(np.float32), t)  # (m, t, t, 3)
+        cam = p @ R
+        z = cam[..., 2]
+        inv_z = np.float32(1) / np.where(z > 1e-3, z, np.float32(np.nan))
+        u = K[0, 0] * cam[..., 0] * inv_z + np.float32(K[0, 2])
+        v = K[1, 1] * cam[..., 1] * inv_z + np.float32(K[1, 2])
+        w, h = self.views.sizes[view]
+        inside = (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)  # False for NaN
+        # Ray parameter in z-depth units, so it compares with the z-buffer directly.
+        half = np.float32(s / 2)
+        t_in, t_out = ray_box_interval(np.float32(0), p * inv_z[..., None], c[:, None, None, :] - half,
+                                       c[:, None, None, :] + half)
+        tol = np.float32(cfg.abs_tolerance) + np.float32(cfg.rel_tolerance) * z
+        scale = cfg.zbuffer_scale
+        zh, zw = filled.shape
+        iu = np.clip(np.nan_to_num((u + 0.5) / scale, nan=0).astype(np.int32), 0, zw - 1)
+        iv = np.clip(np.nan_to_num((v + 0.5) / scale, nan=0).astype(np.int32), 0, zh - 1)
+        pix = iv * zw + iu
+        seen = filled.ravel()[pix]
+        status = np.where(seen <= t_out + tol, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
+        if cfg.occlusion:
+            status[nearest.ravel()[pix] < t_in - tol] = OCCLUDED
+        status[~inside] = UNSEEN
+        # Colour from the pyramid level whose pixels match the texel footprint.
+        footprint = (s / t) * K[0, 0] / np.maximum(np.linalg.norm(c, axis=1), 1e-6)
+        level = np.clip(np.floor(np.log2(np.maximum(footprint, 1.0))).astype(int), 0, len(pyramid) - 1)
+        colour = np.empty(z.shape + (3,), dtype=np.uint8)
+        for lv in np.unique(level):
+            sel = np.flatnonzero(level == lv)
+            f = 0.5 ** lv
+            mx = np.nan_to_num((u[sel] + 0.5) * f - 0.5, nan=-1e4).astype(np.float32).reshape(len(sel), -1)
+            my = np.nan_to_num((v[sel] + 0.5) * f - 0.5, nan=-1e4).astype(np.float32).reshape(len(sel), -1)
+            for r0 in range(0, len(sel), 8192):  # OpenCV maps stay under SHRT_MAX rows
+                out = cv2.remap(pyramid[lv], mx[r0:r0 + 8192], my[r0:r0 + 8192], cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REPLICATE)
+                colour[sel[r0:r0 + 8192]] = out.reshape(-1, t, t, 3)
+        return colour, status
+
+    # -- one chunk of billboards -----------------------------------------------------
+    def sample(self, ids: np.ndarray) -> SampledTextures:
+        """Textures of billboards ``ids`` (B,) int64 in every direction."""
+        cfg = self.config
+        t, dirs = cfg.tile, cfg.directions
+        ids = np.asarray(ids, dtype=np.int64)
+        B, d = len(ids), dirs.num_directions
+        yaw, pitch = direction_angles(self.base_yaw[ids], dirs.yaw_offsets, dirs.pitches)
+        candidates = self._candidates(ids, yaw, pitch) if B else np.zeros((0, d, 1), np.int64)
+        colour = np.zeros((B, d, t, t, 3), dtype=np.uint8)
+        status = np.full((B, d, t, t), UNSEEN, dtype=np.uint8)
+        stats = {"samples": B * d, "samples_with_camera": int((candidates[..., 0] >= 0).sum()),
+                 "texels_from_fallback_camera": 0}
+        for k in range(candidates.shape[-1]):
+            open_ = (status == OCCLUDED) | (status == UNSEEN)
+            todo = np.flatnonzero(open_.reshape(B * d, -1).any(axis=1) & (candidates[..., k].ravel() >= 0))
+            if len(todo) == 0:
+                break
+            cams = candidates[..., k].ravel()[todo]
+            for view in np.unique(cams):
+                flat = todo[cams == view]
+                b, j = np.divmod(flat, d)
+                col, st = self._sample_view(int(view), ids[b], yaw[b, j], pitch[b, j])
+                take = open_[b, j] & ((st == VISIBLE) | (st == TRANSPARENT) | (status[b, j] == UNSEEN))
+                if k > 0:
+                    stats["texels_from_fallback_camera"] += int((take & (st != UNSEEN) & (st != OCCLUDED)).sum())
+                cb, sb = colour[b, j], status[b, j]
+                cb[take], sb[take] = col[take], st[take]
+                colour[b, j], status[b, j] = cb, sb
+        view_used = candidates[..., 0]
+        safe = np.maximum(view_used, 0)
+        distance = np.where(view_used >= 0, np.linalg.norm(self.views.centres[safe] - self.centres[ids][:, None], axis=-1),
+                            np.nan)
+        stats.update(texels=int(status.size), visible=int((status == VISIBLE).sum()),
+                     transparent=int((status == TRANSPARENT).sum()),
+                     hidden=int((status == OCCLUDED).sum()), unseen=int((status == UNSEEN).sum()))
+        rgba = fill_directions(colour, status, dirs.count)
+        return SampledTextures(rgba, view_used, distance, stats)
+
+
+def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> np.ndarray:
+    """Turn per-texel samples into complete RGBA stacks.
+
+    colour (B, d, t, t, 3) uint8, status (B, d, t, t) uint8 → (B, d, t, t, 4) uint8.
+    Texels that no camera saw (hidden or unseen) take the value of the nearest
+    direction along yaw that measured them (per pitch row; nearest rather than a
+    blend, so a filled direction repeats a measured one and adds no rank to the
+    PCA); texels measured nowhere become transparent. Transparent texels take the
+    billboard's mean opaque colour, so they add no variance either.
+    """
+    B, d, t = colour.shape[:3]
+    rows = d // yaw_count
+    shape = (B, rows, yaw_count, t * t)
+    rgba = np.empty((B, d, t, t, 4), dtype=np.uint8)
+    rgba[..., :3] = colour
+    rgba[..., 3] = np.where(status == VISIBLE, np.uint8(255), np.uint8(0))
+    measured = ((status == VISIBLE) | (status == TRANSPARENT)).reshape(shape)
+    if not measured.all():
+        idx = np.arange(yaw_count, dtype=np.int16)[None, None, :, None]
+        big = np.int16(4 * yaw_count)
+        prev = np.maximum.accumulate(np.where(measured, idx, -big), axis=2)
+        nxt = np.flip(np.minimum.accumulate(np.flip(np.where(measured, idx, big), axis=2), axis=2), axis=2)
+        source = np.where(idx - prev <= nxt - idx, prev, nxt)   # ties go to the lower index
+        nowhere = np.abs(source - idx) >= yaw_count
+        source = np.clip(source, 0, yaw_count - 1).astype(np.intp)
+        flat = rgba.reshape(shape + (4,))
+        filled = np.take_along_axis(flat, source[..., None], axis=2)
+        filled[nowhere] = 0
+        rgba = filled.reshape(B, d, t, t, 4)
+    # Mean opaque colour per billboard for transparent texels.
+    opaque = rgba[..., 3] > 0
+    count = opaque.sum(axis=(1, 2, 3))
+    total = np.einsum("bdxyc,bdxy->bc", rgba[..., :3], opaque, dtype=np.float64)
+    mean = np.where(count[:, None] > 0, total / np.maximum(count, 1)[:, None], 128.0)
+    mean = np.rint(mean).astype(np.uint8)
+    clear = ~opaque
+    rgba[..., :3] = np.where(clear[..., None], mean[:, None, None, None, :], rgba[..., :3])
+    return rgba
