@@ -45,8 +45,8 @@ class SamplingConfig:
     candidates: int = 4             # cameras tried per direction, best first, while texels stay hidden
     max_angle_deg: float = 15.0     # a camera farther than this from a direction does not sample it
     max_distance: float = 60.0      # cameras farther from the voxel than this (m) are not used
-    abs_tolerance: float = 0.05     # depth slack of the in-voxel test (m) ...
-    rel_tolerance: float = 0.01     # ... plus this fraction of the depth
+    abs_tolerance: float = 0.02     # depth slack of the in-voxel test (m) ...
+    rel_tolerance: float = 0.004    # ... plus this fraction of the depth (stereo noise grows with depth)
     zbuffer_scale: int = 2          # z-buffer pixel = this many image pixels per side
     cache_views: int = 48           # images and z-buffers kept per process
 
@@ -201,11 +201,13 @@ class _ViewCache:
 class SampledTextures:
     """rgba (B, d, t, t, 4) uint8 (alpha 0 or 255); view (B, d) int64 first
     camera used (−1: none); distance (B, d) float64 from that camera to the voxel
-    centre (NaN: none); stats: texel counts by outcome."""
+    centre and elevation (B, d) float64 radians of that camera seen from the voxel
+    (NaN: none); stats: texel counts by outcome."""
 
     rgba: np.ndarray
     view: np.ndarray
     distance: np.ndarray
+    elevation: np.ndarray
     stats: dict
 
 
@@ -314,7 +316,10 @@ class ImageSampler:
         ids = np.asarray(ids, dtype=np.int64)
         B, d = len(ids), dirs.num_directions
         yaw, pitch = direction_angles(self.base_yaw[ids], dirs.yaw_offsets, dirs.pitches)
-        candidates = self._candidates(ids, yaw, pitch) if B else np.zeros((0, d, 1), np.int64)
+        if B and len(self.views):
+            candidates = self._candidates(ids, yaw, pitch)
+        else:
+            candidates = np.full((B, d, 1), -1, dtype=np.int64)
         colour = np.zeros((B, d, t, t, 3), dtype=np.uint8)
         status = np.full((B, d, t, t), UNSEEN, dtype=np.uint8)
         stats = {"samples": B * d, "samples_with_camera": int((candidates[..., 0] >= 0).sum()),
@@ -337,13 +342,15 @@ class ImageSampler:
                 colour[b, j], status[b, j] = cb, sb
         view_used = candidates[..., 0]
         safe = np.maximum(view_used, 0)
-        distance = np.where(view_used >= 0, np.linalg.norm(self.views.centres[safe] - self.centres[ids][:, None], axis=-1),
-                            np.nan)
+        offset = self.views.centres[safe] - self.centres[ids][:, None] if len(self.views) else np.zeros((B, d, 3))
+        distance = np.where(view_used >= 0, np.linalg.norm(offset, axis=-1), np.nan)
+        elevation = np.where(view_used >= 0, np.arcsin(np.clip(offset[..., 2] / np.maximum(distance, 1e-12), -1, 1)),
+                             np.nan)
         stats.update(texels=int(status.size), visible=int((status == VISIBLE).sum()),
                      transparent=int((status == TRANSPARENT).sum()),
                      hidden=int((status == OCCLUDED).sum()), unseen=int((status == UNSEEN).sum()))
         rgba = fill_directions(colour, status, dirs.count)
-        return SampledTextures(rgba, view_used, distance, stats)
+        return SampledTextures(rgba, view_used, distance, elevation, stats)
 
 
 def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> np.ndarray:

@@ -66,7 +66,8 @@ class PointSampler:
         rgba = fill_directions(np.clip(np.rint(colour), 0, 255).astype(np.uint8), status, dirs.count)
         stats = {"samples": B * d, "texels": int(status.size), "visible": int(covered.sum()),
                  "transparent": int((~covered).sum())}
-        return SampledTextures(rgba, np.full((B, d), -1, dtype=np.int64), np.full((B, d), np.nan), stats)
+        none = np.full((B, d), np.nan)
+        return SampledTextures(rgba, np.full((B, d), -1, dtype=np.int64), none, none, stats)
 
 
 def _close_holes(colour: np.ndarray, covered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
