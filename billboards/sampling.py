@@ -29,7 +29,7 @@ import numpy as np
 
 from data_synth.fileio import read_png
 
-from .geometry import DirectionConfig, direction_angles, quad_frames, ray_box_interval, texel_points
+from .geometry import DirectionConfig, direction_angles, quad_frames, texel_offsets
 
 logger = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ class VoxelPoints:
         """(m, 3) float32 points (relative to origin) of the voxels that may appear in the view."""
         w, h = image_size
         R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
-        cam = (self.centres - C) @ R
+        cam = _transform(self.centres - C, R.T)
         radius = self.size * 0.8660254
         z = cam[:, 2]
         # Conservative frustum test of the voxel's bounding sphere.
@@ -149,7 +149,7 @@ def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_ca
     w, h = (int(s) for s in image_size)
     zw, zh = -(-w // scale), -(-h // scale)
     R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
-    cam = points @ R.astype(np.float32) + ((origin - C) @ R).astype(np.float32)
+    cam = _transform(points, R.T, R.T @ (origin - C))
     z = cam[:, 2]
     front = z > 1e-3
     cam, z = cam[front], z[front]
@@ -167,6 +167,21 @@ def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_ca
     filled = np.where(np.isfinite(depth) | (neighbours < 5), depth, local_min)
     nearest = cv2.erode(filled, kernel, borderType=cv2.BORDER_REPLICATE)
     return filled, nearest
+
+
+def _transform(points: np.ndarray, M: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
+    """``points @ M.T + offset`` for (N, 3) points, in the points' float dtype.
+
+    numpy's matmul of a tall (N, 3) array by a 3×3 matrix takes a slow generic
+    path (≈ 50× slower); OpenCV's per-point transform does not.
+    """
+    affine = np.zeros((3, 4), dtype=np.float64)
+    affine[:, :3] = M
+    if offset is not None:
+        affine[:, 3] = offset
+    points = np.ascontiguousarray(points)
+    dtype = points.dtype if points.dtype in (np.float32, np.float64) else np.float64
+    return cv2.transform(points.astype(dtype, copy=False).reshape(1, -1, 3), affine.astype(dtype))[0]
 
 
 class _ViewCache:
@@ -232,20 +247,25 @@ class ImageSampler:
         """(B, d, k) int64 view indices ranked by angle to each direction, −1 = none."""
         cfg = self.config
         c = self.centres[ids]
-        C = self.views.centres
+        # Only cameras near this chunk of billboards can sample it.
+        lo, hi = c.min(axis=0) - cfg.max_distance, c.max(axis=0) + cfg.max_distance
+        near = np.flatnonzero(np.all((self.views.centres >= lo) & (self.views.centres <= hi), axis=1))
+        if len(near) == 0:
+            return np.full(yaw.shape + (1,), -1, dtype=np.int64)
+        C = self.views.centres[near]
         to_cam = C[None, :, :] - c[:, None, :]                       # (B, V, 3)
         dist = np.linalg.norm(to_cam, axis=-1)
         cam_yaw = np.arctan2(to_cam[..., 1], to_cam[..., 0])
         cam_pitch = np.arcsin(np.clip(to_cam[..., 2] / np.maximum(dist, 1e-12), -1, 1))
         # The voxel centre must project inside the image, in front of the camera.
-        R = self.views.world_from_cam[:, :3, :3]
+        R = self.views.world_from_cam[near, :3, :3]
         cam = np.einsum("bvk,vkj->bvj", -to_cam, R)                   # camera coordinates
         z = cam[..., 2]
-        K = self.views.K
+        K = self.views.K[near]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = K[None, :, 0, 0] * cam[..., 0] / z + K[None, :, 0, 2]
             v = K[None, :, 1, 1] * cam[..., 1] / z + K[None, :, 1, 2]
-        w, h = self.views.sizes[:, 0], self.views.sizes[:, 1]
+        w, h = self.views.sizes[near, 0], self.views.sizes[near, 1]
         usable = ((z > 0.3) & (dist < cfg.max_distance) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1))
         dyaw = np.angle(np.exp(1j * (cam_yaw[:, None, :] - yaw[:, :, None])))  # (B, d, V), wrapped
         several_rows = len(cfg.directions.pitches_deg) > 1
@@ -256,56 +276,83 @@ class ImageSampler:
         cost = np.where(bad, np.inf, cost)
         k = min(cfg.candidates if cfg.occlusion else 1, cost.shape[-1])
         best = np.argsort(cost, axis=-1, kind="stable")[..., :k]
-        return np.where(np.isfinite(np.take_along_axis(cost, best, -1)), best, -1)
+        return np.where(np.isfinite(np.take_along_axis(cost, best, -1)), near[best], -1)
 
-    # -- sampling one camera ---------------------------------------------------------
-    def _sample_view(self, view: int, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
-        """Texels of the quads (m,) for one camera → colour (m, t, t, 3) uint8, status (m, t, t) uint8."""
+    # -- sampling: every (billboard, direction, camera) of a round at once --------------
+    def _sample_views(self, views: np.ndarray, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Texels of quads (m,) seen by cameras ``views`` (m,) → colour (m, t, t, 3) uint8,
+        status (m, t, t) uint8 (VISIBLE, TRANSPARENT, OCCLUDED or UNSEEN)."""
         cfg = self.config
-        t, s = cfg.tile, self.size
-        pyramid, filled, nearest = self.cache.get(view)
-        K, pose = self.views.K[view], self.views.world_from_cam[view]
-        R, C = pose[:3, :3].astype(np.float32), pose[:3, 3]
-        # Everything relative to the camera centre, in float32 (metres near the camera).
-        c = (self.centres[ids] - C).astype(np.float32)
-        _, right, up = quad_frames(yaw, pitch, cfg.directions.pitched_quads)
-        p = texel_points(c, s, right.astype(np.float32), up.astype(np.float32), t)  # (m, t, t, 3)
-        cam = p @ R
-        z = cam[..., 2]
+        t, s, m = cfg.tile, self.size, len(views)
+        pose = self.views.world_from_cam[views]
+        R, C = pose[:, :3, :3], pose[:, :3, 3]
+        K = self.views.K[views]
+        # Quads relative to their camera centre (metres near the camera: float32 is ample).
+        c = self.centres[ids] - C                                          # (m, 3) float64
+        _, right, up = quad_frames(yaw, pitch, self.config.directions.pitched_quads)
+        a = (texel_offsets(t) * s).astype(np.float32)
+        col, row = a[None, None, :], a[None, :, None]
+
+        def grid(base, along_col, along_row):                              # (m,) each → (m, t, t)
+            return (base.astype(np.float32)[:, None, None] + along_col.astype(np.float32)[:, None, None] * col
+                    - along_row.astype(np.float32)[:, None, None] * row)
+
+        # Texel positions are affine in (col, row): camera coordinates follow without a matmul.
+        cc, cr, cu = (np.einsum("mk,mkj->mj", v, R) for v in (c, right, up))
+        x, y, z = (grid(cc[:, k], cr[:, k], cu[:, k]) for k in range(3))
         inv_z = np.float32(1) / np.where(z > 1e-3, z, np.float32(np.nan))
-        u = K[0, 0] * cam[..., 0] * inv_z + np.float32(K[0, 2])
-        v = K[1, 1] * cam[..., 1] * inv_z + np.float32(K[1, 2])
-        w, h = self.views.sizes[view]
-        inside = (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)  # False for NaN
-        # Ray parameter in z-depth units, so it compares with the z-buffer directly.
-        half = np.float32(s / 2)
-        t_in, t_out = ray_box_interval(np.float32(0), p * inv_z[..., None], c[:, None, None, :] - half,
-                                       c[:, None, None, :] + half)
+        u = K[:, 0, 0, None, None].astype(np.float32) * x * inv_z + K[:, 0, 2, None, None].astype(np.float32)
+        v = K[:, 1, 1, None, None].astype(np.float32) * y * inv_z + K[:, 1, 2, None, None].astype(np.float32)
+        w, h = self.views.sizes[views, 0], self.views.sizes[views, 1]
+        inside = ((u >= -0.5) & (u <= (w - 0.5)[:, None, None]) & (v >= -0.5)
+                  & (v <= (h - 0.5)[:, None, None]))                       # False for NaN
+        # Where each texel's ray (from the camera, in z-depth units) crosses the voxel cube.
+        t_in = t_out = None
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for k in range(3):
+                p_k = grid(c[:, k], right[:, k], up[:, k])                 # world axis k, camera-relative
+                scale_k = z / p_k
+                lo = (c[:, k] - s / 2).astype(np.float32)[:, None, None] * scale_k
+                hi = (c[:, k] + s / 2).astype(np.float32)[:, None, None] * scale_k
+                near, far = np.fmin(lo, hi), np.fmax(lo, hi)
+                t_in = near if t_in is None else np.fmax(t_in, near)
+                t_out = far if t_out is None else np.fmin(t_out, far)
         tol = np.float32(cfg.abs_tolerance) + np.float32(cfg.rel_tolerance) * z
-        scale = cfg.zbuffer_scale
-        zh, zw = filled.shape
-        iu = np.clip(np.nan_to_num((u + 0.5) / scale, nan=0).astype(np.int32), 0, zw - 1)
-        iv = np.clip(np.nan_to_num((v + 0.5) / scale, nan=0).astype(np.int32), 0, zh - 1)
-        pix = iv * zw + iu
-        seen = filled.ravel()[pix]
-        status = np.where(seen <= t_out + tol, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
+        # Depth the cloud puts at each texel's pixel, from the stacked z-buffers of these views.
+        unique, local = np.unique(views, return_inverse=True)
+        entries = [self.cache.get(int(i)) for i in unique]
+        zh = max(e[1].shape[0] for e in entries)
+        zw = max(e[1].shape[1] for e in entries)
+        filled = np.full((len(unique), zh, zw), np.inf, dtype=np.float32)
+        nearest = np.full((len(unique), zh, zw), np.inf, dtype=np.float32)
+        for i, (_, f, n) in enumerate(entries):
+            filled[i, :f.shape[0], :f.shape[1]] = f
+            nearest[i, :n.shape[0], :n.shape[1]] = n
+        scale = np.float32(1.0 / cfg.zbuffer_scale)
+        iu = np.clip(np.nan_to_num((u + 0.5) * scale, nan=0), 0, zw - 1).astype(np.int64)
+        iv = np.clip(np.nan_to_num((v + 0.5) * scale, nan=0), 0, zh - 1).astype(np.int64)
+        pix = (local[:, None, None] * zh + iv) * zw + iu
+        status = np.where(filled.ravel()[pix] <= t_out + tol, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
             status[nearest.ravel()[pix] < t_in - tol] = OCCLUDED
         status[~inside] = UNSEEN
         # Colour from the pyramid level whose pixels match the texel footprint.
-        footprint = (s / t) * K[0, 0] / np.maximum(np.linalg.norm(c, axis=1), 1e-6)
-        level = np.clip(np.floor(np.log2(np.maximum(footprint, 1.0))).astype(int), 0, len(pyramid) - 1)
-        colour = np.empty(z.shape + (3,), dtype=np.uint8)
-        for lv in np.unique(level):
-            sel = np.flatnonzero(level == lv)
-            f = 0.5 ** lv
-            mx = np.nan_to_num((u[sel] + 0.5) * f - 0.5, nan=-1e4).astype(np.float32).reshape(len(sel), -1)
-            my = np.nan_to_num((v[sel] + 0.5) * f - 0.5, nan=-1e4).astype(np.float32).reshape(len(sel), -1)
-            for r0 in range(0, len(sel), 8192):  # OpenCV maps stay under SHRT_MAX rows
-                out = cv2.remap(pyramid[lv], mx[r0:r0 + 8192], my[r0:r0 + 8192], cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_REPLICATE)
-                colour[sel[r0:r0 + 8192]] = out.reshape(-1, t, t, 3)
+        footprint = (s / t) * K[:, 0, 0] / np.maximum(np.linalg.norm(c, axis=1), 1e-6)
+        level = np.floor(np.log2(np.maximum(footprint, 1.0))).astype(np.int64)
+        colour = np.empty((m, t, t, 3), dtype=np.uint8)
+        for i, (pyramid, _, _) in enumerate(entries):
+            mine = local == i
+            lv_all = np.minimum(level, len(pyramid) - 1)
+            for lv in np.unique(lv_all[mine]):
+                sel = np.flatnonzero(mine & (lv_all == lv))
+                f = np.float32(0.5 ** lv)
+                mx = np.nan_to_num((u[sel] + 0.5) * f - 0.5, nan=-1e4).reshape(len(sel), -1)
+                my = np.nan_to_num((v[sel] + 0.5) * f - 0.5, nan=-1e4).reshape(len(sel), -1)
+                for r0 in range(0, len(sel), 8192):  # OpenCV maps stay under SHRT_MAX rows
+                    out = cv2.remap(pyramid[lv], mx[r0:r0 + 8192], my[r0:r0 + 8192], cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_REPLICATE)
+                    colour[sel[r0:r0 + 8192]] = out.reshape(-1, t, t, 3)
         return colour, status
 
     # -- one chunk of billboards -----------------------------------------------------
@@ -325,21 +372,23 @@ class ImageSampler:
         stats = {"samples": B * d, "samples_with_camera": int((candidates[..., 0] >= 0).sum()),
                  "texels_from_fallback_camera": 0}
         for k in range(candidates.shape[-1]):
-            open_ = (status == OCCLUDED) | (status == UNSEEN)
-            todo = np.flatnonzero(open_.reshape(B * d, -1).any(axis=1) & (candidates[..., k].ravel() >= 0))
+            flat = status.reshape(B * d, -1)
+            open_ = (flat == OCCLUDED).any(axis=1) | (flat == UNSEEN).any(axis=1)
+            todo = np.flatnonzero(open_ & (candidates[..., k].ravel() >= 0))
             if len(todo) == 0:
                 break
             cams = candidates[..., k].ravel()[todo]
-            for view in np.unique(cams):
-                flat = todo[cams == view]
-                b, j = np.divmod(flat, d)
-                col, st = self._sample_view(int(view), ids[b], yaw[b, j], pitch[b, j])
-                take = open_[b, j] & ((st == VISIBLE) | (st == TRANSPARENT) | (status[b, j] == UNSEEN))
-                if k > 0:
-                    stats["texels_from_fallback_camera"] += int((take & (st != UNSEEN) & (st != OCCLUDED)).sum())
-                cb, sb = colour[b, j], status[b, j]
-                cb[take], sb[take] = col[take], st[take]
-                colour[b, j], status[b, j] = cb, sb
+            b, j = np.divmod(todo, d)
+            col, st = self._sample_views(cams, ids[b], yaw[b, j], pitch[b, j])
+            if k == 0:  # nothing sampled yet: take everything
+                colour[b, j], status[b, j] = col, st
+                continue
+            sb = status[b, j]
+            take = ((sb == OCCLUDED) | (sb == UNSEEN)) & ((st == VISIBLE) | (st == TRANSPARENT) | (sb == UNSEEN))
+            stats["texels_from_fallback_camera"] += int((take & (st != UNSEEN) & (st != OCCLUDED)).sum())
+            cb = colour[b, j]
+            cb[take], sb[take] = col[take], st[take]
+            colour[b, j], status[b, j] = cb, sb
         view_used = candidates[..., 0]
         safe = np.maximum(view_used, 0)
         offset = self.views.centres[safe] - self.centres[ids][:, None] if len(self.views) else np.zeros((B, d, 3))
@@ -366,7 +415,7 @@ def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> n
     B, d, t = colour.shape[:3]
     rows = d // yaw_count
     shape = (B, rows, yaw_count, t * t)
-    rgba = np.empty((B, d, t, t, 4), dtype=np.uint8)
+    rgba = np.empty((B, d, t, t, 4), dtype=np.uint8)  # C-contiguous: viewable as one uint32 per texel
     rgba[..., :3] = colour
     rgba[..., 3] = np.where(status == VISIBLE, np.uint8(255), np.uint8(0))
     measured = ((status == VISIBLE) | (status == TRANSPARENT)).reshape(shape)
@@ -377,17 +426,21 @@ def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> n
         nxt = np.flip(np.minimum.accumulate(np.flip(np.where(measured, idx, big), axis=2), axis=2), axis=2)
         source = np.where(idx - prev <= nxt - idx, prev, nxt)   # ties go to the lower index
         nowhere = np.abs(source - idx) >= yaw_count
-        source = np.clip(source, 0, yaw_count - 1).astype(np.intp)
-        flat = rgba.reshape(shape + (4,))
-        filled = np.take_along_axis(flat, source[..., None], axis=2)
+        np.clip(source, 0, yaw_count - 1, out=source)
+        # One uint32 per RGBA texel: a single gather moves all four channels.
+        packed = rgba.view(np.uint32).reshape(shape)
+        filled = np.take_along_axis(packed, source.astype(np.intp), axis=2)
         filled[nowhere] = 0
-        rgba = filled.reshape(B, d, t, t, 4)
+        rgba = filled.view(np.uint8).reshape(B, d, t, t, 4)
     # Mean opaque colour per billboard for transparent texels.
-    opaque = rgba[..., 3] > 0
-    count = opaque.sum(axis=(1, 2, 3))
-    total = np.einsum("bdxyc,bdxy->bc", rgba[..., :3], opaque, dtype=np.float64)
+    flat = rgba.reshape(B, -1, 4)
+    opaque = flat[..., 3] > 0
+    count = opaque.sum(axis=1)
+    total = np.stack([np.where(opaque, flat[..., c], 0).sum(axis=1, dtype=np.int64) for c in range(3)], axis=1)
     mean = np.where(count[:, None] > 0, total / np.maximum(count, 1)[:, None], 128.0)
-    mean = np.rint(mean).astype(np.uint8)
-    clear = ~opaque
-    rgba[..., :3] = np.where(clear[..., None], mean[:, None, None, None, :], rgba[..., :3])
+    mean_rgba = np.zeros((B, 4), dtype=np.uint8)
+    mean_rgba[:, :3] = np.rint(mean)
+    mean_packed = mean_rgba.view(np.uint32)                          # (B, 1), alpha 0
+    packed = rgba.view(np.uint32).reshape(B, -1)
+    packed[...] = np.where(opaque, packed, mean_packed)
     return rgba
