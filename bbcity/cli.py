@@ -107,6 +107,96 @@ def _run_recon(args) -> int:
     return 0
 
 
+def _add_build(sub) -> None:
+    p = sub.add_parser(
+        "build", help="cloud + images → billboard model (octree, angular sampling, PCA, atlases)",
+        description="Voxelise the fused cloud with an octree, give each voxel a view-facing billboard, "
+                    "sample its texture in d directions from the captured images (occlusion-aware), "
+                    "compress each billboard's stack by PCA into eigen-textures and pack them into atlas "
+                    "pages. Writes MODEL/ (manifest.json, .npy arrays, atlas pages) and "
+                    "MODEL/build_report.json.")
+    p.add_argument("work", type=Path, nargs="?", default=None,
+                   help="recon work directory (cloud.ply; recon_report.json names the dataset)")
+    p.add_argument("--out", type=Path, required=True, help="model directory (replaced atomically)")
+    p.add_argument("--cloud", type=Path, default=None, help="a PLY/PCD cloud of your own (instead of WORK/cloud.ply)")
+    p.add_argument("--images", type=Path, default=None,
+                   help="dataset directory with rig.json, poses.json and images/ (default: the one WORK was built from)")
+    p.add_argument("--texture-source", choices=("images", "points"), default="images",
+                   help="sample textures from the images (default) or splat the cloud's own points")
+    p.add_argument("--voxel-size", type=float, default=0.5, help="billboard/voxel edge in metres (default 0.5)")
+    p.add_argument("--depth", type=int, default=None, help="octree depth instead of --voxel-size")
+    p.add_argument("--min-points", type=int, default=10, help="points a voxel needs to get a billboard (default 10)")
+    p.add_argument("--directions", type=int, default=32, help="yaw directions per billboard (default 32)")
+    p.add_argument("--spacing", type=float, default=6.0, help="degrees between directions (default 6)")
+    p.add_argument("--pitches", type=float, nargs="+", default=[0.0], help="pitch rows in degrees (default 0)")
+    p.add_argument("--pitched-quads", action="store_true", help="quads also tilt toward the viewer's elevation")
+    p.add_argument("--tile", type=int, default=32, help="texels per billboard side (default 32)")
+    p.add_argument("--naive", action="store_true", help="nearest-frame sampling without the occlusion test")
+    p.add_argument("--ratio", type=float, default=None, help="PCA cumulative contribution ratio (default: the PcaConfig's)")
+    p.add_argument("--max-error", type=float, default=None,
+                   help="PCA RMS error bound in 8-bit units (default: the PcaConfig's; 0 turns the rule off)")
+    p.add_argument("--rank", type=int, default=None, help="fixed rank for every billboard (overrides the rules)")
+    p.add_argument("--max-rank", type=int, default=None, help="largest rank (default: the PcaConfig's)")
+    p.add_argument("--tile-mode", choices=("u8", "f16"), default="u8", help="eigen image precision (default u8)")
+    p.add_argument("--coef-mode", choices=("f32", "f16", "u8"), default="f16", help="coefficient precision (default f16)")
+    p.add_argument("--page-size", type=int, default=8192, help="atlas page edge in texels (default 8192)")
+    p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
+    p.set_defaults(func=_run_build)
+
+
+def build_config_from_args(args):
+    """The BuildConfig the ``build`` options describe."""
+    from billboards.build import BuildConfig
+    from billboards.geometry import DirectionConfig
+    from billboards.octree import OctreeConfig
+    from billboards.pca import PcaConfig
+    from billboards.sampling import SamplingConfig
+
+    pca = PcaConfig()
+    overrides = {}
+    if args.ratio is not None:
+        overrides["ratio"] = args.ratio
+    if args.max_error is not None:
+        overrides["max_error"] = args.max_error if args.max_error > 0 else None
+    if args.rank is not None:
+        overrides["fixed_rank"] = args.rank
+    if args.max_rank is not None:
+        overrides["max_rank"] = args.max_rank
+    pca = dataclasses.replace(pca, **overrides)
+    directions = DirectionConfig(count=args.directions, spacing_deg=args.spacing, pitches_deg=tuple(args.pitches),
+                                 pitched_quads=args.pitched_quads)
+    octree = OctreeConfig(voxel_size=None if args.depth is not None else args.voxel_size, depth=args.depth,
+                          min_points=args.min_points)
+    sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
+    return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
+                       tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size)
+
+
+def _run_build(args) -> int:
+    from billboards.build import main as build_main
+    from data_synth.fileio import read_json
+
+    from .executor import default_workers, executor_scope
+
+    if args.work is None and args.cloud is None:
+        raise ValueError("give a recon WORK directory or --cloud")
+    cloud = args.cloud or args.work / "cloud.ply"
+    dataset = args.images
+    if dataset is None and args.work is not None and args.texture_source == "images":
+        report = read_json(args.work / "recon_report.json")
+        if not isinstance(report, dict) or not isinstance(report.get("dataset"), str):
+            raise ValueError(f"{args.work / 'recon_report.json'}: does not name the dataset; pass --images")
+        dataset = Path(report["dataset"])
+    conf = build_config_from_args(args)
+    workers = args.workers or default_workers()
+    with executor_scope(args.workers) as executor:
+        result = build_main(conf, cloud, dataset, args.out, executor=executor, workers=workers)
+    r = result.report
+    logger.info("%d billboards, compression %.1f× at %.2f dB (decoded RGB), %.1f s → %s",
+                r["voxels"], r["compression_ratio"], r["psnr"]["decoded_rgb_opaque_db"], r["total_s"], result.model)
+    return 0
+
+
 def _add_stereo_sweep(sub) -> None:
     p = sub.add_parser("stereo-sweep", help="stereo error against seconds per frame over SGBM settings",
                        description="Run trinocular stereo on a few frames of a dataset with ground truth for "
@@ -172,6 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_synth(sub)
     _add_recon(sub)
+    _add_build(sub)
     _add_stereo_sweep(sub)
     _add_check(sub)
     _add_bench(sub)

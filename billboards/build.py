@@ -1,0 +1,345 @@
+"""The billboard stage: coloured cloud (+ images and poses) → ``model/`` + ``build_report.json``.
+
+1. read the cloud; 2. octree → voxel leaves (the billboards, in Morton order);
+3. per chunk of billboards, in worker processes: angular sampling (from the
+images, occlusion-aware, or from the cloud's own points), PCA eigen-textures,
+quantisation, and the decode error of what will be stored; 4. the chunks are
+streamed, in order, into the atlas pages of a model written atomically.
+Memory is bounded by the chunks in flight, not by the street's length.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import resource
+import shutil
+import tempfile
+import time
+from concurrent.futures import Executor
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from data_synth import load_dataset
+from data_synth.fileio import load_npy, save_npy, write_json
+from data_synth.tasks import ordered_results
+from recon.cloud_io import read_cloud_arrays
+
+from .geometry import DirectionConfig, base_yaw_toward
+from .model import ModelWriter
+from .octree import Octree, OctreeConfig, build_octree
+from .pca import EigenTextures, PcaConfig, eigen_textures
+from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
+from .sampling import ImageSampler, SamplingConfig, Views, VoxelPoints, views_from_dataset, voxel_points
+from .splat import PointSampler
+
+logger = logging.getLogger(__name__)
+
+SOURCES = ("images", "points")
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    octree: OctreeConfig = field(default_factory=OctreeConfig)        # voxel size, min points
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)  # directions, texels, occlusion test
+    pca: PcaConfig = field(default_factory=PcaConfig)                 # rank rule
+    source: str = "images"       # "images" (project the captured images) or "points" (splat the cloud)
+    tile_mode: str = "u8"        # eigen/mean tiles: "u8" (per-tile scale/offset) or "f16"
+    coef_mode: str = "f16"       # coefficients: "f32", "f16" or "u8"
+    page_size: int = 8192        # atlas page edge (texels); the renderer passes GL_MAX_TEXTURE_SIZE
+    chunk: int = 128             # billboards sampled and compressed together (bounds memory)
+    task_chunks: int = 8         # chunks per worker task (neighbouring billboards share cached images)
+
+    def __post_init__(self):
+        if self.source not in SOURCES:
+            raise ValueError(f"source must be one of {SOURCES}, got {self.source!r}")
+        if self.chunk < 1 or self.task_chunks < 1:
+            raise ValueError("chunk and task_chunks must be ≥ 1")
+
+
+# --------------------------------------------------------------------------- worker side
+
+@dataclass(frozen=True)
+class _Task:
+    state: str          # directory with the shared arrays
+    begin: int          # billboard range [begin, end)
+    end: int
+
+
+_WORKER: dict = {}
+
+
+def _worker_state(state_dir: str):
+    """Load (once per process) the sampler and settings saved in ``state_dir``."""
+    if _WORKER.get("dir") == state_dir:
+        return _WORKER["sampler"], _WORKER["conf"]
+    root = Path(state_dir)
+    meta = json.loads((root / "meta.json").read_text())
+    conf = _config_from_json(meta["config"])
+    centres = np.load(root / "centres.npy")
+    base_yaw = np.load(root / "base_yaw.npy")
+    voxels = VoxelPoints(np.asarray(meta["origin"], dtype=np.float64), np.load(root / "points.npy", mmap_mode="r"),
+                         np.load(root / "begin.npy"), centres, meta["voxel_size"])
+    if conf.source == "images":
+        views = Views(np.load(root / "K.npy"), np.load(root / "world_from_cam.npy"), np.load(root / "sizes.npy"),
+                      tuple(Path(p) for p in meta["paths"]))
+        sampler = ImageSampler(views, centres, meta["voxel_size"], base_yaw, voxels, conf.sampling)
+    else:
+        sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling)
+    _WORKER.clear()
+    _WORKER.update(dir=state_dir, sampler=sampler, conf=conf)
+    return sampler, conf
+
+
+def compress_chunk(rgba: np.ndarray, conf: BuildConfig) -> tuple[dict, dict]:
+    """PCA + quantisation of one chunk of sampled textures.
+
+    rgba (B, d, t, t, 4) uint8 → (arrays for the model writer, error statistics).
+    Slots per billboard: [mean, eigen_1 … eigen_r].
+    """
+    B, d, t = rgba.shape[:3]
+    n = t * t * 4
+    raw = rgba.reshape(B, d, n).astype(np.float32) / 255.0
+    t0 = time.perf_counter()
+    eig = eigen_textures(raw, conf.pca)
+    t1 = time.perf_counter()
+    rank = eig.rank.astype(np.int64)
+    # Gather the slots in order: billboard b owns 1 + rank[b] consecutive tiles.
+    R = eig.basis.shape[1]
+    slot_of = np.concatenate([[0], np.cumsum(1 + rank)])
+    m = int(slot_of[-1])
+    tiles = np.zeros((m, n), dtype=np.float32)
+    rows = np.zeros((m, d), dtype=np.float32)
+    tiles[slot_of[:-1]] = eig.mean
+    for k in range(R):
+        has = rank > k
+        tiles[slot_of[:-1][has] + 1 + k] = eig.basis[has, k]
+        rows[slot_of[:-1][has] + 1 + k] = eig.coefficients[has, :, k]
+    qt = quantize_tiles(tiles.reshape(m, t, t, 4), conf.tile_mode)
+    qr = quantize_rows(rows, conf.coef_mode)
+    t2 = time.perf_counter()
+    # What a decoder will reconstruct from the stored (quantised) data.
+    dt = dequantize_tiles(qt).reshape(m, n)
+    dr = dequantize_rows(qr)
+    decoded = np.repeat(dt[slot_of[:-1]][:, None, :], d, axis=1)
+    for k in range(R):
+        has = np.flatnonzero(rank > k)
+        s = slot_of[:-1][has] + 1 + k
+        decoded[has] += dr[s][:, :, None] * dt[s][:, None, :]
+    decoded = np.clip(decoded, 0.0, 1.0)
+    pca_only = np.clip(eig.reconstruct(), 0.0, 1.0)
+    opaque = np.repeat(rgba.reshape(B, d, t * t, 4)[..., 3:] > 0, 3, axis=-1).reshape(B, d, t * t * 3)
+
+    def sq_err(x):
+        e = (x.reshape(B, d, t * t, 4) - raw.reshape(B, d, t * t, 4)) ** 2
+        return float(e.sum(dtype=np.float64)), float(e[..., :3].reshape(B, d, -1)[opaque].sum(dtype=np.float64))
+
+    dec_all, dec_rgb = sq_err(decoded)
+    pca_all, pca_rgb = sq_err(pca_only)
+    stats = {"values": B * d * n, "opaque_rgb_values": int(opaque.sum()),
+             "sq_err_decoded": dec_all, "sq_err_decoded_rgb": dec_rgb,
+             "sq_err_pca": pca_all, "sq_err_pca_rgb": pca_rgb,
+             "pca_s": t1 - t0, "quantize_s": t2 - t1, "ranks": np.bincount(rank, minlength=d + 1).tolist()}
+    arrays = {"rank": rank.astype(np.uint8), "tiles": qt.data, "slot_scale": qt.scale, "slot_offset": qt.offset,
+              "coef_rows": qr.data, "coef_scale": qr.scale, "coef_offset": qr.offset}
+    return arrays, stats
+
+
+def _run_task(task: _Task) -> list[tuple[dict, dict]]:
+    sampler, conf = _worker_state(task.state)
+    out = []
+    for s in range(task.begin, task.end, conf.chunk):
+        ids = np.arange(s, min(task.end, s + conf.chunk))
+        t0 = time.perf_counter()
+        sampled = sampler.sample(ids)
+        t1 = time.perf_counter()
+        arrays, stats = compress_chunk(sampled.rgba, conf)
+        stats["sampling_s"] = t1 - t0
+        stats["sampling"] = sampled.stats
+        out.append((arrays, stats))
+    return out
+
+
+# --------------------------------------------------------------------------- parent side
+
+def _config_to_json(conf: BuildConfig) -> dict:
+    return json.loads(json.dumps(asdict(conf)))
+
+
+def _config_from_json(data: dict) -> BuildConfig:
+    s = data["sampling"]
+    sampling = SamplingConfig(**{**s, "directions": DirectionConfig(**{**s["directions"],
+                                                                        "pitches_deg": tuple(s["directions"]["pitches_deg"])})})
+    return BuildConfig(**{**data, "octree": OctreeConfig(**data["octree"]), "sampling": sampling,
+                          "pca": PcaConfig(**data["pca"])})
+
+
+def _peak_rss_mb() -> dict:
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    return {"main_mb": round(own, 1), "largest_worker_mb": round(child, 1)}
+
+
+@dataclass(frozen=True, eq=False)
+class BuildResult:
+    model: Path
+    report: dict
+
+
+def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathLike | str | None,
+         model_dir: os.PathLike | str, executor: Executor | None = None, progress: bool | None = None,
+         workers: int = 1) -> BuildResult:
+    """Build ``model_dir`` from a cloud and (for ``source="images"``) a dataset's images and poses.
+
+    Writes ``model_dir/build_report.json`` too. ``workers`` only sizes the number of
+    tasks kept in flight; ``executor`` runs them (None: this process).
+    """
+    model_dir = Path(model_dir)
+    stages: dict[str, float] = {}
+    t0 = time.perf_counter()
+    points, colours = read_cloud_arrays(cloud_path, require_colours=True)
+    stages["read_cloud_s"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    octree = build_octree(points, conf.octree)
+    stages["octree_s"] = time.perf_counter() - t1
+    if octree.num_voxels == 0:
+        raise ValueError(f"{cloud_path}: no voxel holds {conf.octree.min_points} points "
+                         f"at voxel size {octree.voxel_size:g} m; nothing to build")
+    centres = octree.centres()
+    logger.info("%d points → %d voxels of %.3g m (depth %d)", len(points), octree.num_voxels,
+                octree.voxel_size, octree.depth)
+
+    views = None
+    if dataset_dir is not None:
+        views = views_from_dataset(load_dataset(dataset_dir))
+    elif conf.source == "images":
+        raise ValueError("source 'images' needs the dataset's images and poses (--images DATASET)")
+    sampling = conf.sampling
+    if views is None and sampling.directions.count * sampling.directions.spacing_deg < 360:
+        # No capture path: sample the whole circle.
+        count = sampling.directions.count
+        sampling = replace(sampling, directions=replace(sampling.directions, spacing_deg=360.0 / count))
+    conf = replace(conf, sampling=sampling)
+    base_yaw = base_yaw_toward(centres, views.centres if views is not None else np.zeros((0, 3)))
+
+    t2 = time.perf_counter()
+    model_dir.parent.mkdir(parents=True, exist_ok=True)
+    state = Path(tempfile.mkdtemp(prefix=f".{model_dir.name}.build-", dir=model_dir.parent))
+    try:
+        leaf = octree.leaves_of_points(points)
+        grouped = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
+        np.save(state / "points.npy", grouped.points)
+        np.save(state / "begin.npy", grouped.begin)
+        np.save(state / "centres.npy", centres)
+        np.save(state / "base_yaw.npy", base_yaw)
+        if conf.source == "points":
+            keep = leaf >= 0
+            np.save(state / "colours.npy", colours[keep][np.argsort(leaf[keep], kind="stable")])
+        meta = {"config": _config_to_json(conf), "origin": octree.origin.tolist(), "voxel_size": octree.voxel_size}
+        if views is not None:
+            np.save(state / "K.npy", views.K)
+            np.save(state / "world_from_cam.npy", views.world_from_cam)
+            np.save(state / "sizes.npy", views.sizes)
+            meta["paths"] = [str(p) for p in views.paths]
+        (state / "meta.json").write_text(json.dumps(meta))
+        del points, colours, grouped, leaf
+        stages["prepare_s"] = time.perf_counter() - t2
+
+        n = octree.num_voxels
+        step = conf.chunk * conf.task_chunks
+        tasks = [_Task(str(state), b, min(n, b + step)) for b in range(0, n, step)]
+        t3 = time.perf_counter()
+        totals = _Totals(conf.sampling.directions.num_directions)
+        d = conf.sampling.directions.num_directions
+        with ModelWriter(model_dir, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
+                         coef_mode=conf.coef_mode, num_directions=d) as writer:
+            done = 0
+            for chunks in ordered_results(_run_task, tasks, executor, window=2 * max(1, workers),
+                                          desc="billboards", progress=progress):
+                for arrays, stats in chunks:
+                    b = len(arrays["rank"])
+                    writer.append(centres=(centres[done:done + b] - octree.origin).astype(np.float32),
+                                  base_yaw=base_yaw[done:done + b].astype(np.float32), **arrays)
+                    done += b
+                    totals.add(stats)
+            stages["sample_compress_s"] = time.perf_counter() - t3
+            t4 = time.perf_counter()
+            nodes = _node_table(octree)
+            info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,
+                    "cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir)}
+            writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,
+                          yaw_offsets=conf.sampling.directions.yaw_offsets, pitches=conf.sampling.directions.pitches,
+                          pitched_quads=conf.sampling.directions.pitched_quads, info=info, **nodes)
+            stages["write_s"] = time.perf_counter() - t4
+    finally:
+        shutil.rmtree(state, ignore_errors=True)
+
+    from .model import load
+    model = load(model_dir)
+    report = totals.report(model, conf, octree, len(views) if views is not None else 0)
+    report.update(cloud=str(cloud_path), dataset=None if dataset_dir is None else str(dataset_dir),
+                  stages=stages, total_s=time.perf_counter() - t0, peak_memory=_peak_rss_mb(),
+                  config=_config_to_json(conf))
+    write_json(model_dir / "build_report.json", report)
+    logger.info("model: %d billboards, %d slots, %.1f MB, compression %.1f×, decode PSNR %.2f dB → %s",
+                model.num_billboards, model.num_slots, report["bytes"]["model"] / 1e6,
+                report["compression_ratio"], report["psnr"]["decoded_rgb_opaque_db"], model_dir)
+    return BuildResult(model_dir, report)
+
+
+def _node_table(octree: Octree) -> dict:
+    bounds = octree.node_bounds() - octree.origin
+    return {"node_level": octree.node_level.astype(np.uint8), "node_bounds": bounds.astype(np.float32),
+            "node_children": octree.node_children.astype(np.int32), "node_range": octree.node_range.astype(np.int32)}
+
+
+def _psnr_db(sq_err: float, count: int) -> float:
+    if count == 0:
+        return float("nan")
+    mse = sq_err / count
+    return float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse))
+
+
+class _Totals:
+    """Accumulates the per-chunk statistics into the build report."""
+
+    def __init__(self, d: int):
+        self.sums: dict[str, float] = {}
+        self.ranks = np.zeros(d + 1, dtype=np.int64)
+        self.sampling: dict[str, int] = {}
+
+    def add(self, stats: dict) -> None:
+        for key, value in stats.items():
+            if key == "ranks":
+                self.ranks += np.asarray(value, dtype=np.int64)
+            elif key == "sampling":
+                for k, v in value.items():
+                    self.sampling[k] = self.sampling.get(k, 0) + v
+            else:
+                self.sums[key] = self.sums.get(key, 0.0) + value
+
+    def report(self, model, conf: BuildConfig, octree: Octree, num_views: int) -> dict:
+        s = self.sums
+        raw_bytes = int(s.get("values", 0))  # 8-bit RGBA samples: one byte per value
+        nbytes = model.nbytes()
+        last = int(np.max(np.flatnonzero(self.ranks))) if self.ranks.any() else 0
+        return {
+            "voxels": octree.num_voxels, "octree_depth": octree.depth, "voxel_size": octree.voxel_size,
+            "nodes": int(octree.num_nodes), "views": num_views, "directions": conf.sampling.directions.num_directions,
+            "tile": conf.sampling.tile, "slots": model.num_slots, "pages": len(model.pages),
+            "rank_histogram": {str(r): int(c) for r, c in enumerate(self.ranks[:last + 1])},
+            "mean_rank": float((self.ranks * np.arange(len(self.ranks))).sum() / max(1, self.ranks.sum())),
+            "bytes": {"raw_samples": raw_bytes, "model": int(nbytes["total"]), **{k: int(v) for k, v in nbytes.items()}},
+            "compression_ratio": raw_bytes / max(1, nbytes["total"]),
+            "psnr": {"decoded_rgba_db": _psnr_db(s.get("sq_err_decoded", 0), int(s.get("values", 0))),
+                     "decoded_rgb_opaque_db": _psnr_db(s.get("sq_err_decoded_rgb", 0), int(s.get("opaque_rgb_values", 0))),
+                     "pca_rgba_db": _psnr_db(s.get("sq_err_pca", 0), int(s.get("values", 0))),
+                     "pca_rgb_opaque_db": _psnr_db(s.get("sq_err_pca_rgb", 0), int(s.get("opaque_rgb_values", 0)))},
+            "worker_seconds": {"sampling_s": s.get("sampling_s", 0.0), "pca_s": s.get("pca_s", 0.0),
+                               "quantize_s": s.get("quantize_s", 0.0)},
+            "sampling": self.sampling,
+        }
