@@ -30,6 +30,7 @@ class BenchConfig:
     quick: bool = False  # small inputs for a smoke run (under 3 minutes)
     repeats: int = 3  # each timing is the median of this many runs
     workers: int = 2  # process pool size for the parallel-render comparison
+    work: str | None = None  # a recon work directory: adds the billboard build on its cloud and images
 
 
 @dataclass
@@ -186,6 +187,111 @@ def bench_synthesis(cfg: BenchConfig, report: Report) -> None:
     report.notes["Dataset writing"] = "Includes process start-up and scene set-up in each worker."
 
 
+def street_surface_points(count: int, length: float = 300.0, seed: int = 0) -> np.ndarray:
+    """(count, 3) float64 points spread uniformly over the default street's surfaces
+    (a stand-in for a fused cloud when none is given)."""
+    from data_synth import StreetConfig, build_street
+
+    scene = build_street(StreetConfig(length=length))
+    tri = scene.vertices[scene.triangles]                                  # (m, 3, 3)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(tri), count, p=area / area.sum())
+    a, b = rng.random((2, count))
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    t = tri[pick]
+    return t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
+
+
+def bench_octree(cfg: BenchConfig, report: Report) -> None:
+    """Our vectorised octree against Open3D's ``Octree.convert_from_point_cloud`` at the same depth."""
+    from billboards.octree import OctreeConfig, build_octree, open3d_octree
+
+    if cfg.work is not None:
+        from recon.cloud_io import read_cloud_arrays
+
+        points, _ = read_cloud_arrays(Path(cfg.work) / "cloud.ply")
+        source = f"{cfg.work}/cloud.ply"
+    else:
+        points = street_surface_points(2_000_000 if cfg.quick else 15_000_000)
+        source = "points on the default street's surfaces"
+    voxel = build_octree(points, OctreeConfig(voxel_size=0.5, min_points=10))
+    depth = voxel.depth
+    same = OctreeConfig(voxel_size=None, depth=depth, min_points=1)
+    ours = median_of(lambda: build_octree(points, same), cfg.repeats)
+    leaves = build_octree(points, same).num_voxels
+    bb = median_of(lambda: build_octree(points, OctreeConfig(voxel_size=0.5, min_points=10)), cfg.repeats)
+    base_points = points if cfg.quick or len(points) <= 4_000_000 else points[:: max(1, len(points) // 4_000_000)]
+    o3d_leaves = open3d_octree(base_points, depth)
+    o3d = median_of(lambda: open3d_octree(base_points, depth), 1)
+    o3d_rate = len(base_points) / o3d.wall
+    report.add("Octree", {"what": "Open3D convert_from_point_cloud (baseline)", "points": len(base_points),
+                          "depth": depth, "leaves": o3d_leaves, "wall s": o3d.wall, "Mpoints/s": o3d_rate / 1e6,
+                          "ratio to baseline": 1.0})
+    report.add("Octree", {"what": "build_octree, same depth, every occupied leaf", "points": len(points),
+                          "depth": depth, "leaves": leaves, "wall s": ours.wall, "Mpoints/s": len(points) / ours.wall / 1e6,
+                          "ratio to baseline": len(points) / ours.wall / o3d_rate, "peak MB": ours.peak_rss / 1e6})
+    report.add("Octree", {"what": "build_octree, 0.5 m voxels, ≥ 10 points (the build's)", "points": len(points),
+                          "depth": depth, "leaves": voxel.num_voxels, "wall s": bb.wall,
+                          "Mpoints/s": len(points) / bb.wall / 1e6, "ratio to baseline": len(points) / bb.wall / o3d_rate})
+    report.notes["Octree"] = (f"Cloud: {source}. Ratios compare points per second (Open3D on at most 4 M of the "
+                              "points: it is slow). Ours is single-threaded numpy. Leaf counts differ because "
+                              "Open3D centres its root cube on the bounding box.")
+
+
+def bench_billboards(cfg: BenchConfig, report: Report, out: Path) -> None:
+    """The billboard build on a recon work directory: stages, compression and PSNR; the texture sweep;
+    occlusion-aware vs naive sampling against ground truth."""
+    from billboards.build import BuildConfig, main as build_main
+    from billboards.evaluate import compare_sampling
+    from data_synth import load_dataset
+
+    from .executor import executor_scope
+    from .sweeps import texture_sweep
+
+    work = Path(cfg.work)
+    dataset = Path(json.loads((work / "recon_report.json").read_text())["dataset"])
+    conf = BuildConfig()
+    with executor_scope(cfg.workers) as ex, measure() as m:
+        result = build_main(conf, work / "cloud.ply", dataset, out / "model", executor=ex, workers=cfg.workers)
+    r = result.report
+    for stage, seconds in r["stages"].items():
+        report.add("Billboard build", {"stage": stage.removesuffix("_s"), "wall s": seconds})
+    for stage, seconds in r["worker_seconds"].items():
+        report.add("Billboard build", {"stage": f"{stage.removesuffix('_s')} (worker CPU s)", "wall s": seconds,
+                                       "ms per billboard": 1e3 * seconds / r["voxels"]})
+    report.add("Billboard build", {"stage": "total", "wall s": m.wall, "cpu s (main)": m.cpu,
+                                   "peak MB (main)": r["peak_memory"]["main_mb"],
+                                   "peak MB (largest worker)": r["peak_memory"]["largest_worker_mb"],
+                                   "billboards": r["voxels"], "billboards/s": r["voxels"] / m.wall})
+    report.add("Billboard model", {"billboards": r["voxels"], "mean rank": r["mean_rank"], "slots": r["slots"],
+                                   "pages": r["pages"], "raw MB": r["bytes"]["raw_samples"] / 1e6,
+                                   "model MB": r["bytes"]["model"] / 1e6, "compression": r["compression_ratio"],
+                                   "PSNR RGB opaque dB": r["psnr"]["decoded_rgb_opaque_db"],
+                                   "PSNR RGBA dB": r["psnr"]["decoded_rgba_db"],
+                                   "PCA only, RGBA dB": r["psnr"]["pca_rgba_db"]})
+    report.notes["Billboard model"] = ("Raw = the sampled 8-bit RGBA textures (d × t × t × 4 bytes per billboard); "
+                                       "PSNR of the decoded (quantised) model against them.")
+    sweep = texture_sweep(work / "cloud.ply", dataset, out, count=256 if cfg.quick else 1024,
+                          tiles=(32,) if cfg.quick else (8, 16, 32))
+    for row in sweep["sweep"]:
+        report.add("Texture sweep", {k: row[k] for k in ("setting", "tile", "tile_mode", "coef_mode", "mean_rank",
+                                                          "compression", "psnr_rgb_db", "psnr_rgba_db",
+                                                          "compress_ms_per_billboard")})
+    report.notes["Texture sweep"] = "Work-precision plot: texture_sweep.png."
+    if load_dataset(dataset).has_ground_truth:
+        ev = compare_sampling(dataset, work / "cloud.ply", conf.octree, count=60 if cfg.quick else 200)
+        for name in ("near_occluders", "random"):
+            for method in ("occlusion_aware", "naive"):
+                report.add("Sampling against ground truth", {
+                    "billboards": name.replace("_", " "), "sampling": method.replace("_", "-"),
+                    "samples": ev[name]["samples"], "PSNR RGB dB": ev[name][method]["psnr_rgb"],
+                    "alpha agreement": ev[name][method]["alpha_agreement"],
+                    "PSNR behind occluders dB": ev[name][method + "_behind_occluders"]["psnr_rgb"],
+                    "texels behind occluders": ev[name]["texels_behind_occluders"]})
+
+
 def run_bench(cfg: BenchConfig, out: Path) -> Path:
     """Run every benchmark section and write the report to ``out``."""
     out = Path(out)
@@ -193,6 +299,9 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
     report = Report(settings=asdict(cfg))
     start = time.perf_counter()
     bench_synthesis(cfg, report)
+    bench_octree(cfg, report)
+    if cfg.work is not None:
+        bench_billboards(cfg, report, out)
     report.settings["total_seconds"] = time.perf_counter() - start
     report.write(out)
     logger.info("wrote %s", out / "report.md")

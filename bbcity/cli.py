@@ -174,7 +174,6 @@ def build_config_from_args(args):
 
 def _run_build(args) -> int:
     from billboards.build import main as build_main
-    from data_synth.fileio import read_json
 
     from .executor import default_workers, executor_scope
 
@@ -183,10 +182,7 @@ def _run_build(args) -> int:
     cloud = args.cloud or args.work / "cloud.ply"
     dataset = args.images
     if dataset is None and args.work is not None and args.texture_source == "images":
-        report = read_json(args.work / "recon_report.json")
-        if not isinstance(report, dict) or not isinstance(report.get("dataset"), str):
-            raise ValueError(f"{args.work / 'recon_report.json'}: does not name the dataset; pass --images")
-        dataset = Path(report["dataset"])
+        dataset = _work_dataset(args.work)
     conf = build_config_from_args(args)
     workers = args.workers or default_workers()
     with executor_scope(args.workers) as executor:
@@ -194,6 +190,66 @@ def _run_build(args) -> int:
     r = result.report
     logger.info("%d billboards, compression %.1f× at %.2f dB (decoded RGB), %.1f s → %s",
                 r["voxels"], r["compression_ratio"], r["psnr"]["decoded_rgb_opaque_db"], r["total_s"], result.model)
+    return 0
+
+
+def _work_dataset(work: Path) -> Path:
+    """The dataset a recon WORK directory was built from (its recon_report.json says)."""
+    from data_synth.fileio import read_json
+
+    report = read_json(work / "recon_report.json")
+    if not isinstance(report, dict) or not isinstance(report.get("dataset"), str):
+        raise ValueError(f"{work / 'recon_report.json'}: does not name the dataset; pass --images")
+    return Path(report["dataset"])
+
+
+def _add_texture_sweep(sub) -> None:
+    p = sub.add_parser("texture-sweep", help="eigen-texture bytes and decode PSNR against build time",
+                       description="Sample neighbouring billboards from the middle of the street once per texel "
+                                   "size, compress them under fixed ranks 0–16, contribution ratios, error bounds "
+                                   "and quantisation modes; write a table, JSON and a work-precision plot.")
+    p.add_argument("work", type=Path, help="recon work directory (cloud.ply, recon_report.json)")
+    p.add_argument("--out", type=Path, required=True, help="report directory")
+    p.add_argument("--images", type=Path, default=None, help="dataset directory (default: WORK's)")
+    p.add_argument("--count", type=int, default=1024, help="billboards to sample (default 1024)")
+    p.add_argument("--tiles", type=int, nargs="+", default=[8, 16, 32], help="texel sizes (default 8 16 32)")
+    p.set_defaults(func=_run_texture_sweep)
+
+
+def _run_texture_sweep(args) -> int:
+    from .sweeps import texture_sweep
+
+    dataset = args.images or _work_dataset(args.work)
+    texture_sweep(args.work / "cloud.ply", dataset, args.out, count=args.count, tiles=tuple(args.tiles))
+    logger.info("wrote %s", args.out / "texture_sweep.md")
+    return 0
+
+
+def _add_sampling_eval(sub) -> None:
+    p = sub.add_parser("sampling-eval", help="texture error of occlusion-aware vs naive sampling against ground truth",
+                       description="On a synthetic dataset: sample billboards near occluders and at random with "
+                                   "occlusion-aware and naive nearest-frame sampling, render the ground-truth "
+                                   "texture of every sampled direction cut to the voxel's slab, and report PSNR "
+                                   "(all texels, and the texels an occluder hides from the first camera).")
+    p.add_argument("work", type=Path, help="recon work directory (cloud.ply, recon_report.json)")
+    p.add_argument("--out", type=Path, required=True, help="report directory")
+    p.add_argument("--images", type=Path, default=None, help="dataset directory with gt/ (default: WORK's)")
+    p.add_argument("--count", type=int, default=200, help="billboards per set (default 200)")
+    p.add_argument("--voxel-size", type=float, default=0.5, help="billboard/voxel edge in metres (default 0.5)")
+    p.set_defaults(func=_run_sampling_eval)
+
+
+def _run_sampling_eval(args) -> int:
+    from billboards.evaluate import compare_sampling, markdown
+    from billboards.octree import OctreeConfig
+    from data_synth.fileio import write_bytes, write_json
+
+    dataset = args.images or _work_dataset(args.work)
+    report = compare_sampling(dataset, args.work / "cloud.ply", OctreeConfig(voxel_size=args.voxel_size),
+                              count=args.count)
+    write_json(args.out / "sampling_eval.json", report)
+    write_bytes(args.out / "sampling_eval.md", markdown(report).encode())
+    logger.info("wrote %s", args.out / "sampling_eval.md")
     return 0
 
 
@@ -242,13 +298,16 @@ def _add_bench(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="report directory")
     p.add_argument("--quick", action="store_true", help="small inputs, for a smoke run")
     p.add_argument("--repeats", type=int, default=3, help="timings are the median of this many runs")
+    p.add_argument("--work", type=Path, default=None,
+                   help="a recon work directory: also benchmark the billboard build on its cloud and images")
     p.set_defaults(func=_run_bench)
 
 
 def _run_bench(args) -> int:
     from .bench import BenchConfig, run_bench
 
-    run_bench(BenchConfig(quick=args.quick, repeats=args.repeats), args.out)
+    run_bench(BenchConfig(quick=args.quick, repeats=args.repeats,
+                          work=None if args.work is None else str(args.work)), args.out)
     return 0
 
 
@@ -263,6 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_synth(sub)
     _add_recon(sub)
     _add_build(sub)
+    _add_texture_sweep(sub)
+    _add_sampling_eval(sub)
     _add_stereo_sweep(sub)
     _add_check(sub)
     _add_bench(sub)

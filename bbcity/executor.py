@@ -71,6 +71,10 @@ def make_executor(workers: int | None = None) -> Executor:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if workers == 1:
         return SerialExecutor()
+    # One BLAS/OpenMP thread per worker: the pool already fills the cores, and
+    # nested thread pools oversubscribe them. Spawned workers inherit this.
+    for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(name, "1")
     return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=tune_allocator)
 

@@ -126,3 +126,142 @@ def _plot(rows: list[dict], path: Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp)
     plt.close(fig)
+
+
+# --------------------------------------------------------------------------- textures
+
+def texture_settings() -> dict:
+    """Named PcaConfig variants: fixed ranks, contribution ratios and error bounds."""
+    from billboards.pca import PcaConfig
+
+    base = PcaConfig()
+    settings = {f"rank {r}": dataclasses.replace(base, fixed_rank=r, max_rank=max(r, 1)) for r in (0, 1, 2, 4, 8, 16)}
+    for ratio in (0.8, 0.9, 0.95, 0.99):
+        settings[f"ratio {ratio}"] = dataclasses.replace(base, ratio=ratio, max_error=None)
+    for bound in (1.0, 2.0, 4.0):
+        settings[f"error ≤ {bound:g}"] = dataclasses.replace(base, ratio=None, max_error=bound)
+    settings["default (build's)"] = base
+    return settings
+
+
+def _chunk_bytes(arrays: dict) -> int:
+    """Bytes a chunk adds to the model: tiles, coefficient rows, their scales, per-billboard tables."""
+    per_billboard = 3 * 4 + 4 + 1 + 4  # centre, base yaw, rank, first slot
+    return int(sum(arrays[k].nbytes for k in ("tiles", "slot_scale", "slot_offset", "coef_rows", "coef_scale",
+                                              "coef_offset")) + per_billboard * len(arrays["rank"]))
+
+
+def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, count: int = 1024,
+                  tiles: tuple[int, ...] = (8, 16, 32), source: str = "images") -> dict:
+    """Bytes, decode PSNR and build time over PCA rank rules, texel sizes and quantisation.
+
+    Samples ``count`` neighbouring billboards from the middle of the street once per
+    texel size, then compresses the same samples under every setting. Writes
+    ``texture_sweep.json``, ``texture_sweep.md`` and ``texture_sweep.png``.
+    """
+    from billboards.build import BuildConfig, compress_chunk
+    from billboards.geometry import base_yaw_toward
+    from billboards.octree import build_octree
+    from billboards.sampling import ImageSampler, SamplingConfig, views_from_dataset, voxel_points
+    from billboards.splat import PointSampler
+    from recon.cloud_io import read_cloud_arrays
+
+    base = BuildConfig()
+    points, colours = read_cloud_arrays(cloud_path)
+    octree = build_octree(points, base.octree)
+    centres = octree.centres()
+    leaf = octree.leaves_of_points(points)
+    voxels = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
+    views = views_from_dataset(load_dataset(dataset_dir)) if dataset_dir is not None else None
+    base_yaw = base_yaw_toward(centres, views.centres if views is not None else np.zeros((0, 3)))
+    first = max(0, octree.num_voxels // 2 - count // 2)
+    ids = np.arange(first, min(octree.num_voxels, first + count))
+    rows = []
+
+    def run(label: str, rgba: np.ndarray, sample_s: float, conf) -> None:
+        t0 = time.perf_counter()
+        arrays, stats = {}, {}
+        parts = [compress_chunk(rgba[s:s + conf.chunk], conf) for s in range(0, len(rgba), conf.chunk)]
+        compress_s = time.perf_counter() - t0
+        sq = sum(p[1]["sq_err_decoded_rgb"] for p in parts)
+        n = sum(p[1]["opaque_rgb_values"] for p in parts)
+        sq_all = sum(p[1]["sq_err_decoded"] for p in parts)
+        n_all = sum(p[1]["values"] for p in parts)
+        ranks = np.concatenate([p[0]["rank"] for p in parts]).astype(float)
+        model_bytes = sum(_chunk_bytes(p[0]) for p in parts)
+        rows.append({"setting": label, "tile": int(rgba.shape[2]), "tile_mode": conf.tile_mode,
+                     "coef_mode": conf.coef_mode, "mean_rank": float(ranks.mean()),
+                     "fetches_per_texel": float(1 + ranks.mean()),
+                     "bytes_per_billboard": model_bytes / len(rgba),
+                     "compression": rgba.nbytes / model_bytes,
+                     "psnr_rgb_db": float(10 * np.log10(n / sq)) if sq > 0 else 100.0,
+                     "psnr_rgba_db": float(10 * np.log10(n_all / sq_all)) if sq_all > 0 else 100.0,
+                     "sample_ms_per_billboard": 1e3 * sample_s / len(rgba),
+                     "compress_ms_per_billboard": 1e3 * compress_s / len(rgba)})
+        logger.info("texture sweep %s: %s", label, rows[-1])
+
+    for tile in tiles:
+        sampling = dataclasses.replace(base.sampling, tile=tile)
+        if source == "images":
+            sampler = ImageSampler(views, centres, octree.voxel_size, base_yaw, voxels, sampling)
+        else:
+            keep = leaf >= 0
+            sampler = PointSampler(voxels, colours[keep][np.argsort(leaf[keep], kind="stable")], base_yaw, sampling)
+        t0 = time.perf_counter()
+        rgba = np.concatenate([sampler.sample(ids[s:s + base.chunk]).rgba for s in range(0, len(ids), base.chunk)])
+        sample_s = time.perf_counter() - t0
+        if tile == base.sampling.tile:
+            for name, pca in texture_settings().items():
+                run(name, rgba, sample_s, dataclasses.replace(base, pca=pca))
+            for tile_mode in ("u8", "f16"):
+                for coef_mode in ("f32", "f16", "u8"):
+                    if (tile_mode, coef_mode) != (base.tile_mode, base.coef_mode):
+                        run(f"default, {tile_mode} tiles, {coef_mode} coefficients", rgba, sample_s,
+                            dataclasses.replace(base, tile_mode=tile_mode, coef_mode=coef_mode))
+        else:
+            run(f"default, {tile}×{tile} texels", rgba, sample_s, base)
+        del rgba
+
+    result = {"cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir),
+              "billboards": int(len(ids)), "voxel_size": octree.voxel_size,
+              "directions": base.sampling.directions.num_directions, "sweep": rows}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json(out_dir / "texture_sweep.json", result)
+    write_bytes(out_dir / "texture_sweep.md", _texture_markdown(result).encode())
+    _texture_plot(rows, out_dir / "texture_sweep.png")
+    return result
+
+
+def _texture_markdown(result: dict) -> str:
+    keys = ["setting", "tile", "tile_mode", "coef_mode", "mean_rank", "bytes_per_billboard", "compression",
+            "psnr_rgb_db", "psnr_rgba_db", "compress_ms_per_billboard", "sample_ms_per_billboard"]
+    lines = [f"# Textures: bytes and decode PSNR against build time ({result['billboards']} billboards, "
+             f"{result['directions']} directions, raw = 8-bit RGBA samples)", "",
+             "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    for r in result["sweep"]:
+        lines.append("| " + " | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]) for k in keys) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _texture_plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), dpi=120)
+    for r in rows:
+        for ax, x in zip(axes, ("bytes_per_billboard", "compress_ms_per_billboard")):
+            ax.scatter(r[x], r["psnr_rgb_db"])
+            ax.annotate(r["setting"], (r[x], r["psnr_rgb_db"]), fontsize=6)
+    axes[0].set_xscale("log")
+    axes[0].set_xlabel("model bytes per billboard")
+    axes[1].set_xlabel("PCA + quantisation, ms per billboard")
+    for ax in axes:
+        ax.set_ylabel("decode PSNR, RGB of opaque texels (dB)")
+        ax.grid(True, alpha=0.3)
+    fig.suptitle("Eigen-textures: work-precision")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)

@@ -60,7 +60,7 @@ TOL = PcaTolerances()
 @dataclass(frozen=True)
 class PcaConfig:
     ratio: float | None = 0.95  # cumulative contribution ratio a rank must reach; None = rule off
-    max_error: float | None = 2.0  # RMS reconstruction error bound in 8-bit units (0–255 scale); None = rule off
+    max_error: float | None = 7.0  # RMS reconstruction error bound in 8-bit units (0–255 scale); None = rule off
     max_rank: int = 16  # never more eigen images than this
     fixed_rank: int | None = None  # each billboard gets min(fixed_rank, its numerical rank); overrides the rules
     chunk: int = 256  # billboards per batched Gram/eigh (memory: ~chunk·d·n·8 bytes per work array)
