@@ -33,6 +33,7 @@ $(INSTALL_STAMP): $(SYSDEPS_STAMP) pyproject.toml
 demo: $(INSTALL_STAMP)
 	$(BIN)/bbcity synth street --out $(DEMO_DIR)/street
 	$(BIN)/bbcity recon $(DEMO_DIR)/street --out $(DEMO_DIR)/work
+	$(BIN)/bbcity build $(DEMO_DIR)/work --out $(DEMO_DIR)/model
 
 test: $(INSTALL_STAMP)
 	$(BIN)/python -m pytest -q

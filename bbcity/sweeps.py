@@ -166,7 +166,7 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
     from billboards.splat import PointSampler
     from recon.cloud_io import read_cloud_arrays
 
-    base = BuildConfig()
+    base = BuildConfig(error_stride=1)
     points, colours = read_cloud_arrays(cloud_path)
     octree = build_octree(points, base.octree)
     centres = octree.centres()
@@ -186,7 +186,7 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
         sq = sum(p[1]["sq_err_decoded_rgb"] for p in parts)
         n = sum(p[1]["opaque_rgb_values"] for p in parts)
         sq_all = sum(p[1]["sq_err_decoded"] for p in parts)
-        n_all = sum(p[1]["values"] for p in parts)
+        n_all = sum(p[1]["values"] for p in parts)  # error_stride 1 below: every billboard
         ranks = np.concatenate([p[0]["rank"] for p in parts]).astype(float)
         model_bytes = sum(_chunk_bytes(p[0]) for p in parts)
         rows.append({"setting": label, "tile": int(rgba.shape[2]), "tile_mode": conf.tile_mode,

@@ -48,7 +48,7 @@ class SamplingConfig:
     abs_tolerance: float = 0.02     # depth slack of the in-voxel test (m) ...
     rel_tolerance: float = 0.004    # ... plus this fraction of the depth (stereo noise grows with depth)
     zbuffer_scale: int = 2          # z-buffer pixel = this many image pixels per side
-    cache_views: int = 48           # images and z-buffers kept per process
+    cache_views: int = 128          # images and z-buffers kept per process (about 1.5 MB each at 640×480)
 
     def __post_init__(self):
         if self.tile < 1 or self.candidates < 1 or self.zbuffer_scale < 1:
@@ -190,11 +190,13 @@ class _ViewCache:
     def __init__(self, views: Views, voxels: VoxelPoints | None, config: SamplingConfig):
         self.views, self.voxels, self.config = views, voxels, config
         self._entries: OrderedDict[int, tuple] = OrderedDict()
+        self.loads = 0  # views decoded and z-buffered so far (misses)
 
     def get(self, i: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
         if i in self._entries:
             self._entries.move_to_end(i)
             return self._entries[i]
+        self.loads += 1
         image = self.views.image(i)
         pyramid = [image]
         while min(pyramid[-1].shape[:2]) >= 16 and len(pyramid) < 6:
@@ -307,6 +309,9 @@ class ImageSampler:
         w, h = self.views.sizes[views, 0], self.views.sizes[views, 1]
         inside = ((u >= -0.5) & (u <= (w - 0.5)[:, None, None]) & (v >= -0.5)
                   & (v <= (h - 0.5)[:, None, None]))                       # False for NaN
+        # Texels outside the image (or behind the camera) are UNSEEN; park them at (−1, −1).
+        np.copyto(u, np.float32(-1), where=~inside)
+        np.copyto(v, np.float32(-1), where=~inside)
         # Where each texel's ray (from the camera, in z-depth units) crosses the voxel cube.
         t_in = t_out = None
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -330,9 +335,9 @@ class ImageSampler:
             filled[i, :f.shape[0], :f.shape[1]] = f
             nearest[i, :n.shape[0], :n.shape[1]] = n
         scale = np.float32(1.0 / cfg.zbuffer_scale)
-        iu = np.clip(np.nan_to_num((u + 0.5) * scale, nan=0), 0, zw - 1).astype(np.int64)
-        iv = np.clip(np.nan_to_num((v + 0.5) * scale, nan=0), 0, zh - 1).astype(np.int64)
-        pix = (local[:, None, None] * zh + iv) * zw + iu
+        iu = np.clip((u + 0.5) * scale, 0, zw - 1).astype(np.int32)
+        iv = np.clip((v + 0.5) * scale, 0, zh - 1).astype(np.int32)
+        pix = (local.astype(np.int32)[:, None, None] * zh + iv) * zw + iu
         status = np.where(filled.ravel()[pix] <= t_out + tol, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
             status[nearest.ravel()[pix] < t_in - tol] = OCCLUDED
@@ -347,8 +352,8 @@ class ImageSampler:
             for lv in np.unique(lv_all[mine]):
                 sel = np.flatnonzero(mine & (lv_all == lv))
                 f = np.float32(0.5 ** lv)
-                mx = np.nan_to_num((u[sel] + 0.5) * f - 0.5, nan=-1e4).reshape(len(sel), -1)
-                my = np.nan_to_num((v[sel] + 0.5) * f - 0.5, nan=-1e4).reshape(len(sel), -1)
+                mx = ((u[sel] + 0.5) * f - 0.5).reshape(len(sel), -1)
+                my = ((v[sel] + 0.5) * f - 0.5).reshape(len(sel), -1)
                 for r0 in range(0, len(sel), 8192):  # OpenCV maps stay under SHRT_MAX rows
                     out = cv2.remap(pyramid[lv], mx[r0:r0 + 8192], my[r0:r0 + 8192], cv2.INTER_LINEAR,
                                     borderMode=cv2.BORDER_REPLICATE)
@@ -369,6 +374,7 @@ class ImageSampler:
             candidates = np.full((B, d, 1), -1, dtype=np.int64)
         colour = np.zeros((B, d, t, t, 3), dtype=np.uint8)
         status = np.full((B, d, t, t), UNSEEN, dtype=np.uint8)
+        loads_before = self.cache.loads
         stats = {"samples": B * d, "samples_with_camera": int((candidates[..., 0] >= 0).sum()),
                  "texels_from_fallback_camera": 0}
         for k in range(candidates.shape[-1]):
@@ -395,7 +401,7 @@ class ImageSampler:
         distance = np.where(view_used >= 0, np.linalg.norm(offset, axis=-1), np.nan)
         elevation = np.where(view_used >= 0, np.arcsin(np.clip(offset[..., 2] / np.maximum(distance, 1e-12), -1, 1)),
                              np.nan)
-        stats.update(texels=int(status.size), visible=int((status == VISIBLE).sum()),
+        stats.update(views_loaded=self.cache.loads - loads_before, texels=int(status.size), visible=int((status == VISIBLE).sum()),
                      transparent=int((status == TRANSPARENT).sum()),
                      hidden=int((status == OCCLUDED).sum()), unseen=int((status == UNSEEN).sum()))
         rgba = fill_directions(colour, status, dirs.count)

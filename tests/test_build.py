@@ -137,3 +137,39 @@ def test_bad_inputs_fail_clearly_and_keep_the_old_model(tiny_dataset, tiny_cloud
     assert sorted(p.name for p in out.iterdir()) == before
     billboard_model.load(out)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary leftovers
+
+
+def _work_dir(tmp_path, tiny_dataset, tiny_cloud):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "cloud.ply").write_bytes(tiny_cloud.read_bytes())
+    (work / "recon_report.json").write_text(json.dumps({"dataset": str(tiny_dataset)}))
+    return work
+
+
+def test_texture_sweep_writes_table_and_plot(tiny_dataset, tiny_cloud, tmp_path):
+    work = _work_dir(tmp_path, tiny_dataset, tiny_cloud)
+    out = tmp_path / "sweep"
+    assert cli_main(["-q", "texture-sweep", str(work), "--out", str(out), "--count", "48", "--tiles", "8", "32"]) == 0
+    result = json.loads((out / "texture_sweep.json").read_text())
+    rows = {r["setting"]: r for r in result["sweep"]}
+    assert (out / "texture_sweep.png").stat().st_size > 0 and "rank 4" in (out / "texture_sweep.md").read_text()
+    # More rank buys quality and costs bytes; rank 0 stores the mean tile only.
+    assert rows["rank 0"]["mean_rank"] == 0 and rows["rank 16"]["psnr_rgb_db"] >= rows["rank 2"]["psnr_rgb_db"]
+    assert rows["rank 0"]["bytes_per_billboard"] < rows["rank 2"]["bytes_per_billboard"]
+    assert rows["rank 0"]["compression"] > 30  # 32 directions, one mean tile: just under 32×
+    assert rows["default, f16 tiles, f32 coefficients"]["bytes_per_billboard"] > rows["default (build's)"]["bytes_per_billboard"]
+    assert "default, 8×8 texels" in rows
+
+
+def test_sampling_eval_cli(tiny_dataset, tiny_cloud, tmp_path):
+    work = _work_dir(tmp_path, tiny_dataset, tiny_cloud)
+    out = tmp_path / "eval"
+    assert cli_main(["-q", "sampling-eval", str(work), "--out", str(out), "--count", "20"]) == 0
+    report = json.loads((out / "sampling_eval.json").read_text())
+    for name in ("near_occluders", "random"):
+        assert report[name]["billboards"] <= 20
+        for method in ("occlusion_aware", "naive"):
+            assert 0 <= report[name][method]["alpha_agreement"] <= 1
+    assert report["random"]["samples"] > 0 and np.isfinite(report["random"]["occlusion_aware"]["psnr_rgb"])
+    assert "occlusion-aware" in (out / "sampling_eval.md").read_text()
