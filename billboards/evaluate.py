@@ -113,11 +113,24 @@ def compare_sampling(dataset_dir: os.PathLike | str, cloud_path: os.PathLike | s
     for name, ids in sets.items():
         report[name] = _errors(aware, naive, ids, scene, renderer, sampling, base_yaw, octree.voxel_size, spp)
         r = report[name]
-        logger.info("%s: %d samples, occlusion-aware %.2f dB vs naive %.2f dB; behind occluders %.2f vs %.2f dB",
-                    name, r["samples"], r["occlusion_aware"]["psnr_rgb"], r["naive"]["psnr_rgb"],
-                    r["occlusion_aware_behind_occluders"]["psnr_rgb"], r["naive_behind_occluders"]["psnr_rgb"])
+        logger.info("%s: %d samples, occlusion-aware %s dB vs naive %s dB; behind occluders %s vs %s dB",
+                    name, r["samples"], *(_db(_json_safe(r[k]["psnr_rgb"])) for k in (
+                        "occlusion_aware", "naive", "occlusion_aware_behind_occluders", "naive_behind_occluders")))
     report["seconds"] = time.perf_counter() - t0
-    return report
+    return _json_safe(report)
+
+
+def _json_safe(value):
+    """NaN (no measurement, e.g. no billboard near an occluder) becomes None for JSON."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def _db(value) -> str:
+    return "–" if value is None else f"{value:.2f}"
 
 
 def markdown(report: dict) -> str:
@@ -132,5 +145,5 @@ def markdown(report: dict) -> str:
             a, h = r[method], r[method + "_behind_occluders"]
             lines.append(f"| {name.replace('_', ' ')} ({r['billboards']}) | {r['samples']} | {a['texels']} "
                          f"({r['texels_behind_occluders']} behind occluders) | {method.replace('_', '-')} | "
-                         f"{a['psnr_rgb']:.2f} | {a['alpha_agreement']:.3f} | {h['psnr_rgb']:.2f} |")
+                         f"{_db(a['psnr_rgb'])} | {_db(a['alpha_agreement'])} | {_db(h['psnr_rgb'])} |")
     return "\n".join(lines) + "\n"

@@ -170,6 +170,7 @@ def test_sampling_eval_cli(tiny_dataset, tiny_cloud, tmp_path):
     for name in ("near_occluders", "random"):
         assert report[name]["billboards"] <= 20
         for method in ("occlusion_aware", "naive"):
-            assert 0 <= report[name][method]["alpha_agreement"] <= 1
-    assert report["random"]["samples"] > 0 and np.isfinite(report["random"]["occlusion_aware"]["psnr_rgb"])
+            agreement = report[name][method]["alpha_agreement"]
+            assert agreement is None or 0 <= agreement <= 1  # None: no billboard in the set
+    assert report["random"]["samples"] > 0 and report["random"]["occlusion_aware"]["psnr_rgb"] > 10
     assert "occlusion-aware" in (out / "sampling_eval.md").read_text()
