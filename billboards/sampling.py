@@ -29,7 +29,7 @@ import numpy as np
 
 from data_synth.fileio import read_png
 
-from .geometry import DirectionConfig, direction_angles, quad_frames, texel_offsets
+from .geometry import DirectionConfig, direction_angles, quad_frames, texel_offsets, unit_vectors
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +48,9 @@ class SamplingConfig:
     abs_tolerance: float = 0.02     # depth slack of the in-voxel test (m) ...
     rel_tolerance: float = 0.004    # ... plus this fraction of the depth (stereo noise grows with depth)
     zbuffer_scale: int = 2          # z-buffer pixel = this many image pixels per side
+    own_points: bool = True         # a texel whose ray misses the voxel's own points is transparent
+    reproject: bool = True          # texels via the surface point seen from the sampled direction (else the
+                                    # quad projected into the camera, as the billboards paper)
     cache_views: int = 128          # images and z-buffers kept per process (about 1.5 MB each at 640×480)
 
     def __post_init__(self):
@@ -285,46 +288,38 @@ class ImageSampler:
                       ) -> tuple[np.ndarray, np.ndarray]:
         """Texels of quads (m,) seen by cameras ``views`` (m,) → colour (m, t, t, 3) uint8,
         status (m, t, t) uint8 (VISIBLE, TRANSPARENT, OCCLUDED or UNSEEN)."""
-        cfg = self.config
-        t, s, m = cfg.tile, self.size, len(views)
+        if self.config.reproject:
+            return self._sample_reprojected(views, ids, yaw, pitch)
+        return self._sample_projective(views, ids, yaw, pitch)
+
+    def _frames(self, views, ids, yaw, pitch):
+        """Per sample: camera rotation R (m, 3, 3), centre C (m, 3), K (m, 3, 3), and the quad's
+        centre c (relative to C), right and up axes (m, 3) float64."""
         pose = self.views.world_from_cam[views]
-        R, C = pose[:, :3, :3], pose[:, :3, 3]
-        K = self.views.K[views]
-        # Quads relative to their camera centre (metres near the camera: float32 is ample).
-        c = self.centres[ids] - C                                          # (m, 3) float64
         _, right, up = quad_frames(yaw, pitch, self.config.directions.pitched_quads)
-        a = (texel_offsets(t) * s).astype(np.float32)
-        col, row = a[None, None, :], a[None, :, None]
+        return pose[:, :3, :3], pose[:, :3, 3], self.views.K[views], self.centres[ids] - pose[:, :3, 3], right, up
 
-        def grid(base, along_col, along_row):                              # (m,) each → (m, t, t)
-            return (base.astype(np.float32)[:, None, None] + along_col.astype(np.float32)[:, None, None] * col
-                    - along_row.astype(np.float32)[:, None, None] * row)
+    def _grid(self, base, along_col, along_row):
+        """base + a_col·along_col − a_row·along_row over the texel grid: (m,) each → (m, t, t) float32."""
+        a = (texel_offsets(self.config.tile) * self.size).astype(np.float32)
+        return (base.astype(np.float32)[:, None, None] + along_col.astype(np.float32)[:, None, None] * a[None, None, :]
+                - along_row.astype(np.float32)[:, None, None] * a[None, :, None])
 
-        # Texel positions are affine in (col, row): camera coordinates follow without a matmul.
-        cc, cr, cu = (np.einsum("mk,mkj->mj", v, R) for v in (c, right, up))
-        x, y, z = (grid(cc[:, k], cr[:, k], cu[:, k]) for k in range(3))
+    def _project(self, views, K, x, y, z):
+        """Camera coordinates (m, t, t) → pixel u, v (float32, (−1, −1) outside) and the inside mask."""
         inv_z = np.float32(1) / np.where(z > 1e-3, z, np.float32(np.nan))
         u = K[:, 0, 0, None, None].astype(np.float32) * x * inv_z + K[:, 0, 2, None, None].astype(np.float32)
         v = K[:, 1, 1, None, None].astype(np.float32) * y * inv_z + K[:, 1, 2, None, None].astype(np.float32)
         w, h = self.views.sizes[views, 0], self.views.sizes[views, 1]
         inside = ((u >= -0.5) & (u <= (w - 0.5)[:, None, None]) & (v >= -0.5)
                   & (v <= (h - 0.5)[:, None, None]))                       # False for NaN
-        # Texels outside the image (or behind the camera) are UNSEEN; park them at (−1, −1).
         np.copyto(u, np.float32(-1), where=~inside)
         np.copyto(v, np.float32(-1), where=~inside)
-        # Where each texel's ray (from the camera, in z-depth units) crosses the voxel cube.
-        t_in = t_out = None
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for k in range(3):
-                p_k = grid(c[:, k], right[:, k], up[:, k])                 # world axis k, camera-relative
-                scale_k = z / p_k
-                lo = (c[:, k] - s / 2).astype(np.float32)[:, None, None] * scale_k
-                hi = (c[:, k] + s / 2).astype(np.float32)[:, None, None] * scale_k
-                near, far = np.fmin(lo, hi), np.fmax(lo, hi)
-                t_in = near if t_in is None else np.fmax(t_in, near)
-                t_out = far if t_out is None else np.fmin(t_out, far)
-        tol = np.float32(cfg.abs_tolerance) + np.float32(cfg.rel_tolerance) * z
-        # Depth the cloud puts at each texel's pixel, from the stacked z-buffers of these views.
+        return u, v, inside
+
+    def _depth_at(self, views, u, v):
+        """The cloud's z-buffers at pixels (u, v): (filled, nearest) (m, t, t) float32, inf = empty.
+        Also returns the views' cache entries and each sample's index into them."""
         unique, local = np.unique(views, return_inverse=True)
         entries = [self.cache.get(int(i)) for i in unique]
         zh = max(e[1].shape[0] for e in entries)
@@ -334,18 +329,18 @@ class ImageSampler:
         for i, (_, f, n) in enumerate(entries):
             filled[i, :f.shape[0], :f.shape[1]] = f
             nearest[i, :n.shape[0], :n.shape[1]] = n
-        scale = np.float32(1.0 / cfg.zbuffer_scale)
+        scale = np.float32(1.0 / self.config.zbuffer_scale)
         iu = np.clip((u + 0.5) * scale, 0, zw - 1).astype(np.int32)
         iv = np.clip((v + 0.5) * scale, 0, zh - 1).astype(np.int32)
         pix = (local.astype(np.int32)[:, None, None] * zh + iv) * zw + iu
-        status = np.where(filled.ravel()[pix] <= t_out + tol, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
-        if cfg.occlusion:
-            status[nearest.ravel()[pix] < t_in - tol] = OCCLUDED
-        status[~inside] = UNSEEN
-        # Colour from the pyramid level whose pixels match the texel footprint.
-        footprint = (s / t) * K[:, 0, 0] / np.maximum(np.linalg.norm(c, axis=1), 1e-6)
+        return filled.ravel()[pix], nearest.ravel()[pix], entries, local
+
+    def _colours(self, entries, local, u, v, footprint):
+        """Bilinear colours (m, t, t, 3) uint8 at (u, v), each sample from the pyramid level
+        whose pixels match its texel footprint (m,) in pixels."""
+        t = self.config.tile
         level = np.floor(np.log2(np.maximum(footprint, 1.0))).astype(np.int64)
-        colour = np.empty((m, t, t, 3), dtype=np.uint8)
+        colour = np.empty(u.shape + (3,), dtype=np.uint8)
         for i, (pyramid, _, _) in enumerate(entries):
             mine = local == i
             lv_all = np.minimum(level, len(pyramid) - 1)
@@ -358,7 +353,114 @@ class ImageSampler:
                     out = cv2.remap(pyramid[lv], mx[r0:r0 + 8192], my[r0:r0 + 8192], cv2.INTER_LINEAR,
                                     borderMode=cv2.BORDER_REPLICATE)
                     colour[sel[r0:r0 + 8192]] = out.reshape(-1, t, t, 3)
-        return colour, status
+        return colour
+
+    def _sample_reprojected(self, views, ids, yaw, pitch):
+        """Each texel's ray from a virtual viewer in the sampled direction (at the camera's
+        distance and elevation) meets the voxel's own points; that 3-D point is looked up
+        in the real camera, and accepted only if the camera's z-buffer sees it."""
+        cfg = self.config
+        R, C, K, c, right, up = self._frames(views, ids, yaw, pitch)
+        distance = np.linalg.norm(c, axis=1)
+        elevation = np.arcsin(np.clip(-c[:, 2] / np.maximum(distance, 1e-9), -1, 1))
+        eye = c + distance[:, None] * unit_vectors(yaw, elevation)         # virtual viewer, camera-relative
+        depth = self._own_depth(ids, eye, c, right, up)                    # (m, t, t) ray parameter, inf = none
+        covered = np.isfinite(depth)
+        # The surface point along each texel's virtual ray, then into the real camera.
+        point = [None] * 3
+        for k in range(3):
+            p_k = self._grid(c[:, k], right[:, k], up[:, k])
+            e_k = eye[:, k].astype(np.float32)[:, None, None]
+            point[k] = e_k + np.where(covered, depth, 1.0) * (p_k - e_k)
+        Rf = R.astype(np.float32)
+        x, y, z = (sum(point[k] * Rf[:, k, j, None, None] for k in range(3)) for j in range(3))
+        u, v, inside = self._project(views, K, x, y, z)
+        filled, nearest, entries, local = self._depth_at(views, u, v)
+        tol = np.float32(cfg.abs_tolerance) + np.float32(cfg.rel_tolerance) * z
+        status = np.where(covered, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
+        if cfg.occlusion:
+            status[covered & (nearest < z - tol)] = OCCLUDED
+        status[~inside] = UNSEEN
+        footprint = (self.size / cfg.tile) * K[:, 0, 0] / np.maximum(distance, 1e-6)
+        return self._colours(entries, local, u, v, footprint), status
+
+    def _sample_projective(self, views, ids, yaw, pitch):
+        """The quad projected into the camera (a homography): each texel is what the camera
+        sees through it, accepted where that lies inside the voxel cube."""
+        cfg = self.config
+        s = self.size
+        R, C, K, c, right, up = self._frames(views, ids, yaw, pitch)
+        # Texel positions are affine in (col, row): camera coordinates follow without a matmul.
+        cc, cr, cu = (np.einsum("mk,mkj->mj", v, R) for v in (c, right, up))
+        x, y, z = (self._grid(cc[:, k], cr[:, k], cu[:, k]) for k in range(3))
+        u, v, inside = self._project(views, K, x, y, z)
+        # Where each texel's ray (from the camera, in z-depth units) crosses the voxel cube.
+        t_in = t_out = None
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for k in range(3):
+                scale_k = z / self._grid(c[:, k], right[:, k], up[:, k])   # world axis k, camera-relative
+                lo = (c[:, k] - s / 2).astype(np.float32)[:, None, None] * scale_k
+                hi = (c[:, k] + s / 2).astype(np.float32)[:, None, None] * scale_k
+                near, far = np.fmin(lo, hi), np.fmax(lo, hi)
+                t_in = near if t_in is None else np.fmax(t_in, near)
+                t_out = far if t_out is None else np.fmin(t_out, far)
+        tol = np.float32(cfg.abs_tolerance) + np.float32(cfg.rel_tolerance) * z
+        filled, nearest, entries, local = self._depth_at(views, u, v)
+        status = np.where(filled <= t_out + tol, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
+        if cfg.occlusion:
+            status[nearest < t_in - tol] = OCCLUDED
+        if cfg.own_points:
+            # Nothing of the voxel's own cloud lies along this ray: seen through, whatever is in front.
+            status[~np.isfinite(self._own_depth(ids, np.zeros_like(c), c, right, up))] = TRANSPARENT
+        status[~inside] = UNSEEN
+        footprint = (s / cfg.tile) * K[:, 0, 0] / np.maximum(np.linalg.norm(c, axis=1), 1e-6)
+        return self._colours(entries, local, u, v, footprint), status
+
+    def _own_depth(self, ids: np.ndarray, eye: np.ndarray, c: np.ndarray, right: np.ndarray, up: np.ndarray
+                   ) -> np.ndarray:
+        """Where rays from ``eye`` through each texel first meet the voxel's own points.
+
+        ids (m,) voxels; eye, c (m, 3) viewer and quad centre in a common frame (here:
+        relative to the real camera); right, up (m, 3) quad axes. Each point of voxel
+        ``ids[i]`` is carried along its ray from eye[i] onto quad i; per texel the nearest
+        is kept, as the ray parameter λ (1 on the quad, eye + λ·(texel − eye) is the
+        point). A texel with no point but at least 5 of 8 neighbours with one takes their
+        nearest (the gaps between cloud points); (m, t, t) float32, inf where the ray
+        meets nothing.
+        """
+        t, s, m = self.config.tile, self.size, len(ids)
+        vox = self.cache.voxels
+        starts, ends = vox.begin[ids], vox.begin[ids + 1]
+        lengths = ends - starts
+        owner = np.repeat(np.arange(m), lengths)
+        index = np.arange(int(lengths.sum())) + np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
+        # Points relative to each sample's eye; quad centre and axes likewise.
+        q = np.asarray(vox.points[index]) + (vox.origin - self.centres[ids] + c - eye).astype(np.float32)[owner]
+        ce = (c - eye).astype(np.float32)
+        n = np.cross(right, up).astype(np.float32)
+        rf, uf = right.astype(np.float32), up.astype(np.float32)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mu = np.einsum("pk,pk->p", ce[owner], n[owner]) / np.einsum("pk,pk->p", q, n[owner])
+        offset = mu[:, None] * q - ce[owner]                                # on the quad, from its centre
+        col = np.floor((np.einsum("pk,pk->p", offset, rf[owner]) / s + 0.5) * t)
+        row = np.floor((0.5 - np.einsum("pk,pk->p", offset, uf[owner]) / s) * t)
+        ok = (mu > 0) & (col >= 0) & (col < t) & (row >= 0) & (row < t)
+        key = (owner[ok] * t + row[ok].astype(np.int64)) * t + col[ok].astype(np.int64)
+        depth = np.full(m * t * t, np.inf, dtype=np.float32)
+        np.minimum.at(depth, key, (1.0 / mu[ok]).astype(np.float32))
+        depth = depth.reshape(m, t, t)
+        padded = np.pad(depth, ((0, 0), (1, 1), (1, 1)), constant_values=np.inf)
+        near = np.full_like(depth, np.inf)
+        neighbours = np.zeros(depth.shape, dtype=np.int8)
+        for dy in range(3):
+            for dx in range(3):
+                if dy == dx == 1:
+                    continue
+                window = padded[:, dy:dy + t, dx:dx + t]
+                np.minimum(near, window, out=near)
+                neighbours += np.isfinite(window)
+        # Close holes inside the surface (≥ 5 of 8 neighbours hit), not its outline.
+        return np.where(np.isfinite(depth) | (neighbours < 5), depth, near)
 
     # -- one chunk of billboards -----------------------------------------------------
     def sample(self, ids: np.ndarray) -> SampledTextures:
