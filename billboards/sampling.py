@@ -49,7 +49,7 @@ class SamplingConfig:
     rel_tolerance: float = 0.004    # ... plus this fraction of the depth (stereo noise grows with depth)
     zbuffer_scale: int = 2          # z-buffer pixel = this many image pixels per side
     own_points: bool = True         # a texel whose ray misses the voxel's own points is transparent
-    reproject: bool = True          # texels via the surface point seen from the sampled direction (else the
+    reproject: bool = False         # texels via the surface point seen from the sampled direction (else the
                                     # quad projected into the camera, as the billboards paper)
     cache_views: int = 128          # images and z-buffers kept per process (about 1.5 MB each at 640×480)
 
@@ -406,12 +406,16 @@ class ImageSampler:
                 t_out = far if t_out is None else np.fmin(t_out, far)
         tol = np.float32(cfg.abs_tolerance) + np.float32(cfg.rel_tolerance) * z
         filled, nearest, entries, local = self._depth_at(views, u, v)
-        status = np.where(filled <= t_out + tol, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
-        if cfg.occlusion:
-            status[nearest < t_in - tol] = OCCLUDED
         if cfg.own_points:
-            # Nothing of the voxel's own cloud lies along this ray: seen through, whatever is in front.
-            status[~np.isfinite(self._own_depth(ids, np.zeros_like(c), c, right, up))] = TRANSPARENT
+            # The voxel's own points say what is there (the z-buffer has holes between points):
+            # a ray that misses them is seen through, whatever lies in front.
+            own = np.isfinite(self._own_depth(ids, np.zeros_like(c), c, right, up))
+            own &= ~(np.isfinite(filled) & (filled > t_out + tol))  # unless the camera sees past the voxel
+        else:
+            own = filled <= t_out + tol
+        status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
+        if cfg.occlusion:
+            status[own & (nearest < t_in - tol)] = OCCLUDED
         status[~inside] = UNSEEN
         footprint = (s / cfg.tile) * K[:, 0, 0] / np.maximum(np.linalg.norm(c, axis=1), 1e-6)
         return self._colours(entries, local, u, v, footprint), status
@@ -424,9 +428,8 @@ class ImageSampler:
         relative to the real camera); right, up (m, 3) quad axes. Each point of voxel
         ``ids[i]`` is carried along its ray from eye[i] onto quad i; per texel the nearest
         is kept, as the ray parameter λ (1 on the quad, eye + λ·(texel − eye) is the
-        point). A texel with no point but at least 5 of 8 neighbours with one takes their
-        nearest (the gaps between cloud points); (m, t, t) float32, inf where the ray
-        meets nothing.
+        point). Gaps between cloud points are closed morphologically; (m, t, t) float32,
+        inf where the ray meets nothing.
         """
         t, s, m = self.config.tile, self.size, len(ids)
         vox = self.cache.voxels
@@ -449,18 +452,14 @@ class ImageSampler:
         depth = np.full(m * t * t, np.inf, dtype=np.float32)
         np.minimum.at(depth, key, (1.0 / mu[ok]).astype(np.float32))
         depth = depth.reshape(m, t, t)
-        padded = np.pad(depth, ((0, 0), (1, 1), (1, 1)), constant_values=np.inf)
-        near = np.full_like(depth, np.inf)
-        neighbours = np.zeros(depth.shape, dtype=np.int8)
-        for dy in range(3):
-            for dx in range(3):
-                if dy == dx == 1:
-                    continue
-                window = padded[:, dy:dy + t, dx:dx + t]
-                np.minimum(near, window, out=near)
-                neighbours += np.isfinite(window)
-        # Close holes inside the surface (≥ 5 of 8 neighbours hit), not its outline.
-        return np.where(np.isfinite(depth) | (neighbours < 5), depth, near)
+        # Close the gaps between cloud points (a 5×5 closing of the hit mask keeps the outline);
+        # a closed texel takes the nearest hit around it.
+        hit = np.isfinite(depth)
+        closed = _erode(_dilate(hit, 2), 2)
+        near = depth
+        for _ in range(2):
+            near = _min_filter(near)
+        return np.where(hit, depth, np.where(closed, near, np.float32(np.inf)))
 
     # -- one chunk of billboards -----------------------------------------------------
     def sample(self, ids: np.ndarray) -> SampledTextures:
@@ -508,6 +507,34 @@ class ImageSampler:
                      hidden=int((status == OCCLUDED).sum()), unseen=int((status == UNSEEN).sum()))
         rgba = fill_directions(colour, status, dirs.count)
         return SampledTextures(rgba, view_used, distance, elevation, stats)
+
+
+def _shifted(mask: np.ndarray, pad_value, reduce) -> np.ndarray:
+    """3×3 neighbourhood reduction over the last two axes of (m, t, t)."""
+    t0, t1 = mask.shape[-2:]
+    padded = np.pad(mask, ((0, 0), (1, 1), (1, 1)), constant_values=pad_value)
+    out = padded[:, 1:1 + t0, 1:1 + t1].copy()
+    for dy in range(3):
+        for dx in range(3):
+            reduce(out, padded[:, dy:dy + t0, dx:dx + t1], out=out)
+    return out
+
+
+def _dilate(mask: np.ndarray, times: int) -> np.ndarray:
+    for _ in range(times):
+        mask = _shifted(mask, False, np.logical_or)
+    return mask
+
+
+def _erode(mask: np.ndarray, times: int) -> np.ndarray:
+    # Outside the quad counts as set, so closing does not eat the quad's border.
+    for _ in range(times):
+        mask = _shifted(mask, True, np.logical_and)
+    return mask
+
+
+def _min_filter(depth: np.ndarray) -> np.ndarray:
+    return _shifted(depth, np.inf, np.minimum)
 
 
 def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> np.ndarray:
