@@ -437,16 +437,24 @@ class ImageSampler:
         lengths = ends - starts
         owner = np.repeat(np.arange(m), lengths)
         index = np.arange(int(lengths.sum())) + np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
-        # Points relative to each sample's eye; quad centre and axes likewise.
-        q = np.asarray(vox.points[index]) + (vox.origin - self.centres[ids] + c - eye).astype(np.float32)[owner]
+        # Points relative to each sample's eye; the quad's centre ce and axes likewise.
+        q = np.asarray(vox.points[index]) + np.repeat(
+            (vox.origin - self.centres[ids] + c - eye).astype(np.float32), lengths, axis=0)
         ce = (c - eye).astype(np.float32)
         n = np.cross(right, up).astype(np.float32)
-        rf, uf = right.astype(np.float32), up.astype(np.float32)
+
+        def dot(axis):  # q · axis of its sample, per point
+            a = np.repeat(axis.astype(np.float32), lengths, axis=0)
+            return q[:, 0] * a[:, 0] + q[:, 1] * a[:, 1] + q[:, 2] * a[:, 2]
+
+        def per_point(x):
+            return np.repeat(x.astype(np.float32), lengths)
+
+        # The point's ray meets the quad plane at mu·q; offsets from the quad centre along right/up.
         with np.errstate(divide="ignore", invalid="ignore"):
-            mu = np.einsum("pk,pk->p", ce[owner], n[owner]) / np.einsum("pk,pk->p", q, n[owner])
-        offset = mu[:, None] * q - ce[owner]                                # on the quad, from its centre
-        col = np.floor((np.einsum("pk,pk->p", offset, rf[owner]) / s + 0.5) * t)
-        row = np.floor((0.5 - np.einsum("pk,pk->p", offset, uf[owner]) / s) * t)
+            mu = per_point(np.einsum("mk,mk->m", ce, n)) / dot(n)
+        col = np.floor(((mu * dot(right) - per_point(np.einsum("mk,mk->m", ce, right))) / s + 0.5) * t)
+        row = np.floor((0.5 - (mu * dot(up) - per_point(np.einsum("mk,mk->m", ce, up))) / s) * t)
         ok = (mu > 0) & (col >= 0) & (col < t) & (row >= 0) & (row < t)
         key = (owner[ok] * t + row[ok].astype(np.int64)) * t + col[ok].astype(np.int64)
         depth = np.full(m * t * t, np.inf, dtype=np.float32)
@@ -455,11 +463,13 @@ class ImageSampler:
         # Close the gaps between cloud points (a 5×5 closing of the hit mask keeps the outline);
         # a closed texel takes the nearest hit around it.
         hit = np.isfinite(depth)
-        closed = _erode(_dilate(hit, 2), 2)
-        near = depth
-        for _ in range(2):
-            near = _min_filter(near)
-        return np.where(hit, depth, np.where(closed, near, np.float32(np.inf)))
+        mask = hit.view(np.uint8)
+        # Outside the quad counts as set for the erosion, so closing keeps the quad's border.
+        closed = _stack_filter(_stack_filter(mask, cv2.dilate, 5, 0), cv2.erode, 5, 1).astype(bool)
+        if (closed & ~hit).any():
+            near = _stack_filter(depth, cv2.erode, 5, np.inf)   # erosion of depth = 5×5 minimum
+            depth = np.where(hit | ~closed, depth, near)
+        return depth
 
     # -- one chunk of billboards -----------------------------------------------------
     def sample(self, ids: np.ndarray) -> SampledTextures:
@@ -509,32 +519,16 @@ class ImageSampler:
         return SampledTextures(rgba, view_used, distance, elevation, stats)
 
 
-def _shifted(mask: np.ndarray, pad_value, reduce) -> np.ndarray:
-    """3×3 neighbourhood reduction over the last two axes of (m, t, t)."""
-    t0, t1 = mask.shape[-2:]
-    padded = np.pad(mask, ((0, 0), (1, 1), (1, 1)), constant_values=pad_value)
-    out = padded[:, 1:1 + t0, 1:1 + t1].copy()
-    for dy in range(3):
-        for dx in range(3):
-            reduce(out, padded[:, dy:dy + t0, dx:dx + t1], out=out)
-    return out
-
-
-def _dilate(mask: np.ndarray, times: int) -> np.ndarray:
-    for _ in range(times):
-        mask = _shifted(mask, False, np.logical_or)
-    return mask
-
-
-def _erode(mask: np.ndarray, times: int) -> np.ndarray:
-    # Outside the quad counts as set, so closing does not eat the quad's border.
-    for _ in range(times):
-        mask = _shifted(mask, True, np.logical_and)
-    return mask
-
-
-def _min_filter(depth: np.ndarray) -> np.ndarray:
-    return _shifted(depth, np.inf, np.minimum)
+def _stack_filter(images: np.ndarray, op, size: int, border_value) -> np.ndarray:
+    """Apply an OpenCV morphology ``op`` with a size×size square to each (t, t) image of
+    (m, t, t), as one call on the images stacked with a border between them."""
+    m, t0, t1 = images.shape
+    r = size // 2
+    padded = np.full((m, t0 + 2 * r, t1 + 2 * r), border_value, dtype=images.dtype)
+    padded[:, r:r + t0, r:r + t1] = images
+    flat = padded.reshape(m * (t0 + 2 * r), t1 + 2 * r)
+    out = op(flat, np.ones((size, size), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=border_value)
+    return out.reshape(padded.shape)[:, r:r + t0, r:r + t1]
 
 
 def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> np.ndarray:
