@@ -15,6 +15,8 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from . import fuzzing
+
 from billboards import model as bm
 from billboards.atlas import (AtlasWriter, RowWriter, atlas_layout, pack_rows, pack_tiles, read_rows, read_tiles,
                               row_layout, row_location, tile_location)
@@ -658,23 +660,7 @@ def test_huge_claimed_array_is_refused_without_allocating(tmp_path):
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
-json_values = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.integers(-2**70, 2**70)
-    | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=8)
-    | st.sampled_from(["atlas_000.npy", "rank.npy", "../rank.npy", "u8", "f16", "f32"]),
-    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=8), inner, max_size=5),
-    max_leaves=20)
-
-
-def _mutate(doc, path: list, value):
-    """Replace the element at ``path`` (indices into nested dicts/lists, taken modulo their size)."""
-    if not path or not isinstance(doc, (dict, list)) or not doc:
-        return value
-    keys = list(doc) if isinstance(doc, dict) else list(range(len(doc)))
-    key = keys[path[0] % len(keys)]
-    out = dict(doc) if isinstance(doc, dict) else list(doc)
-    out[key] = _mutate(doc[key], path[1:], value)
-    return out
+json_values = fuzzing.json_values("atlas_000.npy", "rank.npy", "../rank.npy", "u8", "f16", "f32")
 
 
 @SETTINGS
@@ -687,7 +673,7 @@ def test_manifest_fuzz(saved_model, tmp_path, path, value, mmap):
     if not target.exists():
         shutil.copytree(saved_model, target)
     good = json.loads((saved_model / "manifest.json").read_text())
-    (target / "manifest.json").write_text(json.dumps(_mutate(good, path, value)))
+    (target / "manifest.json").write_text(json.dumps(fuzzing.mutate(good, path, value)))
     try:
         model = load(target, mmap=mmap)
     except DataFormatError as e:

@@ -174,3 +174,33 @@ def test_sampling_eval_cli(tiny_dataset, tiny_cloud, tmp_path):
             assert agreement is None or 0 <= agreement <= 1  # None: no billboard in the set
     assert report["random"]["samples"] > 0 and report["random"]["occlusion_aware"]["psnr_rgb"] > 10
     assert "occlusion-aware" in (out / "sampling_eval.md").read_text()
+
+
+def test_city_coordinates_give_the_same_model(tiny_dataset, tiny_cloud, tiny_model, tmp_path):
+    """Cloud and poses moved 10⁶ m east and north (UTM-like): the same billboards, ranks and
+    textures; positions stay exact relative to the float64 origin."""
+    import shutil
+
+    from recon.cloud_io import read_cloud_arrays
+
+    shift = np.array([1.0e6, 2.0e6, 0.0])
+    moved = tmp_path / "moved"
+    shutil.copytree(tiny_dataset, moved, ignore=shutil.ignore_patterns("gt"))
+    poses = json.loads((moved / "poses.json").read_text())
+    for frame in poses["frames"]:
+        for axis in range(3):
+            frame["world_from_rig"][axis][3] += shift[axis]
+    (moved / "poses.json").write_text(json.dumps(poses))
+    points, colours = read_cloud_arrays(tiny_cloud)
+    cloud = tmp_path / "cloud.ply"
+    with PlyStreamWriter(cloud, normals=False) as writer:
+        writer.append(points + shift, colours)
+    far = build_main(small_config(), cloud, moved, tmp_path / "model")
+    near_model, far_model = billboard_model.load(tiny_model.model), billboard_model.load(far.model)
+    assert far_model.num_billboards == near_model.num_billboards
+    np.testing.assert_allclose(far_model.origin - near_model.origin, shift, atol=1e-6)
+    np.testing.assert_allclose(far_model.centres, near_model.centres, atol=1e-4)
+    assert np.mean(far_model.rank == near_model.rank) > 0.95
+    ids = np.arange(0, near_model.num_billboards, 7)
+    diff = billboard_model.decode_directions(far_model, ids) - billboard_model.decode_directions(near_model, ids)
+    assert 10 * np.log10(1 / max(np.mean(diff ** 2), 1e-12)) > 40

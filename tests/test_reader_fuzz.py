@@ -10,28 +10,15 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from . import fuzzing
+
 from data_synth import DataFormatError, Rig, RigConfig, make_rig
 from data_synth.fileio import load_npy, read_png, write_png
 from data_synth.rig import load_poses, save_poses, yaw_pose
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
-json_values = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True, allow_infinity=True)
-    | st.text(max_size=8),
-    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=8), inner, max_size=5),
-    max_leaves=20)
-
-
-def _mutate(doc, path: list, value):
-    """Replace the element at ``path`` (indices into nested dicts/lists, taken modulo their size)."""
-    if not path or not isinstance(doc, (dict, list)) or not doc:
-        return value
-    keys = list(doc) if isinstance(doc, dict) else list(range(len(doc)))
-    key = keys[path[0] % len(keys)]
-    out = dict(doc) if isinstance(doc, dict) else list(doc)
-    out[key] = _mutate(doc[key], path[1:], value)
-    return out
+json_values = fuzzing.json_values()
 
 
 @SETTINGS
@@ -39,7 +26,7 @@ def _mutate(doc, path: list, value):
 def test_rig_json_reader(tmp_path, path, value):
     good = make_rig(RigConfig()).to_json()
     target = tmp_path / "rig.json"
-    target.write_text(json.dumps(_mutate(good, path, value)))
+    target.write_text(json.dumps(fuzzing.mutate(good, path, value)))
     try:
         rig = Rig.load(target)
     except DataFormatError as e:
@@ -53,7 +40,7 @@ def test_rig_json_reader(tmp_path, path, value):
 def test_poses_json_reader(tmp_path, path, value):
     target = tmp_path / "poses.json"
     save_poses(target, yaw_pose(np.arange(3.0), np.zeros(3), np.zeros(3)), np.zeros(3, np.int32))
-    target.write_text(json.dumps(_mutate(json.loads(target.read_text()), path, value)))
+    target.write_text(json.dumps(fuzzing.mutate(json.loads(target.read_text()), path, value)))
     try:
         poses, names = load_poses(target)
     except DataFormatError as e:
