@@ -2,15 +2,21 @@
 
 For every billboard and sampled direction the quad is oriented toward that
 direction and each texel is looked up in the image of the camera whose ray to the
-voxel is closest in angle. A texel is *accepted* only when what the camera sees
-there lies inside the voxel: the depth of the cloud's z-buffer at that pixel is
-compared with the interval where the texel's ray crosses the voxel cube.
-  - in the interval → the image colour, alpha 1;
-  - behind it (or nothing there) → seen through the voxel: alpha 0;
-  - in front of it → hidden by an occluder: the next-best camera is tried, and
-    texels no camera sees are filled from the neighbouring directions, never
-    from the occluder (the failure of the billboard paper at pillars).
-``occlusion=False`` gives the naive nearest-frame sampling for comparison.
+voxel is closest in angle (the quad projected into the camera: a homography).
+What the texel shows is decided by two depth sources:
+  - the voxel's own points, splatted onto the quad along the camera's rays (gaps
+    closed morphologically): a ray that misses them is seen through → alpha 0;
+  - the z-buffer of the whole cloud at that pixel: something in front of the
+    voxel's cube → hidden by an occluder: the next-best camera is tried, and
+    texels no camera sees are filled from the nearest measured direction, never
+    from the occluder (the failure of the billboard paper at pillars); the camera
+    seeing past the cube → seen through;
+  - otherwise the image colour, alpha 1, from the pyramid level that matches the
+    texel's footprint.
+``occlusion=False`` gives the naive nearest-frame sampling for comparison;
+``reproject=True`` looks each texel up through the voxel's surface point seen
+from a virtual viewer in the exact direction (parallax-correct, but measured no
+better against ground truth on the street and costlier to compress).
 
 The z-buffer is the fused cloud splatted at reduced resolution: a min-reduction
 per pixel, small holes inside surfaces closed from their neighbours, and a 3×3
