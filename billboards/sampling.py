@@ -49,6 +49,7 @@ class SamplingConfig:
     directions: DirectionConfig = field(default_factory=DirectionConfig)
     occlusion: bool = True          # False: naive nearest-frame sampling (no occlusion test, one camera)
     candidates: int = 4             # cameras tried per direction, best first, while texels stay hidden
+    min_open_fraction: float = 0.05 # ... and while at least this share of a quad's texels is still open
     max_angle_deg: float = 15.0     # a camera farther than this from a direction does not sample it
     max_distance: float = 60.0      # cameras farther from the voxel than this (m) are not used
     abs_tolerance: float = 0.02     # depth slack of the in-voxel test (m) ...
@@ -496,8 +497,11 @@ class ImageSampler:
                  "texels_from_fallback_camera": 0}
         for k in range(candidates.shape[-1]):
             flat = status.reshape(B * d, -1)
-            open_ = (flat == OCCLUDED).any(axis=1) | (flat == UNSEEN).any(axis=1)
-            todo = np.flatnonzero(open_ & (candidates[..., k].ravel() >= 0))
+            open_ = (flat == OCCLUDED).sum(axis=1) + (flat == UNSEEN).sum(axis=1)
+            # A few open texels are filled from the neighbouring directions more cheaply than
+            # by sampling the whole quad again from the next camera.
+            worth = open_ >= (max(1.0, cfg.min_open_fraction * t * t) if k else 1)
+            todo = np.flatnonzero(worth & (candidates[..., k].ravel() >= 0))
             if len(todo) == 0:
                 break
             cams = candidates[..., k].ravel()[todo]
