@@ -1,0 +1,148 @@
+"""Offscreen billboard rendering: a model, a camera, an image.
+
+:class:`BillboardRenderer` owns the GPU side of one model: the uploaded model
+(:class:`~render.resources.ModelResources`, GPU path only), the decode pass
+(:class:`~render.gpu_decode.GpuDecoder` or :class:`~render.cpu_decode.CpuDecoder`) and
+an offscreen framebuffer per image size (RGBA8 colour + 24-bit depth renderbuffers,
+no MSAA). Depth test on, blending and face culling off; transparent texels are
+discarded by the alpha test, so no sorting is needed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import moderngl
+import numpy as np
+
+from billboards.model import BillboardModel
+
+from .camera import ClipPlanes, GLCamera, gl_camera
+from .cpu_decode import CpuDecoder
+from .gpu_decode import GpuDecoder
+from .resources import ModelResources
+
+logger = logging.getLogger(__name__)
+
+DECODE_MODES = ("gpu", "cpu")
+
+
+def _background(colour) -> tuple[float, float, float]:
+    c = np.asarray(colour, dtype=np.float64).reshape(-1)
+    if c.shape != (3,) or not np.all(np.isfinite(c)):
+        raise ValueError(f"background must be an RGB triple, got {colour!r}")
+    if c.max() > 1:  # given as 0..255
+        c = c / 255
+    return tuple(float(v) for v in np.clip(c, 0, 1))
+
+
+class BillboardRenderer:
+    """Renders ``model`` from OpenCV cameras into (h, w, 3) uint8 images.
+
+    decode: "gpu" (eigen-texture decode in the fragment shader, one instanced draw)
+    or "cpu" (numpy decode of each drawn billboard every frame, then one instanced
+    draw of the per-frame atlas). spherical: quads also pitch toward the eye; None
+    takes the model's ``pitched_quads``. background: RGB in [0, 1] (or 0–255).
+    clip: near/far planes (m).
+
+    After each :meth:`render` / :meth:`draw`, ``stats`` holds that frame's
+    draw_calls, instances, upload_bytes and timings (seconds).
+    """
+
+    def __init__(self, ctx: moderngl.Context, model: BillboardModel, decode: str = "gpu", *,
+                 spherical: bool | None = None, background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes()):
+        if decode not in DECODE_MODES:
+            raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
+        self.ctx = ctx
+        self.model = model
+        self.decode = decode
+        self.spherical = bool(model.pitched_quads if spherical is None else spherical)
+        self.background = _background(background)
+        self.clip = clip
+        self.stats: dict = {}
+        self.resources: ModelResources | None = None
+        self.decoder = None
+        self._targets: dict[tuple[int, int], tuple] = {}
+        self._released = False
+        try:
+            if decode == "gpu":
+                self.resources = ModelResources(ctx, model)
+                self.decoder = GpuDecoder(ctx, self.resources, self.spherical)
+            else:
+                self.decoder = CpuDecoder(ctx, model, self.spherical)
+        except BaseException:
+            self.release()
+            raise
+
+    def camera(self, K, world_from_cam, size) -> GLCamera:
+        """The :class:`GLCamera` of an OpenCV camera for this model's origin."""
+        return gl_camera(K, world_from_cam, size, self.model.origin, self.clip)
+
+    def draw(self, camera: GLCamera, visible=None) -> dict:
+        """Draw into the currently bound framebuffer (for a viewer); returns and stores the stats."""
+        if self._released:
+            raise RuntimeError("BillboardRenderer used after release()")
+        self.ctx.enable_only(moderngl.DEPTH_TEST)
+        t0 = time.perf_counter()
+        stats = self.decoder.draw(camera, visible)
+        stats["draw_s"] = time.perf_counter() - t0
+        self.stats = stats
+        return stats
+
+    def framebuffer(self, size) -> moderngl.Framebuffer:
+        """The offscreen framebuffer for ``size`` = (w, h), created on first use."""
+        size = (int(size[0]), int(size[1]))
+        target = self._targets.get(size)
+        if target is None:
+            colour = self.ctx.renderbuffer(size, 4, samples=0)
+            depth = self.ctx.depth_renderbuffer(size, samples=0)
+            fbo = self.ctx.framebuffer(color_attachments=[colour], depth_attachment=depth)
+            target = self._targets[size] = (fbo, colour, depth)
+        return target[0]
+
+    def render(self, K, world_from_cam, size, visible=None) -> np.ndarray:
+        """Image of the model from the camera ``K`` (3, 3), ``world_from_cam`` (4, 4) float64.
+
+        size = (width, height); visible: None (every billboard), (B,) int indices or an
+        (n,) bool mask. Returns (height, width, 3) uint8, row 0 at the top.
+        """
+        if self._released:
+            raise RuntimeError("BillboardRenderer used after release()")
+        camera = self.camera(K, world_from_cam, size)
+        w, h = camera.size
+        fbo = self.framebuffer((w, h))
+        fbo.use()
+        fbo.viewport = (0, 0, w, h)
+        fbo.clear(*self.background, 1.0, depth=1.0)
+        stats = self.draw(camera, visible)
+        t0 = time.perf_counter()
+        data = fbo.read(components=3, alignment=1)
+        image = np.frombuffer(data, np.uint8).reshape(h, w, 3)[::-1].copy()
+        stats["read_s"] = time.perf_counter() - t0
+        return image
+
+    def finish(self) -> None:
+        """Wait for the GPU to finish queued work (for timing)."""
+        self.ctx.finish()
+
+    def release(self) -> None:
+        """Free framebuffers, decode pass and model resources (idempotent)."""
+        if self._released:
+            return
+        self._released = True
+        for fbo, colour, depth in self._targets.values():
+            fbo.release()
+            colour.release()
+            depth.release()
+        self._targets = {}
+        if self.decoder is not None:
+            self.decoder.release()
+        if self.resources is not None:
+            self.resources.release()
+
+    def __enter__(self) -> BillboardRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()

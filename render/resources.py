@@ -1,0 +1,267 @@
+"""A billboard model on the GPU: atlas and coefficient pages, slot table, instances, directions.
+
+Upload once, draw every frame. What goes where:
+
+- **Tile atlas** → one ``sampler2DArray``, a layer per page, RGBA8 normalised
+  (``tile_mode="u8"``; ``texelFetch`` returns byte/255 = q exactly) or RGBA16F
+  (``"f16"``; q is the stored half float). Pages share one width; only the last is
+  cropped, so the array is allocated at the tallest page's height and each page is
+  written into its own layer (the cropped remainder of the last layer stays unused).
+  One array texture rather than one texture per page means one sampler, and a slot's
+  page is just a layer index in the shader; the price is the unused part of the last
+  layer (at most one page). Pages are uploaded in bands of rows straight from the
+  (memory-mapped) ``.npy`` files, so the host never holds a second copy of a page.
+- **Coefficient pages** → one ``sampler2DArray`` of one channel: R8 normalised
+  (``coef_mode="u8"``), R16F or R32F, same layering.
+- **Slot table** → RGBA32F 2-D texture, 3 texels per slot: tile scale (4), tile
+  offset (4), (coefficient scale, coefficient offset, 0, 0); ``slots_per_row`` slots
+  (a power of two) per texture row. (moderngl has no texture buffer objects.)
+- **Direction table** → R32F texture (max(d_yaw, d_pitch), 2): row 0 the yaw offsets,
+  row 1 the pitches, radians.
+- **Instances** → one static buffer of :data:`INSTANCE_DTYPE` records (24 bytes per
+  billboard): centre relative to the model origin (float32), base yaw, first slot and
+  rank; :meth:`ModelResources.instance_data` gathers a subset for per-frame culling.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import moderngl
+import numpy as np
+
+from billboards.model import BillboardModel
+
+from .context import max_array_layers, max_texture_size
+
+logger = logging.getLogger(__name__)
+
+#: Per-billboard instance record (attributes in_centre, in_base_yaw, in_slot = (first slot, rank)).
+INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("slot", "<i4", 2)])
+INSTANCE_FORMAT = "3f 1f 2i/i"
+INSTANCE_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_slot")
+_FORMAT_BYTES = {"f": 4, "i": 4, "u": 4}
+
+_TILE_DTYPE = {"u8": "f1", "f16": "f2"}  # moderngl texture dtypes: normalised unsigned byte, half float
+_COEF_DTYPE = {"u8": "f1", "f16": "f2", "f32": "f4"}
+_UPLOAD_BYTES = 64 << 20  # rows per upload band: about this many bytes
+
+
+def set_uniform(program: moderngl.Program, name: str, value) -> None:
+    """Set ``program[name]`` if the program uses it (the GLSL compiler drops unused uniforms)."""
+    member = program.get(name, None)
+    if member is not None:
+        member.value = value
+
+
+def vertex_binding(program: moderngl.Program, buffer: moderngl.Buffer, fmt: str, names) -> tuple:
+    """``(buffer, fmt, *names)`` for ``ctx.vertex_array`` with attributes the program lacks skipped.
+
+    The GLSL compiler removes unused inputs (a shader variant that does not need the
+    base yaw, say); their fields become padding (``"4x"``) so the record layout holds.
+    fmt: space-separated ``<count><f|i|u>`` fields plus a ``/i`` or ``/v`` suffix.
+    """
+    fields, _, divisor = fmt.partition("/")
+    parts, used = [], []
+    for field, name in zip(fields.split(), names, strict=True):
+        if program.get(name, None) is not None:
+            parts.append(field)
+            used.append(name)
+        else:
+            parts.append(f"{int(field[:-1] or 1) * _FORMAT_BYTES[field[-1]]}x")
+    return (buffer, " ".join(parts) + (f"/{divisor}" if divisor else ""), *used)
+
+
+def instance_records(model: BillboardModel, billboards=None) -> np.ndarray:
+    """(B,) :data:`INSTANCE_DTYPE` records of ``billboards`` (B,) int (all when None)."""
+    idx = slice(None) if billboards is None else np.asarray(billboards, dtype=np.int64)
+    rec = np.empty(len(model.centres[idx]), INSTANCE_DTYPE)
+    rec["centre"] = model.centres[idx]
+    rec["base_yaw"] = model.base_yaw[idx]
+    rec["slot"][:, 0] = model.first_slot[idx]
+    rec["slot"][:, 1] = model.rank[idx]
+    return rec
+
+
+def slot_table(model: BillboardModel, slots_per_row: int) -> np.ndarray:
+    """(rows, 3·slots_per_row, 4) float32 slot table (see module docstring); at least one row."""
+    m = model.num_slots
+    rows = max(-(-m // slots_per_row), 1)
+    table = np.zeros((rows * slots_per_row, 3, 4), np.float32)
+    table[:m, 0] = model.slot_scale
+    table[:m, 1] = model.slot_offset
+    table[:m, 2, 0] = model.coef_scale
+    table[:m, 2, 1] = model.coef_offset
+    return table.reshape(rows, slots_per_row * 3, 4)
+
+
+def direction_table(model: BillboardModel) -> np.ndarray:
+    """(2, max(d_yaw, d_pitch)) float32: yaw offsets and pitches (radians), padded with their last value."""
+    dy, dp = len(model.yaw_offsets), len(model.pitches)
+    n = max(dy, dp)
+    table = np.empty((2, n), np.float32)
+    table[0, :dy], table[0, dy:] = model.yaw_offsets, model.yaw_offsets[-1]
+    table[1, :dp], table[1, dp:] = model.pitches, model.pitches[-1]
+    return table
+
+
+def _page_array(ctx: moderngl.Context, pages, width: int, components: int, dtype: str,
+                what: str) -> moderngl.TextureArray:
+    """Texture array with one layer per page (H, W[, C]); a 1×1×1 placeholder when there are none."""
+    if not pages:
+        tex = ctx.texture_array((1, 1, 1), components, dtype=dtype)
+    else:
+        height = max(int(p.shape[0]) for p in pages)
+        limit, layers = max_texture_size(ctx), max_array_layers(ctx)
+        if width > limit or height > limit:
+            raise ValueError(f"{what} pages of {height}×{width} texels exceed GL_MAX_TEXTURE_SIZE {limit}; "
+                             f"rebuild the model with page_size ≤ {limit}")
+        if len(pages) > layers:
+            raise ValueError(f"{len(pages)} {what} pages exceed GL_MAX_ARRAY_TEXTURE_LAYERS {layers}")
+        tex = ctx.texture_array((width, height, len(pages)), components, dtype=dtype)
+        for layer, page in enumerate(pages):
+            row_bytes = max(int(page[:1].nbytes), 1)
+            band = max(_UPLOAD_BYTES // row_bytes, 1)
+            for y0 in range(0, page.shape[0], band):
+                rows = np.ascontiguousarray(page[y0:y0 + band])
+                tex.write(rows, viewport=(0, y0, layer, width, rows.shape[0], 1))
+    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    tex.repeat_x = tex.repeat_y = False
+    return tex
+
+
+class ModelResources:
+    """Every GPU object of one model; :meth:`release` frees them (idempotent).
+
+    ``tiles``, ``coefs``: TextureArray; ``slot_table``, ``directions``: Texture;
+    ``instances``: Buffer of all billboards' :data:`INSTANCE_DTYPE` records (None
+    for an empty model); ``uniforms``: the integer layout constants the decode shader
+    needs (see :meth:`bind`).
+    """
+
+    def __init__(self, ctx: moderngl.Context, model: BillboardModel):
+        self.ctx = ctx
+        self.model = model
+        self._objects: list = []
+        try:
+            self._upload(ctx, model)
+        except BaseException:
+            self.release()
+            raise
+
+    def _keep(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    def _upload(self, ctx: moderngl.Context, model: BillboardModel) -> None:
+        tiles = model.tile_layout()
+        rows = model.coef_layout()
+        self.tiles = self._keep(_page_array(ctx, model.pages, tiles.tiles_per_row * model.tile, 4,
+                                            _TILE_DTYPE[model.tile_mode], "atlas"))
+        self.coefs = self._keep(_page_array(ctx, model.coef_pages, rows.tiles_per_row * rows.cell_width, 1,
+                                            _COEF_DTYPE[model.coef_mode], "coefficient"))
+        limit = max_texture_size(ctx)
+        self.slots_per_row = 1 << int(np.log2(limit // 3))
+        table = slot_table(model, self.slots_per_row)
+        if table.shape[0] > limit:
+            raise ValueError(f"{model.num_slots} slots need a {table.shape[0]}-row slot table, "
+                             f"GL_MAX_TEXTURE_SIZE is {limit}")
+        self.slot_table = self._keep(ctx.texture((table.shape[1], table.shape[0]), 4, table, dtype="f4"))
+        directions = direction_table(model)
+        self.directions = self._keep(ctx.texture((directions.shape[1], 2), 1, directions, dtype="f4"))
+        for tex in (self.slot_table, self.directions):
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        records = instance_records(model)
+        self.instances = self._keep(ctx.buffer(records)) if len(records) else None
+        self.uniforms = {
+            "u_size": float(model.voxel_size), "u_tile": int(model.tile),
+            "u_d_yaw": len(model.yaw_offsets), "u_d_pitch": len(model.pitches),
+            "u_slots_per_row": self.slots_per_row,
+            "u_tiles_per_row": tiles.tiles_per_row, "u_tiles_per_page": tiles.tiles_per_page,
+            "u_d": model.num_directions, "u_rows_per_line": rows.tiles_per_row,
+            "u_rows_per_page": rows.tiles_per_page,
+        }
+        self.nbytes = {"tiles": self.tiles.width * self.tiles.height * self.tiles.layers * 4 *
+                       {"u8": 1, "f16": 2}[model.tile_mode],
+                       "coefficients": self.coefs.width * self.coefs.height * self.coefs.layers *
+                       {"u8": 1, "f16": 2, "f32": 4}[model.coef_mode],
+                       "slot_table": table.nbytes, "instances": records.nbytes}
+        logger.debug("uploaded model: %s", self.nbytes)
+
+    @property
+    def released(self) -> bool:
+        return self._objects is None
+
+    def instance_data(self, billboards=None) -> np.ndarray:
+        """(B,) :data:`INSTANCE_DTYPE` records of ``billboards`` (all when None)."""
+        return instance_records(self.model, billboards)
+
+    def bind(self, program: moderngl.Program, first_unit: int = 0) -> None:
+        """Bind the textures to units ``first_unit``… and set the layout uniforms ``program`` uses."""
+        if self.released:
+            raise RuntimeError("ModelResources used after release()")
+        for unit, (name, tex) in enumerate((("u_tiles", self.tiles), ("u_coefs", self.coefs),
+                                            ("u_slot_table", self.slot_table),
+                                            ("u_directions", self.directions)), first_unit):
+            tex.use(unit)
+            set_uniform(program, name, unit)
+        for name, value in self.uniforms.items():
+            set_uniform(program, name, value)
+
+    def release(self) -> None:
+        """Free every GPU object (idempotent)."""
+        if self._objects is None:
+            return
+        for obj in reversed(self._objects):
+            obj.release()
+        self._objects = None
+        self.tiles = self.coefs = self.slot_table = self.directions = self.instances = None
+
+
+class InstanceStream:
+    """A dynamic instance buffer rewritten every frame (orphaned, grown geometrically as needed).
+
+    The buffer object stays the same across frames, so vertex arrays built on it stay
+    valid. ``release()`` is idempotent.
+    """
+
+    def __init__(self, ctx: moderngl.Context, record_size: int, capacity: int = 1024):
+        self.record_size = int(record_size)
+        self.capacity = max(int(capacity), 1)
+        self.buffer = ctx.buffer(reserve=self.capacity * self.record_size, dynamic=True)
+
+    def write(self, records: np.ndarray) -> int:
+        """Upload ``records`` (B,) structured; returns bytes written."""
+        if self.buffer is None:
+            raise RuntimeError("InstanceStream used after release()")
+        n = len(records)
+        if n > self.capacity:
+            self.capacity = max(n, 2 * self.capacity)
+        self.buffer.orphan(self.capacity * self.record_size)
+        if n:
+            self.buffer.write(np.ascontiguousarray(records))
+        return int(records.nbytes)
+
+    def release(self) -> None:
+        if self.buffer is not None:
+            self.buffer.release()
+            self.buffer = None
+
+
+def check_billboards(visible, n: int) -> np.ndarray | None:
+    """Billboard selection as (B,) int64 indices: None (all), an index array or an (n,) bool mask."""
+    if visible is None:
+        return None
+    v = np.asarray(visible)
+    if v.dtype == np.bool_:
+        if v.shape != (n,):
+            raise ValueError(f"a visibility mask must have shape ({n},), got {v.shape}")
+        return np.flatnonzero(v)
+    if v.size == 0:
+        return np.zeros(0, np.int64)
+    if v.dtype.kind not in "iu":
+        raise TypeError(f"visible must hold integer billboard indices or be a bool mask, got {v.dtype}")
+    v = v.astype(np.int64).reshape(-1)
+    if v.min() < 0 or v.max() >= n:
+        raise IndexError(f"visible billboard index out of range [0, {n})")
+    return v

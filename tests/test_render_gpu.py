@@ -1,0 +1,319 @@
+"""The moderngl renderer on a headless context (EGL; Mesa llvmpipe without a GPU):
+camera matrices against OpenCV projection, GPU decode against billboards.model.decode,
+GPU against CPU decode, alpha test, ranks, draw calls, release and the empty model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from billboards.atlas import pack_rows, pack_tiles
+from billboards.model import BillboardModel, decode, direction_index
+from render.camera import gl_camera, look_at, project_cv, project_gl, projection_from_K
+from render.context import create_context, describe, max_texture_size
+from render.offscreen import clear_cache, render_view, renderer_for
+from render.renderer import BillboardRenderer
+
+BIG_ORIGIN = (1e6 + 0.123456789, -2.5e6 + 0.987654321, 31.7)
+SKY = (0.25, 0.5, 0.75)
+SKY_U8 = np.rint(np.array(SKY) * 255).astype(int)
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+
+
+def make_model(centres, base_yaw=None, rank=None, *, tile=8, voxel_size=1.0, d_yaw=5, yaw_span_deg=120.0,
+               pitches_deg=(0.0,), tile_mode="u8", coef_mode="f32", seed=0, origin=(0.0, 0.0, 0.0),
+               page_size=64, pitched=False, transparent=(), holes=False) -> BillboardModel:
+    """A random consistent model with billboards at ``centres`` (n, 3) relative to ``origin``.
+
+    Mean tiles are opaque (alpha 1) and eigen images leave alpha alone, so decoded alpha
+    is exactly 1, except for billboards in ``transparent`` (alpha 0 everywhere) and, with
+    ``holes``, a checkerboard of 2×2-texel transparent blocks. rank: (n,) or scalar,
+    random in [0, d] when None.
+    """
+    rng = np.random.default_rng(seed)
+    centres = np.asarray(centres, np.float32).reshape(-1, 3)
+    n = len(centres)
+    yaw = np.deg2rad(np.linspace(-yaw_span_deg / 2, yaw_span_deg / 2, d_yaw))
+    pitches = np.deg2rad(np.asarray(pitches_deg, np.float64))
+    d = d_yaw * len(pitches)
+    base_yaw = rng.uniform(-np.pi, np.pi, n) if base_yaw is None else np.broadcast_to(base_yaw, (n,))
+    rank = rng.integers(0, d + 1, n) if rank is None else np.broadcast_to(rank, (n,))
+    rank = np.asarray(rank).astype(np.uint8)
+    m = n + int(rank.sum())
+    first = (np.cumsum(1 + rank.astype(np.int64)) - 1 - rank).astype(np.int32)
+    is_mean = np.zeros(m, bool)
+    is_mean[first] = True
+    scale = np.ones((m, 4), np.float32)
+    offset = np.zeros((m, 4), np.float32)
+    if tile_mode == "u8":
+        tiles = rng.integers(0, 256, (m, tile, tile, 4)).astype(np.uint8)
+        tiles[is_mean, ..., 3] = 255
+        scale[~is_mean], offset[~is_mean] = 0.4, -0.2
+    else:
+        tiles = rng.uniform(-0.5, 0.5, (m, tile, tile, 4)).astype(np.float16)
+        tiles[is_mean] = rng.uniform(0, 1, (n, tile, tile, 4)).astype(np.float16)
+        tiles[is_mean, ..., 3] = 1
+    scale[~is_mean, 3] = offset[~is_mean, 3] = 0  # eigen images leave alpha alone
+    if holes:
+        block = (np.arange(tile)[:, None] // 2 + np.arange(tile)[None, :] // 2) % 2 == 1
+        for f in first:
+            tiles[f, ..., 3][block] = 0
+    for i in transparent:
+        tiles[first[i], ..., 3] = 0
+    if coef_mode == "u8":
+        coefs = rng.integers(0, 256, (m, d)).astype(np.uint8)
+        coef_offset = rng.uniform(-0.5, 0.0, m).astype(np.float32)
+    else:
+        coefs = rng.uniform(-1, 1, (m, d)).astype({"f32": np.float32, "f16": np.float16}[coef_mode])
+        coef_offset = np.zeros(m, np.float32)
+    coefs[first] = 0
+    lo, hi = (centres.min(0) - 1, centres.max(0) + 1) if n else (np.zeros(3), np.ones(3))
+    model = BillboardModel(
+        origin=np.asarray(origin, np.float64), voxel_size=voxel_size, tile=tile, page_size=page_size,
+        yaw_offsets=yaw, pitches=pitches, pitched_quads=pitched, tile_mode=tile_mode, coef_mode=coef_mode,
+        centres=centres, base_yaw=np.asarray(base_yaw, np.float32), rank=rank, first_slot=first,
+        slot_scale=scale, slot_offset=offset, coef_scale=rng.uniform(0.5, 1.0, m).astype(np.float32),
+        coef_offset=coef_offset, pages=pack_tiles(tiles, page_size), coef_pages=pack_rows(coefs, page_size),
+        node_level=np.zeros(1, np.uint8), node_bounds=np.array([[lo, hi]], np.float32),
+        node_children=-np.ones((1, 8), np.int32), node_range=np.array([[0, n]], np.int32), info={})
+    model.check()
+    return model
+
+
+def intrinsics(f, w, h, fy=None, skew=0.0) -> np.ndarray:
+    return np.array([[f, skew, (w - 1) / 2], [0, f if fy is None else fy, (h - 1) / 2], [0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    context = create_context()
+    yield context
+    context.release()
+
+
+# ----------------------------------------------------------------------------------------------
+# context and camera
+
+
+def test_headless_context(ctx):
+    assert ctx.version_code >= 330
+    assert max_texture_size(ctx) >= 2048
+    assert "OpenGL" in describe(ctx)
+    fbo = ctx.simple_framebuffer((4, 3))
+    fbo.use()
+    fbo.clear(1.0, 0.0, 0.0, 1.0)
+    px = np.frombuffer(fbo.read(components=3), np.uint8).reshape(3, 4, 3)
+    assert np.all(px == [255, 0, 0])
+    fbo.release()
+
+
+@pytest.mark.parametrize("origin", [(0.0, 0.0, 0.0), BIG_ORIGIN])
+@pytest.mark.parametrize("skew", [0.0, 3.5])
+def test_gl_matrices_project_like_K(origin, skew):
+    rng = np.random.default_rng(4)
+    w, h = 640, 480
+    K = np.array([[500.0, skew, 301.3], [0, 520.0, 205.8], [0, 0, 1]])
+    eye = np.asarray(origin) + [12.3, -4.5, 2.0]
+    pose = look_at(eye, eye + [0.3, 1.0, -0.1])
+    cam_pts = np.stack([rng.uniform(-1, 1, 200), rng.uniform(-0.7, 0.7, 200), np.ones(200)], 1)
+    cam_pts *= rng.uniform(1.0, 60.0, (200, 1))
+    world = cam_pts @ pose[:3, :3].T + pose[:3, 3]
+    ref, depth = project_cv(world, K, pose)
+    camera = gl_camera(K, pose, (w, h), origin)
+    assert camera.view.dtype == camera.projection.dtype == np.float32
+    got, ndc_z = project_gl(world - np.asarray(origin), camera)  # model coordinates, as the GPU gets them
+    assert np.max(np.abs(got - ref)) < 0.05  # required: < 0.5 px
+    assert np.all(np.abs(ndc_z) < 1) and np.all(np.diff(ndc_z[np.argsort(depth)]) >= 0)
+    P = projection_from_K(K, (w, h))
+    assert P[3, 2] == -1 and P.dtype == np.float32
+
+
+def test_invalid_camera_inputs():
+    K = intrinsics(100, 64, 48)
+    with pytest.raises(ValueError):
+        projection_from_K(K, (0, 48))
+    with pytest.raises(ValueError):
+        projection_from_K(np.eye(2), (64, 48))
+    with pytest.raises(ValueError):
+        gl_camera(K, np.diag([1.0, 1.0, 2.0, 1.0]), (64, 48), (0, 0, 0))
+
+
+# ----------------------------------------------------------------------------------------------
+# the decoded texture where it belongs
+
+
+FACING_CASES = {
+    "u8/f32 rank 0": dict(tile_mode="u8", coef_mode="f32", rank=0),
+    "u8/u8 max rank": dict(tile_mode="u8", coef_mode="u8", rank=10, d_yaw=10),
+    "f16/f16 rank 3, 1e6 origin": dict(tile_mode="f16", coef_mode="f16", rank=3, origin=BIG_ORIGIN),
+    "pitched, spherical": dict(tile_mode="u8", coef_mode="f16", rank=4, pitches_deg=(0.0, 30.0), pitched=True,
+                               elevation=20.0),
+}
+
+
+@pytest.mark.parametrize("case", list(FACING_CASES))
+@pytest.mark.parametrize("mode", ["gpu", "cpu"])
+def test_facing_billboard_shows_its_decoded_texture(ctx, case, mode):
+    """One billboard seen head-on from between sampled directions: each 8×8-pixel block of
+    the image is one texel of model.decode at that direction (holes show the sky)."""
+    opts = dict(FACING_CASES[case])
+    elevation = np.deg2rad(opts.pop("elevation", 0.0))
+    centre = np.array([0.3, -0.2, 1.1])
+    model = make_model([centre], base_yaw=0.7, holes=True, page_size=32, **opts)
+    assert model.num_slots == 1 + model.rank[0]
+    yaw = 0.7 + np.deg2rad(17.0)  # between yaw samples
+    ray = np.array([np.cos(elevation) * np.cos(yaw), np.cos(elevation) * np.sin(yaw), np.sin(elevation)])
+    eye = model.origin + centre + 4.0 * ray  # 1 m quad at 4 m with f = 256: 64 px, 8 px per texel
+    renderer = BillboardRenderer(ctx, model, mode, background=SKY)
+    image = renderer.render(intrinsics(256.0, 128, 128), look_at(eye, model.origin + centre), (128, 128))
+    renderer.release()
+    assert image.shape == (128, 128, 3) and image.dtype == np.uint8
+    yi, pi = direction_index(model, [0], (4.0 * ray)[None])
+    assert 0 < yi[0] % 1 and (elevation == 0 or 0 < pi[0] % 1)
+    ref = decode(model, [0], yi, pi)[0]
+    want = np.where(ref[..., 3:] >= 0.5, np.rint(ref[..., :3] * 255), SKY_U8)
+    got = image[32:96, 32:96].reshape(8, 8, 8, 8, 3)[:, 2:6, :, 2:6]  # centres of the 8×8 texel blocks
+    err = np.abs(got.astype(int) - want[:, None, :, None].astype(int))
+    assert err.max() <= 2, f"max error {err.max()}"
+    outside = np.ones((128, 128), bool)
+    outside[30:98, 30:98] = False
+    assert np.all(image[outside] == SKY_U8)
+
+
+# ----------------------------------------------------------------------------------------------
+# GPU against CPU decode
+
+
+def street_model(tile_mode, coef_mode, seed=3, n=300) -> BillboardModel:
+    rng = np.random.default_rng(seed)
+    centres = np.stack([rng.uniform(-10, 10, n), rng.uniform(-3, 3, n), rng.uniform(0, 5, n)], 1)
+    return make_model(centres, voxel_size=0.8, d_yaw=7, yaw_span_deg=180.0, pitches_deg=(0.0, 25.0),
+                      tile_mode=tile_mode, coef_mode=coef_mode, seed=seed, origin=BIG_ORIGIN, page_size=64,
+                      holes=True)
+
+
+VIEWPOINTS = {  # eye, target relative to the model origin
+    "frontal": ((0.0, -25.0, 2.0), (0.0, 0.0, 2.0)),
+    "oblique": ((-18.0, -14.0, 7.0), (2.0, 0.0, 1.0)),
+    "inside": ((3.0, 0.5, 1.5), (10.0, -1.0, 2.0)),
+}
+
+
+@pytest.mark.parametrize("tile_mode, coef_mode", [("u8", "f32"), ("f16", "u8")])
+def test_gpu_and_cpu_decode_give_the_same_image(ctx, tile_mode, coef_mode):
+    model = street_model(tile_mode, coef_mode)
+    assert len(model.pages) > 2 and len(model.coef_pages) > 1  # several layers, last cropped
+    K, size = intrinsics(300.0, 320, 240), (320, 240)
+    gpu = BillboardRenderer(ctx, model, "gpu", background=SKY)
+    cpu = BillboardRenderer(ctx, model, "cpu", background=SKY)
+    try:
+        for name, (eye, target) in VIEWPOINTS.items():
+            pose = look_at(model.origin + eye, model.origin + target)
+            a = gpu.render(K, pose, size).astype(int)
+            b = cpu.render(K, pose, size).astype(int)
+            covered = np.mean(np.any(a != SKY_U8, axis=-1))
+            assert covered > 0.1, f"{name}: only {covered:.0%} of the image shows billboards"
+            diff = np.abs(a - b)
+            assert diff.mean() <= 2 / 255 * 255, f"{name}: mean abs difference {diff.mean():.3f}"
+            assert np.mean(diff.max(-1) <= 8) >= 0.99, f"{name}: {np.mean(diff.max(-1) > 8):.2%} pixels differ"
+    finally:
+        gpu.release()
+        cpu.release()
+
+
+# ----------------------------------------------------------------------------------------------
+# alpha test, draw calls, selection, release, empty model
+
+
+@pytest.mark.parametrize("mode", ["gpu", "cpu"])
+def test_transparent_billboard_leaves_the_background(ctx, mode):
+    model = make_model([[0.0, 0.0, 1.0], [-2.0, 0.0, 1.0]], base_yaw=0.0, rank=[3, 2], transparent=[0])
+    K, size = intrinsics(200.0, 96, 96), (96, 96)
+    pose = look_at(model.origin + [4.0, 0.0, 1.0], model.origin + [0.0, 0.0, 1.0])
+    with BillboardRenderer(ctx, model, mode, background=SKY) as renderer:
+        alone = renderer.render(K, pose, size, visible=[0])
+        assert np.all(alone == SKY_U8)
+        both = renderer.render(K, pose, size)  # the one behind shows through the discarded texels
+        behind = renderer.render(K, pose, size, visible=[1])
+    assert np.array_equal(both, behind) and np.mean(np.any(behind != SKY_U8, -1)) > 0.1
+
+
+@pytest.mark.parametrize("mode", ["gpu", "cpu"])
+def test_one_draw_call_and_selection(ctx, mode):
+    model = street_model("u8", "f16", n=200)
+    K, size = intrinsics(200.0, 160, 120), (160, 120)
+    pose = look_at(model.origin + [0.0, -20.0, 2.0], model.origin + [0.0, 0.0, 2.0])
+    with BillboardRenderer(ctx, model, mode) as renderer:
+        renderer.render(K, pose, size)
+        assert renderer.stats["draw_calls"] == 1 and renderer.stats["instances"] == 200
+        some = np.arange(0, 200, 3)
+        subset = renderer.render(K, pose, size, visible=some)
+        assert renderer.stats["draw_calls"] == 1 and renderer.stats["instances"] == len(some)
+        mask = np.zeros(200, bool)
+        mask[some] = True
+        assert np.array_equal(renderer.render(K, pose, size, visible=mask), subset)
+        assert np.all(renderer.render(K, pose, size, visible=[]) == 0)
+        assert renderer.stats["draw_calls"] == 0
+        with pytest.raises(IndexError):
+            renderer.render(K, pose, size, visible=[200])
+
+
+def test_release_is_idempotent(ctx):
+    model = make_model([[0.0, 0.0, 0.0]], rank=1)
+    for mode in ("gpu", "cpu"):
+        renderer = BillboardRenderer(ctx, model, mode)
+        renderer.render(intrinsics(50.0, 32, 32), look_at([3.0, 0, 0], [0.0, 0, 0]), (32, 32))
+        renderer.release()
+        renderer.release()
+        if renderer.resources is not None:
+            renderer.resources.release()
+        renderer.decoder.release()
+        with pytest.raises(RuntimeError):
+            renderer.render(intrinsics(50.0, 32, 32), look_at([3.0, 0, 0], [0.0, 0, 0]), (32, 32))
+
+
+@pytest.mark.parametrize("mode", ["gpu", "cpu"])
+def test_empty_model_renders_the_background(ctx, mode):
+    model = make_model(np.zeros((0, 3)), origin=BIG_ORIGIN)
+    assert model.num_billboards == 0 and not model.pages
+    with BillboardRenderer(ctx, model, mode, background=SKY) as renderer:
+        image = renderer.render(intrinsics(60.0, 40, 30), look_at(model.origin + [5.0, 0, 0], model.origin),
+                                (40, 30))
+        assert renderer.stats["draw_calls"] == 0
+    assert image.shape == (30, 40, 3) and np.all(image == SKY_U8)
+
+
+def test_render_view_public_api():
+    model = make_model([[0.0, 0.0, 0.0], [0.0, 1.5, 0.5]], rank=2, origin=BIG_ORIGIN)
+    K, size = intrinsics(120.0, 80, 60), (80, 60)
+    pose = look_at(model.origin + [5.0, 0.5, 0.5], model.origin + [0.0, 0.5, 0.3])
+    try:
+        gpu = render_view(model, K, pose, size)
+        assert renderer_for(model) is renderer_for(model)  # uploaded once, reused
+        cpu = render_view(model, K, pose, size, decode="cpu")
+        assert gpu.shape == (60, 80, 3) and gpu.dtype == np.uint8 and np.any(gpu)
+        assert np.abs(gpu.astype(int) - cpu).max() <= 2
+        with pytest.raises(ValueError):
+            render_view(model, K, pose, size, decode="fast")
+    finally:
+        clear_cache()
+
+
+def test_shader_files_and_attribute_padding(ctx):
+    from render.program import ShaderError, load_program, stage_sources
+    from render.resources import vertex_binding
+
+    sources = stage_sources("billboard.glsl")
+    assert set(sources) == {"vertex_shader", "fragment_shader"}
+    assert "#include" not in sources["vertex_shader"] and "quad_vertex" in sources["vertex_shader"]
+    with pytest.raises(ShaderError):
+        stage_sources("no_such_program.glsl")
+    program = load_program(ctx, "billboard_cpu.glsl")
+    buf = ctx.buffer(reserve=64)
+    assert vertex_binding(program, buf, "3f 1f 1i/i", ("in_centre", "in_unused", "in_tile"))[1:] == (
+        "3f 4x 1i/i", "in_centre", "in_tile")
+    buf.release()
+    program.release()
