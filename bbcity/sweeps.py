@@ -162,7 +162,7 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
     from billboards.build import BuildConfig, compress_chunk
     from billboards.geometry import base_yaw_toward
     from billboards.octree import build_octree
-    from billboards.sampling import ImageSampler, SamplingConfig, views_from_dataset, voxel_points
+    from billboards.sampling import ImageSampler, quad_centres, views_from_dataset, voxel_points
     from billboards.splat import PointSampler
     from recon.cloud_io import read_cloud_arrays
 
@@ -174,6 +174,7 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
     voxels = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
     views = views_from_dataset(load_dataset(dataset_dir)) if dataset_dir is not None else None
     base_yaw = base_yaw_toward(centres, views.centres if views is not None else np.zeros((0, 3)))
+    quads = quad_centres(voxels, base_yaw)
     first = max(0, octree.num_voxels // 2 - count // 2)
     ids = np.arange(first, min(octree.num_voxels, first + count))
     rows = []
@@ -203,10 +204,11 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
     for tile in tiles:
         sampling = dataclasses.replace(base.sampling, tile=tile)
         if source == "images":
-            sampler = ImageSampler(views, centres, octree.voxel_size, base_yaw, voxels, sampling)
+            sampler = ImageSampler(views, quads, octree.voxel_size, base_yaw, voxels, sampling, box_centres=centres)
         else:
             keep = leaf >= 0
-            sampler = PointSampler(voxels, colours[keep][np.argsort(leaf[keep], kind="stable")], base_yaw, sampling)
+            sampler = PointSampler(voxels, colours[keep][np.argsort(leaf[keep], kind="stable")], base_yaw, sampling,
+                                   centres=quads)
         t0 = time.perf_counter()
         rgba = np.concatenate([sampler.sample(ids[s:s + base.chunk]).rgba for s in range(0, len(ids), base.chunk)])
         sample_s = time.perf_counter() - t0

@@ -33,7 +33,8 @@ from .model import ModelWriter
 from .octree import Octree, OctreeConfig, build_octree
 from .pca import EigenTextures, PcaConfig, eigen_textures
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
-from .sampling import ImageSampler, SamplingConfig, Views, VoxelPoints, views_from_dataset, voxel_points
+from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
+                       voxel_points)
 from .splat import PointSampler
 
 logger = logging.getLogger(__name__)
@@ -81,15 +82,17 @@ def _worker_state(state_dir: str):
     meta = json.loads((root / "meta.json").read_text())
     conf = _config_from_json(meta["config"])
     centres = np.load(root / "centres.npy")
+    quads = np.load(root / "quads.npy")
     base_yaw = np.load(root / "base_yaw.npy")
     voxels = VoxelPoints(np.asarray(meta["origin"], dtype=np.float64), np.load(root / "points.npy", mmap_mode="r"),
                          np.load(root / "begin.npy"), centres, meta["voxel_size"])
     if conf.source == "images":
         views = Views(np.load(root / "K.npy"), np.load(root / "world_from_cam.npy"), np.load(root / "sizes.npy"),
                       tuple(Path(p) for p in meta["paths"]))
-        sampler = ImageSampler(views, centres, meta["voxel_size"], base_yaw, voxels, conf.sampling)
+        sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres)
     else:
-        sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling)
+        sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
+                               centres=quads)
     _WORKER.clear()
     _WORKER.update(dir=state_dir, sampler=sampler, conf=conf)
     return sampler, conf
@@ -241,6 +244,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     try:
         leaf = octree.leaves_of_points(points)
         grouped = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
+        quads = quad_centres(grouped, base_yaw)
+        np.save(state / "quads.npy", quads)
         np.save(state / "points.npy", grouped.points)
         np.save(state / "begin.npy", grouped.begin)
         np.save(state / "centres.npy", centres)
@@ -271,7 +276,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                                           desc="billboards", progress=progress):
                 for arrays, stats in chunks:
                     b = len(arrays["rank"])
-                    writer.append(centres=(centres[done:done + b] - octree.origin).astype(np.float32),
+                    writer.append(centres=(quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=base_yaw[done:done + b].astype(np.float32), **arrays)
                     done += b
                     totals.add(stats)

@@ -24,7 +24,7 @@ from recon.cloud_io import read_cloud_arrays
 
 from .geometry import base_yaw_toward, direction_angles, quad_frames, ray_box_interval, texel_points
 from .octree import build_octree
-from .sampling import ImageSampler, SamplingConfig, views_from_dataset, voxel_points
+from .sampling import ImageSampler, SamplingConfig, quad_centres, views_from_dataset, voxel_points
 from .truth import texture_psnr, truth_textures
 
 logger = logging.getLogger(__name__)
@@ -55,7 +55,7 @@ def _errors(sampler_aware, sampler_naive, ids, scene, renderer, config: Sampling
     yaw, _ = direction_angles(base_yaw[ids], config.directions.yaw_offsets, config.directions.pitches)
     truth = truth_textures(scene, sampler_aware.centres[ids[b]], size, yaw[b, j], aware.elevation[b, j],
                            aware.distance[b, j], config.tile, config.directions.pitched_quads, spp=spp,
-                           renderer=renderer)
+                           renderer=renderer, box_centres=sampler_aware.box_centres[ids[b]])
     behind = _behind_occluder(scene, renderer, sampler_aware, ids[b], yaw[b, j], aware.view[b, j], config, size)
     out = {"billboards": int(len(ids)), "samples": int(len(b)),
            "texels_behind_occluders": int(behind.sum()),
@@ -75,10 +75,9 @@ def _behind_occluder(scene, renderer, sampler, ids, yaw, views, config: Sampling
     beam) before entering the voxel: the texels the billboards paper got wrong."""
     t = config.tile
     _, right, up = quad_frames(yaw, np.zeros_like(yaw), config.directions.pitched_quads)
-    centres = sampler.centres[ids]
-    p = texel_points(centres, size, right, up, t).reshape(-1, 3)
+    p = texel_points(sampler.centres[ids], size, right, up, t).reshape(-1, 3)
     C = np.repeat(sampler.views.centres[views], t * t, axis=0)
-    box = np.repeat(centres, t * t, axis=0)
+    box = np.repeat(sampler.box_centres[ids], t * t, axis=0)
     t_in, _ = ray_box_interval(C, p - C, box - size / 2, box + size / 2)
     hit_t, hit_id, _ = renderer.cast(C, p - C, t_max=np.maximum(t_in, 0) - 1e-3)
     occluder = np.isin(scene.object_kind, np.asarray(OCCLUDER_KINDS, dtype=scene.object_kind.dtype))
@@ -101,8 +100,11 @@ def compare_sampling(dataset_dir: os.PathLike | str, cloud_path: os.PathLike | s
     voxels = voxel_points(points, octree.leaves_of_points(points), centres, octree.origin, octree.voxel_size)
     del points
     base_yaw = base_yaw_toward(centres, views.centres)
-    aware = ImageSampler(views, centres, octree.voxel_size, base_yaw, voxels, replace(sampling, occlusion=True))
-    naive = ImageSampler(views, centres, octree.voxel_size, base_yaw, voxels, replace(sampling, occlusion=False))
+    quads = quad_centres(voxels, base_yaw)
+    aware = ImageSampler(views, quads, octree.voxel_size, base_yaw, voxels, replace(sampling, occlusion=True),
+                         box_centres=centres)
+    naive = ImageSampler(views, quads, octree.voxel_size, base_yaw, voxels, replace(sampling, occlusion=False),
+                         box_centres=centres)
     renderer = Renderer(scene)
     rng = np.random.default_rng(seed)
     near = np.flatnonzero(near_occluders(centres, scene, octree.voxel_size))

@@ -55,7 +55,8 @@ class SamplingConfig:
     abs_tolerance: float = 0.02     # depth slack of the in-voxel test (m) ...
     rel_tolerance: float = 0.004    # ... plus this fraction of the depth (stereo noise grows with depth)
     zbuffer_scale: int = 2          # z-buffer pixel = this many image pixels per side
-    own_points: bool = True         # a texel whose ray misses the voxel's own points is transparent
+    own_points: bool = True         # the voxel's own points mark what lies on a texel's ray (closes z-buffer holes)
+    slab_margin: float = 0.5        # surfaces this many voxel edges beyond the voxel still show (no parallax gaps)
     reproject: bool = False         # texels via the surface point seen from the sampled direction (else the
                                     # quad projected into the camera, as the billboards paper)
     cache_views: int = 128          # images and z-buffers kept per process (about 1.5 MB each at 640×480)
@@ -145,6 +146,28 @@ def voxel_points(points: np.ndarray, leaf: np.ndarray, centres: np.ndarray, orig
     counts = np.bincount(leaf[keep], minlength=len(centres))
     begin = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     return VoxelPoints(np.asarray(origin, dtype=np.float64), rel, begin, np.asarray(centres, np.float64), float(size))
+
+
+def quad_centres(voxels: VoxelPoints, base_yaw: np.ndarray) -> np.ndarray:
+    """Quad centres on the surface: each voxel centre moved along its base direction
+    (horizontal, toward the capture path) to the depth of its points' centroid.
+
+    A facade that crosses a voxel off-centre then lies in the quad's plane, so
+    neighbouring quads meet on it instead of leaving parallax gaps; the quads keep the
+    voxel grid's spacing across the view. voxels.centres (n, 3), base_yaw (n,) → (n, 3) float64.
+    """
+    counts = np.diff(voxels.begin)
+    sums = np.zeros((len(counts), 3))
+    if len(voxels.points):
+        first = np.minimum(voxels.begin[:-1], len(voxels.points) - 1)
+        sums = np.add.reduceat(voxels.points, first, axis=0, dtype=np.float64)
+        sums[counts == 0] = 0
+    centroid = voxels.origin + sums / np.maximum(counts, 1)[:, None]
+    centroid[counts == 0] = voxels.centres[counts == 0]
+    toward = np.stack([np.cos(base_yaw), np.sin(base_yaw), np.zeros_like(base_yaw)], axis=1)
+    shift = np.einsum("nk,nk->n", centroid - voxels.centres, toward)
+    shift = np.clip(shift, -voxels.size / 2, voxels.size / 2)
+    return voxels.centres + shift[:, None] * toward
 
 
 def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
@@ -241,15 +264,19 @@ class SampledTextures:
 class ImageSampler:
     """Samples billboard textures from ``views``; holds the per-process caches.
 
-    centres (n, 3) float64 world voxel centres; size: voxel edge (m); base_yaw (n,)
-    float64; voxels: the cloud grouped by voxel (for z-buffers; required when
-    ``config.occlusion``, and used for transparency in both modes).
+    centres (n, 3) float64 world quad centres; size: voxel edge (m); base_yaw (n,)
+    float64; voxels: the cloud grouped by voxel (z-buffers and own points);
+    box_centres (n, 3) float64 voxel cube centres when the quads sit elsewhere
+    (see :func:`quad_centres`), default the quad centres.
     """
 
     def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,
-                 voxels: VoxelPoints, config: SamplingConfig = SamplingConfig()):
+                 voxels: VoxelPoints, config: SamplingConfig = SamplingConfig(),
+                 box_centres: np.ndarray | None = None):
         self.views, self.config = views, config
         self.centres = np.asarray(centres, dtype=np.float64)
+        # The voxel cubes (the slab of each billboard); the quads may sit off their centres.
+        self.box_centres = self.centres if box_centres is None else np.asarray(box_centres, dtype=np.float64)
         self.size = float(size)
         self.base_yaw = np.asarray(base_yaw, dtype=np.float64)
         self.cache = _ViewCache(views, voxels, config)
@@ -277,15 +304,18 @@ class ImageSampler:
         with np.errstate(divide="ignore", invalid="ignore"):
             u = K[None, :, 0, 0] * cam[..., 0] / z + K[None, :, 0, 2]
             v = K[None, :, 1, 1] * cam[..., 1] / z + K[None, :, 1, 2]
+        # Tests on values rounded well below their noise (1e-3 px, 1e-6 rad): a voxel exactly on
+        # a limit (symmetric synthetic scenes) decides the same way at any coordinate magnitude.
+        u, v = np.round(u, 3), np.round(v, 3)
         w, h = self.views.sizes[near, 0], self.views.sizes[near, 1]
         usable = ((z > 0.3) & (dist < cfg.max_distance) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1))
-        dyaw = np.angle(np.exp(1j * (cam_yaw[:, None, :] - yaw[:, :, None])))  # (B, d, V), wrapped
+        dyaw = np.round(np.angle(np.exp(1j * (cam_yaw[:, None, :] - yaw[:, :, None]))), 6)  # (B, d, V), wrapped
         several_rows = len(cfg.directions.pitches_deg) > 1
-        dpitch = cam_pitch[:, None, :] - pitch[:, :, None]
+        dpitch = np.round(cam_pitch[:, None, :] - pitch[:, :, None], 6)
         cost = np.abs(dyaw) + (1.0 if several_rows else 0.1) * np.abs(dpitch)
         limit = np.deg2rad(cfg.max_angle_deg)
         bad = ~usable[:, None, :] | (np.abs(dyaw) > limit) | (several_rows & (np.abs(dpitch) > limit))
-        cost = np.where(bad, np.inf, cost)
+        cost = np.where(bad, np.inf, cost)  # ties (symmetric cameras) rank by index: argsort is stable
         k = min(cfg.candidates if cfg.occlusion else 1, cost.shape[-1])
         best = np.argsort(cost, axis=-1, kind="stable")[..., :k]
         return np.where(np.isfinite(np.take_along_axis(cost, best, -1)), near[best], -1)
@@ -402,24 +432,27 @@ class ImageSampler:
         x, y, z = (self._grid(cc[:, k], cr[:, k], cu[:, k]) for k in range(3))
         u, v, inside = self._project(views, K, x, y, z)
         # Where each texel's ray (from the camera, in z-depth units) crosses the voxel cube.
+        box = self.box_centres[ids] - C
         t_in = t_out = None
         with np.errstate(divide="ignore", invalid="ignore"):
             for k in range(3):
                 scale_k = z / self._grid(c[:, k], right[:, k], up[:, k])   # world axis k, camera-relative
-                lo = (c[:, k] - s / 2).astype(np.float32)[:, None, None] * scale_k
-                hi = (c[:, k] + s / 2).astype(np.float32)[:, None, None] * scale_k
+                lo = (box[:, k] - s / 2).astype(np.float32)[:, None, None] * scale_k
+                hi = (box[:, k] + s / 2).astype(np.float32)[:, None, None] * scale_k
                 near, far = np.fmin(lo, hi), np.fmax(lo, hi)
                 t_in = near if t_in is None else np.fmax(t_in, near)
                 t_out = far if t_out is None else np.fmin(t_out, far)
         tol = np.float32(cfg.abs_tolerance) + np.float32(cfg.rel_tolerance) * z
         filled, nearest, entries, local = self._depth_at(views, u, v)
+        # The surface the camera sees through the texel belongs to the billboard if it lies in
+        # the voxel's slab, or within slab_margin beyond it: the part of a neighbour's surface
+        # that parallax moves behind this quad (cut exactly, it would be on neither quad).
+        margin = np.float32(cfg.slab_margin * s)
+        own = np.isfinite(filled) & (filled >= t_in - tol) & (filled <= t_out + tol + margin)
         if cfg.own_points:
-            # The voxel's own points say what is there (the z-buffer has holes between points):
-            # a ray that misses them is seen through, whatever lies in front.
-            own = np.isfinite(self._own_depth(ids, np.zeros_like(c), c, right, up))
-            own &= ~(np.isfinite(filled) & (filled > t_out + tol))  # unless the camera sees past the voxel
-        else:
-            own = filled <= t_out + tol
+            # The voxel's own points fill the z-buffer's holes between cloud points.
+            own |= np.isfinite(self._own_depth(ids, np.zeros_like(c), c, right, up))
+            own &= ~(np.isfinite(filled) & (filled > t_out + tol + margin))  # the camera sees past it
         status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
             status[own & (nearest < t_in - tol)] = OCCLUDED

@@ -17,11 +17,14 @@ from .sampling import TRANSPARENT, VISIBLE, SampledTextures, SamplingConfig, Vox
 
 class PointSampler:
     """voxels: the cloud grouped by voxel; colours (N, 3) uint8 in the same order;
-    base_yaw (n,) float64."""
+    base_yaw (n,) float64; centres (n, 3) float64 quad centres (default voxel centres)."""
 
     def __init__(self, voxels: VoxelPoints, colours: np.ndarray, base_yaw: np.ndarray,
-                 config: SamplingConfig = SamplingConfig(), depth_slack: float | None = None):
+                 config: SamplingConfig = SamplingConfig(), depth_slack: float | None = None,
+                 centres: np.ndarray | None = None):
         self.voxels, self.colours, self.config = voxels, colours, config
+        # Quad centres (default the voxel centres; see sampling.quad_centres).
+        self.centres = voxels.centres if centres is None else np.asarray(centres, dtype=np.float64)
         self.base_yaw = np.asarray(base_yaw, dtype=np.float64)
         # Points within this depth of a texel's nearest point belong to the same surface.
         self.depth_slack = 3 * voxels.size / config.tile if depth_slack is None else depth_slack
@@ -38,7 +41,7 @@ class PointSampler:
         lengths = ends - starts
         index = np.arange(int(lengths.sum())) + np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
         owner = np.repeat(np.arange(B), lengths)                               # (P,)
-        centre_rel = (vox.centres[ids] - vox.origin).astype(np.float32)
+        centre_rel = (self.centres[ids] - vox.origin).astype(np.float32)
         rel = np.asarray(vox.points[index]) - centre_rel[owner]                # (P, 3) float32
         rgb = np.asarray(self.colours[index])
         texels = B * d * t * t

@@ -47,10 +47,11 @@ def _sub_offsets(spp: int) -> np.ndarray:
 
 def truth_textures(scene: Scene, centres: np.ndarray, size: float, yaw: np.ndarray, pitch: np.ndarray,
                    distance: np.ndarray, tile: int, pitched: bool = False, spp: int = 2,
-                   renderer: Renderer | None = None) -> np.ndarray:
+                   renderer: Renderer | None = None, box_centres: np.ndarray | None = None) -> np.ndarray:
     """Ground-truth textures of billboards, each seen from one direction (see the module docstring).
 
-    scene: the ground-truth scene; centres (m, 3) float64 voxel centres, world;
+    scene: the ground-truth scene; centres (m, 3) float64 quad centres, world
+    (box_centres: the voxel cubes' centres when the quads sit off them; default the same);
     size: voxel (and quad) edge, metres; yaw, pitch (m,) float64 radians of the
     direction toward the viewer; distance (m,) float64 viewer distance from the
     centre, metres (> 0); tile: texture edge t in texels; pitched: quads tilt
@@ -61,6 +62,9 @@ def truth_textures(scene: Scene, centres: np.ndarray, size: float, yaw: np.ndarr
     Memory is bounded by MAX_RAYS_PER_CHUNK rays per chunk of samples.
     """
     centres = np.asarray(centres, dtype=np.float64)
+    boxes = centres if box_centres is None else np.asarray(box_centres, dtype=np.float64)
+    if boxes.shape != centres.shape:
+        raise ValueError(f"box_centres must be shaped like centres {centres.shape}, got {boxes.shape}")
     if centres.ndim != 2 or centres.shape[1] != 3:
         raise ValueError(f"centres must be (m, 3), got {centres.shape}")
     m = len(centres)
@@ -95,6 +99,7 @@ def truth_textures(scene: Scene, centres: np.ndarray, size: float, yaw: np.ndarr
     for s0 in range(0, m, chunk):
         s1 = min(m, s0 + chunk)
         c = centres[s0:s1]                                                  # (k, 3)
+        b = boxes[s0:s1]
         _, right, up = quad_frames(yaw[s0:s1], pitch[s0:s1], pitched)       # (k, 3)
         eye = c + distance[s0:s1, None] * unit_vectors(yaw[s0:s1], pitch[s0:s1])
         # Sub-ray points (k, t·spp, t·spp, 3), index [sample, row·spp + dv, col·spp + du].
@@ -103,7 +108,7 @@ def truth_textures(scene: Scene, centres: np.ndarray, size: float, yaw: np.ndarr
              - a[None, :, None, None] * up[:, None, None, :])
         d = p - eye[:, None, None, :]
         t_in, t_out = ray_box_interval(eye[:, None, None, :], d,
-                                       (c - half)[:, None, None, :], (c + half)[:, None, None, :])
+                                       (b - half)[:, None, None, :], (b + half)[:, None, None, :])
         with np.errstate(divide="ignore"):  # d = 0 only if the viewer sits on the quad: no ray
             eps = SLAB_EPS / np.linalg.norm(d, axis=-1)                     # SLAB_EPS in units of t
         t0 = np.maximum(t_in - eps, 0.0)

@@ -75,7 +75,7 @@ def test_decoded_model_matches_a_fresh_sampling(tiny_dataset, tiny_cloud, tiny_m
     from billboards.build import _worker_state  # noqa: F401  (the worker path is exercised by the build)
     from billboards.octree import build_octree
     from billboards.geometry import base_yaw_toward
-    from billboards.sampling import ImageSampler, views_from_dataset, voxel_points
+    from billboards.sampling import ImageSampler, quad_centres, views_from_dataset, voxel_points
     from recon.cloud_io import read_cloud_arrays
 
     conf = small_config()
@@ -85,15 +85,19 @@ def test_decoded_model_matches_a_fresh_sampling(tiny_dataset, tiny_cloud, tiny_m
     centres = octree.centres()
     views = views_from_dataset(load_dataset(tiny_dataset))
     voxels = voxel_points(points, octree.leaves_of_points(points), centres, octree.origin, octree.voxel_size)
-    sampler = ImageSampler(views, centres, octree.voxel_size, base_yaw_toward(centres, views.centres), voxels,
-                           conf.sampling)
+    base_yaw = base_yaw_toward(centres, views.centres)
+    quads = quad_centres(voxels, base_yaw)
+    sampler = ImageSampler(views, quads, octree.voxel_size, base_yaw, voxels, conf.sampling, box_centres=centres)
     ids = np.arange(0, model.num_billboards, max(1, model.num_billboards // 20))
     raw = sampler.sample(ids).rgba.astype(np.float32) / 255
     decoded = billboard_model.decode_directions(model, ids)
     assert decoded.shape == raw.shape
     mse = np.mean((decoded - raw) ** 2)
     assert 10 * np.log10(1 / max(mse, 1e-12)) > 25
-    np.testing.assert_allclose(model.centres + model.origin, centres, atol=1e-4)
+    np.testing.assert_allclose(model.centres + model.origin, quads, atol=1e-4)
+    # Quads sit on the surface: moved from the voxel centre along the base direction only.
+    shift = quads - centres
+    assert np.all(np.abs(shift) <= octree.voxel_size / 2 + 1e-9) and np.allclose(shift[:, 2], 0)
 
 
 def test_points_source_and_cli(tiny_dataset, tiny_cloud, tmp_path):
@@ -200,7 +204,9 @@ def test_city_coordinates_give_the_same_model(tiny_dataset, tiny_cloud, tiny_mod
     assert far_model.num_billboards == near_model.num_billboards
     np.testing.assert_allclose(far_model.origin - near_model.origin, shift, atol=1e-6)
     np.testing.assert_allclose(far_model.centres, near_model.centres, atol=1e-4)
-    assert np.mean(far_model.rank == near_model.rank) > 0.95
+    # Texels on a decision boundary (a point exactly on a texel edge) may flip, and a rank with them.
+    rank_change = np.abs(far_model.rank.astype(int) - near_model.rank.astype(int))
+    assert np.mean(rank_change == 0) > 0.9 and np.mean(rank_change <= 1) > 0.98
     ids = np.arange(0, near_model.num_billboards, 7)
     diff = billboard_model.decode_directions(far_model, ids) - billboard_model.decode_directions(near_model, ids)
     assert 10 * np.log10(1 / max(np.mean(diff ** 2), 1e-12)) > 40

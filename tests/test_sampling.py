@@ -90,13 +90,16 @@ def _truth(street, ids, sampled, config):
     return b, j, truth
 
 
+STRICT = dict(slab_margin=0.0)  # the ground truth cuts exactly at the voxel's faces
+
+
 def test_occlusion_aware_sampling_beats_naive_behind_a_pillar(street):
     c = street["centres"]
     behind = np.flatnonzero((np.abs(c[:, 0]) < SIZE) & (np.abs(c[:, 1]) < 1.5) & (c[:, 2] > 0.5) & (c[:, 2] < 5.5))
     assert len(behind) >= 12
     results = {}
     for occlusion in (True, False):
-        config = _config(occlusion=occlusion)
+        config = _config(occlusion=occlusion, **STRICT)
         sampler = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], config)
         sampled = sampler.sample(behind)
         assert sampled.rgba.dtype == np.uint8 and sampled.rgba.shape == (len(behind), 16, TILE, TILE, 4)
@@ -114,12 +117,21 @@ def test_occlusion_aware_sampling_beats_naive_behind_a_pillar(street):
 def test_unoccluded_wall_matches_truth(street):
     c = street["centres"]
     clear = np.flatnonzero((np.abs(c[:, 0]) < SIZE) & (c[:, 1] > 3.0) & (c[:, 1] < 5.0) & (c[:, 2] > 1.0) & (c[:, 2] < 4.0))
-    config = _config()
-    sampler = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], config)
-    sampled = sampler.sample(clear)
-    b, j, truth = _truth(street, clear, sampled, config)
-    result = texture_psnr(sampled.rgba[b, j].astype(np.float32) / 255, truth)
-    assert result["psnr_rgb"] > 20.0 and result["alpha_agreement"] > 0.93, result
+    for config in (_config(**STRICT), _config()):
+        sampler = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], config)
+        sampled = sampler.sample(clear)
+        b, j, truth = _truth(street, clear, sampled, config)
+        estimate = sampled.rgba[b, j].astype(np.float32) / 255
+        result = texture_psnr(estimate, truth)
+        assert result["psnr_rgb"] > 20.0, result
+        opaque = truth[..., 3] >= 0.5
+        recall = np.mean(estimate[..., 3][opaque] >= 0.5)
+        if config.slab_margin == 0:
+            assert result["alpha_agreement"] > 0.93, result
+        else:
+            # With the margin a quad also shows the neighbour's surface that parallax puts behind
+            # it (no gaps between billboards): it keeps everything the strict cut keeps.
+            assert recall > 0.98, recall
 
 
 def test_no_views_gives_transparent_billboards(street):
