@@ -450,9 +450,11 @@ class ImageSampler:
         margin = np.float32(cfg.slab_margin * s)
         own = np.isfinite(filled) & (filled >= t_in - tol) & (filled <= t_out + tol + margin)
         if cfg.own_points:
-            # The voxel's own points fill the z-buffer's holes between cloud points.
+            # The voxel's own points on the ray count even where the z-buffer has a hole between
+            # points; the camera sees past the voxel only where nothing lies within one z-buffer
+            # pixel (a gap between a pillar's points must not show the wall behind as see-through).
             own |= np.isfinite(self._own_depth(ids, np.zeros_like(c), c, right, up))
-            own &= ~(np.isfinite(filled) & (filled > t_out + tol + margin))  # the camera sees past it
+            own &= ~(np.isfinite(nearest) & (nearest > t_out + tol + margin))
         status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
             status[own & (nearest < t_in - tol)] = OCCLUDED
