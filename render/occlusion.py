@@ -1,0 +1,672 @@
+"""Hardware occlusion culling over a screen-space quadtree (Yasu & Takahashi), with CHC++ ideas.
+
+Per frame, after frustum culling (:mod:`render.culling`), the surviving objects
+(octree nodes with their billboard ranges) are culled against the depth buffer:
+
+1. Each object's box is projected to a conservative screen rectangle and its
+   nearest NDC depth (:func:`render.quadtree.project_boxes`). Boxes crossing the
+   near plane are drawn without a query; rectangles entirely off screen are culled.
+2. Temporal coherence (CHC++): objects found visible in an earlier frame are
+   drawn first, without a query (no waiting) — they fill the depth buffer as
+   occluders. Each is due for a re-test within ``revisit_frames`` frames
+   (staggered by key); the due ones are tested next, in one batch, and drawn if
+   they pass, so objects that became hidden drop out.
+3. If nothing was drawn yet (first frame, a camera cut, temporal off), likely
+   occluders are tested and drawn first: the objects with the largest screen
+   rectangles, then the nearest ones.
+4. The rest go into a :class:`~render.quadtree.ScreenQuadtree`, each in its
+   smallest covering cell, and are processed level by level, shallow first:
+
+   a. every cell of the level holding objects is tested with one query (all
+      cells of the level in one batch): a rectangle that bounds all undecided
+      objects of the cell's subtree, at the nearest depth of the cell's own
+      objects. If no sample passes, its own objects are culled, and so, *without
+      a query*, is every object below it whose nearest depth is at or behind the
+      tested depth (Edo: a child farther than its parent's failed test). An
+      object whose rectangle and depth are its passing cell's test is drawn.
+   b. then the objects of this level are queried one by one and the passing
+      ones drawn, front to back in ``depth_batches`` batches (1 : 4 : 16 by
+      default, each tested after the nearer ones are drawn). An object's level
+      here is the first at which it spans ``small_fraction`` of a cell: a small
+      object that straddles a border of a shallow cell waits until the larger
+      objects around it are drawn. With ``object_queries=False`` every object of
+      a passing cell is drawn, as in Edo.
+
+   So deeper (smaller, usually farther) objects are tested against everything
+   larger and nearer that was drawn before.
+
+Correctness. An object is culled only when a query in *this* frame found no
+sample of a rectangle that covers the object's projection at a depth in front of
+all of the object, against a depth buffer that holds a subset of the final
+frame's depth. Depth only decreases, so the object cannot appear. Query quads
+sit ``depth_eps`` (NDC) in front of the nearest box depth, several 24-bit depth
+steps, so the test passes wherever the object's own fragments would pass with
+depth function LESS or LEQUAL.
+
+Query latency. Queries of a step are issued together and read together: one
+wait for the re-tests, up to two for the occluders, then per quadtree level one
+for the cells and up to ``depth_batches`` for the objects (levels without
+objects cost nothing). Previously visible objects are drawn with no wait at all.
+
+Auto mode. With ``mode="auto"`` the culler measures, per frame with occlusion
+on, the wall time of :meth:`OcclusionCuller.cull` minus the time spent in the
+draw callbacks (CPU, and GPU by timer queries, read a frame later): that is the
+overhead of culling. The saving is the billboards it culled times the measured
+cost of drawing one billboard (callback CPU + GPU time per billboard drawn,
+averaged over frames, also measured while off). After ``auto_window`` frames on,
+if the saving is below the overhead, occlusion culling goes off for
+``auto_backoff`` frames (doubling after each losing window up to
+``auto_backoff_max``), then is tried again. Waits on query results also contain
+GPU time of earlier draws; that makes the overhead estimate high, so auto errs
+toward "off".
+
+What the caller provides (see :meth:`OcclusionCuller.cull`): the target
+framebuffer bound (``fbo.use()``) with its viewport equal to the culler's size,
+depth cleared (or holding only what will stay in the final image, e.g. opaque
+geometry drawn before), depth test on with LESS or LEQUAL, and a callback that
+draws billboard ranges with depth writes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import moderngl
+import numpy as np
+
+from .culling import FrustumResult, merge_ranges, ranges_to_indices
+from .program import load_program
+from .quadtree import ScreenQuadtree, project_boxes
+
+logger = logging.getLogger(__name__)
+
+SHADER = "occlusion_box.glsl"
+MODES = ("off", "on", "auto")
+_UNDECIDED, _VISIBLE, _CULLED = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class OcclusionConfig:
+    max_depth: int = 6  # quadtree levels below the root (finest cells are width/64 pixels)
+    depth_eps: float = 4e-6  # query quads sit this far (NDC) in front of the nearest depth (≈ 33 steps of 24-bit depth)
+    pad_px: float = 1.0  # screen rectangles grow by this many pixels on every side (GPU float32 vs CPU float64)
+    object_queries: bool = True  # query objects of a passing cell separately (False: draw all of them, as Edo)
+    small_fraction: float = 0.25  # an object is tested at the first level whose cells it spans this fraction of
+    depth_batches: int = 3  # a level's objects are tested front to back in this many batches ...
+    depth_batch_growth: int = 4  # ... each this many times the previous (1 : 4 : 16): the nearest go first
+    occluder_area: float = 0.25  # with nothing drawn yet, objects with ≥ this fraction of the largest rectangle go first
+    temporal: bool = True  # draw objects visible in an earlier frame first, without a query (CHC++)
+    revisit_frames: int = 8  # such objects are re-tested within this many frames (staggered by key)
+    gpu_timers: bool = True  # time draw callbacks with GL timer queries (the callback must not use one itself)
+    auto_window: int = 8  # auto: frames with occlusion on between decisions
+    auto_backoff: int = 30  # auto: frames off after a losing window ...
+    auto_backoff_max: int = 480  # ... doubling after each further loss, up to this
+    auto_margin: float = 1.0  # auto: stay on while saved time ≥ margin × overhead
+
+    def __post_init__(self):
+        if not 0 <= int(self.max_depth) <= 12:
+            raise ValueError(f"max_depth must lie in [0, 12], got {self.max_depth!r}")
+        if not (self.depth_eps >= 0 and self.pad_px >= 0 and self.revisit_frames >= 1 and self.auto_window >= 1
+                and self.depth_batches >= 1 and self.depth_batch_growth >= 1 and self.small_fraction > 0
+                and 1 <= self.auto_backoff <= self.auto_backoff_max and self.auto_margin >= 0):
+            raise ValueError(f"invalid OcclusionConfig: {self}")
+
+
+@dataclass
+class CullStats:
+    """One frame of :meth:`OcclusionCuller.cull`."""
+
+    frame: int = 0  # frame number (counts calls of cull)
+    mode: str = "auto"  # the culler's mode
+    active: bool = False  # occlusion culling ran this frame (auto may have it off)
+    objects: int = 0  # objects given (after frustum culling)
+    objects_drawn: int = 0  # objects drawn (after occlusion culling)
+    objects_temporal: int = 0  # drawn first without a query because visible in an earlier frame
+    objects_near: int = 0  # crossing the near plane: drawn without a query
+    objects_offscreen: int = 0  # culled: rectangle entirely off screen
+    culled_by_query: int = 0  # culled by their own or their cell's failed query
+    culled_by_parent: int = 0  # culled without a query: behind a failed ancestor cell's test
+    billboards: int = 0  # billboards in the objects given
+    billboards_drawn: int = 0  # billboards in the objects drawn
+    queries: int = 0  # occlusion queries issued
+    query_batches: int = 0  # waits for query results
+    draw_calls: int = 0  # calls of draw_callback
+    cull_s: float = 0.0  # wall time in cull() outside the draw callbacks (s)
+    draw_s: float = 0.0  # wall time inside the draw callbacks (s)
+
+    @property
+    def objects_culled(self) -> int:
+        return self.objects - self.objects_drawn
+
+    @property
+    def culled_fraction(self) -> float:
+        """Share of the given billboards that were culled."""
+        return 1.0 - self.billboards_drawn / self.billboards if self.billboards else 0.0
+
+
+@dataclass
+class _Record:
+    """What auto mode needs of one frame; GPU times arrive a frame later."""
+
+    active: bool
+    wall_s: float = 0.0
+    cb_cpu_s: float = 0.0
+    cb_gpu_s: float = 0.0
+    billboards_drawn: int = 0
+    billboards_culled: int = 0
+    timers: list = field(default_factory=list)
+
+
+def auto_pays(billboards_culled: int, overhead_s: float, cost_per_billboard: float, margin: float = 1.0) -> bool:
+    """The auto-mode rule: does culling ``billboards_culled`` save at least ``margin`` × its overhead?
+
+    Culling nothing never pays, whatever the (possibly zero) measured overhead.
+    """
+    return billboards_culled > 0 and billboards_culled * cost_per_billboard >= margin * overhead_s
+
+
+def _batch_bounds(n: int, batches: int, growth: int) -> list[int]:
+    """Split points of n items into up to ``batches`` parts growing by ``growth`` (1 : g : g² … parts of n)."""
+    batches = max(1, min(int(batches), n // 8 + 1))  # no tiny batches
+    sizes = np.cumsum([growth ** k for k in range(batches)])
+    return [int(n * int(c) // int(sizes[-1])) for c in sizes[:-1]]
+
+
+class OcclusionCuller:
+    """Occlusion culling of frustum-culled objects with hardware queries (see the module notes).
+
+    ctx: the moderngl context; width, height: the viewport the frame is drawn in;
+    mode: "off" (draw everything given), "on" or "auto". Owns its program,
+    vertex buffer and queries; :meth:`release` frees them (idempotent).
+
+    After each :meth:`cull`, ``stats`` is that frame's :class:`CullStats`,
+    ``visible`` the (m,) bool mask of the objects drawn, and in auto mode
+    ``last_decision`` the latest evaluation (saved_s, overhead_s, pays).
+    """
+
+    def __init__(self, ctx: moderngl.Context, width: int, height: int, mode: str = "auto",
+                 config: OcclusionConfig = OcclusionConfig()):
+        self.ctx = ctx
+        self.config = config
+        self.mode = mode
+        self.resize(width, height)
+        self.stats = CullStats(mode=mode)
+        self.visible = np.zeros(0, dtype=bool)
+        self.last_decision: dict | None = None
+        self.cost_per_billboard: float | None = None  # seconds to draw one billboard (average)
+        self._released = False
+        self._program = None
+        self._buffer = None
+        self._vao = None
+        self._capacity = 0  # rectangles the buffer holds
+        self._queries: list = []  # pool of GL_SAMPLES_PASSED queries
+        self._timers: list = []  # pool of GL_TIME_ELAPSED queries
+        self._timer_next = 0
+        self._frame = 0
+        self._record: _Record | None = None
+        self._last: _Record | None = None
+        self._window: list[_Record] = []
+        self._off_until = 0
+        self._backoff = config.auto_backoff
+        self._prev_keys = np.zeros(0, dtype=np.int64)  # sorted keys of the objects visible last frame
+        self._prev_next = np.zeros(0, dtype=np.int64)  # frame at which each must be re-tested
+        self._program = load_program(ctx, SHADER)
+
+    # -- configuration -------------------------------------------------------------------------
+
+    @property
+    def mode(self) -> str:
+        return self._mode
+
+    @mode.setter
+    def mode(self, value: str) -> None:
+        if value not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {value!r}")
+        self._mode = value
+
+    def resize(self, width: int, height: int) -> None:
+        """Set the viewport size (pixels) the frames are drawn in."""
+        w, h = int(width), int(height)
+        if w < 1 or h < 1 or (w, h) != (width, height):
+            raise ValueError(f"size must be two positive integers, got {width!r} × {height!r}")
+        self.width, self.height = w, h
+
+    @property
+    def active(self) -> bool:
+        """Whether the next frame runs occlusion culling (auto: unless backed off)."""
+        return self._mode == "on" or (self._mode == "auto" and self._frame >= self._off_until)
+
+    # -- per frame -----------------------------------------------------------------------------
+
+    def cull_nodes(self, view_proj, frustum: FrustumResult, node_bounds, draw_callback, *,
+                   pad: float = 0.0) -> CullStats:
+        """:meth:`cull` the objects of a :class:`~render.culling.FrustumResult`.
+
+        node_bounds: (k, 2, 3) the model's node boxes (model coordinates); pad:
+        metres added around each (as given to frustum culling, e.g.
+        ``billboard_radius(voxel_size)``). Keys for temporal coherence are the
+        objects' first billboards.
+        """
+        b = np.asarray(node_bounds, dtype=np.float64)[frustum.object_nodes]
+        return self.cull(view_proj, b[:, 0] - pad, b[:, 1] + pad, frustum.object_ranges, draw_callback,
+                         keys=frustum.object_ranges[:, 0])
+
+    def cull(self, view_proj, box_min, box_max, ranges, draw_callback, keys=None) -> CullStats:
+        """Draw the objects that may be visible, cull the rest.
+
+        view_proj: (4, 4) row-major GL clip from model coordinates (projection @ view);
+        box_min, box_max: (m, 3) conservative bounds of each object (model
+        coordinates; they must hold everything the object draws); ranges: (m, 2)
+        int [begin, end) billboards of each object; draw_callback(ranges) draws
+        billboard ranges ((r, 2) int32, merged, ascending) into the bound
+        framebuffer with depth test and depth writes on; keys: (m,) int64 ids that
+        are stable across frames (e.g. node ids), enabling temporal coherence, or None.
+
+        The framebuffer must be bound with the viewport of the culler's size and
+        its depth buffer must hold nothing that will not stay in the final image.
+        The callback may be called several times per frame. Leaves DEPTH_TEST
+        enabled; colour and depth masks are restored after each query batch.
+        Returns the frame's :class:`CullStats` (also ``self.stats``).
+        """
+        if self._released:
+            raise RuntimeError("OcclusionCuller used after release()")
+        t_start = time.perf_counter()
+        self._begin_frame()
+        ranges = np.asarray(ranges, dtype=np.int64).reshape(-1, 2)
+        m = len(ranges)
+        lo = np.asarray(box_min, dtype=np.float64).reshape(-1, 3)
+        hi = np.asarray(box_max, dtype=np.float64).reshape(-1, 3)
+        if len(lo) != m or len(hi) != m:
+            raise ValueError(f"cull: {m} ranges but {len(lo)} box_min and {len(hi)} box_max rows")
+        if keys is not None:
+            keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+            if len(keys) != m:
+                raise ValueError(f"cull: {m} objects but {len(keys)} keys")
+        active = self.active
+        stats = CullStats(frame=self._frame, mode=self._mode, active=active, objects=m,
+                          billboards=int((ranges[:, 1] - ranges[:, 0]).sum()))
+        self.stats = stats
+        self._record = _Record(active=active)
+        self._callback = draw_callback
+        self._ranges = ranges
+        try:
+            if m and active:
+                self._check_viewport()
+                visible = self._occlusion_pass(np.asarray(view_proj, dtype=np.float64), lo, hi, keys)
+            else:
+                visible = np.ones(m, dtype=bool)
+                self._draw(np.arange(m))
+                # nothing was tested: no visibility to carry over
+                self._prev_keys = np.zeros(0, dtype=np.int64)
+                self._prev_next = np.zeros(0, dtype=np.int64)
+        finally:
+            self._callback = self._ranges = None
+        self.visible = visible
+        stats.objects_drawn = int(visible.sum())
+        rec = self._record
+        rec.wall_s = time.perf_counter() - t_start
+        rec.billboards_culled = stats.billboards - stats.billboards_drawn
+        stats.cull_s = rec.wall_s - rec.cb_cpu_s
+        stats.draw_s = rec.cb_cpu_s
+        self._last, self._record = rec, None
+        self._frame += 1
+        return stats
+
+    # -- auto mode -------------------------------------------------------------------------------
+
+    def _begin_frame(self) -> None:
+        """Read last frame's timers, update the draw cost, and (auto) evaluate a full window."""
+        rec = self._last
+        self._last = None
+        self._timer_next = 0
+        if rec is None:
+            return
+        if rec.timers:
+            rec.cb_gpu_s = sum(q.elapsed for q in rec.timers) * 1e-9
+            rec.timers = []
+        if rec.billboards_drawn:
+            cost = (rec.cb_cpu_s + rec.cb_gpu_s) / rec.billboards_drawn
+            self.cost_per_billboard = cost if self.cost_per_billboard is None \
+                else 0.7 * self.cost_per_billboard + 0.3 * cost
+        if self._mode != "auto" or not rec.active:
+            return
+        self._window.append(rec)
+        if len(self._window) < self.config.auto_window:
+            return
+        cost = self.cost_per_billboard or 0.0
+        culled = sum(r.billboards_culled for r in self._window)
+        overhead = sum(max(r.wall_s - r.cb_cpu_s - r.cb_gpu_s, 0.0) for r in self._window)
+        pays = auto_pays(culled, overhead, cost, self.config.auto_margin)
+        self.last_decision = dict(frame=self._frame, saved_s=culled * cost, overhead_s=overhead, pays=pays,
+                                  frames=len(self._window))
+        self._window = []
+        if pays:
+            self._backoff = self.config.auto_backoff
+        else:
+            self._off_until = self._frame + self._backoff
+            logger.debug("occlusion culling off for %d frames: saves %.3g ms, costs %.3g ms",
+                         self._backoff, culled * cost * 1e3, overhead * 1e3)
+            self._backoff = min(2 * self._backoff, self.config.auto_backoff_max)
+
+    # -- GPU helpers -----------------------------------------------------------------------------
+
+    def _check_viewport(self) -> None:
+        vp = tuple(self.ctx.fbo.viewport)
+        if (vp[2], vp[3]) != (self.width, self.height):
+            raise ValueError(f"the bound framebuffer's viewport {vp} is not the culler's size "
+                             f"{self.width}×{self.height}; call resize()")
+
+    def _draw(self, objects: np.ndarray) -> None:
+        """Draw the billboard ranges of the given object indices with one callback."""
+        if len(objects) == 0:
+            return
+        r = merge_ranges(self._ranges[objects])
+        if len(r) == 0:
+            return
+        bb = int((r[:, 1].astype(np.int64) - r[:, 0]).sum())
+        timer = None
+        if self.config.gpu_timers:
+            if self._timer_next == len(self._timers):
+                self._timers.append(self.ctx.query(time=True))
+            timer = self._timers[self._timer_next]
+            self._timer_next += 1
+        t0 = time.perf_counter()
+        if timer is not None:
+            with timer:
+                self._callback(r)
+            self._record.timers.append(timer)
+        else:
+            self._callback(r)
+        self._record.cb_cpu_s += time.perf_counter() - t0
+        self._record.billboards_drawn += bb
+        self.stats.draw_calls += 1
+        self.stats.billboards_drawn += bb
+
+    def _ensure_capacity(self, n: int) -> None:
+        if n <= self._capacity:
+            return
+        cap = max(64, 1 << (n - 1).bit_length())
+        if self._vao is not None:
+            self._vao.release()
+            self._buffer.release()
+        self._buffer = self.ctx.buffer(reserve=cap * 4 * 3 * 4)
+        self._vao = self.ctx.vertex_array(self._program, [(self._buffer, "3f", "in_pos")])
+        self._capacity = cap
+
+    def _query(self, rects: np.ndarray, qdepth: np.ndarray) -> np.ndarray:
+        """Occlusion-test screen rects (q, 4) at NDC depths (q,) → (q,) bool, True = some sample passed.
+
+        One query per rectangle, all issued before any result is read.
+        """
+        q = len(rects)
+        if q == 0:
+            return np.zeros(0, dtype=bool)
+        self._ensure_capacity(q)
+        while len(self._queries) < q:
+            self._queries.append(self.ctx.query(samples=True))
+        x = rects[:, [0, 2]] * (2.0 / self.width) - 1.0
+        y = rects[:, [1, 3]] * (2.0 / self.height) - 1.0
+        verts = np.empty((q, 4, 3), dtype=np.float32)  # strip: (x0,y0) (x1,y0) (x0,y1) (x1,y1)
+        verts[:, :, 0] = x[:, [0, 1, 0, 1]]
+        verts[:, :, 1] = y[:, [0, 0, 1, 1]]
+        verts[:, :, 2] = np.maximum(qdepth, -1.0)[:, None]
+        self._buffer.write(verts.tobytes())
+        fbo = self.ctx.fbo
+        colour_mask, depth_mask = fbo.color_mask, fbo.depth_mask
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        fbo.color_mask = (False, False, False, False)
+        fbo.depth_mask = False
+        fbo.use()  # moderngl applies a framebuffer's masks when it is bound
+        try:
+            for i in range(q):
+                with self._queries[i]:
+                    self._vao.render(moderngl.TRIANGLE_STRIP, vertices=4, first=4 * i)
+            passed = np.fromiter((self._queries[i].samples > 0 for i in range(q)), dtype=bool, count=q)
+        finally:
+            fbo.color_mask = colour_mask
+            fbo.depth_mask = depth_mask
+            fbo.use()
+        self.stats.queries += q
+        self.stats.query_batches += 1
+        return passed
+
+    # -- the occlusion pass ----------------------------------------------------------------------
+
+    def _occlusion_pass(self, view_proj, lo, hi, keys) -> np.ndarray:
+        cfg = self.config
+        stats = self.stats
+        m = len(lo)
+        rects, depth, crosses = project_boxes(view_proj, lo, hi, self.width, self.height, pad_px=cfg.pad_px)
+        always = crosses | (depth - cfg.depth_eps <= -1.0)
+        offscreen = ~always & ((rects[:, 2] <= rects[:, 0]) | (rects[:, 3] <= rects[:, 1]))
+        coherent = np.zeros(m, dtype=bool)
+        revisit = np.zeros(m, dtype=bool)
+        next_test = np.zeros(m, dtype=np.int64)
+        temporal = keys is not None and cfg.temporal
+        if temporal and len(self._prev_keys):
+            pos = np.minimum(np.searchsorted(self._prev_keys, keys), len(self._prev_keys) - 1)
+            hit = (self._prev_keys[pos] == keys) & ~always & ~offscreen
+            next_test = np.where(hit, self._prev_next[pos], 0)
+            coherent = hit & (next_test > self._frame)
+            revisit = hit & ~coherent
+        stats.objects_near = int(always.sum())
+        stats.objects_temporal = int(coherent.sum())
+        stats.objects_offscreen = int(offscreen.sum())
+        visible = always | coherent
+        self._draw(np.flatnonzero(visible))  # last frame's visible set: the occluders, no waiting
+
+        # Previously visible objects due for a re-test go next (one batch), before the rest is
+        # tested: they are mostly still visible, so they are good occluders.
+        first = self._test_and_draw(np.flatnonzero(revisit), rects, depth)
+        visible[first] = True
+        cand = np.flatnonzero(~visible & ~revisit & ~offscreen)
+        if stats.draw_calls == 0 and len(cand):
+            # Nothing drawn yet (first frame, a cut, or temporal off): test and draw likely
+            # occluders first (Edo assumes they come first): the objects with the largest screen
+            # rectangles, then the nearest ones.
+            cap = max(1, len(cand) // sum(cfg.depth_batch_growth ** k for k in range(cfg.depth_batches)))
+            area = (rects[cand, 2] - rects[cand, 0]) * (rects[cand, 3] - rects[cand, 1])
+            big = int((area >= cfg.occluder_area * area.max()).sum())
+            head = np.argsort(-area, kind="stable")[:min(big, cap)]
+            visible[self._test_and_draw(cand[head], rects, depth)] = True
+            cand = np.delete(cand, head)
+            head = np.argsort(depth[cand], kind="stable")[:cap]
+            visible[self._test_and_draw(cand[head], rects, depth)] = True
+            cand = np.delete(cand, head)
+        visible[cand[self._hierarchical(cand, rects, depth)]] = True
+
+        if temporal:
+            jitter = ((keys.astype(np.uint64) * np.uint64(2654435761) + np.uint64(self._frame))
+                      % np.uint64(cfg.revisit_frames)).astype(np.int64)
+            nxt = np.where(coherent, next_test, self._frame + 1 + jitter)
+            nxt[always] = self._frame + 1
+            k, nxt = keys[visible], nxt[visible]
+            order = np.argsort(k, kind="stable")
+            self._prev_keys, self._prev_next = k[order], nxt[order]
+        return visible
+
+    def _test_and_draw(self, objects: np.ndarray, rects: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Query objects (indices) individually in one batch, draw the passing ones → their indices."""
+        if len(objects) == 0:
+            return objects
+        ok = self._query(rects[objects], depth[objects] - self.config.depth_eps)
+        self.stats.culled_by_query += int((~ok).sum())
+        shown = objects[ok]
+        self._draw(shown)
+        return shown
+
+    def _hierarchical(self, cand: np.ndarray, rects: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Edo-style quadtree traversal over candidate objects → (len(cand),) bool drawn."""
+        cfg, stats = self.config, self.stats
+        mc = len(cand)
+        state = np.zeros(mc, dtype=np.int8)
+        if mc == 0:
+            return state == _VISIBLE
+        eps = cfg.depth_eps
+        qt = ScreenQuadtree(self.width, self.height, cfg.max_depth)
+        r, d = rects[cand], depth[cand]
+        qt.insert(r, d)
+        lev, ix, iy = qt.level, qt.ix, qt.iy
+        if cfg.object_queries:
+            # An object is queried and drawn at the level whose cells it spans at least
+            # small_fraction of: a small object that straddles a border of a shallow cell waits
+            # there until the larger (nearer) objects around it are drawn.
+            rel = np.maximum((r[:, 2] - r[:, 0]) / self.width, (r[:, 3] - r[:, 1]) / self.height)
+            size_level = np.ceil(np.log2(cfg.small_fraction / np.maximum(rel, 1e-9)))
+            step = np.clip(np.maximum(lev, size_level), 0, cfg.max_depth).astype(np.int64)
+        else:
+            step = lev
+        cull_depth = np.full(mc, np.inf)
+        for level in range(cfg.max_depth + 1):
+            hid = (state == _UNDECIDED) & (d >= cull_depth)  # behind a failed ancestor's test
+            state[hid] = _CULLED
+            stats.culled_by_parent += int(hid.sum())
+            undecided = state == _UNDECIDED
+            if not undecided.any():
+                break
+            direct = np.zeros(0, dtype=np.int64)
+            sub = np.flatnonzero(undecided & (lev >= level))
+            is_own = lev[sub] == level
+            if is_own.any():
+                # (a) one query per cell holding objects: the rectangle of its undecided subtree
+                # at the nearest depth of its own objects
+                s = lev[sub] - level
+                key = ((iy[sub] >> s) << level) + (ix[sub] >> s)  # ancestor cell at this level
+                ukey, inv = np.unique(key, return_inverse=True)
+                nu = len(ukey)
+                union = np.empty((nu, 4))
+                union[:, :2] = np.inf
+                union[:, 2:] = -np.inf
+                for a, f in ((0, np.minimum), (1, np.minimum), (2, np.maximum), (3, np.maximum)):
+                    f.at(union[:, a], inv, r[sub, a])
+                own, own_cell = sub[is_own], inv[is_own]
+                dmin = np.full(nu, np.inf)
+                np.minimum.at(dmin, own_cell, d[own])
+                tested = np.unique(own_cell)
+                ok = self._query(union[tested], dmin[tested] - eps)
+                failed = np.zeros(nu, dtype=bool)
+                failed[tested[~ok]] = True
+                f_own = failed[own_cell]
+                state[own[f_own]] = _CULLED
+                stats.culled_by_query += int(f_own.sum())
+                below, below_cell = sub[~is_own], inv[~is_own]
+                fb = failed[below_cell]
+                cull_depth[below[fb]] = np.minimum(cull_depth[below[fb]], dmin[below_cell[fb]])
+                # an object whose rectangle and depth are its passing cell's test is visible
+                p_own, p_cell = own[~f_own], own_cell[~f_own]
+                same = (r[p_own] == union[p_cell]).all(axis=1) & (d[p_own] == dmin[p_cell])
+                direct = p_own[same]
+                state[direct] = _VISIBLE
+            # (b) the objects of this step: own objects of passing cells, and smaller ones deferred
+            # from shallower cells; queried one by one (or, as Edo, drawn) after the cell tests
+            now = np.flatnonzero((state == _UNDECIDED) & (step == level))
+            if not cfg.object_queries:
+                state[now] = _VISIBLE
+                self._draw(cand[np.concatenate([direct, now])])
+                continue
+            self._draw(cand[direct])
+            # front to back in batches of doubling size, each tested after the nearer ones are drawn
+            now = now[np.argsort(d[now], kind="stable")]
+            for batch in np.array_split(now, _batch_bounds(len(now), cfg.depth_batches, cfg.depth_batch_growth)):
+                ok = self._query(r[batch], d[batch] - eps)
+                state[batch[~ok]] = _CULLED
+                state[batch[ok]] = _VISIBLE
+                stats.culled_by_query += int((~ok).sum())
+                self._draw(cand[batch[ok]])
+        return state == _VISIBLE
+
+    # -- lifetime --------------------------------------------------------------------------------
+
+    def release(self) -> None:
+        """Free the program, buffer and vertex array (idempotent).
+
+        moderngl 5 has no way to delete query objects; the pools are dropped and
+        the context frees them when it is released.
+        """
+        if self._released:
+            return
+        self._released = True
+        for obj in (self._vao, self._buffer, self._program):
+            if obj is not None:
+                obj.release()
+        self._vao = self._buffer = self._program = None
+        self._queries, self._timers = [], []
+
+    def __enter__(self) -> OcclusionCuller:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+# ---------------------------------------------------------------------------------------------
+# Boxes as a scene (tests) and as a debug view of node bounds
+
+
+class BoxRenderer:
+    """Axis-aligned boxes drawn as flat-coloured, depth-tested solids (one instanced draw).
+
+    box_min, box_max: (n, 3) model coordinates; colours: (n, 3) uint8, by default
+    :meth:`id_colours` so that an image read back names the box at each pixel.
+    Used as the occluder/occludee scene in the tests and to show node bounds.
+    """
+
+    def __init__(self, ctx: moderngl.Context, box_min, box_max, colours=None):
+        lo = np.asarray(box_min, dtype=np.float32).reshape(-1, 3)
+        hi = np.asarray(box_max, dtype=np.float32).reshape(-1, 3)
+        if lo.shape != hi.shape:
+            raise ValueError(f"box_min {lo.shape} and box_max {hi.shape} differ")
+        n = len(lo)
+        colours = self.id_colours(n) if colours is None else np.asarray(colours, dtype=np.uint8).reshape(n, 3)
+        self.ctx = ctx
+        self.n = n
+        self._data = np.ascontiguousarray(np.concatenate([lo, hi, colours / np.float32(255)], axis=1),
+                                          dtype=np.float32)
+        self._released = False
+        self._program = load_program(ctx, SHADER, {"BOXES": 1})
+        self._buffer = ctx.buffer(reserve=max(n, 1) * 9 * 4)
+        self._vao = ctx.vertex_array(self._program, [(self._buffer, "3f 3f 3f/i", "in_min", "in_max", "in_colour")])
+
+    @staticmethod
+    def id_colours(n: int) -> np.ndarray:
+        """(n, 3) uint8 colours that encode id + 1 in 24 bits (black = background)."""
+        v = np.arange(1, n + 1, dtype=np.int64)
+        return np.stack([v & 255, (v >> 8) & 255, (v >> 16) & 255], axis=1).astype(np.uint8)
+
+    @staticmethod
+    def decode_ids(image: np.ndarray) -> np.ndarray:
+        """Box id at each pixel of an (h, w, 3) uint8 image drawn with :meth:`id_colours` → (h, w) int64, −1 = none."""
+        im = np.asarray(image).astype(np.int64)
+        return (im[..., 0] | (im[..., 1] << 8) | (im[..., 2] << 16)) - 1
+
+    def draw(self, view_proj, indices=None) -> None:
+        """Draw the boxes with the given indices (None: all) with ``view_proj`` (4, 4) row-major."""
+        if self._released:
+            raise RuntimeError("BoxRenderer used after release()")
+        idx = np.arange(self.n) if indices is None else np.asarray(indices, dtype=np.int64).reshape(-1)
+        if len(idx) == 0:
+            return
+        self._buffer.write(self._data[idx].tobytes())
+        self._program["u_view_proj"].write(np.ascontiguousarray(np.asarray(view_proj, np.float32).T).tobytes())
+        self._vao.render(moderngl.TRIANGLES, vertices=36, instances=len(idx))
+
+    def draw_ranges(self, view_proj, ranges) -> None:
+        """Draw the boxes in [begin, end) ranges (r, 2) — the shape of a ``draw_callback`` argument."""
+        self.draw(view_proj, ranges_to_indices(ranges))
+
+    def release(self) -> None:
+        """Free the program, buffer and vertex array (idempotent)."""
+        if self._released:
+            return
+        self._released = True
+        self._vao.release()
+        self._buffer.release()
+        self._program.release()
+
+    def __enter__(self) -> BoxRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
