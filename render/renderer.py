@@ -19,6 +19,8 @@ import numpy as np
 from billboards.model import BillboardModel
 
 from .camera import ClipPlanes, GLCamera, gl_camera
+from .culling import billboard_radius, frustum_cull_nodes, frustum_planes, ranges_to_indices
+from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder
 from .resources import ModelResources
@@ -26,6 +28,7 @@ from .resources import ModelResources
 logger = logging.getLogger(__name__)
 
 DECODE_MODES = ("gpu", "cpu")
+CULL_MODES = ("none", "frustum", "occlusion", "auto")
 
 
 def _background(colour) -> tuple[float, float, float]:
@@ -44,16 +47,25 @@ class BillboardRenderer:
     or "cpu" (numpy decode of each drawn billboard every frame, then one instanced
     draw of the per-frame atlas). spherical: quads also pitch toward the eye; None
     takes the model's ``pitched_quads``. background: RGB in [0, 1] (or 0–255).
-    clip: near/far planes (m).
+    clip: near/far planes (m). cull: "none"; "frustum" (the model's octree nodes
+    against the view frustum); "occlusion" (frustum, then hardware occlusion queries
+    over a screen-space quadtree, :class:`~render.occlusion.OcclusionCuller`); "auto"
+    (occlusion culling only while it pays for itself, measured per frame).
 
     After each :meth:`render` / :meth:`draw`, ``stats`` holds that frame's
-    draw_calls, instances, upload_bytes and timings (seconds).
+    draw_calls, instances, upload_bytes and timings (seconds), and with culling the
+    nodes and billboards left after each culling step.
     """
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, decode: str = "gpu", *,
-                 spherical: bool | None = None, background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes()):
+                 spherical: bool | None = None, background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(),
+                 cull: str = "none"):
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
+        if cull not in CULL_MODES:
+            raise ValueError(f"cull must be one of {CULL_MODES}, got {cull!r}")
+        self.cull = cull
+        self._cullers: dict[tuple[int, int], OcclusionCuller] = {}
         self.ctx = ctx
         self.model = model
         self.decode = decode
@@ -80,15 +92,59 @@ class BillboardRenderer:
         return gl_camera(K, world_from_cam, size, self.model.origin, self.clip)
 
     def draw(self, camera: GLCamera, visible=None) -> dict:
-        """Draw into the currently bound framebuffer (for a viewer); returns and stores the stats."""
+        """Draw into the currently bound framebuffer (for a viewer); returns and stores the stats.
+
+        With culling on, the framebuffer's depth must have been cleared and its viewport
+        must be the camera's size; ``visible`` (if given) is drawn without culling.
+        """
         if self._released:
             raise RuntimeError("BillboardRenderer used after release()")
         self.ctx.enable_only(moderngl.DEPTH_TEST)
         t0 = time.perf_counter()
-        stats = self.decoder.draw(camera, visible)
+        if self.cull == "none" or visible is not None or self.model.num_billboards == 0:
+            stats = self.decoder.draw(camera, visible)
+        else:
+            stats = self._draw_culled(camera)
         stats["draw_s"] = time.perf_counter() - t0
         self.stats = stats
         return stats
+
+    def _draw_culled(self, camera: GLCamera) -> dict:
+        """Frustum culling over the octree nodes, then (occlusion/auto) the occlusion culler."""
+        model = self.model
+        t0 = time.perf_counter()
+        view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
+        pad = billboard_radius(model.voxel_size)
+        frustum = frustum_cull_nodes(frustum_planes(view_proj), model.node_bounds, model.node_children,
+                                     model.node_range, pad=pad, centres=model.centres, radius=pad,
+                                     split_inside_above=256)
+        after_frustum = int(np.sum(np.diff(frustum.visible_ranges, axis=1))) if len(frustum.visible_ranges) else 0
+        info = {"billboards": model.num_billboards, "nodes_tested": frustum.nodes_tested,
+                "billboards_after_frustum": after_frustum, "frustum_s": time.perf_counter() - t0}
+        totals = {"draw_calls": 0, "instances": 0, "upload_bytes": 0}
+
+        def draw_ranges(ranges) -> None:
+            indices = ranges_to_indices(ranges)
+            if len(indices) == 0:
+                return
+            part = self.decoder.draw(camera, indices)
+            for key in totals:
+                totals[key] += int(part.get(key, 0))
+
+        if self.cull == "frustum":
+            draw_ranges(frustum.visible_ranges)
+            info["billboards_drawn"] = after_frustum
+        else:
+            size = camera.size
+            culler = self._cullers.get(size)
+            if culler is None:
+                mode = "on" if self.cull == "occlusion" else "auto"
+                culler = self._cullers[size] = OcclusionCuller(self.ctx, size[0], size[1], mode=mode)
+            cull = culler.cull_nodes(view_proj, frustum, model.node_bounds, draw_ranges, pad=pad)
+            info.update(billboards_drawn=int(cull.billboards_drawn), objects=int(cull.objects),
+                        objects_drawn=int(cull.objects_drawn), queries=int(cull.queries),
+                        occlusion_on=bool(cull.active), cull_s=float(cull.cull_s))
+        return {**totals, **info}
 
     def framebuffer(self, size) -> moderngl.Framebuffer:
         """The offscreen framebuffer for ``size`` = (w, h), created on first use."""
@@ -136,6 +192,9 @@ class BillboardRenderer:
             colour.release()
             depth.release()
         self._targets = {}
+        for culler in self._cullers.values():
+            culler.release()
+        self._cullers = {}
         if self.decoder is not None:
             self.decoder.release()
         if self.resources is not None:
