@@ -5,7 +5,8 @@ at the facades on either side and along the street; the street runs along +x in
 world coordinates) at 1280×720 and reports frames per second of
 :meth:`~render.renderer.BillboardRenderer.render` (draw plus read-back, which waits
 for the frame to finish) for each decode mode, and the ratio GPU/CPU measured in the
-same run. ``bbcity bench`` can call :func:`decode_fps`.
+same run; with ``--cull``, the frame rate and drawn billboards of each culling mode
+(:func:`cull_fps`). ``bbcity bench`` can call both.
 """
 
 from __future__ import annotations
@@ -58,12 +59,35 @@ def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1
     return rows
 
 
+def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720), frames: int = 10,
+             K=None, modes=("none", "frustum", "occlusion", "auto")) -> list[dict]:
+    """GPU-decode frame rate per culling mode and view, with the billboards left after each
+    culling step: rows {cull, view, fps, ms, after_frustum, drawn, queries, draw_calls}."""
+    K = default_intrinsics(*size) if K is None else K
+    rows = []
+    for mode in modes:
+        with BillboardRenderer(ctx, model, "gpu", cull=mode) as renderer:
+            for name, pose in views.items():
+                renderer.render(K, pose, size)  # warm-up (and a first frame for temporal reuse)
+                t0 = time.perf_counter()
+                for _ in range(frames):
+                    renderer.render(K, pose, size)
+                dt = (time.perf_counter() - t0) / frames
+                st = renderer.stats
+                rows.append({"cull": mode, "view": name, "fps": 1 / dt, "ms": 1000 * dt,
+                             "after_frustum": st.get("billboards_after_frustum", model.num_billboards),
+                             "drawn": st.get("billboards_drawn", st.get("instances", model.num_billboards)),
+                             "queries": st.get("queries", 0), "draw_calls": st.get("draw_calls", 0)})
+    return rows
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model", help="billboard model directory")
     parser.add_argument("--size", type=int, nargs=2, default=(1280, 720), metavar=("W", "H"))
     parser.add_argument("--gpu-frames", type=int, default=10)
     parser.add_argument("--cpu-frames", type=int, default=3)
+    parser.add_argument("--cull", action="store_true", help="also compare the culling modes (GPU decode)")
     args = parser.parse_args(argv)
     model = load(args.model)
     ctx = create_context()
@@ -79,6 +103,10 @@ def main(argv=None) -> None:
         fps = {r["decode"]: r["fps"] for r in rows if r["view"] == view}
         if "gpu" in fps and "cpu" in fps:
             print(f"GPU/CPU decode fps ratio, {view}: {fps['gpu'] / fps['cpu']:.1f}×")
+    if args.cull:
+        for r in cull_fps(ctx, model, street_views(), tuple(args.size), args.gpu_frames):
+            print(f"cull {r['cull']:>9} {r['view']:>10}: {r['fps']:6.2f} fps, {r['after_frustum']} billboards after "
+                  f"frustum, {r['drawn']} drawn, {r['queries']} queries, {r['draw_calls']} draw calls")
     ctx.release()
 
 
