@@ -311,6 +311,47 @@ def _run_bench(args) -> int:
     return 0
 
 
+def _add_view(sub) -> None:
+    try:
+        from render.viewer import KEYS_HELP
+    except ImportError:  # the viewer's GL dependencies are missing; the command still parses
+        KEYS_HELP = None
+
+    p = sub.add_parser(
+        "view", help="open a billboard model in an interactive window (fly, drive, toggles, screenshots)",
+        description="Open a billboard model in a moderngl-window window: mouse look and WASD/QE fly, a drive "
+                    "mode along the capture path, GPU/CPU decode and culling toggles; the title bar shows fps, "
+                    "drawn/culled billboards, decode and cull mode. With --script-frames it renders that many "
+                    "frames along the drive path, saves a screenshot and exits (runs under xvfb-run).",
+        epilog=KEYS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("model", type=Path, help="billboard model directory")
+    p.add_argument("--size", type=int, nargs=2, default=(1280, 720), metavar=("W", "H"), help="window size")
+    p.add_argument("--decode", choices=("gpu", "cpu"), default="gpu", help="texture decode at start")
+    p.add_argument("--cull", choices=("none", "frustum", "occlusion", "auto"), default="frustum",
+                   help="culling mode at start")
+    p.add_argument("--mode", choices=("drive", "fly"), default="drive", help="camera mode at start")
+    p.add_argument("--window", default="auto",
+                   help="moderngl-window backend: auto (pyglet, else headless), pyglet, glfw, headless, ...")
+    p.add_argument("--screenshot-dir", type=Path, default=Path("."), help="where F12/P screenshots go")
+    p.add_argument("--script-frames", type=int, default=0,
+                   help="render this many frames along the drive path (no input), save a screenshot, exit")
+    p.add_argument("--screenshot", type=Path, default=None, help="PNG path for the --script-frames screenshot")
+    p.set_defaults(func=_run_view)
+
+
+def _run_view(args) -> int:
+    from billboards.model import load
+    from render.viewer import run_viewer
+
+    model = load(args.model)
+    out = run_viewer(model, size=tuple(args.size), decode=args.decode, cull=args.cull, window=args.window,
+                     screenshot_dir=args.screenshot_dir, script_frames=args.script_frames,
+                     screenshot=args.screenshot, mode=args.mode)
+    if out is not None:
+        logger.info("screenshot %s", out)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="bbcity", description="Street captures from a three-camera rig to a compact billboard city model.")
@@ -327,6 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_stereo_sweep(sub)
     _add_check(sub)
     _add_bench(sub)
+    _add_view(sub)
     return parser
 
 

@@ -1,0 +1,415 @@
+"""Interactive viewer: a real window (moderngl-window) around :class:`BillboardRenderer`.
+
+Fly with the mouse and WASD/QE, or drive along the capture path; toggle GPU/CPU
+decode, cycle the culling modes, wireframe; the title bar shows fps, drawn
+billboard counts, decode and cull mode. F12 or P saves a screenshot.
+
+:class:`FlyCamera` and :class:`DrivePath` are pure numpy (world coordinates, z up,
+float64) so they can be tested without a window. ``run_viewer(..., script_frames=N)``
+renders N frames along the drive path with a fixed time step, saves the last one and
+exits (for tests and automation; works under ``xvfb-run``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .benchmark import default_intrinsics
+from .camera import look_at
+from .renderer import CULL_MODES, DECODE_MODES, BillboardRenderer
+
+logger = logging.getLogger(__name__)
+
+KEYS_HELP = """\
+keys:
+  mouse drag     look around (fly mode)
+  W/A/S/D        fly forward / left / back / right
+  Q/E            fly down / up            (hold Shift: 5x faster)
+  M              toggle fly / drive (follow the capture path)
+  + / -          drive speed up / down    (also fly speed)
+  G              toggle GPU / CPU decode
+  C              cycle culling: none, frustum, occlusion, auto
+  F              toggle wireframe (billboard outlines)
+  F12 or P       save a screenshot PNG to --screenshot-dir
+  H              print this help
+  Esc            quit"""
+
+UP = np.array([0.0, 0.0, 1.0])
+MAX_PITCH = np.deg2rad(89.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# pure-numpy camera models
+
+
+@dataclass
+class FlyCamera:
+    """A free-flying camera: ``position`` (world, float64), ``yaw`` about +z (0 looks
+    along +x, π/2 along +y) and ``pitch`` (positive looks up), radians."""
+
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    yaw: float = 0.0
+    pitch: float = 0.0
+    speed: float = 5.0  # m/s
+    sensitivity: float = 0.003  # radians per pixel of mouse drag
+
+    def __post_init__(self):
+        self.position = np.asarray(self.position, np.float64).reshape(3).copy()
+
+    @property
+    def forward(self) -> np.ndarray:
+        cp = np.cos(self.pitch)
+        return np.array([cp * np.cos(self.yaw), cp * np.sin(self.yaw), np.sin(self.pitch)])
+
+    @property
+    def right(self) -> np.ndarray:
+        return np.array([np.sin(self.yaw), -np.cos(self.yaw), 0.0])
+
+    def rotate(self, dx: float, dy: float) -> None:
+        """Mouse drag by (dx, dy) pixels: right turns right, down looks down."""
+        self.yaw -= dx * self.sensitivity
+        self.pitch = float(np.clip(self.pitch - dy * self.sensitivity, -MAX_PITCH, MAX_PITCH))
+
+    def step(self, dt: float, keys) -> np.ndarray:
+        """Move for ``dt`` seconds with the held ``keys`` (letters "w a s d q e", "shift"); returns the pose."""
+        keys = {str(k).lower() for k in keys}
+        move = np.zeros(3)
+        move += self.forward * (("w" in keys) - ("s" in keys))
+        move += self.right * (("d" in keys) - ("a" in keys))
+        move += UP * (("e" in keys) - ("q" in keys))
+        n = np.linalg.norm(move)
+        if n > 0:
+            speed = self.speed * (5.0 if "shift" in keys else 1.0)
+            self.position = self.position + move / n * speed * dt
+        return self.pose()
+
+    def pose(self) -> np.ndarray:
+        """world_from_cam (4, 4) float64, OpenCV convention."""
+        return look_at(self.position, self.position + self.forward)
+
+    def look_from(self, world_from_cam: np.ndarray) -> None:
+        """Take position and viewing direction from an OpenCV pose."""
+        T = np.asarray(world_from_cam, np.float64)
+        self.position = T[:3, 3].copy()
+        z = T[:3, 2]
+        self.yaw = float(np.arctan2(z[1], z[0]))
+        self.pitch = float(np.clip(np.arcsin(np.clip(z[2], -1, 1)), -MAX_PITCH, MAX_PITCH))
+
+
+class DrivePath:
+    """A looping polyline of camera positions (world, float64) parametrised by arc length."""
+
+    def __init__(self, points, speed: float = 8.0, lookahead: float = 5.0):
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        if len(pts) == 0:
+            raise ValueError("a drive path needs at least one point")
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-9])
+        pts = pts[keep]
+        if len(pts) == 1:
+            pts = np.stack([pts[0], pts[0] + [1.0, 0.0, 0.0]])
+        self.points = pts
+        self.cumlen = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        self.speed = float(speed)
+        self.lookahead = float(lookahead)
+        self.s = 0.0
+
+    @property
+    def length(self) -> float:
+        return float(self.cumlen[-1])
+
+    def position(self, s: float) -> np.ndarray:
+        """Point at arc length ``s`` (wraps around: the path loops)."""
+        s = float(s) % self.length
+        i = int(np.clip(np.searchsorted(self.cumlen, s, side="right") - 1, 0, len(self.points) - 2))
+        seg = self.cumlen[i + 1] - self.cumlen[i]
+        a = (s - self.cumlen[i]) / seg if seg > 0 else 0.0
+        return self.points[i] * (1 - a) + self.points[i + 1] * a
+
+    def heading(self, s: float) -> np.ndarray:
+        """Unit viewing direction at ``s``: toward the point ``lookahead`` metres ahead (smooth at corners)."""
+        d = self.position(s + self.lookahead) - self.position(s)
+        if np.linalg.norm(d[:2]) < 1e-6:  # wrapped onto itself: use the local segment
+            d = self.position(s + 1e-3) - self.position(s)
+        if np.linalg.norm(d[:2]) < 1e-9:
+            d = np.array([1.0, 0.0, 0.0])
+        return d / np.linalg.norm(d)
+
+    def pose(self, s: float | None = None) -> np.ndarray:
+        s = self.s if s is None else s
+        p = self.position(s)
+        return look_at(p, p + self.heading(s))
+
+    def step(self, dt: float) -> np.ndarray:
+        self.s = (self.s + self.speed * dt) % self.length
+        return self.pose()
+
+
+def drive_path_for(model, height: float = 2.0) -> DrivePath:
+    """The capture path from ``model.info["dataset"]`` (poses.json, at ``height`` above
+    the rig), else a straight line at ``height`` along the model's x extent."""
+    dataset = (model.info or {}).get("dataset") if isinstance(model.info, dict) else None
+    if dataset:
+        try:
+            from data_synth.rig import load_poses
+
+            world_from_rig, _ = load_poses(Path(dataset) / "poses.json")
+            pts = world_from_rig[:, :3, 3] + [0.0, 0.0, height]
+            return DrivePath(pts)
+        except Exception as e:  # missing or moved dataset: fall back to the model's extent
+            logger.info("no capture path from %s (%s); driving along the model", dataset, e)
+    origin = np.asarray(model.origin, np.float64)
+    c = np.asarray(model.centres, np.float64)
+    if len(c) == 0:
+        return DrivePath([origin + [0, 0, height], origin + [10.0, 0, height]])
+    lo, hi = c.min(0), c.max(0)
+    y = float(np.median(c[:, 1]))
+    z = float(lo[2]) + height
+    start = origin + [lo[0] - 10.0, y, z]
+    end = origin + [hi[0] + 10.0, y, z]
+    return DrivePath([start, end])
+
+
+# ----------------------------------------------------------------------------------------------
+# the window
+
+
+def _window_class(name: str):
+    from moderngl_window import get_local_window_cls
+
+    return get_local_window_cls(name)
+
+
+def _make_window(kind: str, size, title: str):
+    """A moderngl-window window; "auto" tries pyglet (needs a display) then headless."""
+    import moderngl_window
+
+    order = ["pyglet", "headless"] if kind == "auto" else [kind]
+    errors = []
+    for name in order:
+        try:
+            cls = _window_class(name)
+            extra = {"backend": "egl"} if name == "headless" else {}  # no X display needed
+            wnd = cls(title=title, size=tuple(size), gl_version=(3, 3), vsync=False, resizable=True,
+                      visible=True, **extra)
+            moderngl_window.activate_context(window=wnd)
+            if wnd.ctx.version_code < 330:
+                raise RuntimeError(f"OpenGL {wnd.ctx.version_code} < 330")
+            if name != order[0]:
+                logger.warning("window %s unavailable (%s); using %s", order[0], "; ".join(errors), name)
+            return wnd
+        except Exception as e:
+            errors.append(f"{name}: {e}")
+    raise RuntimeError("no window: " + "; ".join(errors))
+
+
+try:
+    from moderngl_window import WindowConfig as _WindowConfig
+except ImportError:  # pragma: no cover - moderngl-window is a dependency of the viewer only
+    _WindowConfig = object
+
+
+class ViewerApp(_WindowConfig):
+    """The viewer's moderngl-window config: event handlers plus one :meth:`on_render` per frame."""
+
+    title = "bbcity"
+    gl_version = (3, 3)
+
+    def __init__(self, model, decode: str = "gpu", cull: str = "frustum", background=(0.55, 0.7, 0.9),
+                 screenshot_dir: Path = Path("."), mode: str = "drive", **kwargs):
+        super().__init__(**kwargs)
+        if decode not in DECODE_MODES:
+            raise ValueError(f"decode must be one of {DECODE_MODES}")
+        if cull not in CULL_MODES:
+            raise ValueError(f"cull must be one of {CULL_MODES}")
+        self.model = model
+        self.decode = decode
+        self.cull = cull
+        self.background = background
+        self.screenshot_dir = Path(screenshot_dir)
+        self.path = drive_path_for(model)
+        self.fly = FlyCamera()
+        self.fly.look_from(self.path.pose())
+        self.mode = mode
+        self.held: set[str] = set()
+        self.wireframe = False
+        self.renderer: BillboardRenderer | None = None
+        self._rebuild()
+        self.fps = 0.0
+        self._fps_frames, self._fps_t0 = 0, time.perf_counter()
+        self._title_t = 0.0
+        self.shots: list[Path] = []
+
+    # -- state
+    def _rebuild(self) -> None:
+        if self.renderer is not None:
+            self.renderer.release()
+        self.renderer = BillboardRenderer(self.ctx, self.model, self.decode, cull=self.cull,
+                                          background=self.background)
+
+    def pose(self, dt: float) -> np.ndarray:
+        if self.mode == "drive":
+            return self.path.step(dt)
+        return self.fly.step(dt, self.held)
+
+    # -- rendering
+    def on_render(self, time_s: float, frame_time: float) -> None:
+        self.render_frame(min(float(frame_time), 0.1))
+
+    def render_frame(self, dt: float) -> dict:
+        wnd = self.wnd
+        w, h = wnd.buffer_size
+        pose = self.pose(dt)
+        wnd.use()
+        self.ctx.viewport = (0, 0, w, h)
+        self.ctx.wireframe = False
+        r = self.renderer
+        self.ctx.clear(*r.background, 1.0, depth=1.0)
+        camera = r.camera(default_intrinsics(w, h), pose, (w, h))
+        self.ctx.wireframe = self.wireframe
+        try:
+            stats = r.draw(camera)
+        finally:
+            self.ctx.wireframe = False
+        self._fps_frames += 1
+        now = time.perf_counter()
+        if now - self._fps_t0 >= 0.5:
+            self.fps = self._fps_frames / (now - self._fps_t0)
+            self._fps_frames, self._fps_t0 = 0, now
+        if now - self._title_t > 0.25:
+            self._title_t = now
+            wnd.title = self.hud(stats)
+        return stats
+
+    def hud(self, stats: dict | None = None) -> str:
+        s = self.renderer.stats if stats is None else stats
+        total = self.model.num_billboards
+        drawn = int(s.get("billboards_drawn", s.get("instances", total)))
+        extra = f" speed {self.path.speed:.0f} m/s" if self.mode == "drive" else ""
+        return (f"bbcity | {self.fps:5.1f} fps | drawn {drawn}/{total} culled {total - drawn} | "
+                f"decode {self.decode} | cull {self.cull} | {self.mode}{extra}"
+                + (" | wireframe" if self.wireframe else ""))
+
+    def read_image(self) -> np.ndarray:
+        """The window's current colour buffer as (h, w, 3) uint8, row 0 at the top."""
+        w, h = self.wnd.buffer_size
+        data = self.wnd.fbo.read(viewport=(0, 0, w, h), components=3, alignment=1)
+        return np.frombuffer(data, np.uint8).reshape(h, w, 3)[::-1].copy()
+
+    def screenshot(self, path: Path | None = None) -> Path:
+        from data_synth.fileio import write_png
+
+        if path is None:
+            self.screenshot_dir.mkdir(parents=True, exist_ok=True)
+            path = self.screenshot_dir / time.strftime(f"bbcity-%Y%m%d-%H%M%S-{len(self.shots):03d}.png")
+        out = write_png(path, self.read_image())
+        self.shots.append(Path(out))
+        logger.info("screenshot %s", out)
+        return Path(out)
+
+    # -- input
+    def _name(self, key) -> str | None:
+        k = self.wnd.keys
+        for name in ("W", "A", "S", "D", "Q", "E", "M", "G", "C", "F", "P", "H", "F12", "ESCAPE",
+                     "LEFT_SHIFT", "RIGHT_SHIFT", "EQUAL", "MINUS", "NUMPAD_ADD", "NUMPAD_SUBTRACT"):
+            if getattr(k, name, None) == key and key != "undefined":
+                return name
+        return None
+
+    def on_key_event(self, key, action, modifiers) -> None:
+        name = self._name(key)
+        if name is None:
+            return
+        held = {"LEFT_SHIFT": "shift", "RIGHT_SHIFT": "shift"}.get(name, name.lower())
+        if action == self.wnd.keys.ACTION_RELEASE:
+            self.held.discard(held)
+            return
+        if action != self.wnd.keys.ACTION_PRESS:
+            return
+        self.held.add(held)
+        self.handle_command(name, shift=bool(getattr(modifiers, "shift", False)))
+
+    def handle_command(self, name: str, shift: bool = False) -> None:
+        """One key press (by moderngl-window key name); also used by scripts and tests."""
+        if name == "M":
+            if self.mode == "drive":
+                self.fly.look_from(self.path.pose())
+                self.mode = "fly"
+            else:
+                self.mode = "drive"
+        elif name == "G":
+            self.decode = "cpu" if self.decode == "gpu" else "gpu"
+            self._rebuild()
+        elif name == "C":
+            self.cull = CULL_MODES[(CULL_MODES.index(self.cull) + 1) % len(CULL_MODES)]
+            self._rebuild()
+        elif name == "F":
+            self.wireframe = not self.wireframe
+        elif name in ("F12", "P"):
+            self.screenshot()
+        elif name == "H":
+            print(KEYS_HELP, flush=True)
+        elif name in ("EQUAL", "NUMPAD_ADD") or (name == "EQUAL" and shift):
+            self.path.speed *= 1.5
+            self.fly.speed *= 1.5
+        elif name in ("MINUS", "NUMPAD_SUBTRACT"):
+            self.path.speed /= 1.5
+            self.fly.speed /= 1.5
+        elif name == "ESCAPE":
+            self.wnd.close()
+        logger.info("%s", self.hud())
+
+    def on_mouse_drag_event(self, x, y, dx, dy) -> None:
+        if self.mode == "fly":
+            self.fly.rotate(dx, dy)
+
+    def on_close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.release()
+            self.renderer = None
+
+
+def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "frustum", window: str = "auto",
+               screenshot_dir: Path = Path("."), script_frames: int = 0, screenshot: Path | None = None,
+               script_dt: float = 1 / 30, mode: str = "drive") -> Path | None:
+    """Open the viewer. With ``script_frames`` > 0: render that many frames along the
+    drive path with a fixed ``script_dt``, save the last one to ``screenshot`` (or the
+    screenshot dir) and return its path; otherwise run until the window closes."""
+    from moderngl_window.timers.clock import Timer
+
+    wnd = _make_window(window, size, "bbcity")
+    logger.info("window %s, %s", type(wnd).__module__, wnd.ctx.info["GL_RENDERER"])
+    timer = Timer()
+    app = ViewerApp(model, decode=decode, cull=cull, screenshot_dir=screenshot_dir, mode=mode,
+                    ctx=wnd.ctx, wnd=wnd, timer=timer)
+    wnd.config = app
+    out = None
+    try:
+        if script_frames > 0:
+            for _ in range(int(script_frames)):
+                app.render_frame(script_dt)
+                if hasattr(wnd, "process_events"):
+                    wnd.process_events()
+            app.ctx.finish()
+            out = app.screenshot(screenshot)
+            if not wnd.headless:
+                wnd.swap_buffers()
+            logger.info("%s", app.hud())
+        else:
+            print(KEYS_HELP, flush=True)
+            timer.start()
+            while not wnd.is_closing:
+                _, dt = timer.next_frame()
+                wnd.use()
+                wnd.render(0.0, dt)
+                if not wnd.is_closing:
+                    wnd.swap_buffers()
+            timer.stop()
+    finally:
+        app.on_close()
+        wnd.destroy()
+    return out
