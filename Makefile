@@ -34,6 +34,7 @@ demo: $(INSTALL_STAMP)
 	$(BIN)/bbcity synth street --out $(DEMO_DIR)/street
 	$(BIN)/bbcity recon $(DEMO_DIR)/street --out $(DEMO_DIR)/work
 	$(BIN)/bbcity build $(DEMO_DIR)/work --out $(DEMO_DIR)/model
+	$(BIN)/bbcity render $(DEMO_DIR)/model --path capture --frames 300 --out $(DEMO_DIR)/flythrough.mp4
 
 test: $(INSTALL_STAMP)
 	$(BIN)/python -m pytest -q

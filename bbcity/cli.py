@@ -311,6 +311,36 @@ def _run_bench(args) -> int:
     return 0
 
 
+def _add_render(sub) -> None:
+    p = sub.add_parser("render", help="render a billboard model along a camera path into frames or a video",
+                       description="Render MODEL offscreen (EGL) along --path: capture (the capture drive), orbit "
+                                   "(a circle above the model) or FILE (a dataset directory, or a JSON list of 4×4 "
+                                   "world_from_cam matrices) into PNG frames (--out DIR) or a video (--out X.mp4).")
+    p.add_argument("model", type=Path, help="billboard model directory")
+    p.add_argument("--path", default="capture", help="capture, orbit or a FILE (default capture)")
+    p.add_argument("--out", type=Path, required=True, help="frames directory, or a video file (.mp4, .mkv, ...)")
+    p.add_argument("--size", type=int, nargs=2, default=(1280, 720), metavar=("W", "H"), help="default 1280 720")
+    p.add_argument("--frames", type=int, default=300, help="frames along capture/orbit paths (default 300)")
+    p.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
+    p.add_argument("--decode", choices=("gpu", "cpu"), default="gpu", help="texture decode (default gpu)")
+    p.add_argument("--cull", choices=("none", "frustum", "occlusion", "auto"), default="frustum",
+                   help="culling (default frustum)")
+    p.set_defaults(func=_run_render)
+
+
+def _run_render(args) -> int:
+    from billboards.model import load
+    from render.fly_through import camera_path, render_path
+
+    if args.frames < 1 or min(args.size) < 1:
+        raise ValueError("--frames and --size must be positive")
+    model = load(args.model)
+    poses = camera_path(model, args.path, args.frames)
+    render_path(model, poses, args.out, tuple(args.size), decode=args.decode, cull=args.cull, fps=args.fps)
+    logger.info("wrote %s", args.out)
+    return 0
+
+
 def _add_view(sub) -> None:
     try:
         from render.viewer import KEYS_HELP
@@ -369,6 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_check(sub)
     _add_bench(sub)
     _add_view(sub)
+    _add_render(sub)
     return parser
 
 
