@@ -210,3 +210,31 @@ def test_city_coordinates_give_the_same_model(tiny_dataset, tiny_cloud, tiny_mod
     ids = np.arange(0, near_model.num_billboards, 7)
     diff = billboard_model.decode_directions(far_model, ids) - billboard_model.decode_directions(near_model, ids)
     assert 10 * np.log10(1 / max(np.mean(diff ** 2), 1e-12)) > 40
+
+
+def test_eval_of_the_tiny_model_against_ground_truth(tiny_dataset, tiny_cloud, tiny_model, tmp_path):
+    out = tmp_path / "eval"
+    assert cli_main(["-q", "eval", str(tiny_model.model), str(tiny_dataset), "--cloud", str(tiny_cloud),
+                     "--views", "2", "--out", str(out)]) == 0
+    report = json.loads((out / "eval_report.json").read_text())
+    assert set(report["summary"]) == {f"{m}, {v}" for m in ("billboards", "point projection")
+                                      for v in ("on path", "off path")}
+    for m in report["summary"].values():
+        assert 5 < m["psnr"] < 100 and -1 <= m["ssim"] <= 1
+    assert report["bytes"]["billboards"] > 0 and report["bytes"]["point projection"] > 0
+    assert "off path" in (out / "eval.md").read_text()
+
+
+def test_metrics_on_known_images():
+    from render.evaluate import off_path, psnr, ssim
+
+    a = np.full((20, 30, 3), 100, np.uint8)
+    b = a.copy()
+    b[0, 0] = 110
+    assert psnr(a, a) == 100.0 and ssim(a, a) == pytest.approx(1.0)
+    assert psnr(a, b) == pytest.approx(10 * np.log10(255 ** 2 / (100 / (20 * 30 * 3) * 3)), rel=1e-9)
+    assert np.isnan(psnr(a, b, np.zeros((20, 30), bool)))
+    pose = np.eye(4)
+    pose[:3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]  # looking along +y
+    moved = off_path(pose)
+    np.testing.assert_allclose(moved[:3, 3], [0, -2, 1])
