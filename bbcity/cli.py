@@ -140,6 +140,8 @@ def _add_build(sub) -> None:
     p.add_argument("--tile-mode", choices=("u8", "f16"), default="u8", help="eigen image precision (default u8)")
     p.add_argument("--coef-mode", choices=("f32", "f16", "u8"), default="f16", help="coefficient precision (default f16)")
     p.add_argument("--page-size", type=int, default=8192, help="atlas page edge in texels (default 8192)")
+    p.add_argument("--holdout", type=int, default=0,
+                   help="leave every n-th frame's images out of the textures (for `bbcity eval`; default 0: none)")
     p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_build)
 
@@ -169,7 +171,8 @@ def build_config_from_args(args):
                           min_points=args.min_points)
     sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
-                       tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size)
+                       tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
+                       holdout=args.holdout)
 
 
 def _run_build(args) -> int:

@@ -54,10 +54,13 @@ class BuildConfig:
     chunk: int = 128             # billboards sampled and compressed together (bounds memory)
     task_chunks: int = 8         # chunks per worker task (neighbouring billboards share cached images)
     error_stride: int = 4        # decode PSNR is measured on every n-th billboard (1: all)
+    holdout: int = 0             # leave every n-th frame's images out of the sampling (for novel-view tests; 0: none)
 
     def __post_init__(self):
         if self.source not in SOURCES:
             raise ValueError(f"source must be one of {SOURCES}, got {self.source!r}")
+        if self.holdout < 0 or self.holdout == 1:
+            raise ValueError("holdout must be 0 (none) or ≥ 2 (every n-th frame left out)")
         if self.chunk < 1 or self.task_chunks < 1 or self.error_stride < 1:
             raise ValueError("chunk, task_chunks and error_stride must be ≥ 1")
 
@@ -226,8 +229,14 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                 octree.voxel_size, octree.depth)
 
     views = None
+    held_out: list[int] = []
     if dataset_dir is not None:
-        views = views_from_dataset(load_dataset(dataset_dir))
+        dataset = load_dataset(dataset_dir)
+        frames = list(range(dataset.num_frames))
+        if conf.holdout:
+            held_out = [f for f in frames if f % conf.holdout == conf.holdout // 2]
+            frames = [f for f in frames if f % conf.holdout != conf.holdout // 2]
+        views = views_from_dataset(dataset, frames)
     elif conf.source == "images":
         raise ValueError("source 'images' needs the dataset's images and poses (--images DATASET)")
     sampling = conf.sampling
@@ -284,7 +293,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             t4 = time.perf_counter()
             nodes = _node_table(octree)
             info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,
-                    "cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir)}
+                    "cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir),
+                    "held_out_frames": held_out}
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,
                           yaw_offsets=conf.sampling.directions.yaw_offsets, pitches=conf.sampling.directions.pitches,
                           pitched_quads=conf.sampling.directions.pitched_quads, info=info, **nodes)

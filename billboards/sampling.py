@@ -91,10 +91,10 @@ class Views:
         return read_png(self.paths[i], tuple(int(s) for s in self.sizes[i]))
 
 
-def views_from_dataset(dataset) -> Views:
-    """Every (frame, camera) image of a :class:`data_synth.Dataset`."""
+def views_from_dataset(dataset, frames=None) -> Views:
+    """The (frame, camera) images of a :class:`data_synth.Dataset`: every frame, or ``frames``."""
     K, poses, sizes, paths = [], [], [], []
-    for f in range(dataset.num_frames):
+    for f in (range(dataset.num_frames) if frames is None else frames):
         for c in range(dataset.rig.num_cameras):
             K.append(dataset.rig.intrinsics[c])
             poses.append(dataset.world_from_cam(f, c))

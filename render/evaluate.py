@@ -1,6 +1,7 @@
 """Novel-view quality of a billboard model against the ground-truth renderer (``bbcity eval``).
 
-Viewpoints: capture viewpoints (camera 0 of frames spread along the path) and
+Viewpoints: capture viewpoints (camera 0 of frames spread along the path; the
+frames the model was built without, ``bbcity build --holdout N``, when it has them) and
 off-path viewpoints (the same cameras moved 2 m sideways, away from the facade
 they look at, and 1 m up). Each is rendered three ways and compared with
 :func:`data_synth.render_view`: the billboard model (GPU decode), and the
@@ -118,7 +119,9 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         points, colours = read_cloud_arrays(cloud_path)
         baseline = PointProjector(points, colours)
         del points, colours
-    frames = np.unique(np.linspace(0, ds.num_frames - 1, max(1, views)).round().astype(int))
+    held_out = [int(f) for f in (model.info or {}).get("held_out_frames", []) if 0 <= int(f) < ds.num_frames]
+    pool = np.asarray(held_out) if held_out else np.arange(ds.num_frames)
+    frames = np.unique(pool[np.linspace(0, len(pool) - 1, max(1, views)).round().astype(int)])
     rows = []
     for f in frames:
         for kind, pose in (("on path", ds.world_from_cam(int(f), 0)), ("off path", off_path(ds.world_from_cam(int(f), 0)))):
@@ -138,6 +141,7 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
             summary[f"{method}, {kind}"] = {k: float(np.nanmean([r[k] for r in sel]))
                                             for k in ("psnr", "psnr_geometry", "ssim", "ssim_geometry")}
     return {"dataset": str(dataset_dir), "views": len(frames), "size": list(size),
+            "held_out": bool(held_out), "frames": frames.tolist(),
             "bytes": {"billboards": int(model.nbytes()["total"]),
                       **({"point projection": int(baseline.nbytes)} if baseline is not None else {})},
             "summary": summary, "per_view": rows, "seconds": time.perf_counter() - t0}
@@ -145,7 +149,8 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
 
 def markdown(report: dict) -> str:
     """The summary as a Markdown table."""
-    lines = [f"# Novel views against ground truth ({report['views']} capture viewpoints, each also moved "
+    kind = "held-out" if report.get("held_out") else "capture (used for the textures)"
+    lines = [f"# Novel views against ground truth ({report['views']} {kind} viewpoints, each also moved "
              f"2 m sideways and 1 m up; {report['size'][0]}×{report['size'][1]})", "",
              "| method, viewpoints | PSNR (dB) | PSNR on geometry (dB) | SSIM | SSIM on geometry | bytes |",
              "|---|---|---|---|---|---|"]
