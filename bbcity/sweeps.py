@@ -159,29 +159,22 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
     texel size, then compresses the same samples under every setting. Writes
     ``texture_sweep.json``, ``texture_sweep.md`` and ``texture_sweep.png``.
     """
-    from billboards.build import BuildConfig, compress_chunk
-    from billboards.geometry import base_yaw_toward
+    from billboards.build import BuildConfig, compress_chunk, place_billboards
     from billboards.octree import build_octree
-    from billboards.sampling import ImageSampler, quad_centres, views_from_dataset, voxel_points
-    from billboards.splat import PointSampler
+    from billboards.sampling import views_from_dataset
     from recon.cloud_io import read_cloud_arrays
 
     base = BuildConfig(error_stride=1)
     points, colours = read_cloud_arrays(cloud_path)
     octree = build_octree(points, base.octree)
-    centres = octree.centres()
-    leaf = octree.leaves_of_points(points)
-    voxels = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
     views = views_from_dataset(load_dataset(dataset_dir)) if dataset_dir is not None else None
-    base_yaw = base_yaw_toward(centres, views.centres if views is not None else np.zeros((0, 3)))
-    quads = quad_centres(voxels, base_yaw)
+    placed = place_billboards(points, octree, views.centres if views is not None else None)
     first = max(0, octree.num_voxels // 2 - count // 2)
     ids = np.arange(first, min(octree.num_voxels, first + count))
     rows = []
 
     def run(label: str, rgba: np.ndarray, sample_s: float, conf) -> None:
         t0 = time.perf_counter()
-        arrays, stats = {}, {}
         parts = [compress_chunk(rgba[s:s + conf.chunk], conf) for s in range(0, len(rgba), conf.chunk)]
         compress_s = time.perf_counter() - t0
         sq = sum(p[1]["sq_err_decoded_rgb"] for p in parts)
@@ -203,12 +196,8 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
 
     for tile in tiles:
         sampling = dataclasses.replace(base.sampling, tile=tile)
-        if source == "images":
-            sampler = ImageSampler(views, quads, octree.voxel_size, base_yaw, voxels, sampling, box_centres=centres)
-        else:
-            keep = leaf >= 0
-            sampler = PointSampler(voxels, colours[keep][np.argsort(leaf[keep], kind="stable")], base_yaw, sampling,
-                                   centres=quads)
+        sampler = (placed.image_sampler(views, sampling) if source == "images"
+                   else placed.point_sampler(colours, sampling))
         t0 = time.perf_counter()
         rgba = np.concatenate([sampler.sample(ids[s:s + base.chunk]).rgba for s in range(0, len(ids), base.chunk)])
         sample_s = time.perf_counter() - t0

@@ -24,14 +24,14 @@ from pathlib import Path
 import numpy as np
 
 from data_synth import load_dataset
-from data_synth.fileio import load_npy, save_npy, write_json
+from data_synth.fileio import write_json
 from data_synth.tasks import ordered_results
 from recon.cloud_io import read_cloud_arrays
 
 from .geometry import DirectionConfig, base_yaw_toward
 from .model import ModelWriter
 from .octree import Octree, OctreeConfig, build_octree
-from .pca import EigenTextures, PcaConfig, eigen_textures
+from .pca import PcaConfig, eigen_textures
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
                        voxel_points)
@@ -63,6 +63,45 @@ class BuildConfig:
             raise ValueError("holdout must be 0 (none) or ≥ 2 (every n-th frame left out)")
         if self.chunk < 1 or self.task_chunks < 1 or self.error_stride < 1:
             raise ValueError("chunk, task_chunks and error_stride must be ≥ 1")
+
+
+@dataclass(frozen=True, eq=False)
+class Billboards:
+    """The voxels of a cloud, ready for sampling.
+
+    octree: the voxel leaves; leaf (N,) int64 voxel of each point (−1: none);
+    voxels: the points grouped by voxel (cube centres, for z-buffers and slabs);
+    base_yaw (n,) float64 world yaw toward the capture path; quads (n, 3) float64
+    quad centres on the surface (:func:`sampling.quad_centres`).
+    """
+
+    octree: Octree
+    leaf: np.ndarray
+    voxels: VoxelPoints
+    base_yaw: np.ndarray
+    quads: np.ndarray
+
+    def image_sampler(self, views: Views, config: SamplingConfig) -> ImageSampler:
+        return ImageSampler(views, self.quads, self.octree.voxel_size, self.base_yaw, self.voxels, config,
+                            box_centres=self.voxels.centres)
+
+    def voxel_colours(self, colours: np.ndarray) -> np.ndarray:
+        """(N', 3) uint8 colours of the points in voxels, in the order of ``voxels.points``."""
+        keep = self.leaf >= 0
+        return colours[keep][np.argsort(self.leaf[keep], kind="stable")]
+
+    def point_sampler(self, colours: np.ndarray, config: SamplingConfig) -> PointSampler:
+        return PointSampler(self.voxels, self.voxel_colours(colours), self.base_yaw, config, centres=self.quads)
+
+
+def place_billboards(points: np.ndarray, octree: Octree, viewpoints: np.ndarray | None) -> Billboards:
+    """Group ``points`` (N, 3) float64 by the voxels of ``octree`` and place their quads,
+    facing ``viewpoints`` (v, 3) float64 camera centres (None: base yaw 0)."""
+    centres = octree.centres()
+    leaf = octree.leaves_of_points(points)
+    voxels = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
+    base_yaw = base_yaw_toward(centres, np.zeros((0, 3)) if viewpoints is None else viewpoints)
+    return Billboards(octree, leaf, voxels, base_yaw, quad_centres(voxels, base_yaw))
 
 
 # --------------------------------------------------------------------------- worker side
@@ -245,23 +284,20 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         count = sampling.directions.count
         sampling = replace(sampling, directions=replace(sampling.directions, spacing_deg=360.0 / count))
     conf = replace(conf, sampling=sampling)
-    base_yaw = base_yaw_toward(centres, views.centres if views is not None else np.zeros((0, 3)))
 
     t2 = time.perf_counter()
     model_dir.parent.mkdir(parents=True, exist_ok=True)
     state = Path(tempfile.mkdtemp(prefix=f".{model_dir.name}.build-", dir=model_dir.parent))
     try:
-        leaf = octree.leaves_of_points(points)
-        grouped = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
-        quads = quad_centres(grouped, base_yaw)
+        placed = place_billboards(points, octree, views.centres if views is not None else None)
+        grouped, base_yaw, quads = placed.voxels, placed.base_yaw, placed.quads
         np.save(state / "quads.npy", quads)
         np.save(state / "points.npy", grouped.points)
         np.save(state / "begin.npy", grouped.begin)
         np.save(state / "centres.npy", centres)
         np.save(state / "base_yaw.npy", base_yaw)
         if conf.source == "points":
-            keep = leaf >= 0
-            np.save(state / "colours.npy", colours[keep][np.argsort(leaf[keep], kind="stable")])
+            np.save(state / "colours.npy", placed.voxel_colours(colours))
         meta = {"config": _config_to_json(conf), "origin": octree.origin.tolist(), "voxel_size": octree.voxel_size}
         if views is not None:
             np.save(state / "K.npy", views.K)
@@ -269,7 +305,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             np.save(state / "sizes.npy", views.sizes)
             meta["paths"] = [str(p) for p in views.paths]
         (state / "meta.json").write_text(json.dumps(meta))
-        del points, colours, grouped, leaf
+        del points, colours, grouped, placed
         stages["prepare_s"] = time.perf_counter() - t2
 
         n = octree.num_voxels

@@ -22,9 +22,10 @@ from data_synth.raycast import Renderer
 from data_synth.scene import OCCLUDER_KINDS
 from recon.cloud_io import read_cloud_arrays
 
-from .geometry import base_yaw_toward, direction_angles, quad_frames, ray_box_interval, texel_points
+from .build import place_billboards
+from .geometry import direction_angles, quad_frames, ray_box_interval, texel_points
 from .octree import build_octree
-from .sampling import ImageSampler, SamplingConfig, quad_centres, views_from_dataset, voxel_points
+from .sampling import SamplingConfig, views_from_dataset
 from .truth import texture_psnr, truth_textures
 
 logger = logging.getLogger(__name__)
@@ -96,15 +97,11 @@ def compare_sampling(dataset_dir: os.PathLike | str, cloud_path: os.PathLike | s
     views = views_from_dataset(load_dataset(dataset_dir))
     points, _ = read_cloud_arrays(cloud_path)
     octree = build_octree(points, octree_config)
-    centres = octree.centres()
-    voxels = voxel_points(points, octree.leaves_of_points(points), centres, octree.origin, octree.voxel_size)
+    placed = place_billboards(points, octree, views.centres)
     del points
-    base_yaw = base_yaw_toward(centres, views.centres)
-    quads = quad_centres(voxels, base_yaw)
-    aware = ImageSampler(views, quads, octree.voxel_size, base_yaw, voxels, replace(sampling, occlusion=True),
-                         box_centres=centres)
-    naive = ImageSampler(views, quads, octree.voxel_size, base_yaw, voxels, replace(sampling, occlusion=False),
-                         box_centres=centres)
+    centres, base_yaw = placed.voxels.centres, placed.base_yaw
+    aware = placed.image_sampler(views, replace(sampling, occlusion=True))
+    naive = placed.image_sampler(views, replace(sampling, occlusion=False))
     renderer = Renderer(scene)
     rng = np.random.default_rng(seed)
     near = np.flatnonzero(near_occluders(centres, scene, octree.voxel_size))

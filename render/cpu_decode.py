@@ -22,7 +22,7 @@ from billboards.model import BillboardModel, decode, direction_index
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
 from .program import load_program
-from .resources import InstanceStream, check_billboards, set_uniform
+from .resources import InstanceStream, check_billboards, release_all, set_uniform
 
 logger = logging.getLogger(__name__)
 
@@ -152,8 +152,7 @@ class CpuDecoder:
         """Free the program, vertex array, instance stream and frame atlas (idempotent)."""
         if self._objects is None:
             return
-        for obj in reversed(self._objects):
-            obj.release()
+        release_all(self._objects)
         if self.atlas is not None:
             self.atlas.release()
             self.atlas = None

@@ -14,7 +14,7 @@ import numpy as np
 from .camera import GLCamera, gl_bytes
 from .program import load_program
 from .resources import (INSTANCE_ATTRIBUTES, INSTANCE_DTYPE, INSTANCE_FORMAT, InstanceStream, ModelResources,
-                        check_billboards, set_uniform, vertex_binding)
+                        check_billboards, release_all, set_uniform, vertex_binding)
 
 
 class GpuDecoder:
@@ -76,8 +76,5 @@ class GpuDecoder:
 
     def release(self) -> None:
         """Free the program, vertex arrays and instance stream (idempotent)."""
-        if self._objects is None:
-            return
-        for obj in reversed(self._objects):
-            obj.release()
+        release_all(self._objects)
         self._objects = None

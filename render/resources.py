@@ -130,6 +130,12 @@ def _page_array(ctx: moderngl.Context, pages, width: int, components: int, dtype
     return tex
 
 
+
+def release_all(objects) -> None:
+    """Release GPU objects in reverse order of creation (None: nothing to do)."""
+    for obj in reversed(objects or ()):
+        obj.release()
+
 class ModelResources:
     """Every GPU object of one model; :meth:`release` frees them (idempotent).
 
@@ -210,10 +216,7 @@ class ModelResources:
 
     def release(self) -> None:
         """Free every GPU object (idempotent)."""
-        if self._objects is None:
-            return
-        for obj in reversed(self._objects):
-            obj.release()
+        release_all(self._objects)
         self._objects = None
         self.tiles = self.coefs = self.slot_table = self.directions = self.instances = None
 

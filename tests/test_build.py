@@ -72,10 +72,9 @@ def test_model_loads_and_the_report_adds_up(tiny_model):
 def test_decoded_model_matches_a_fresh_sampling(tiny_dataset, tiny_cloud, tiny_model):
     """Decode every direction of some billboards from the saved model and compare with the
     raw samples the builder compressed (re-sampled here with the same settings)."""
-    from billboards.build import _worker_state  # noqa: F401  (the worker path is exercised by the build)
+    from billboards.build import place_billboards
     from billboards.octree import build_octree
-    from billboards.geometry import base_yaw_toward
-    from billboards.sampling import ImageSampler, quad_centres, views_from_dataset, voxel_points
+    from billboards.sampling import views_from_dataset
     from recon.cloud_io import read_cloud_arrays
 
     conf = small_config()
@@ -84,10 +83,9 @@ def test_decoded_model_matches_a_fresh_sampling(tiny_dataset, tiny_cloud, tiny_m
     octree = build_octree(points, conf.octree)
     centres = octree.centres()
     views = views_from_dataset(load_dataset(tiny_dataset))
-    voxels = voxel_points(points, octree.leaves_of_points(points), centres, octree.origin, octree.voxel_size)
-    base_yaw = base_yaw_toward(centres, views.centres)
-    quads = quad_centres(voxels, base_yaw)
-    sampler = ImageSampler(views, quads, octree.voxel_size, base_yaw, voxels, conf.sampling, box_centres=centres)
+    placed = place_billboards(points, octree, views.centres)
+    quads = placed.quads
+    sampler = placed.image_sampler(views, conf.sampling)
     ids = np.arange(0, model.num_billboards, max(1, model.num_billboards // 20))
     raw = sampler.sample(ids).rgba.astype(np.float32) / 255
     decoded = billboard_model.decode_directions(model, ids)
