@@ -2,7 +2,7 @@
 
 Renders from capture-like viewpoints (camera 2 m above the street axis y = 0, looking
 at the facades on either side and along the street; the street runs along +x in
-world coordinates) at 1280×720 and reports frames per second of
+world coordinates) at 1280×720, stepping 5 cm sideways every frame, and reports frames per second of
 :meth:`~render.renderer.BillboardRenderer.render` (draw plus read-back, which waits
 for the frame to finish) for each decode mode, and the ratio GPU/CPU measured in the
 same run; with ``--cull``, the frame rate and drawn billboards of each culling mode
@@ -31,6 +31,17 @@ def street_views(length: float = 300.0, height: float = 2.0, lane: float = 2.0) 
             "along +x": look_at([0.1 * length, 0.0, height], [0.1 * length + 40.0, 0.0, height])}
 
 
+def walk(world_from_cam: np.ndarray, count: int, step: float = 0.05) -> list[np.ndarray]:
+    """``count`` poses stepping ``step`` metres along the camera's x axis from ``world_from_cam``,
+    so that every timed frame has a new eye (nothing view-dependent can be reused)."""
+    poses = []
+    for i in range(count):
+        pose = np.array(world_from_cam, dtype=np.float64)
+        pose[:3, 3] += step * (i + 1) * pose[:3, 0]
+        poses.append(pose)
+    return poses
+
+
 def default_intrinsics(width: int, height: int, hfov_deg: float = 75.0) -> np.ndarray:
     """Pinhole K (3, 3) float64 with the given horizontal field of view and a centred principal point."""
     f = width / 2 / np.tan(np.deg2rad(hfov_deg) / 2)
@@ -49,8 +60,8 @@ def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1
                 renderer.render(K, pose, size)  # warm-up
                 decode_s = 0.0
                 t0 = time.perf_counter()
-                for _ in range(count):
-                    renderer.render(K, pose, size)
+                for moved in walk(pose, count):
+                    renderer.render(K, moved, size)
                     decode_s += renderer.stats.get("decode_s", 0.0)
                 dt = (time.perf_counter() - t0) / count
                 rows.append({"decode": mode, "view": name, "fps": 1 / dt, "ms": 1000 * dt,
@@ -70,8 +81,8 @@ def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
             for name, pose in views.items():
                 renderer.render(K, pose, size)  # warm-up (and a first frame for temporal reuse)
                 t0 = time.perf_counter()
-                for _ in range(frames):
-                    renderer.render(K, pose, size)
+                for moved in walk(pose, frames):
+                    renderer.render(K, moved, size)
                 dt = (time.perf_counter() - t0) / frames
                 st = renderer.stats
                 rows.append({"cull": mode, "view": name, "fps": 1 / dt, "ms": 1000 * dt,

@@ -30,10 +30,13 @@ CPU_INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("tile", "<i4")])
 CPU_INSTANCE_FORMAT = "3f 1i/i"
 
 
-def decode_for_eye(model: BillboardModel, billboards: np.ndarray, eye: np.ndarray, chunk: int = 512) -> np.ndarray:
+def decode_for_eye(model: BillboardModel, billboards: np.ndarray, eye: np.ndarray, chunk: int = 512,
+                   interpolate: bool = True) -> np.ndarray:
     """RGBA8 textures of ``billboards`` (B,) int seen from ``eye`` (3,) float64 (model coordinates).
 
-    The view direction of a billboard is the vector from its centre to the eye.
+    The view direction of a billboard is the vector from its centre to the eye;
+    without ``interpolate`` the nearest sampled direction is decoded (ties go up, as
+    in the GPU weights pass).
     Returns (B, t, t, 4) uint8 = round(255 · decode(...)). Works in chunks of
     ``chunk`` billboards so the float32 temporaries stay bounded.
     """
@@ -45,6 +48,8 @@ def decode_for_eye(model: BillboardModel, billboards: np.ndarray, eye: np.ndarra
         b = billboards[s:s + chunk]
         view = eye - model.centres[b].astype(np.float64)
         yi, pi = direction_index(model, b, view)
+        if not interpolate:
+            yi, pi = np.floor(yi + 0.5), np.floor(pi + 0.5)
         tex = decode(model, b, yi, pi)
         np.rint(np.multiply(tex, 255, out=tex), out=tex)
         out[s:s + chunk] = tex
@@ -55,14 +60,16 @@ class CpuDecoder:
     """Decodes on the CPU and draws a per-frame atlas; :meth:`release` is idempotent.
 
     ``page_size``: edge of the per-frame atlas pages (capped at GL_MAX_TEXTURE_SIZE);
-    ``chunk``: billboards decoded at once.
+    ``chunk``: billboards decoded at once; ``interpolate``: blend the sampled directions
+    around the view (else the nearest one only).
     """
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, spherical: bool = False,
-                 page_size: int = 4096, chunk: int = 512):
+                 page_size: int = 4096, chunk: int = 512, interpolate: bool = True):
         self.ctx = ctx
         self.model = model
         self.spherical = bool(spherical)
+        self.interpolate = bool(interpolate)
         self.chunk = int(chunk)
         self.page_size = min(int(page_size), max_texture_size(ctx))
         if self.page_size < model.tile:
@@ -125,7 +132,7 @@ class CpuDecoder:
         if len(b) == 0:
             return stats
         t0 = time.perf_counter()
-        tiles = decode_for_eye(self.model, b, camera.eye, self.chunk)
+        tiles = decode_for_eye(self.model, b, camera.eye, self.chunk, self.interpolate)
         t1 = time.perf_counter()
         sent = self.upload(tiles)
         rec = np.empty(len(b), CPU_INSTANCE_DTYPE)

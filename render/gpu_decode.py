@@ -1,9 +1,18 @@
-"""GPU decode path: every billboard's eigen-texture decoded in the fragment shader.
+"""GPU decode path: every billboard's eigen-texture decoded on the GPU.
 
-One instanced draw call per batch (``billboard.glsl``): triangle strips of 4
-vertices, one instance per billboard. With ``visible=None`` the static instance
-buffer of :class:`~render.resources.ModelResources` is drawn as is; a subset is
-gathered into a per-frame instance buffer (24 bytes per billboard).
+Per view, a weights pass (``billboard_weights.glsl``: a full-screen triangle over two
+RGBA32F textures laid out like the slot table) folds the view-dependent eigen weights
+into the dequantisation constants of every slot (T_k = w_k·scale_k, and
+C = Σ_k w_k·offset_k at each billboard's first slot). Each batch is then one
+instanced draw (``billboard.glsl``) of triangle strips, 4 vertices and one instance
+per billboard, whose fragments need two texel fetches per tile. Weighing per fragment
+instead (coefficients, slot table and direction bracketing for every fragment) made
+frames about 2× slower on llvmpipe. The weights are recomputed only when the eye (or
+the interpolation setting) changes, so the many batches of a culled frame share them.
+
+With ``visible=None`` the static instance buffer of
+:class:`~render.resources.ModelResources` is drawn as is; a subset is gathered into
+a per-frame instance buffer (24 bytes per billboard).
 """
 
 from __future__ import annotations
@@ -21,33 +30,69 @@ class GpuDecoder:
     """Draws a model's billboards with the decode in the shader; :meth:`release` is idempotent.
 
     ``resources`` is borrowed (not released here). ``spherical``: quads pitch toward
-    the eye too (else they turn about the vertical axis only).
+    the eye too (else they turn about the vertical axis only). ``interpolate``: blend
+    the sampled directions around the view (else the nearest one only); may be changed
+    between draws.
     """
 
-    def __init__(self, ctx: moderngl.Context, resources: ModelResources, spherical: bool = False):
+    TERMS_UNIT, CONSTS_UNIT = 6, 7  # texture units of the weight textures (ModelResources uses 0…4)
+
+    def __init__(self, ctx: moderngl.Context, resources: ModelResources, spherical: bool = False,
+                 interpolate: bool = True):
         self.ctx = ctx
         self.resources = resources
         self.spherical = bool(spherical)
-        self.program = load_program(ctx, "billboard.glsl")
-        self._objects = [self.program]
+        self.interpolate = bool(interpolate)
+        self._objects = []
+        self._weights_key = None  # (eye, interpolate) of the current weight textures
         try:
-            self.stream = InstanceStream(ctx, INSTANCE_DTYPE.itemsize)
-            self._objects.append(self.stream)
-            self.vao_subset = ctx.vertex_array(
-                self.program, [vertex_binding(self.program, self.stream.buffer, INSTANCE_FORMAT, INSTANCE_ATTRIBUTES)])
-            self._objects.append(self.vao_subset)
-            self.vao_all = None
-            if resources.instances is not None:
-                self.vao_all = ctx.vertex_array(
-                    self.program, [vertex_binding(self.program, resources.instances, INSTANCE_FORMAT,
-                                                  INSTANCE_ATTRIBUTES)])
-                self._objects.append(self.vao_all)
+            self.program = self._keep(load_program(ctx, "billboard.glsl"))
+            self.weights_program = self._keep(load_program(ctx, "billboard_weights.glsl"))
+            self.stream = self._keep(InstanceStream(ctx, INSTANCE_DTYPE.itemsize))
+            self.vao_subset = self._instanced_vao(self.stream.buffer)
+            self.vao_all = None if resources.instances is None else self._instanced_vao(resources.instances)
+            self.weights_vao = self._keep(ctx.vertex_array(self.weights_program, []))
+            spr = resources.slots_per_row
+            self.weights_size = (spr, max(-(-resources.model.num_slots // spr), 1))
+            self.terms = self._keep(ctx.texture(self.weights_size, 4, dtype="f4"))
+            self.consts = self._keep(ctx.texture(self.weights_size, 4, dtype="f4"))
+            for tex in (self.terms, self.consts):
+                tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            self.weights_fbo = self._keep(ctx.framebuffer(color_attachments=[self.terms, self.consts]))
         except BaseException:
             self.release()
             raise
 
+    def _keep(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    def _instanced_vao(self, buffer: moderngl.Buffer) -> moderngl.VertexArray:
+        return self._keep(self.ctx.vertex_array(
+            self.program, [vertex_binding(self.program, buffer, INSTANCE_FORMAT, INSTANCE_ATTRIBUTES)]))
+
+    def update_weights(self, eye) -> bool:
+        """Recompute every slot's view-dependent constants for ``eye`` (model coordinates)
+        unless they are current; returns whether the pass ran. Restores the bound framebuffer."""
+        eye = tuple(np.asarray(eye, np.float32).tolist())
+        key = (eye, self.interpolate)
+        if key == self._weights_key:
+            return False
+        target = self.ctx.fbo
+        prog = self.weights_program
+        self.resources.bind(prog)
+        set_uniform(prog, "u_eye", eye)
+        set_uniform(prog, "u_interpolate", self.interpolate)
+        self.weights_fbo.use()  # no depth attachment: the depth test passes
+        self.weights_vao.render(moderngl.TRIANGLES, vertices=3)
+        target.use()
+        self._weights_key = key
+        return True
+
     def draw(self, camera: GLCamera, visible=None) -> dict:
-        """Draw into the bound framebuffer; returns stats {draw_calls, instances, upload_bytes}.
+        """Draw into the bound framebuffer; returns stats {draw_calls, instances, upload_bytes,
+        weights_pass} (draw_calls: instanced billboard draws; weights_pass: whether the
+        per-view weights were recomputed for this draw).
 
         visible: None (all billboards), (B,) int indices or an (n,) bool mask.
         """
@@ -56,7 +101,7 @@ class GpuDecoder:
         n = self.resources.model.num_billboards
         visible = check_billboards(visible, n)
         count = n if visible is None else len(visible)
-        stats = {"draw_calls": 0, "instances": count, "upload_bytes": 0}
+        stats = {"draw_calls": 0, "instances": count, "upload_bytes": 0, "weights_pass": False}
         if count == 0:
             return stats
         if visible is None:
@@ -64,8 +109,13 @@ class GpuDecoder:
         else:
             stats["upload_bytes"] = self.stream.write(self.resources.instance_data(visible))
             vao = self.vao_subset
+        stats["weights_pass"] = self.update_weights(camera.eye)
         prog = self.program
         self.resources.bind(prog)
+        self.terms.use(self.TERMS_UNIT)
+        self.consts.use(self.CONSTS_UNIT)
+        set_uniform(prog, "u_slot_terms", self.TERMS_UNIT)
+        set_uniform(prog, "u_slot_const", self.CONSTS_UNIT)
         prog["u_projection"].write(gl_bytes(camera.projection))
         prog["u_view"].write(gl_bytes(camera.view))
         set_uniform(prog, "u_eye", tuple(np.asarray(camera.eye, np.float32).tolist()))
@@ -75,6 +125,6 @@ class GpuDecoder:
         return stats
 
     def release(self) -> None:
-        """Free the program, vertex arrays and instance stream (idempotent)."""
+        """Free the programs, vertex arrays, instance stream and weight textures (idempotent)."""
         release_all(self._objects)
         self._objects = None

@@ -46,7 +46,9 @@ class BillboardRenderer:
     decode: "gpu" (eigen-texture decode in the fragment shader, one instanced draw)
     or "cpu" (numpy decode of each drawn billboard every frame, then one instanced
     draw of the per-frame atlas). spherical: quads also pitch toward the eye; None
-    takes the model's ``pitched_quads``. background: RGB in [0, 1] (or 0–255).
+    takes the model's ``pitched_quads``. interpolate: blend the sampled view
+    directions around the view (else the nearest one; settable between frames).
+    background: RGB in [0, 1] (or 0–255).
     clip: near/far planes (m). cull: "none"; "frustum" (the model's octree nodes
     against the view frustum); "occlusion" (frustum, then hardware occlusion queries
     over a screen-space quadtree, :class:`~render.occlusion.OcclusionCuller`); "auto"
@@ -58,8 +60,8 @@ class BillboardRenderer:
     """
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, decode: str = "gpu", *,
-                 spherical: bool | None = None, background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(),
-                 cull: str = "none"):
+                 spherical: bool | None = None, interpolate: bool = True, background=(0.0, 0.0, 0.0),
+                 clip: ClipPlanes = ClipPlanes(), cull: str = "none"):
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
         if cull not in CULL_MODES:
@@ -80,12 +82,21 @@ class BillboardRenderer:
         try:
             if decode == "gpu":
                 self.resources = ModelResources(ctx, model)
-                self.decoder = GpuDecoder(ctx, self.resources, self.spherical)
+                self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate)
             else:
-                self.decoder = CpuDecoder(ctx, model, self.spherical)
+                self.decoder = CpuDecoder(ctx, model, self.spherical, interpolate=interpolate)
         except BaseException:
             self.release()
             raise
+
+    @property
+    def interpolate(self) -> bool:
+        """Whether textures blend the sampled directions around the view (else the nearest)."""
+        return self.decoder.interpolate
+
+    @interpolate.setter
+    def interpolate(self, value: bool) -> None:
+        self.decoder.interpolate = bool(value)
 
     def camera(self, K, world_from_cam, size) -> GLCamera:
         """The :class:`GLCamera` of an OpenCV camera for this model's origin."""

@@ -14,8 +14,12 @@ Upload once, draw every frame. What goes where:
 - **Coefficient pages** → one ``sampler2DArray`` of one channel: R8 normalised
   (``coef_mode="u8"``), R16F or R32F, same layering.
 - **Slot table** → RGBA32F 2-D texture, 3 texels per slot: tile scale (4), tile
-  offset (4), (coefficient scale, coefficient offset, 0, 0); ``slots_per_row`` slots
-  (a power of two) per texture row. (moderngl has no texture buffer objects.)
+  offset (4), (coefficient scale, coefficient offset, k, billboard) where the slot is
+  eigen image k (0: the mean) of that billboard (both exact in float32 below 2²⁴);
+  ``slots_per_row`` slots (a power of two) per texture row. (moderngl has no texture
+  buffer objects.)
+- **Instance table** → RGBA32F 2-D texture, one texel per billboard in the same
+  layout: centre relative to the model origin, base yaw (for the decode's weights pass).
 - **Direction table** → R32F texture (max(d_yaw, d_pitch), 2): row 0 the yaw offsets,
   row 1 the pitches, radians.
 - **Instances** → one static buffer of :data:`INSTANCE_DTYPE` records (24 bytes per
@@ -92,7 +96,21 @@ def slot_table(model: BillboardModel, slots_per_row: int) -> np.ndarray:
     table[:m, 1] = model.slot_offset
     table[:m, 2, 0] = model.coef_scale
     table[:m, 2, 1] = model.coef_offset
+    n = model.num_billboards
+    owner = np.repeat(np.arange(n), model.rank.astype(np.int64) + 1)
+    table[:m, 2, 2] = np.arange(m) - model.first_slot[owner]
+    table[:m, 2, 3] = owner
     return table.reshape(rows, slots_per_row * 3, 4)
+
+
+def instance_table(model: BillboardModel, slots_per_row: int) -> np.ndarray:
+    """(rows, slots_per_row, 4) float32: each billboard's centre (model coordinates) and base yaw."""
+    n = model.num_billboards
+    rows = max(-(-n // slots_per_row), 1)
+    table = np.zeros((rows * slots_per_row, 4), np.float32)
+    table[:n, :3] = model.centres
+    table[:n, 3] = model.base_yaw
+    return table.reshape(rows, slots_per_row, 4)
 
 
 def direction_table(model: BillboardModel) -> np.ndarray:
@@ -168,14 +186,20 @@ class ModelResources:
                                             _COEF_DTYPE[model.coef_mode], "coefficient"))
         limit = max_texture_size(ctx)
         self.slots_per_row = 1 << int(np.log2(limit // 3))
+        if max(model.num_slots, model.num_billboards) >= 1 << 24:
+            raise ValueError(f"{model.num_billboards} billboards with {model.num_slots} slots: the GPU slot "
+                             "table indexes at most 2^24 (float32); split the model")
         table = slot_table(model, self.slots_per_row)
         if table.shape[0] > limit:
             raise ValueError(f"{model.num_slots} slots need a {table.shape[0]}-row slot table, "
                              f"GL_MAX_TEXTURE_SIZE is {limit}")
         self.slot_table = self._keep(ctx.texture((table.shape[1], table.shape[0]), 4, table, dtype="f4"))
+        instances = instance_table(model, self.slots_per_row)
+        self.instance_table = self._keep(ctx.texture((instances.shape[1], instances.shape[0]), 4, instances,
+                                                     dtype="f4"))
         directions = direction_table(model)
         self.directions = self._keep(ctx.texture((directions.shape[1], 2), 1, directions, dtype="f4"))
-        for tex in (self.slot_table, self.directions):
+        for tex in (self.slot_table, self.instance_table, self.directions):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         records = instance_records(model)
         self.instances = self._keep(ctx.buffer(records)) if len(records) else None
@@ -185,13 +209,14 @@ class ModelResources:
             "u_slots_per_row": self.slots_per_row,
             "u_tiles_per_row": tiles.tiles_per_row, "u_tiles_per_page": tiles.tiles_per_page,
             "u_d": model.num_directions, "u_rows_per_line": rows.tiles_per_row,
-            "u_rows_per_page": rows.tiles_per_page,
+            "u_rows_per_page": rows.tiles_per_page, "u_num_slots": model.num_slots,
         }
         self.nbytes = {"tiles": self.tiles.width * self.tiles.height * self.tiles.layers * 4 *
                        {"u8": 1, "f16": 2}[model.tile_mode],
                        "coefficients": self.coefs.width * self.coefs.height * self.coefs.layers *
                        {"u8": 1, "f16": 2, "f32": 4}[model.coef_mode],
-                       "slot_table": table.nbytes, "instances": records.nbytes}
+                       "slot_table": table.nbytes, "instance_table": instances.nbytes,
+                       "instances": records.nbytes}
         logger.debug("uploaded model: %s", self.nbytes)
 
     @property
@@ -208,7 +233,8 @@ class ModelResources:
             raise RuntimeError("ModelResources used after release()")
         for unit, (name, tex) in enumerate((("u_tiles", self.tiles), ("u_coefs", self.coefs),
                                             ("u_slot_table", self.slot_table),
-                                            ("u_directions", self.directions)), first_unit):
+                                            ("u_directions", self.directions),
+                                            ("u_instance_table", self.instance_table)), first_unit):
             tex.use(unit)
             set_uniform(program, name, unit)
         for name, value in self.uniforms.items():
@@ -218,7 +244,7 @@ class ModelResources:
         """Free every GPU object (idempotent)."""
         release_all(self._objects)
         self._objects = None
-        self.tiles = self.coefs = self.slot_table = self.directions = self.instances = None
+        self.tiles = self.coefs = self.slot_table = self.directions = self.instance_table = self.instances = None
 
 
 class InstanceStream:

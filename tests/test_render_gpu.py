@@ -183,6 +183,34 @@ def test_facing_billboard_shows_its_decoded_texture(ctx, case, mode):
     assert np.all(image[outside] == SKY_U8)
 
 
+@pytest.mark.parametrize("mode", ["gpu", "cpu"])
+def test_without_interpolation_the_nearest_direction_is_shown(ctx, mode):
+    """interpolate=False: the texture of the nearest sampled direction, not the blend (the
+    viewer's toggle); switching back restores the blend."""
+    centre = np.array([0.3, -0.2, 1.1])
+    model = make_model([centre], base_yaw=0.7, page_size=32, tile_mode="u8", coef_mode="f32", rank=4)
+    K, size = intrinsics(256.0, 128, 128), (128, 128)
+    images = {}
+    with BillboardRenderer(ctx, model, mode, background=SKY, interpolate=False) as renderer:
+        for offset_deg in (17.0, 12.0):
+            yaw = 0.7 + np.deg2rad(offset_deg)
+            ray = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+            pose = look_at(model.origin + centre + 4.0 * ray, model.origin + centre)
+            yi, pi = direction_index(model, [0], (4.0 * ray)[None])
+            assert 0.1 < yi[0] % 1 < 0.9
+            for interpolate in (False, True):
+                renderer.interpolate = interpolate
+                image = renderer.render(K, pose, size)
+                images[offset_deg, interpolate] = image
+                ref = decode(model, [0], yi if interpolate else np.floor(yi + 0.5), pi)[0]
+                want = np.where(ref[..., 3:] >= 0.5, np.rint(ref[..., :3] * 255), SKY_U8)
+                got = image[32:96, 32:96].reshape(8, 8, 8, 8, 3)[:, 2:6, :, 2:6]
+                err = np.abs(got.astype(int) - want[:, None, :, None].astype(int))
+                assert err.max() <= 2, f"interpolate={interpolate}: max error {err.max()}"
+    for offset_deg in (17.0, 12.0):
+        assert np.abs(images[offset_deg, False].astype(int) - images[offset_deg, True]).max() > 8
+
+
 # ----------------------------------------------------------------------------------------------
 # GPU against CPU decode
 
@@ -242,16 +270,18 @@ def test_transparent_billboard_leaves_the_background(ctx, mode):
 
 
 @pytest.mark.parametrize("mode", ["gpu", "cpu"])
-def test_one_draw_call_and_selection(ctx, mode):
+def test_instanced_draw_calls_and_selection(ctx, mode):
+    """One instanced draw whatever the count (GPU decode: plus one weights pass per view)."""
+    calls = 1
     model = street_model("u8", "f16", n=200)
     K, size = intrinsics(200.0, 160, 120), (160, 120)
     pose = look_at(model.origin + [0.0, -20.0, 2.0], model.origin + [0.0, 0.0, 2.0])
     with BillboardRenderer(ctx, model, mode) as renderer:
         renderer.render(K, pose, size)
-        assert renderer.stats["draw_calls"] == 1 and renderer.stats["instances"] == 200
+        assert renderer.stats["draw_calls"] == calls and renderer.stats["instances"] == 200
         some = np.arange(0, 200, 3)
         subset = renderer.render(K, pose, size, visible=some)
-        assert renderer.stats["draw_calls"] == 1 and renderer.stats["instances"] == len(some)
+        assert renderer.stats["draw_calls"] == calls and renderer.stats["instances"] == len(some)
         mask = np.zeros(200, bool)
         mask[some] = True
         assert np.array_equal(renderer.render(K, pose, size, visible=mask), subset)
