@@ -31,6 +31,17 @@ def street_views(length: float = 300.0, height: float = 2.0, lane: float = 2.0) 
             "along +x": look_at([0.1 * length, 0.0, height], [0.1 * length + 40.0, 0.0, height])}
 
 
+def town_views(world_from_rig: np.ndarray, height: float = 1.0) -> list[np.ndarray]:
+    """Street-level world_from_cam poses along a capture path: the rig's position
+    ``height`` m higher, looking along its direction of travel (the long view down a
+    town street, where almost everything in the frustum hides behind the first houses)."""
+    views = []
+    for pose in np.asarray(world_from_rig, np.float64).reshape(-1, 4, 4):
+        eye = pose[:3, 3] + [0.0, 0.0, height]
+        views.append(look_at(eye, eye + 10.0 * pose[:3, 0]))
+    return views
+
+
 def walk(world_from_cam: np.ndarray, count: int, step: float = 0.05) -> list[np.ndarray]:
     """``count`` poses stepping ``step`` metres along the camera's x axis from ``world_from_cam``,
     so that every timed frame has a new eye (nothing view-dependent can be reused)."""
@@ -92,17 +103,66 @@ def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
     return rows
 
 
+def town_cull_fps(ctx, scene, views: list[np.ndarray], size=(1280, 720), K=None,
+                  modes=("none", "frustum", "occlusion", "auto"), group_cells=(60.0,)) -> list[dict]:
+    """Frame rate and drawn objects of :class:`~render.scene_mesh.SceneMeshRenderer` per culling
+    mode, averaged over ``views`` (a path, so temporal coherence works as in a walkthrough):
+    rows {cull, group_cell, fps, ms, objects, after_frustum, drawn, groups, queries, triangles}.
+    Every mode is run once per entry of ``group_cells`` (the grid that orders the vertex
+    buffer, so frustum culling draws the same runs of objects as occlusion culling)."""
+    from .scene_mesh import SceneMeshRenderer
+
+    K = default_intrinsics(*size) if K is None else K
+    rows = []
+    for mode in modes:
+        for cell in (group_cells if mode != "none" else group_cells[:1]):
+            with SceneMeshRenderer(ctx, scene, cull=mode, group_cell=cell) as renderer:
+                renderer.render(K, views[0], size)  # warm-up
+                stats = []
+                t0 = time.perf_counter()
+                for pose in views:
+                    renderer.render(K, pose, size)
+                    stats.append(renderer.stats)
+                dt = (time.perf_counter() - t0) / len(views)
+
+            def mean(key, stats=stats):
+                return float(np.mean([st.get(key, 0) for st in stats]))
+
+            rows.append({"cull": mode, "group_cell": cell, "fps": 1 / dt, "ms": 1000 * dt,
+                         "objects": scene.num_objects, "after_frustum": mean("objects_after_frustum"),
+                         "drawn": mean("objects_drawn"), "groups": mean("groups"), "queries": mean("queries"),
+                         "triangles": mean("triangles_drawn")})
+    return rows
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("model", help="billboard model directory")
+    parser.add_argument("model", nargs="?", help="billboard model directory (optional with --town)")
     parser.add_argument("--size", type=int, nargs=2, default=(1280, 720), metavar=("W", "H"))
     parser.add_argument("--gpu-frames", type=int, default=10)
     parser.add_argument("--cpu-frames", type=int, default=3)
     parser.add_argument("--cull", action="store_true", help="also compare the culling modes (GPU decode)")
+    parser.add_argument("--town", action="store_true",
+                        help="culling on the town scene's meshes along its capture path (default TownConfig)")
     args = parser.parse_args(argv)
-    model = load(args.model)
+    if args.model is None and not args.town:
+        parser.error("give a model directory, --town, or both")
     ctx = create_context()
     print(describe(ctx))
+    if args.town:
+        from data_synth import TownConfig, build_town
+        from data_synth.dataset import SynthConfig, capture_path
+
+        scene = build_town(TownConfig())
+        poses, _ = capture_path(SynthConfig(scene="town", frames=300))
+        for r in town_cull_fps(ctx, scene, town_views(poses[100:160]), tuple(args.size), group_cells=(30.0, 60.0)):
+            print(f"town cull {r['cull']:>9} (groups of {r['group_cell']} m): {r['fps']:6.2f} fps, "
+                  f"{r['after_frustum']:.0f} of {r['objects']} objects after frustum, {r['drawn']:.0f} drawn, "
+                  f"{r['queries']:.0f} queries")
+    if args.model is None:
+        ctx.release()
+        return
+    model = load(args.model)
     print(f"{model.num_billboards} billboards, {model.num_slots} slots, {len(model.pages)} atlas pages, "
           f"{args.size[0]}×{args.size[1]}")
     rows = decode_fps(ctx, model, street_views(), tuple(args.size),
