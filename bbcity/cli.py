@@ -381,8 +381,8 @@ def _add_view(sub) -> None:
     p = sub.add_parser(
         "view", help="open a billboard model in an interactive window (fly, drive, toggles, screenshots)",
         description="Open a billboard model in a moderngl-window window: mouse look and WASD/QE fly, a drive "
-                    "mode along the capture path, GPU/CPU decode and culling toggles; the title bar shows fps, "
-                    "drawn/culled billboards, decode and cull mode. With --script-frames it renders that many "
+                    "mode along the capture path, GPU/CPU decode, culling and view-interpolation toggles; a HUD "
+                    "and the title bar show fps, drawn/culled billboards, decode and cull mode. With --script-frames it renders that many "
                     "frames along the drive path, saves a screenshot and exits (runs under xvfb-run).",
         epilog=KEYS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", type=Path, help="billboard model directory")
@@ -397,6 +397,9 @@ def _add_view(sub) -> None:
     p.add_argument("--script-frames", type=int, default=0,
                    help="render this many frames along the drive path (no input), save a screenshot, exit")
     p.add_argument("--screenshot", type=Path, default=None, help="PNG path for the --script-frames screenshot")
+    p.add_argument("--script-keys", default="",
+                   help="with --script-frames: comma-separated keys pressed one per frame from the first, "
+                        "e.g. C,I,G (moderngl-window key names)")
     p.set_defaults(func=_run_view)
 
 
@@ -407,7 +410,8 @@ def _run_view(args) -> int:
     model = load(args.model)
     out = run_viewer(model, size=tuple(args.size), decode=args.decode, cull=args.cull, window=args.window,
                      screenshot_dir=args.screenshot_dir, script_frames=args.script_frames,
-                     screenshot=args.screenshot, mode=args.mode)
+                     screenshot=args.screenshot, mode=args.mode,
+                     script_keys=[k for k in args.script_keys.split(",") if k.strip()])
     if out is not None:
         logger.info("screenshot %s", out)
     return 0

@@ -1,13 +1,15 @@
 """Interactive viewer: a real window (moderngl-window) around :class:`BillboardRenderer`.
 
 Fly with the mouse and WASD/QE, or drive along the capture path; toggle GPU/CPU
-decode, cycle the culling modes, wireframe; the title bar shows fps, drawn
-billboard counts, decode and cull mode. F12 or P saves a screenshot.
+decode, cycle the culling modes, view interpolation, wireframe; a HUD over the
+frame (and the title bar) shows fps, drawn/culled billboard counts, decode and cull
+mode. F12 or P saves a screenshot.
 
 :class:`FlyCamera` and :class:`DrivePath` are pure numpy (world coordinates, z up,
 float64) so they can be tested without a window. ``run_viewer(..., script_frames=N)``
 renders N frames along the drive path with a fixed time step, saves the last one and
-exits (for tests and automation; works under ``xvfb-run``).
+exits (for tests and automation; works under ``xvfb-run``); ``script_keys`` presses
+keys through the window's key-event handler, one per frame, on the way.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 
 from .benchmark import default_intrinsics
 from .camera import look_at
+from .hud import HudOverlay
 from .renderer import CULL_MODES, DECODE_MODES, BillboardRenderer
 
 logger = logging.getLogger(__name__)
@@ -34,7 +37,9 @@ keys:
   + / -          drive speed up / down    (also fly speed)
   G              toggle GPU / CPU decode
   C              cycle culling: none, frustum, occlusion, auto
+  I              toggle view interpolation (blend sampled directions / nearest)
   F              toggle wireframe (billboard outlines)
+  U              toggle the on-screen HUD
   F12 or P       save a screenshot PNG to --screenshot-dir
   H              print this help
   Esc            quit"""
@@ -237,11 +242,15 @@ class ViewerApp(_WindowConfig):
         self.mode = mode
         self.held: set[str] = set()
         self.wireframe = False
+        self.interpolate = True
+        self.show_hud = True
+        self.overlay = HudOverlay(self.ctx)
         self.renderer: BillboardRenderer | None = None
         self._rebuild()
         self.fps = 0.0
         self._fps_frames, self._fps_t0 = 0, time.perf_counter()
         self._title_t = 0.0
+        self._hud_text = ""
         self.shots: list[Path] = []
 
     # -- state
@@ -249,7 +258,7 @@ class ViewerApp(_WindowConfig):
         if self.renderer is not None:
             self.renderer.release()
         self.renderer = BillboardRenderer(self.ctx, self.model, self.decode, cull=self.cull,
-                                          background=self.background)
+                                          background=self.background, interpolate=self.interpolate)
 
     def pose(self, dt: float) -> np.ndarray:
         if self.mode == "drive":
@@ -282,7 +291,11 @@ class ViewerApp(_WindowConfig):
             self._fps_frames, self._fps_t0 = 0, now
         if now - self._title_t > 0.25:
             self._title_t = now
-            wnd.title = self.hud(stats)
+            self._hud_text = self.hud(stats)
+            wnd.title = self._hud_text
+        if self.show_hud:
+            items = self._hud_text.split(" | ")
+            self.overlay.draw([" | ".join(items[i:i + 2]) for i in range(0, len(items), 2)], (w, h))
         return stats
 
     def hud(self, stats: dict | None = None) -> str:
@@ -291,8 +304,8 @@ class ViewerApp(_WindowConfig):
         drawn = int(s.get("billboards_drawn", s.get("instances", total)))
         extra = f" speed {self.path.speed:.0f} m/s" if self.mode == "drive" else ""
         return (f"bbcity | {self.fps:5.1f} fps | drawn {drawn}/{total} culled {total - drawn} | "
-                f"decode {self.decode} | cull {self.cull} | {self.mode}{extra}"
-                + (" | wireframe" if self.wireframe else ""))
+                f"decode {self.decode} | cull {self.cull} | interpolation {'on' if self.interpolate else 'off'} | "
+                f"{self.mode}{extra}" + (" | wireframe" if self.wireframe else ""))
 
     def read_image(self) -> np.ndarray:
         """The window's current colour buffer as (h, w, 3) uint8, row 0 at the top."""
@@ -314,7 +327,7 @@ class ViewerApp(_WindowConfig):
     # -- input
     def _name(self, key) -> str | None:
         k = self.wnd.keys
-        for name in ("W", "A", "S", "D", "Q", "E", "M", "G", "C", "F", "P", "H", "F12", "ESCAPE",
+        for name in ("W", "A", "S", "D", "Q", "E", "M", "G", "C", "I", "U", "F", "P", "H", "F12", "ESCAPE",
                      "LEFT_SHIFT", "RIGHT_SHIFT", "EQUAL", "MINUS", "NUMPAD_ADD", "NUMPAD_SUBTRACT"):
             if getattr(k, name, None) == key and key != "undefined":
                 return name
@@ -347,6 +360,11 @@ class ViewerApp(_WindowConfig):
         elif name == "C":
             self.cull = CULL_MODES[(CULL_MODES.index(self.cull) + 1) % len(CULL_MODES)]
             self._rebuild()
+        elif name == "I":
+            self.interpolate = not self.interpolate
+            self.renderer.interpolate = self.interpolate
+        elif name == "U":
+            self.show_hud = not self.show_hud
         elif name == "F":
             self.wireframe = not self.wireframe
         elif name in ("F12", "P"):
@@ -371,14 +389,24 @@ class ViewerApp(_WindowConfig):
         if self.renderer is not None:
             self.renderer.release()
             self.renderer = None
+        self.overlay.release()
+
+
+class _Modifiers:
+    shift = ctrl = alt = False
+
+
+_NO_MODIFIERS = _Modifiers()
 
 
 def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "frustum", window: str = "auto",
                screenshot_dir: Path = Path("."), script_frames: int = 0, screenshot: Path | None = None,
-               script_dt: float = 1 / 30, mode: str = "drive") -> Path | None:
+               script_dt: float = 1 / 30, mode: str = "drive", script_keys=()) -> Path | None:
     """Open the viewer. With ``script_frames`` > 0: render that many frames along the
-    drive path with a fixed ``script_dt``, save the last one to ``screenshot`` (or the
-    screenshot dir) and return its path; otherwise run until the window closes."""
+    drive path with a fixed ``script_dt``, pressing the moderngl-window key names in
+    ``script_keys`` (e.g. "C", "I") one per frame from the first, through the window's
+    key-event handler; save the last frame to ``screenshot`` (or the screenshot dir)
+    and return its path. Otherwise run until the window closes."""
     from moderngl_window.timers.clock import Timer
 
     wnd = _make_window(window, size, "bbcity")
@@ -390,7 +418,18 @@ def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "fru
     out = None
     try:
         if script_frames > 0:
-            for _ in range(int(script_frames)):
+            keys = wnd.keys
+            for frame in range(int(script_frames)):
+                if frame < len(script_keys):
+                    name = str(script_keys[frame]).strip().upper()
+                    if not hasattr(keys, name):
+                        raise ValueError(f"unknown key {script_keys[frame]!r} in script_keys")
+                    key = getattr(keys, name)
+                    if key in (None, "undefined"):  # a headless window has no keyboard
+                        app.handle_command(name)
+                    else:
+                        app.on_key_event(key, keys.ACTION_PRESS, _NO_MODIFIERS)
+                        app.on_key_event(key, keys.ACTION_RELEASE, _NO_MODIFIERS)
                 app.render_frame(script_dt)
                 if hasattr(wnd, "process_events"):
                     wnd.process_events()

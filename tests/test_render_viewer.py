@@ -101,14 +101,33 @@ def test_viewer_toggles_headless(tmp_path):
     from render.viewer import ViewerApp, _make_window
 
     try:
-        wnd = _make_window("headless", (160, 120), "bbcity")
+        wnd = _make_window("headless", (480, 270), "bbcity")
     except Exception as e:  # no EGL/GL 3.3 here
         pytest.skip(f"no headless moderngl-window context: {e}")
     app = ViewerApp(street_model(), ctx=wnd.ctx, wnd=wnd, screenshot_dir=tmp_path)
     try:
         app.render_frame(1 / 30)
+        app._title_t = 0.0  # the HUD text refreshes every 0.25 s
+        app.render_frame(0.0)
         ref = app.read_image()
         assert (np.abs(ref.astype(int) - BG_U8).sum(-1) > 6).mean() > 0.05
+        app.handle_command("U")  # HUD off: only its corner changes
+        app.render_frame(0.0)
+        bare = app.read_image()
+        changed = np.any(bare != ref, axis=-1)
+        ys, xs = np.nonzero(changed)
+        assert changed.mean() > 0.01 and ys.min() < 5 and xs.min() < 5 and ys.max() < 120 and xs.max() < 400
+        from render.hud import text_image
+
+        text = text_image(app.overlay._lines)  # the HUD's pure white text pixels land upright, 1:1
+        white = np.all(text[..., :3] == 255, axis=-1) & (text[..., 3] == 255)
+        shown = np.all(ref[:text.shape[0], :text.shape[1]] == 255, axis=-1)
+        assert white.sum() > 50 and np.array_equal(shown, white)
+        assert not changed[-10:].any() and not changed[:, -10:].any()
+        app.handle_command("U")
+        app.handle_command("I")
+        assert not app.interpolate and not app.renderer.interpolate and "interpolation off" in app.hud()
+        app.handle_command("I")
         app.handle_command("G")
         assert app.decode == "cpu"
         app.render_frame(0.0)
@@ -153,12 +172,15 @@ def test_bbcity_view_script_screenshot_under_xvfb(tmp_path):
     out = tmp_path / "out.png"
     bbcity = Path(sys.executable).with_name("bbcity")
     cmd = [str(bbcity)] if bbcity.exists() else [sys.executable, "-m", "bbcity.cli"]
-    res = subprocess.run(["xvfb-run", "-a", *cmd, "view", str(tmp_path / "model"), "--script-frames", "3",
-                          "--screenshot", str(out), "--size", "320", "240"],
+    res = subprocess.run(["xvfb-run", "-a", *cmd, "view", str(tmp_path / "model"), "--script-frames", "4",
+                          "--script-keys", "C,I,C", "--screenshot", str(out), "--size", "320", "240"],
                          cwd=ROOT, capture_output=True, text=True, timeout=60,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert res.returncode == 0, res.stdout + res.stderr
     assert "pyglet" in res.stderr  # a real window, not the headless fallback
+    # the keys went through the window's key handler: frustum → occlusion, interpolation off, → auto
+    assert "cull occlusion | interpolation on" in res.stderr
+    assert "cull occlusion | interpolation off" in res.stderr and "cull auto | interpolation off" in res.stderr
     img = read_png(out)
     assert img.shape[:2] == (240, 320)
     rgb = img[..., :3].reshape(-1, 3).astype(int)
