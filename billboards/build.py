@@ -31,7 +31,7 @@ from recon.cloud_io import read_cloud_arrays
 from .geometry import DirectionConfig, base_yaw_toward
 from .model import ModelWriter
 from .octree import Octree, OctreeConfig, build_octree
-from .pca import PcaConfig, eigen_textures
+from .pca import TOL, PcaConfig, eigen_textures
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
                        voxel_points)
@@ -345,9 +345,9 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                   stages=stages, total_s=time.perf_counter() - t0, peak_memory=_peak_rss_mb(),
                   config=_config_to_json(conf))
     write_json(model_dir / "build_report.json", report)
-    logger.info("model: %d billboards, %d slots, %.1f MB, compression %.1f×, decode PSNR %.2f dB → %s",
+    logger.info("model: %d billboards, %d slots, %.1f MB, compression %.1f×, decode PSNR %s dB → %s",
                 model.num_billboards, model.num_slots, report["bytes"]["model"] / 1e6,
-                report["compression_ratio"], report["psnr"]["decoded_rgb_opaque_db"], model_dir)
+                report["compression_ratio"], _db(report["psnr"]["decoded_rgb_opaque_db"]), model_dir)
     return BuildResult(model_dir, report)
 
 
@@ -357,11 +357,17 @@ def _node_table(octree: Octree) -> dict:
             "node_children": octree.node_children.astype(np.int32), "node_range": octree.node_range.astype(np.int32)}
 
 
-def _psnr_db(sq_err: float, count: int) -> float:
+def _psnr_db(sq_err: float, count: int) -> float | None:
+    """PSNR (dB, peak 1) of a sum of squared errors over ``count`` values, capped at
+    TOL.psnr_max_db for an exact decode; None when nothing was measured (valid JSON either way)."""
     if count == 0:
-        return float("nan")
+        return None
     mse = sq_err / count
-    return float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse))
+    return float(10 * np.log10(1.0 / max(mse, 10.0 ** (-TOL.psnr_max_db / 10.0))))
+
+
+def _db(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
 
 
 class _Totals:

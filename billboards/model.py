@@ -482,7 +482,7 @@ def _load_array(path: Path, dtype: np.dtype, shape: tuple, mmap: bool, hint: str
     if mmap and nbytes > 0:
         try:
             return np.load(path, mmap_mode="r", allow_pickle=False)
-        except (ValueError, OSError) as e:
+        except (ValueError, TypeError, OSError) as e:
             raise DataFormatError(path, f"cannot be memory-mapped ({e})") from None
     return load_npy(path, dtype=dtype, shape=shape, finite=True, max_bytes=nbytes)
 

@@ -23,6 +23,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
+import shutil
 import time
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
@@ -155,13 +157,35 @@ def write_mesh_ply(path: Path, scene: Scene) -> Path:
     return path
 
 
+# what the writers name their temporaries: .NAME.tmp-PID.SUFFIX (atomic_path), .NAME.tmp-HEX (colmap/)
+_TEMPORARY = re.compile(r"\..+\.tmp-[0-9a-f]+(\.\w+)?")
+
+
+def _is_temporary(relative: Path) -> bool:
+    return any(_TEMPORARY.fullmatch(part) for part in relative.parts)
+
+
+def _remove_temporaries(root: Path) -> None:
+    """Delete the temporary files and directories that a killed run left under ``root``."""
+    if not root.is_dir():
+        return
+    for p in sorted(root.rglob(".*.tmp-*")):
+        if _TEMPORARY.fullmatch(p.name):
+            logger.info("removing %s, left by an interrupted run", p)
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+
+
 def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Executor | None = None,
                   progress: bool | None = None) -> Path:
     """Generate the scene, render every frame and write the dataset to ``out_dir``.
 
     executor: runs frames in parallel (any ``concurrent.futures.Executor``); None
     renders in this process. An interrupted run is resumed: frames whose files
-    all exist are kept (every file is written atomically). A directory holding
+    all exist are kept (every file is written atomically), the temporaries of a
+    killed run are removed. A directory holding
     a dataset with a different configuration is refused, never mixed.
     Returns ``out_dir``.
     """
@@ -173,8 +197,9 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
         if stored != cfg_dict:
             raise FileExistsError(f"{root} holds a dataset made with other settings; choose a new --out")
         logger.info("resuming the dataset in %s", root)
-    elif root.exists() and any(root.iterdir()):
+    elif root.exists() and any(p.is_file() and not _is_temporary(p.relative_to(root)) for p in root.rglob("*")):
         raise FileExistsError(f"{root} exists and is not an empty directory or a bbcity dataset")
+    _remove_temporaries(root)
 
     t0 = time.perf_counter()
     scene = build_scene(cfg.scene, asdict(cfg.street if cfg.scene == "street" else cfg.town))

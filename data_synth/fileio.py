@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import tokenize
 from pathlib import Path
@@ -119,7 +120,9 @@ def load_npy(
             file_shape, _, file_dtype = read_header(f, max_header_size=10000)
             if file_dtype.hasobject:
                 raise DataFormatError(path, "holds Python objects (pickles are not loaded)")
-            nbytes = int(np.prod(file_shape, dtype=np.int64)) * file_dtype.itemsize
+            if any(n < 0 for n in file_shape):
+                raise DataFormatError(path, f"header claims a negative shape {file_shape}")
+            nbytes = math.prod(file_shape) * file_dtype.itemsize  # Python ints: no int64 overflow
             if nbytes > max_bytes:
                 raise DataFormatError(path, f"array of {nbytes} bytes exceeds the limit of {max_bytes}")
             f.seek(0)
@@ -127,7 +130,7 @@ def load_npy(
     except DataFormatError:
         raise
     # numpy parses the header with Python's tokenizer: garbage surfaces as SyntaxError/TokenError
-    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError) as e:
+    except (ValueError, TypeError, OSError, EOFError, OverflowError, SyntaxError, tokenize.TokenError) as e:
         raise DataFormatError(path, f"not a valid .npy array ({e})") from None
     if dtype is not None and array.dtype != np.dtype(dtype):
         raise DataFormatError(path, f"dtype {array.dtype}, expected {np.dtype(dtype)}")
@@ -168,6 +171,13 @@ def read_png(path: os.PathLike | str, size: tuple[int, int] | None = None) -> np
     # at the very end is the cheap, exact test that the file is complete.
     if not data.endswith(_PNG_IEND):
         raise DataFormatError(path, "PNG is truncated (no IEND chunk at the end)")
+    if data[12:16] != b"IHDR":
+        raise DataFormatError(path, "PNG has no IHDR chunk first")
+    header_size = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if size is not None and header_size != tuple(size):  # refused before decoding (a huge image is a bomb)
+        raise DataFormatError(
+            path, f"image is {header_size[0]}x{header_size[1]}, expected {size[0]}x{size[1]}"
+        )
     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if image is None:
         raise DataFormatError(path, "PNG could not be decoded")

@@ -1,9 +1,16 @@
-"""Reading and writing coloured point clouds (PLY, PCD) through Open3D."""
+"""Reading and writing coloured point clouds (PLY, PCD).
+
+Readers check a file's header against its size (and ASCII data line by line) before
+anything is allocated or Open3D parses it; PLY is read with numpy, PCD through Open3D.
+"""
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -83,14 +90,31 @@ class PlyStreamWriter:
 def read_cloud(path: os.PathLike | str, require_colours: bool = True) -> o3d.geometry.PointCloud:
     """Read a PLY/PCD cloud and validate it.
 
-    Raises :class:`DataFormatError` naming the file when it is missing, unreadable,
-    empty, lacks colours (if required) or holds NaN/inf positions or colours.
+    The file is checked before Open3D parses it, because Open3D accepts a truncated
+    file or a header promising more points than there are (it fills in zeros or
+    uninitialised memory, after allocating what the header promises): the header,
+    the file's size against the promised points and, for ASCII files, every value.
+    Raises :class:`DataFormatError` naming the file when it is missing, malformed,
+    truncated, empty, lacks colours (if required) or holds NaN/inf positions or colours.
     """
     path = Path(path)
     if not path.is_file():
         raise DataFormatError(path, "point cloud file is missing")
     if path.suffix.lower() not in CLOUD_SUFFIXES:
         raise DataFormatError(path, f"unsupported point cloud format (expected {', '.join(CLOUD_SUFFIXES)})")
+    if path.suffix.lower() == ".ply":
+        layout = _ply_layout(path)
+        if layout.format == "ascii":  # parsed (and so validated) here: Open3D would parse it again
+            columns = _ply_columns(path, layout)
+            points, colours = _points_and_colours(path, columns, layout, require_colours)
+            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+            if colours is not None:
+                pcd.colors = o3d.utility.Vector3dVector(colours / 255.0)
+            if {"nx", "ny", "nz"} <= set(columns):
+                pcd.normals = o3d.utility.Vector3dVector(np.stack([columns[a] for a in ("nx", "ny", "nz")], 1))
+            return pcd
+    else:
+        _check_pcd(path)
     pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
     points = np.asarray(pcd.points)
     if len(points) == 0:
@@ -105,83 +129,207 @@ def read_cloud(path: os.PathLike | str, require_colours: bool = True) -> o3d.geo
     return pcd
 
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
-              "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-              "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_FORMATS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
+_MAX_HEADER = 1 << 16  # bytes; a longer PLY/PCD header is refused
 
 
-def _binary_ply_layout(path: Path) -> tuple[int, np.dtype, int] | None:
-    """(header bytes, vertex dtype, vertex count) of a binary little-endian PLY whose
-    first element is ``vertex`` with scalar properties; None for anything else."""
+@dataclass(frozen=True)
+class _PlyLayout:
+    format: str       # "ascii", "binary_little_endian" or "binary_big_endian"
+    offset: int       # bytes of header before the vertex data
+    dtype: np.dtype   # one vertex (binary formats: with their byte order)
+    count: int        # vertices the header promises
+    types: dict       # property name → PLY type word
+
+
+def _header_lines(path: Path, end: bytes) -> tuple[list[str], int]:
+    """The ASCII header lines of ``path`` up to and including the line starting with ``end``,
+    and the byte offset after it."""
     with open(path, "rb") as f:
-        head = f.read(4096)
-    end = head.find(b"end_header\n")
-    if not head.startswith(b"ply\n") or end < 0:
-        return None
-    lines = head[:end].decode("ascii", "replace").splitlines()[1:]
-    if not lines or lines[0].strip() != "format binary_little_endian 1.0":
-        return None
-    fields, count, in_vertex = [], None, False
-    for line in lines[1:]:
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "element":
+        head = f.read(_MAX_HEADER)
+    lines, offset = [], 0
+    while True:
+        stop = head.find(b"\n", offset)
+        if stop < 0:
+            raise DataFormatError(path, f"header has no {end.decode()} line within {_MAX_HEADER} bytes "
+                                        "(truncated or not a point cloud)")
+        raw = head[offset:stop]
+        offset = stop + 1
+        try:
+            lines.append(raw.decode("ascii").rstrip("\r"))
+        except UnicodeDecodeError:
+            raise DataFormatError(path, f"header line {len(lines) + 1} is not ASCII text") from None
+        if raw.startswith(end):
+            return lines, offset
+
+
+def _ply_layout(path: Path) -> _PlyLayout:
+    """Parse and check the header of a PLY cloud whose first element is ``vertex`` with scalar
+    properties (what Open3D, COLMAP and most tools write), against the file's size."""
+    with open(path, "rb") as f:
+        magic = f.read(5)
+    if not (magic.startswith(b"ply\n") or magic == b"ply\r\n"):
+        raise DataFormatError(path, "not a PLY file (its first line is not 'ply')")
+    lines, offset = _header_lines(path, b"end_header")
+    words = [line.split() for line in lines[1:-1]]
+    words = [w for w in words if w and w[0] not in ("comment", "obj_info")]
+    if not words or words[0][0] != "format" or len(words[0]) != 3 or words[0][1] not in _PLY_FORMATS:
+        raise DataFormatError(path, f"PLY format line must be 'format <{'|'.join(_PLY_FORMATS)}> 1.0'")
+    fmt = words[0][1]
+    fields, types, count = [], {}, None
+    for w in words[1:]:
+        if w[0] == "element":
             if count is not None:
                 break  # later elements (faces) are not read
-            if words[1:2] != ["vertex"] or len(words) != 3 or not words[2].isdigit():
-                return None
-            count, in_vertex = int(words[2]), True
-        elif words[0] == "property" and in_vertex:
-            if len(words) != 3 or words[1] not in _PLY_TYPES:
-                return None
-            fields.append((words[2], _PLY_TYPES[words[1]]))
+            if len(w) != 3 or w[1] != "vertex" or not w[2].isdigit():
+                raise DataFormatError(path, f"expected 'element vertex <count>' first, got {' '.join(w)!r}")
+            count = int(w[2])
+        elif w[0] == "property" and count is not None:
+            if len(w) != 3 or w[1] not in _PLY_TYPES:
+                raise DataFormatError(path, f"unsupported vertex property {' '.join(w)!r} (scalar types only)")
+            if w[2] in types:
+                raise DataFormatError(path, f"vertex property {w[2]!r} is declared twice")
+            fields.append((w[2], _PLY_FORMATS[fmt] + _PLY_TYPES[w[1]]))
+            types[w[2]] = w[1]
         else:
-            return None
-    names = [n for n, _ in fields]
-    if count is None or len(set(names)) != len(names) or not {"x", "y", "z"} <= set(names):
-        return None
-    return end + len(b"end_header\n"), np.dtype(fields), count
+            raise DataFormatError(path, f"unexpected PLY header line {' '.join(w)!r}")
+    if count is None:
+        raise DataFormatError(path, "PLY header declares no vertex element")
+    if not {"x", "y", "z"} <= set(types):
+        raise DataFormatError(path, "vertices lack x, y or z")
+    if count == 0:
+        raise DataFormatError(path, "holds no points (element vertex 0)")
+    dtype = np.dtype(fields)
+    body = path.stat().st_size - offset
+    # ASCII: every value takes at least one character and one separator
+    least = count * 2 * len(fields) - 1 if fmt == "ascii" else count * dtype.itemsize
+    if body < least:
+        raise DataFormatError(path, f"truncated: the header promises {count} points ({least} bytes of "
+                                    f"{'ASCII ' if fmt == 'ascii' else ''}data at least), the file holds {body}")
+    return _PlyLayout(fmt, offset, dtype, count, types)
+
+
+def _ascii_rows(path: Path, offset: int, count: int, width: int) -> np.ndarray:
+    """(count, width) float64 values of the first ``count`` non-empty lines after ``offset``."""
+    with open(path, "rb") as f:
+        f.seek(offset)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # blank lines are not rows
+                text = io.TextIOWrapper(f, encoding="ascii", errors="replace")  # junk after the rows is ignored
+                rows = np.loadtxt(text, dtype=np.float64, max_rows=count, ndmin=2, comments=None)
+        except (ValueError, UnicodeDecodeError) as e:
+            raise DataFormatError(path, f"malformed ASCII point data ({e})") from None
+    if len(rows) < count:
+        raise DataFormatError(path, f"truncated: the header promises {count} points, the file holds {len(rows)}")
+    if rows.shape[1] != width:
+        raise DataFormatError(path, f"points have {rows.shape[1]} values each, the header declares {width}")
+    return rows
+
+
+def _ply_columns(path: Path, layout: _PlyLayout) -> dict[str, np.ndarray]:
+    """Vertex property name → (count,) values: float64 for ASCII, memory-mapped for binary."""
+    if layout.format == "ascii":
+        rows = _ascii_rows(path, layout.offset, layout.count, len(layout.types))
+        return {name: rows[:, i] for i, name in enumerate(layout.dtype.names)}
+    rows = np.memmap(path, dtype=layout.dtype, mode="r", offset=layout.offset, shape=(layout.count,))
+    return {name: rows[name] for name in layout.dtype.names}
+
+
+def _points_and_colours(path: Path, columns: dict[str, np.ndarray], layout: _PlyLayout,
+                        require_colours: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    count = layout.count
+    points = np.empty((count, 3), dtype=np.float64)
+    for i, axis in enumerate("xyz"):
+        points[:, i] = columns[axis]
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise DataFormatError(path, f"{int(bad.sum())} of {count} points have NaN or inf coordinates")
+    colours = None
+    if {"red", "green", "blue"} <= set(columns):
+        colours = np.empty((count, 3), dtype=np.uint8)
+        for i, name in enumerate(("red", "green", "blue")):
+            if _PLY_TYPES[layout.types[name]] != "u1":
+                raise DataFormatError(path, f"colour property {name} is {layout.types[name]}, expected uchar")
+            channel = columns[name]
+            if channel.dtype != np.uint8 and not np.all((channel >= 0) & (channel <= 255) & (channel % 1 == 0)):
+                raise DataFormatError(path, f"colour property {name} holds values other than integers 0…255")
+            colours[:, i] = channel
+    elif require_colours:
+        raise DataFormatError(path, "points have no colours")
+    return points, colours
+
+
+_PCD_DATA = ("ascii", "binary", "binary_compressed")
+
+
+def _check_pcd(path: Path) -> None:
+    """Check a PCD file's header against its size and, for ASCII data, every line."""
+    lines, offset = _header_lines(path, b"DATA")
+    head = {}
+    for line in lines:
+        w = line.split()
+        if w and not w[0].startswith("#"):
+            head[w[0].upper()] = w[1:]
+    try:
+        fields = head["FIELDS"]
+        sizes = [int(s) for s in head["SIZE"]]
+        counts = [int(s) for s in head.get("COUNT", ["1"] * len(fields))]
+        points = int(head["POINTS"][0]) if "POINTS" in head else int(head["WIDTH"][0]) * int(head["HEIGHT"][0])
+        data = head["DATA"][0].lower()
+    except (KeyError, IndexError, ValueError):
+        raise DataFormatError(path, "PCD header lacks FIELDS, SIZE, POINTS or DATA, or holds non-integers") from None
+    if not fields or len(sizes) != len(fields) or len(counts) != len(fields) or min(sizes + counts) < 1 \
+            or points < 0 or data not in _PCD_DATA:
+        raise DataFormatError(path, f"inconsistent PCD header (FIELDS {fields}, SIZE {sizes}, COUNT {counts}, "
+                                    f"POINTS {points}, DATA {data})")
+    if points == 0:
+        raise DataFormatError(path, "holds no points (POINTS 0)")
+    row = sum(s * c for s, c in zip(sizes, counts))
+    body = path.stat().st_size - offset
+    if data == "ascii":
+        if body < 2 * sum(counts) * points - 1:
+            raise DataFormatError(path, f"truncated: the header promises {points} points, the file holds {body} "
+                                        "bytes of ASCII data")
+        _ascii_rows(path, offset, points, sum(counts))
+        return
+    if data == "binary_compressed":
+        with open(path, "rb") as f:
+            f.seek(offset)
+            sizes_bytes = f.read(8)
+        if len(sizes_bytes) < 8:
+            raise DataFormatError(path, "truncated: compressed PCD data lacks its size fields")
+        compressed, uncompressed = np.frombuffer(sizes_bytes, "<u4").tolist()
+        if uncompressed != points * row:
+            raise DataFormatError(path, f"compressed PCD data unpacks to {uncompressed} bytes, "
+                                        f"{points} points need {points * row}")
+        need = 8 + compressed
+    else:
+        need = points * row
+    if body < need:
+        raise DataFormatError(path, f"truncated: the header promises {points} points ({need} bytes of data), "
+                                    f"the file holds {body}")
 
 
 def read_cloud_arrays(path: os.PathLike | str, require_colours: bool = True
                       ) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a PLY/PCD cloud as arrays: points (n, 3) float64, colours (n, 3) uint8 or None.
 
-    Binary little-endian PLY (what ``recon`` writes) is read straight into numpy,
-    about ten times faster than Open3D; any other file goes through
-    :func:`read_cloud`. Validation and errors are those of :func:`read_cloud`.
+    PLY (ASCII or binary, what ``recon`` writes) is read straight into numpy, about ten
+    times faster than Open3D; PCD goes through :func:`read_cloud`. Validation and
+    errors are those of :func:`read_cloud` (PLY colours must be uchar).
     """
     path = Path(path)
-    layout = _binary_ply_layout(path) if path.is_file() and path.suffix.lower() == ".ply" else None
-    if layout is None:
+    if not (path.is_file() and path.suffix.lower() == ".ply"):
         pcd = read_cloud(path, require_colours)
         colours = (np.clip(np.rint(np.asarray(pcd.colors) * 255), 0, 255).astype(np.uint8)
                    if pcd.has_colors() else None)
         return np.asarray(pcd.points), colours
-    offset, dtype, count = layout
-    size = path.stat().st_size
-    if size < offset + count * dtype.itemsize:
-        raise DataFormatError(path, f"truncated: header promises {count} points "
-                                    f"({offset + count * dtype.itemsize} bytes), file has {size}")
-    if count == 0:
-        raise DataFormatError(path, "no points (empty, truncated or not a point cloud)")
-    rows = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,))
-    points = np.empty((count, 3), dtype=np.float64)
-    for i, axis in enumerate("xyz"):
-        points[:, i] = rows[axis]
-    bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
-        raise DataFormatError(path, f"{int(bad.sum())} of {count} points have NaN or inf coordinates")
-    colours = None
-    if {"red", "green", "blue"} <= set(dtype.names):
-        colours = np.empty((count, 3), dtype=np.uint8)
-        for i, name in enumerate(("red", "green", "blue")):
-            channel = rows[name]
-            if channel.dtype != np.uint8:
-                raise DataFormatError(path, f"colour property {name} is {channel.dtype}, expected uchar")
-            colours[:, i] = channel
-    elif require_colours:
-        raise DataFormatError(path, "points have no colours")
-    del rows
+    layout = _ply_layout(path)
+    columns = _ply_columns(path, layout)
+    points, colours = _points_and_colours(path, columns, layout, require_colours)
+    del columns
     return points, colours

@@ -76,7 +76,7 @@ def evaluate_cloud(points: np.ndarray, dataset: Dataset, scene: Scene, threshold
                    max_depth: float = np.inf, stride: int = 4) -> dict:
     """Accuracy and completeness of a reconstructed cloud (n, 3) float64 world.
 
-    Returns a JSON-able dict; NaN where there is nothing to measure.
+    Returns a JSON-able dict; None where there is nothing to measure (no points, no surface).
     """
     origin = points.mean(axis=0) if len(points) else np.zeros(3)
     acc = distances_to_mesh(points, scene, origin) if len(points) else np.zeros(0)
@@ -85,10 +85,10 @@ def evaluate_cloud(points: np.ndarray, dataset: Dataset, scene: Scene, threshold
     facade = kind == Kind.BUILDING
 
     def share(mask, tau):
-        return float(np.mean(dist[mask] <= tau)) if mask.any() else float("nan")
+        return float(np.mean(dist[mask] <= tau)) if mask.any() else None
 
     def pct(q):
-        return float(np.percentile(acc, q)) if len(acc) else float("nan")
+        return float(np.percentile(acc, q)) if len(acc) else None
 
     result = {
         "points": int(len(points)),

@@ -141,6 +141,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
 
     frames = list(range(0, ds.num_frames, conf.frame_stride))
     frames = [f for f in frames if np.all(np.isfinite(world_from_rig[f]))]
+    if not frames:
+        raise ValueError(f"{dataset_dir}: no frame has a pose (source {conf.poses!r}); nothing to reconstruct")
     # The model origin: float64 world coordinates stay on the CPU, everything
     # stored in voxels is relative to it (a city's UTM coordinates survive).
     origin = np.round(world_from_rig[frames, :3, 3].mean(axis=0), 3)
@@ -162,6 +164,10 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     cloud_path = work / "cloud.ply"
     with PlyStreamWriter(cloud_path, normals=conf.fusion.normals) as writer:
         num_points = merge_tiles(spill, centres, writer.append, executor)
+        # the report, written last, marks a finished run: an earlier run's must not describe the new cloud
+        (work / "recon_report.json").unlink(missing_ok=True)
+    if num_points == 0:
+        logger.warning("no points reconstructed (nothing textured in view?); %s holds an empty cloud", cloud_path)
     stages["merge_s"] = time.perf_counter() - t2
     if not conf.keep_spill:
         spill.cleanup()
@@ -177,7 +183,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     if conf.evaluate and ds.has_ground_truth:
         t3 = time.perf_counter()
         scene = load_scene(dataset_dir)
-        points = np.asarray(read_cloud(cloud_path).points)  # evaluation holds the whole cloud
+        # evaluation holds the whole cloud
+        points = np.asarray(read_cloud(cloud_path).points) if num_points else np.zeros((0, 3))
         max_depth = conf.trinocular.stereo.max_depth
         report["accuracy"] = evaluate_cloud(points, ds, scene, max_depth=max_depth)
         stages["evaluate_s"] = time.perf_counter() - t3

@@ -1,7 +1,8 @@
 """CPU decode path (the paper's baseline): decode in numpy every frame, upload, draw.
 
 For the billboards drawn this frame: direction indices from the eye position
-(:func:`billboards.model.direction_index`, float64), textures from
+(:func:`billboards.model.direction_index`; the view vector formed in float32 as on
+the GPU, the angles in float64), textures from
 :func:`billboards.model.decode` (mean + Σ_k w_k·V_k, clipped to [0, 1]) in chunks of
 billboards, quantised to RGBA8, packed one tile per billboard into a per-frame atlas
 (texture array, pages of ``page_size``² texels) and drawn with ``billboard_cpu.glsl``:
@@ -43,10 +44,12 @@ def decode_for_eye(model: BillboardModel, billboards: np.ndarray, eye: np.ndarra
     billboards = np.asarray(billboards, dtype=np.int64).reshape(-1)
     t = model.tile
     out = np.empty((len(billboards), t, t, 4), np.uint8)
-    eye = np.asarray(eye, dtype=np.float64).reshape(3)
+    # The view vector as the GPU forms it (float32 eye minus float32 centre): straight above or
+    # below a billboard its yaw is atan2 of rounding noise, and both decodes must see the same noise.
+    eye = np.asarray(eye, dtype=np.float64).reshape(3).astype(np.float32)
     for s in range(0, len(billboards), chunk):
         b = billboards[s:s + chunk]
-        view = eye - model.centres[b].astype(np.float64)
+        view = (eye - model.centres[b]).astype(np.float64)
         yi, pi = direction_index(model, b, view)
         if not interpolate:
             yi, pi = np.floor(yi + 0.5), np.floor(pi + 0.5)

@@ -7,9 +7,12 @@ directory (its camera-0 poses) or a JSON list of 4×4 ``world_from_cam`` matrice
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -78,7 +81,9 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
                 progress: bool | None = None) -> Path:
     """Render ``poses`` (n, 4, 4) into ``out``: a video when it ends in a video suffix,
     else a directory of PNG frames (``frame_NNNNNN.png``). Written atomically: a
-    video appears under its name only when complete, each frame likewise."""
+    video appears under its name only when complete, and the frames replace those of
+    an earlier render (no stale ones stay) only once all are written; an interrupted
+    render leaves ``out`` as it was."""
     out = Path(out)
     K = default_intrinsics(*size) if K is None else np.asarray(K, np.float64)
     ctx = create_context()
@@ -91,18 +96,39 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
                 import imageio.v2 as imageio
 
                 with atomic_path(out) as tmp:
-                    with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                                            ffmpeg_log_level="error") as writer:
+                    writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1,
+                                                ffmpeg_log_level="error")
+                    try:
                         for image in bar:
                             writer.append_data(image)
+                    except BaseException:
+                        # imageio's context manager leaves the writer open on an exception: ffmpeg
+                        # would go on and write the temporary file after atomic_path removed it
+                        with contextlib.suppress(Exception):
+                            writer.close()
+                        raise
+                    writer.close()
             else:
-                out.mkdir(parents=True, exist_ok=True)
-                for i, image in enumerate(bar):
-                    write_png(out / f"frame_{i:06d}.png", image)
+                _write_frames(bar, out)
     finally:
         ctx.release()
     logger.info("rendered %d frames → %s", len(poses), out)
     return out
+
+
+def _write_frames(images, out: Path) -> None:
+    """Write ``images`` as ``out/frame_NNNNNN.png`` through a temporary directory inside ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".frames.tmp-", dir=out))
+    try:
+        for i, image in enumerate(images):
+            write_png(tmp / f"frame_{i:06d}.png", image)
+        for old in out.glob("frame_*.png"):
+            old.unlink()
+        for new in sorted(tmp.iterdir()):
+            os.replace(new, out / new.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def save_poses_json(path: os.PathLike | str, poses: np.ndarray) -> Path:
