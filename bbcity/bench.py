@@ -25,12 +25,30 @@ import numpy as np
 logger = logging.getLogger(__name__)
 
 
+SCENES = ("all", "street", "town")
+
+
 @dataclass(frozen=True)
 class BenchConfig:
     quick: bool = False  # small inputs for a smoke run (under 3 minutes)
+    scene: str = "all"  # "street" (the pipeline and everything on its model), "town" (culling) or "all"
     repeats: int = 3  # each timing is the median of this many runs
-    workers: int = 2  # process pool size for the parallel-render comparison
-    work: str | None = None  # a recon work directory: adds the billboard build on its cloud and images
+    workers: int = 2  # process pool size
+    work: str | None = None  # a recon work directory (e.g. the default street's): the billboard sections use it
+    street_length: float = 30.0  # metres: the 1× street of the pipeline runs
+    scales: tuple[int, ...] = (1, 2, 4)  # street lengths of the scaling runs, in multiples of street_length
+
+    def __post_init__(self):
+        if self.scene not in SCENES:
+            raise ValueError(f"scene must be one of {SCENES}, got {self.scene!r}")
+        if not (self.street_length > 0 and self.scales and all(int(s) >= 1 for s in self.scales)
+                and self.repeats >= 1 and self.workers >= 1):
+            raise ValueError(f"invalid BenchConfig: {self}")
+
+    @classmethod
+    def quick_config(cls, **overrides) -> "BenchConfig":
+        """The smoke run's settings: a 6 m street at 1× and 2×, one repeat."""
+        return cls(**{"quick": True, "repeats": 1, "street_length": 6.0, "scales": (1, 2), **overrides})
 
 
 @dataclass
@@ -104,8 +122,8 @@ class Report:
         machine = {"python": platform.python_version(), "platform": platform.platform(),
                    "cpus": os.cpu_count(), "numpy": np.__version__, "open3d": open3d.__version__,
                    "opencv": cv2.__version__}
-        write_json(out / "report.json", {"machine": machine, "settings": self.settings,
-                                         "sections": self.sections, "notes": self.notes})
+        write_json(out / "report.json", _json_ready({"machine": machine, "settings": self.settings,
+                                                     "sections": self.sections, "notes": self.notes}))
         lines = ["# bbcity benchmark", "", "Machine: " + ", ".join(f"{k} {v}" for k, v in machine.items()),
                  "", "Settings: " + json.dumps(self.settings), ""]
         for name, rows in self.sections.items():
@@ -122,8 +140,21 @@ class Report:
 
 def _fmt(value) -> str:
     if isinstance(value, float):
-        return f"{value:.4g}"
+        return "n/a" if not np.isfinite(value) else f"{value:.4g}"
     return str(value)
+
+
+def _json_ready(value):
+    """``value`` with non-finite floats as None (JSON null = no measurement) and numpy scalars as Python's."""
+    if isinstance(value, dict):
+        return {str(k): _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
 
 
 def bench_synthesis(cfg: BenchConfig, report: Report) -> None:
@@ -136,7 +167,7 @@ def bench_synthesis(cfg: BenchConfig, report: Report) -> None:
 
     from .executor import make_executor
 
-    street_cfg = StreetConfig(length=60.0 if cfg.quick else 300.0)
+    street_cfg = StreetConfig(length=30.0 if cfg.quick else 300.0)
     for name, fn in (("street", lambda: build_street(street_cfg)), ("town", lambda: build_town(TownConfig()))):
         scene = fn()
         m = median_of(fn, cfg.repeats)
@@ -214,7 +245,7 @@ def bench_octree(cfg: BenchConfig, report: Report) -> None:
         points, _ = read_cloud_arrays(Path(cfg.work) / "cloud.ply")
         source = f"{cfg.work}/cloud.ply"
     else:
-        points = street_surface_points(2_000_000 if cfg.quick else 15_000_000)
+        points = street_surface_points(500_000 if cfg.quick else 15_000_000)
         source = "points on the default street's surfaces"
     voxel = build_octree(points, OctreeConfig(voxel_size=0.5, min_points=10))
     depth = voxel.depth
@@ -240,9 +271,9 @@ def bench_octree(cfg: BenchConfig, report: Report) -> None:
                               "Open3D centres its root cube on the bounding box.")
 
 
-def bench_billboards(cfg: BenchConfig, report: Report, out: Path) -> None:
-    """The billboard build on a recon work directory: stages, compression and PSNR; the texture sweep;
-    occlusion-aware vs naive sampling against ground truth."""
+def bench_billboards(cfg: BenchConfig, report: Report, out: Path, work: Path, build: bool) -> None:
+    """On a recon work directory: the billboard build (stages, compression and PSNR) when
+    ``build``, the texture sweep, and occlusion-aware vs naive sampling against ground truth."""
     from billboards.build import BuildConfig, main as build_main
     from billboards.evaluate import compare_sampling
     from data_synth import load_dataset
@@ -250,21 +281,46 @@ def bench_billboards(cfg: BenchConfig, report: Report, out: Path) -> None:
     from .executor import executor_scope
     from .sweeps import texture_sweep
 
-    work = Path(cfg.work)
+    work = Path(work)
     dataset = Path(json.loads((work / "recon_report.json").read_text())["dataset"])
     conf = BuildConfig()
-    with executor_scope(cfg.workers) as ex, measure() as m:
-        result = build_main(conf, work / "cloud.ply", dataset, out / "model", executor=ex, workers=cfg.workers)
-    r = result.report
+    if build:
+        with executor_scope(cfg.workers) as ex, measure() as m:
+            build_main(conf, work / "cloud.ply", dataset, out / "model", executor=ex, workers=cfg.workers)
+        _build_rows(report, json.loads((out / "model" / "build_report.json").read_text()), m)
+    sweep = texture_sweep(work / "cloud.ply", dataset, out, count=32 if cfg.quick else 512,
+                          tiles=(32,) if cfg.quick else (8, 16, 32))
+    for row in sweep["sweep"]:
+        report.add("Texture sweep", {k: row[k] for k in ("setting", "tile", "tile_mode", "coef_mode", "mean_rank",
+                                                          "compression", "psnr_rgb_db", "psnr_rgba_db",
+                                                          "compress_ms_per_billboard")})
+    report.notes["Texture sweep"] = "Work-precision plot: texture_sweep.png."
+    if load_dataset(dataset).has_ground_truth:
+        ev = compare_sampling(dataset, work / "cloud.ply", conf.octree, count=20 if cfg.quick else 100)
+        for name in ("near_occluders", "random"):
+            for method in ("occlusion_aware", "naive"):
+                report.add("Sampling against ground truth", {
+                    "billboards": name.replace("_", " "),
+                    "sampling": method.replace("_", "-") + (" (baseline)" if method == "naive" else ""),
+                    "samples": ev[name]["samples"], "PSNR RGB dB": ev[name][method]["psnr_rgb"],
+                    "alpha agreement": ev[name][method]["alpha_agreement"],
+                    "PSNR behind occluders dB": ev[name][method + "_behind_occluders"]["psnr_rgb"],
+                    "texels behind occluders": ev[name]["texels_behind_occluders"]})
+
+
+def _build_rows(report: Report, r: dict, m: Measurement | None = None) -> None:
+    """The "Billboard build" and "Billboard model" rows of a build report."""
     for stage, seconds in r["stages"].items():
         report.add("Billboard build", {"stage": stage.removesuffix("_s"), "wall s": seconds})
     for stage, seconds in r["worker_seconds"].items():
         report.add("Billboard build", {"stage": f"{stage.removesuffix('_s')} (worker CPU s)", "wall s": seconds,
                                        "ms per billboard": 1e3 * seconds / r["voxels"]})
-    report.add("Billboard build", {"stage": "total", "wall s": m.wall, "cpu s (main)": m.cpu,
+    report.add("Billboard build", {"stage": "total", "wall s": r["total_s"] if m is None else m.wall,
+                                   "cpu s (main)": float("nan") if m is None else m.cpu,
                                    "peak MB (main)": r["peak_memory"]["main_mb"],
                                    "peak MB (largest worker)": r["peak_memory"]["largest_worker_mb"],
-                                   "billboards": r["voxels"], "billboards/s": r["voxels"] / m.wall})
+                                   "billboards": r["voxels"],
+                                   "billboards/s": r["voxels"] / (r["total_s"] if m is None else m.wall)})
     report.add("Billboard model", {"billboards": r["voxels"], "mean rank": r["mean_rank"], "slots": r["slots"],
                                    "pages": r["pages"], "raw MB": r["bytes"]["raw_samples"] / 1e6,
                                    "model MB": r["bytes"]["model"] / 1e6, "compression": r["compression_ratio"],
@@ -273,35 +329,60 @@ def bench_billboards(cfg: BenchConfig, report: Report, out: Path) -> None:
                                    "PCA only, RGBA dB": r["psnr"]["pca_rgba_db"]})
     report.notes["Billboard model"] = ("Raw = the sampled 8-bit RGBA textures (d × t × t × 4 bytes per billboard); "
                                        "PSNR of the decoded (quantised) model against them.")
-    sweep = texture_sweep(work / "cloud.ply", dataset, out, count=256 if cfg.quick else 1024,
-                          tiles=(32,) if cfg.quick else (8, 16, 32))
-    for row in sweep["sweep"]:
-        report.add("Texture sweep", {k: row[k] for k in ("setting", "tile", "tile_mode", "coef_mode", "mean_rank",
-                                                          "compression", "psnr_rgb_db", "psnr_rgba_db",
-                                                          "compress_ms_per_billboard")})
-    report.notes["Texture sweep"] = "Work-precision plot: texture_sweep.png."
-    if load_dataset(dataset).has_ground_truth:
-        ev = compare_sampling(dataset, work / "cloud.ply", conf.octree, count=60 if cfg.quick else 200)
-        for name in ("near_occluders", "random"):
-            for method in ("occlusion_aware", "naive"):
-                report.add("Sampling against ground truth", {
-                    "billboards": name.replace("_", " "), "sampling": method.replace("_", "-"),
-                    "samples": ev[name]["samples"], "PSNR RGB dB": ev[name][method]["psnr_rgb"],
-                    "alpha agreement": ev[name][method]["alpha_agreement"],
-                    "PSNR behind occluders dB": ev[name][method + "_behind_occluders"]["psnr_rgb"],
-                    "texels behind occluders": ev[name]["texels_behind_occluders"]})
+
+
+def bench_stereo(cfg: BenchConfig, report: Report, dataset: Path, out: Path) -> None:
+    """Accuracy against seconds per frame over SGBM settings; trinocular vs the best single pair."""
+    from .sweeps import stereo_sweep
+
+    result = stereo_sweep(dataset, out, num_frames=2 if cfg.quick else 4)
+    for row in result["sweep"]:
+        report.add("Stereo sweep", row)
+    for row in result["pairs_vs_trinocular"]:
+        report.add("Stereo: trinocular vs single pairs", row)
+    report.notes["Stereo sweep"] = "Work-precision plot: stereo_sweep.png (accuracy against seconds per frame)."
 
 
 def run_bench(cfg: BenchConfig, out: Path) -> Path:
-    """Run every benchmark section and write the report to ``out``."""
+    """Run the benchmark sections of ``cfg.scene`` and write the report to ``out``.
+
+    The street sections run the pipeline on a ``street_length`` street at each scale
+    (:mod:`bbcity.bench_pipeline`), then measure stereo, textures, rendering and novel
+    views on the 1× run (the billboard sections on ``cfg.work`` instead when given).
+    """
+    from .bench_pipeline import bench_pipeline
+    from .bench_render import bench_decode_and_cull, bench_novel_views, bench_town
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report = Report(settings=asdict(cfg))
     start = time.perf_counter()
-    bench_synthesis(cfg, report)
-    bench_octree(cfg, report)
-    if cfg.work is not None:
-        bench_billboards(cfg, report, out)
+    timings = report.settings.setdefault("section_seconds", {})
+
+    def section(name: str, fn, *args) -> None:
+        t0 = time.perf_counter()
+        fn(*args)
+        timings[name] = time.perf_counter() - t0
+        logger.info("bench: %s took %.0f s", name, timings[name])
+
+    if cfg.scene in ("all", "street"):
+        section("synthesis", bench_synthesis, cfg, report)
+        runs: list = []
+        section("pipeline", lambda: runs.append(bench_pipeline(cfg, report, out)))
+        run = runs[0]
+        section("octree", bench_octree, cfg, report)
+        section("stereo", bench_stereo, cfg, report, run.dataset, out)
+        work = Path(cfg.work) if cfg.work is not None else run.work
+        section("textures", bench_billboards, cfg, report, out, work, cfg.work is not None)
+        if cfg.work is None:
+            _build_rows(report, json.loads((run.model / "build_report.json").read_text()))
+        model = out / "model" if cfg.work is not None else run.model
+        dataset = Path(json.loads((work / "recon_report.json").read_text())["dataset"])
+        length = json.loads((dataset / "dataset.json").read_text())["synth"]["street"]["length"]
+        section("rendering", bench_decode_and_cull, cfg, report, model, float(length))
+        section("novel views", bench_novel_views, cfg, report, run.dataset, run.work, run.model, out, 4)
+    if cfg.scene in ("all", "town"):
+        section("town", bench_town, cfg, report)
     report.settings["total_seconds"] = time.perf_counter() - start
     report.write(out)
     logger.info("wrote %s", out / "report.md")

@@ -1,0 +1,61 @@
+"""`bbcity bench`: the report's structure, and the whole quick bench end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bbcity.bench import BenchConfig, Report, run_bench
+
+
+def test_report_writes_nan_as_null_and_markdown_as_na(tmp_path):
+    report = Report(settings={"x": 1})
+    report.add("Section", {"what": "a", "value": float("nan"), "n": np.int64(3), "r": np.float32(0.5)})
+    report.notes["Section"] = "a note"
+    report.write(tmp_path)
+    data = json.loads((tmp_path / "report.json").read_text())
+    assert data["sections"]["Section"] == [{"what": "a", "value": None, "n": 3, "r": 0.5}]
+    assert {"python", "numpy", "open3d", "opencv"} <= set(data["machine"])
+    md = (tmp_path / "report.md").read_text()
+    assert "| a | n/a | 3 | 0.5 |" in md and "a note" in md
+
+
+def test_config_refuses_bad_settings():
+    with pytest.raises(ValueError):
+        BenchConfig(scene="moon")
+    with pytest.raises(ValueError):
+        BenchConfig(scales=())
+    quick = BenchConfig.quick_config(scene="town")
+    assert quick.quick and quick.scene == "town" and quick.scales == (1, 2)
+
+
+@pytest.mark.slow
+def test_quick_bench_writes_every_section(tmp_path):
+    """The smoke run (about 2 minutes): every section present, each speed paired with a
+    same-run baseline, the plots written."""
+    run_bench(BenchConfig.quick_config(), tmp_path)
+    data = json.loads((tmp_path / "report.json").read_text())
+    sections = data["sections"]
+    for name in ("Scene generation", "Pipeline stages", "Scaling", "Octree", "Stereo sweep",
+                 "Stereo: trinocular vs single pairs", "Texture sweep", "Sampling against ground truth",
+                 "Billboard model", "Rendering: decode", "Rendering: culling (street)",
+                 "Rendering: culling (town meshes)", "Novel views"):
+        assert sections.get(name), f"section {name!r} missing or empty"
+    stages = {r["stage"].strip() for r in sections["Pipeline stages"]}
+    assert {"synthesis", "stereo, per frame", "fusion", "octree", "sampling", "PCA", "atlas packing (quantise)",
+            "model load + GPU upload"} <= stages
+    assert [r["scale"] for r in sections["Scaling"]] == ["1×", "2×"]
+    assert all(r["wall s"] is None or r["wall s"] >= 0 for r in sections["Pipeline stages"])
+    decode = sections["Rendering: decode"]
+    assert any("baseline" in r["decode"] for r in decode)
+    assert all(math.isfinite(r["ratio to CPU decode"]) and r["ratio to CPU decode"] > 0 for r in decode)
+    town = {r["cull"]: r for r in sections["Rendering: culling (town meshes)"]}
+    assert town["occlusion"]["drawn"] < town["frustum"]["drawn"] <= town["none"]["drawn"]
+    methods = {r["method"] for r in sections["Novel views"]}
+    assert methods == {"billboards", "point projection (baseline)", "uncompressed billboards"}
+    for png in ("scaling.png", "stereo_sweep.png", "texture_sweep.png"):
+        assert (tmp_path / png).stat().st_size > 1000
+    assert "## Scaling" in (tmp_path / "report.md").read_text()
