@@ -289,7 +289,7 @@ def bench_billboards(cfg: BenchConfig, report: Report, out: Path, work: Path, bu
             build_main(conf, work / "cloud.ply", dataset, out / "model", executor=ex, workers=cfg.workers)
         _build_rows(report, json.loads((out / "model" / "build_report.json").read_text()), m)
     sweep = texture_sweep(work / "cloud.ply", dataset, out, count=32 if cfg.quick else 512,
-                          tiles=(32,) if cfg.quick else (8, 16, 32))
+                          tiles=(conf.sampling.tile,) if cfg.quick else (8, 16, 32))
     for row in sweep["sweep"]:
         report.add("Texture sweep", {k: row[k] for k in ("setting", "tile", "tile_mode", "coef_mode", "mean_rank",
                                                           "compression", "psnr_rgb_db", "psnr_rgba_db",

@@ -156,8 +156,10 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
     """Bytes, decode PSNR and build time over PCA rank rules, texel sizes and quantisation.
 
     Samples ``count`` neighbouring billboards from the middle of the street once per
-    texel size, then compresses the same samples under every setting. Writes
-    ``texture_sweep.json``, ``texture_sweep.md`` and ``texture_sweep.png``.
+    texel size, then compresses the same samples under every setting (the rank rules and
+    quantisation modes at the build's texel size, which is always swept; the build's
+    defaults at the other sizes). Writes ``texture_sweep.json``, ``texture_sweep.md``
+    and ``texture_sweep.png``.
     """
     from billboards.build import BuildConfig, compress_chunk, place_billboards
     from billboards.octree import build_octree
@@ -165,6 +167,7 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
     from recon.cloud_io import read_cloud_arrays
 
     base = BuildConfig(error_stride=1)
+    tiles = tuple(sorted(set(int(t) for t in tiles) | {base.sampling.tile}))
     points, colours = read_cloud_arrays(cloud_path)
     octree = build_octree(points, base.octree)
     views = views_from_dataset(load_dataset(dataset_dir)) if dataset_dir is not None else None
