@@ -8,7 +8,8 @@ instanced draw (``billboard.glsl``) of triangle strips, 4 vertices and one insta
 per billboard, whose fragments need two texel fetches per tile. Weighing per fragment
 instead (coefficients, slot table and direction bracketing for every fragment) made
 frames about 2× slower on llvmpipe. The weights are recomputed only when the eye (or
-the interpolation setting) changes, so the many batches of a culled frame share them.
+the interpolation setting) changes, and only in the rows of the weight textures that hold
+the slots being drawn, so a culled frame computes little and its batches share it.
 
 With ``visible=None`` the static instance buffer of
 :class:`~render.resources.ModelResources` is drawn as is; a subset is gathered into
@@ -44,7 +45,7 @@ class GpuDecoder:
         self.spherical = bool(spherical)
         self.interpolate = bool(interpolate)
         self._objects = []
-        self._weights_key = None  # (eye, interpolate) of the current weight textures
+        self._weights_key = None  # (eye, interpolate) the weight textures were computed for ...
         try:
             self.program = self._keep(load_program(ctx, "billboard.glsl"))
             self.weights_program = self._keep(load_program(ctx, "billboard_weights.glsl"))
@@ -59,6 +60,7 @@ class GpuDecoder:
             for tex in (self.terms, self.consts):
                 tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
             self.weights_fbo = self._keep(ctx.framebuffer(color_attachments=[self.terms, self.consts]))
+            self._rows_current = np.zeros(self.weights_size[1], bool)  # ... in these rows
         except BaseException:
             self.release()
             raise
@@ -71,28 +73,46 @@ class GpuDecoder:
         return self._keep(self.ctx.vertex_array(
             self.program, [vertex_binding(self.program, buffer, INSTANCE_FORMAT, INSTANCE_ATTRIBUTES)]))
 
-    def update_weights(self, eye) -> bool:
-        """Recompute every slot's view-dependent constants for ``eye`` (model coordinates)
-        unless they are current; returns whether the pass ran. Restores the bound framebuffer."""
+    def update_weights(self, eye, billboards=None) -> int:
+        """Make the view-dependent constants of the slots of ``billboards`` ((B,) int; None:
+        all) current for ``eye`` (model coordinates): the weights pass runs over the rows of
+        the weight textures that hold them and are not yet current. Returns the rows computed;
+        restores the bound framebuffer."""
         eye = tuple(np.asarray(eye, np.float32).tolist())
         key = (eye, self.interpolate)
-        if key == self._weights_key:
-            return False
+        if key != self._weights_key:
+            self._weights_key = key
+            self._rows_current[:] = False
+        spr, rows = self.weights_size
+        need = np.ones(rows, bool)
+        if billboards is not None:
+            model = self.resources.model
+            first = model.first_slot[billboards].astype(np.int64)
+            last = first + model.rank[billboards]
+            need[:] = False
+            need[first // spr] = True  # a billboard's slots may run past a row's end
+            need[last // spr] = True
+        todo = need & ~self._rows_current
+        if not todo.any():
+            return 0
         target = self.ctx.fbo
         prog = self.weights_program
         self.resources.bind(prog)
         set_uniform(prog, "u_eye", eye)
         set_uniform(prog, "u_interpolate", self.interpolate)
         self.weights_fbo.use()  # no depth attachment: the depth test passes
-        self.weights_vao.render(moderngl.TRIANGLES, vertices=3)
+        edges = np.flatnonzero(np.diff(np.r_[0, todo.astype(np.int8), 0]))
+        for r0, r1 in edges.reshape(-1, 2):  # runs of rows: one full-width band each
+            self.ctx.viewport = (0, int(r0), spr, int(r1 - r0))
+            self.weights_vao.render(moderngl.TRIANGLES, vertices=3)
         target.use()
-        self._weights_key = key
-        return True
+        self._rows_current |= todo
+        return int(todo.sum())
 
     def draw(self, camera: GLCamera, visible=None) -> dict:
         """Draw into the bound framebuffer; returns stats {draw_calls, instances, upload_bytes,
-        weights_pass} (draw_calls: instanced billboard draws; weights_pass: whether the
-        per-view weights were recomputed for this draw).
+        weights_rows} (draw_calls: instanced billboard draws; weights_rows: rows of the weight
+        textures the weights pass computed for this draw).
 
         visible: None (all billboards), (B,) int indices or an (n,) bool mask.
         """
@@ -101,7 +121,7 @@ class GpuDecoder:
         n = self.resources.model.num_billboards
         visible = check_billboards(visible, n)
         count = n if visible is None else len(visible)
-        stats = {"draw_calls": 0, "instances": count, "upload_bytes": 0, "weights_pass": False}
+        stats = {"draw_calls": 0, "instances": count, "upload_bytes": 0, "weights_rows": 0}
         if count == 0:
             return stats
         if visible is None:
@@ -109,7 +129,7 @@ class GpuDecoder:
         else:
             stats["upload_bytes"] = self.stream.write(self.resources.instance_data(visible))
             vao = self.vao_subset
-        stats["weights_pass"] = self.update_weights(camera.eye)
+        stats["weights_rows"] = self.update_weights(camera.eye, visible)
         prog = self.program
         self.resources.bind(prog)
         self.terms.use(self.TERMS_UNIT)

@@ -252,6 +252,32 @@ def test_gpu_and_cpu_decode_give_the_same_image(ctx, tile_mode, coef_mode):
         cpu.release()
 
 
+def test_weights_pass_rows_follow_the_drawn_billboards(ctx):
+    """The GPU weights pass computes only the rows of slots being drawn; drawing a subset,
+    then everything from the same eye, then moving, matches a fresh renderer every time."""
+    rng = np.random.default_rng(5)
+    n = 1600  # about 5000 slots: more than one row of the weight textures (4096 slots)
+    centres = np.stack([rng.uniform(-20, 20, n), rng.uniform(-2, 2, n), rng.uniform(0, 6, n)], 1)
+    model = make_model(centres, voxel_size=0.7, rank=rng.integers(2, 5, n), d_yaw=7, seed=5, page_size=512)
+    K, size = intrinsics(200.0, 200, 150), (200, 150)
+    poses = [look_at(model.origin + [x, -22.0, 3.0], model.origin + [x, 0.0, 2.0]) for x in (-3.0, 4.0)]
+    some = np.arange(n - 150, n)  # their slots lie in the last row only
+    with BillboardRenderer(ctx, model, "gpu") as renderer:
+        rows = renderer.decoder.weights_size[1]
+        assert rows >= 2
+        renderer.render(K, poses[0], size, visible=some)
+        assert 0 < renderer.stats["weights_rows"] < rows
+        everything = renderer.render(K, poses[0], size)
+        assert 0 < renderer.stats["weights_rows"] < rows  # the rest of the rows
+        renderer.render(K, poses[0], size)
+        assert renderer.stats["weights_rows"] == 0  # nothing new to compute
+        moved = renderer.render(K, poses[1], size)
+        assert renderer.stats["weights_rows"] == rows
+    for pose, image in zip(poses, (everything, moved)):
+        with BillboardRenderer(ctx, model, "gpu") as fresh:
+            assert np.array_equal(fresh.render(K, pose, size), image)
+
+
 # ----------------------------------------------------------------------------------------------
 # alpha test, draw calls, selection, release, empty model
 
