@@ -12,23 +12,24 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import resource
+import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
-from .bench import BenchConfig, Report, measure
+from .bench import BenchConfig, Report
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass
 class StageTime:
-    """wall s, CPU s (this process + reaped workers), peak MB of this process and of the largest worker."""
+    """wall s, CPU s (the stage's process and its workers), peak MB of the stage's process
+    and of its largest worker (NaN: it had none)."""
 
     wall: float = 0.0
     cpu: float = 0.0
@@ -36,20 +37,101 @@ class StageTime:
     worker_peak_mb: float = float("nan")
 
 
-@contextmanager
-def stage_time() -> Iterator[StageTime]:
-    """Time a stage whose worker processes are shut down inside the block (so that
-    their CPU time is counted in RUSAGE_CHILDREN when it ends)."""
-    out = StageTime()
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    with measure() as m:
-        yield out
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    out.wall = m.wall
-    out.cpu = m.cpu + (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
-    out.peak_mb = m.peak_rss / 1e6
-    if after.ru_maxrss > before.ru_maxrss:  # max over every reaped child so far: only a rise is this stage's
-        out.worker_peak_mb = after.ru_maxrss / 1e3
+def _rss_mb(pid: str = "self") -> float:
+    try:
+        with open(f"/proc/{pid}/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except (OSError, ValueError, IndexError):  # the process ended meanwhile
+        return 0.0
+
+
+def _children(pid: int) -> list[str]:
+    """Process ids whose parent is ``pid`` (scanning /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    stat = f.read()
+            except OSError:
+                continue
+            if int(stat.rpartition(")")[2].split()[1]) == pid:
+                out.append(entry)
+    return out
+
+
+def _run_stage(stage: str, args: tuple) -> dict:
+    """In a fresh process: run one stage and return its resource use (and a small result).
+
+    Peak memory is sampled from /proc every 50 ms (this process, and each of its worker
+    processes): ``ru_maxrss`` would not do, as Linux carries it over from the parent
+    through fork and exec."""
+    peaks = {"own": _rss_mb(), "worker": float("nan")}
+    stop = threading.Event()
+
+    def sample() -> None:
+        me = os.getpid()
+        while not stop.wait(0.05):
+            peaks["own"] = max(peaks["own"], _rss_mb())
+            for child in _children(me):
+                peaks["worker"] = np.nanmax([peaks["worker"], _rss_mb(child)])
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    t0 = time.perf_counter()
+    try:
+        result = _STAGES[stage](*args)
+    finally:
+        stop.set()
+        sampler.join()
+    wall = time.perf_counter() - t0
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return {"wall": wall, "cpu": own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime,
+            "peak_mb": max(peaks["own"], _rss_mb()), "worker_peak_mb": float(peaks["worker"]), "result": result}
+
+
+def _synthesis(synth, dataset: Path, workers: int):
+    from data_synth import write_dataset
+
+    from .executor import executor_scope
+
+    with executor_scope(workers) as ex:
+        write_dataset(synth, dataset, executor=ex, progress=False)
+
+
+def _reconstruction(dataset: Path, work: Path, workers: int):
+    from recon.pipeline import ReconConfig, main as recon_main
+
+    from .executor import executor_scope
+
+    with executor_scope(workers) as ex:
+        recon_main(ReconConfig(), dataset, work, executor=ex, progress=False)
+
+
+def _build(work: Path, dataset: Path, model: Path, workers: int, holdout: int):
+    from billboards.build import BuildConfig, main as build_main
+
+    from .executor import executor_scope
+
+    with executor_scope(workers) as ex:
+        build_main(BuildConfig(holdout=holdout), work / "cloud.ply", dataset, model, executor=ex, workers=workers)
+
+
+_STAGES = {"synthesis": _synthesis, "reconstruction": _reconstruction, "build": _build,
+           "load": lambda model: model_load(model)}
+
+
+def stage_in_fresh_process(stage: str, *args) -> tuple[StageTime, object]:
+    """Run ``stage`` in a new (spawned) process; its StageTime (wall timed here, so the
+    process start-up is included) and its result."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as ex:
+        out = ex.submit(_run_stage, stage, args).result()
+    return StageTime(time.perf_counter() - t0, out["cpu"], out["peak_mb"], out["worker_peak_mb"]), out["result"]
 
 
 @dataclass
@@ -76,13 +158,8 @@ def street_config(cfg: BenchConfig, length: float):
 
 
 def run_pipeline(cfg: BenchConfig, length: float, out: Path, holdout: int = 0) -> PipelineRun:
-    """Synthesise, reconstruct and build a ``length`` m street under ``out``; time every stage."""
-    from billboards.build import BuildConfig, main as build_main
-    from data_synth import write_dataset
-    from recon.pipeline import ReconConfig, main as recon_main
-
-    from .executor import executor_scope
-
+    """Synthesise, reconstruct and build a ``length`` m street under ``out``, each stage in a
+    fresh process; time every stage."""
     synth = street_config(cfg, length)
     run = PipelineRun(length, 0, out / "street", out / "work", out / "model")
 
@@ -97,39 +174,35 @@ def run_pipeline(cfg: BenchConfig, length: float, out: Path, holdout: int = 0) -
             r["note"] = note
         run.rows.append(r)
 
-    with stage_time() as t, executor_scope(cfg.workers) as ex:
-        write_dataset(synth, run.dataset, executor=ex, progress=False)
-    ds = json.loads((run.dataset / "dataset.json").read_text())
-    run.frames = int(ds["frames"])
+    t, _ = stage_in_fresh_process("synthesis", synth, run.dataset, cfg.workers)
+    run.frames = int(json.loads((run.dataset / "dataset.json").read_text())["frames"])
     row("synthesis", t, items=3 * run.frames, unit="images")
 
-    with stage_time() as t, executor_scope(cfg.workers) as ex:
-        recon_main(ReconConfig(), run.dataset, run.work, executor=ex, progress=False)
+    t, _ = stage_in_fresh_process("reconstruction", run.dataset, run.work, cfg.workers)
     rr = json.loads((run.work / "recon_report.json").read_text())
     row("reconstruction (total)", t, items=run.frames, unit="frames")
     row("  stereo, per frame", wall=rr["stages"]["frames_s"], items=run.frames, unit="frames",
         note=f"{rr['stereo_seconds_per_frame']:.2f} s stereo per frame in a worker")
     row("  fusion", wall=rr["stages"]["merge_s"], items=rr["points"], unit="points")
+    recon = t
 
-    with stage_time() as t, executor_scope(cfg.workers) as ex:
-        result = build_main(BuildConfig(holdout=holdout), run.work / "cloud.ply", run.dataset, run.model,
-                            executor=ex, workers=cfg.workers)
-    br = result.report
+    t, _ = stage_in_fresh_process("build", run.work, run.dataset, run.model, cfg.workers, holdout)
+    br = json.loads((run.model / "build_report.json").read_text())
     row("billboard build (total)", t, items=br["voxels"], unit="billboards")
     row("  octree", wall=br["stages"]["octree_s"], items=rr["points"], unit="points")
     for name, key in (("sampling", "sampling_s"), ("PCA", "pca_s"), ("atlas packing (quantise)", "quantize_s")):
         row(f"  {name}", wall=br["worker_seconds"][key], items=br["voxels"], unit="billboards",
             note="worker CPU s, summed over workers")
     row("  atlas packing (write)", wall=br["stages"]["write_s"], items=br["pages"], unit="pages")
+    build = t
 
-    with stage_time() as t:
-        load_seconds = model_load(run.model)
-    row("model load + GPU upload", t, note=f"load {load_seconds[0]:.3f} s, upload {load_seconds[1]:.3f} s")
+    t, (load_s, upload_s) = stage_in_fresh_process("load", run.model)
+    row("model load + GPU upload", t, note=f"load {load_s:.3f} s, upload {upload_s:.3f} s, the rest is "
+                                          "process start-up")
     run.totals = {"frames": run.frames, "points": int(rr["points"]), "billboards": int(br["voxels"]),
                   "model_mb": br["bytes"]["model"] / 1e6,
-                  "build_main_peak_mb": br["peak_memory"]["main_mb"],
-                  "build_worker_peak_mb": br["peak_memory"]["largest_worker_mb"],
-                  "recon_peak_mb": rr.get("peak_rss_mb", float("nan"))}
+                  "recon_peak_mb": recon.peak_mb, "recon_worker_peak_mb": recon.worker_peak_mb,
+                  "build_main_peak_mb": build.peak_mb, "build_worker_peak_mb": build.worker_peak_mb}
     return run
 
 
@@ -173,9 +246,10 @@ def bench_pipeline(cfg: BenchConfig, report: Report, out: Path) -> PipelineRun:
                 report.add("Pipeline stages", r)
     report.notes["Pipeline stages"] = (
         f"A {base:g} m street at {street_config(cfg, base).rig.width}×{street_config(cfg, base).rig.height}, "
-        f"3 m between frames, both lanes, {cfg.workers} worker processes. CPU s counts this process and its "
-        "reaped workers; indented stages come from the stage reports (worker CPU where noted). The build "
-        "holds every 4th frame out of the textures for the novel-view section.")
+        f"3 m between frames, both lanes, {cfg.workers} worker processes. Each stage runs in a fresh process "
+        "(its start-up, 2–3 s of imports, is in the wall time); CPU s and peak MB are that process's and its "
+        "workers'. Indented stages come from the stage reports (worker CPU where noted). The build holds every "
+        "4th frame out of the textures for the novel-view section.")
     first = runs[0][1]
     for scale, run in runs:
         totals = {r["stage"]: r for r in run.rows}
@@ -186,7 +260,8 @@ def bench_pipeline(cfg: BenchConfig, report: Report, out: Path) -> PipelineRun:
             row[f"{name} s"] = totals[stage]["wall s"]
             row[f"{name} s per m, vs 1×"] = (totals[stage]["wall s"] / run.length) / (
                 {r["stage"]: r for r in first.rows}[stage]["wall s"] / first.length)
-        row["recon peak MB"] = run.totals["recon_peak_mb"]
+        row["recon peak MB (main)"] = run.totals["recon_peak_mb"]
+        row["recon peak MB (worker)"] = run.totals["recon_worker_peak_mb"]
         row["build peak MB (main)"] = run.totals["build_main_peak_mb"]
         row["build peak MB (worker)"] = run.totals["build_worker_peak_mb"]
         report.add("Scaling", row)
@@ -213,8 +288,8 @@ def _scaling_plot(runs: list[PipelineRun], path: Path) -> None:
               "k:", label="linear from 1×")
     ax_t.set(xlabel="street length (m)", ylabel="wall time (s)", title="time per stage")
     ax_t.legend()
-    for key, label in (("recon_peak_mb", "reconstruction"), ("build_main_peak_mb", "build, main"),
-                       ("build_worker_peak_mb", "build, largest worker")):
+    for key, label in (("recon_peak_mb", "reconstruction, main"), ("recon_worker_peak_mb", "reconstruction, worker"),
+                       ("build_main_peak_mb", "build, main"), ("build_worker_peak_mb", "build, largest worker")):
         ax_m.plot(lengths, [r.totals[key] for r in runs], "o-", label=label)
     ax_m.set(xlabel="street length (m)", ylabel="peak memory (MB)", title="peak memory", ylim=(0, None))
     ax_m.legend()
