@@ -24,20 +24,12 @@ from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder
 from .resources import ModelResources
+from .target import OffscreenTargets, background_rgb
 
 logger = logging.getLogger(__name__)
 
 DECODE_MODES = ("gpu", "cpu")
 CULL_MODES = ("none", "frustum", "occlusion", "auto")
-
-
-def _background(colour) -> tuple[float, float, float]:
-    c = np.asarray(colour, dtype=np.float64).reshape(-1)
-    if c.shape != (3,) or not np.all(np.isfinite(c)):
-        raise ValueError(f"background must be an RGB triple, got {colour!r}")
-    if c.max() > 1:  # given as 0..255
-        c = c / 255
-    return tuple(float(v) for v in np.clip(c, 0, 1))
 
 
 class BillboardRenderer:
@@ -72,12 +64,12 @@ class BillboardRenderer:
         self.model = model
         self.decode = decode
         self.spherical = bool(model.pitched_quads if spherical is None else spherical)
-        self.background = _background(background)
+        self.background = background_rgb(background)
         self.clip = clip
         self.stats: dict = {}
         self.resources: ModelResources | None = None
         self.decoder = None
-        self._targets: dict[tuple[int, int], tuple] = {}
+        self.targets = OffscreenTargets(ctx)
         self._released = False
         try:
             if decode == "gpu":
@@ -159,14 +151,7 @@ class BillboardRenderer:
 
     def framebuffer(self, size) -> moderngl.Framebuffer:
         """The offscreen framebuffer for ``size`` = (w, h), created on first use."""
-        size = (int(size[0]), int(size[1]))
-        target = self._targets.get(size)
-        if target is None:
-            colour = self.ctx.renderbuffer(size, 4, samples=0)
-            depth = self.ctx.depth_renderbuffer(size, samples=0)
-            fbo = self.ctx.framebuffer(color_attachments=[colour], depth_attachment=depth)
-            target = self._targets[size] = (fbo, colour, depth)
-        return target[0]
+        return self.targets.framebuffer(size)
 
     def render(self, K, world_from_cam, size, visible=None) -> np.ndarray:
         """Image of the model from the camera ``K`` (3, 3), ``world_from_cam`` (4, 4) float64.
@@ -177,15 +162,10 @@ class BillboardRenderer:
         if self._released:
             raise RuntimeError("BillboardRenderer used after release()")
         camera = self.camera(K, world_from_cam, size)
-        w, h = camera.size
-        fbo = self.framebuffer((w, h))
-        fbo.use()
-        fbo.viewport = (0, 0, w, h)
-        fbo.clear(*self.background, 1.0, depth=1.0)
+        self.targets.begin(camera.size, self.background)
         stats = self.draw(camera, visible)
         t0 = time.perf_counter()
-        data = fbo.read(components=3, alignment=1)
-        image = np.frombuffer(data, np.uint8).reshape(h, w, 3)[::-1].copy()
+        image = self.targets.read(camera.size)
         stats["read_s"] = time.perf_counter() - t0
         return image
 
@@ -198,11 +178,7 @@ class BillboardRenderer:
         if self._released:
             return
         self._released = True
-        for fbo, colour, depth in self._targets.values():
-            fbo.release()
-            colour.release()
-            depth.release()
-        self._targets = {}
+        self.targets.release()
         for culler in self._cullers.values():
             culler.release()
         self._cullers = {}

@@ -27,6 +27,7 @@ from .culling import boxes_outside, frustum_planes, indices_to_ranges, merge_ran
 from .occlusion import OcclusionConfig, OcclusionCuller
 from .program import load_program
 from .resources import release_all
+from .target import OffscreenTargets, background_rgb
 
 CULL_MODES = ("none", "frustum", "occlusion", "auto")
 
@@ -109,7 +110,7 @@ class SceneMeshRenderer:
         self.cull = cull
         self.occlusion = occlusion
         self.clip = clip
-        self.background = tuple(float(c) for c in background)
+        self.background = background_rgb(background)
         bounds = scene.object_bounds
         self.origin = (0.5 * (bounds[:, 0].min(0) + bounds[:, 1].max(0)) if origin is None
                        else np.asarray(origin, np.float64).reshape(3))
@@ -121,7 +122,7 @@ class SceneMeshRenderer:
         self.stats: dict = {}
         self._objects: list = []
         self._cullers: dict[tuple[int, int], OcclusionCuller] = {}
-        self._targets: dict[tuple[int, int], moderngl.Framebuffer] = {}
+        self.targets = OffscreenTargets(ctx)
         try:
             self.program = self._keep(load_program(ctx, "scene_mesh.glsl"))
             self.vbo = self._keep(ctx.buffer(vertices.tobytes()))
@@ -207,33 +208,16 @@ class SceneMeshRenderer:
         self.stats = stats
         return stats
 
-    def framebuffer(self, size) -> moderngl.Framebuffer:
-        size = (int(size[0]), int(size[1]))
-        fbo = self._targets.get(size)
-        if fbo is None:
-            fbo = self._targets[size] = self.ctx.framebuffer(
-                color_attachments=[self.ctx.renderbuffer(size, 4)], depth_attachment=self.ctx.depth_renderbuffer(size))
-        return fbo
-
     def render(self, K, world_from_cam, size) -> np.ndarray:
         """Image (h, w, 3) uint8 of the scene from an OpenCV camera; row 0 at the top."""
         camera = self.camera(K, world_from_cam, size)
-        w, h = camera.size
-        fbo = self.framebuffer((w, h))
-        fbo.use()
-        fbo.viewport = (0, 0, w, h)
-        fbo.clear(*self.background, 1.0, depth=1.0)
+        self.targets.begin(camera.size, self.background)
         self.draw(camera)
-        image = np.frombuffer(fbo.read(components=3, alignment=1), np.uint8).reshape(h, w, 3)[::-1].copy()
-        return image
+        return self.targets.read(camera.size)
 
     def release(self) -> None:
         """Free every GPU object (idempotent)."""
-        for fbo in self._targets.values():
-            attachments = [*fbo.color_attachments, fbo.depth_attachment]
-            fbo.release()
-            release_all(attachments)
-        self._targets = {}
+        self.targets.release()
         release_all(list(self._cullers.values()))
         self._cullers = {}
         release_all(self._objects)

@@ -19,3 +19,13 @@ def tiny_config(seed: int = 0, **overrides) -> SynthConfig:
 def tiny_dataset(tmp_path_factory):
     """Path of a tiny street dataset, written once per test session (read-only for tests)."""
     return write_dataset(tiny_config(), tmp_path_factory.mktemp("tiny") / "street", progress=False)
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    """A headless OpenGL context (EGL), one per test module."""
+    from render.context import create_context
+
+    context = create_context()
+    yield context
+    context.release()

@@ -7,19 +7,11 @@ import pytest
 
 from billboards.octree import OctreeConfig, build_octree
 from render.camera import look_at
-from render.context import create_context
 from render.renderer import BillboardRenderer
 
 from .test_render_gpu import intrinsics, make_model
 
 SIZE = (240, 180)
-
-
-@pytest.fixture(scope="module")
-def ctx():
-    context = create_context()
-    yield context
-    context.release()
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import pytest
 from billboards.atlas import pack_rows, pack_tiles
 from billboards.model import BillboardModel, decode, direction_index
 from render.camera import gl_camera, look_at, project_cv, project_gl, projection_from_K
-from render.context import create_context, describe, max_texture_size
+from render.context import describe, max_texture_size
 from render.offscreen import clear_cache, render_view, renderer_for
 from render.renderer import BillboardRenderer
 
@@ -85,13 +85,6 @@ def make_model(centres, base_yaw=None, rank=None, *, tile=8, voxel_size=1.0, d_y
 
 def intrinsics(f, w, h, fy=None, skew=0.0) -> np.ndarray:
     return np.array([[f, skew, (w - 1) / 2], [0, f if fy is None else fy, (h - 1) / 2], [0, 0, 1]])
-
-
-@pytest.fixture(scope="module")
-def ctx():
-    context = create_context()
-    yield context
-    context.release()
 
 
 # ----------------------------------------------------------------------------------------------

@@ -9,15 +9,7 @@ from data_synth import TownConfig, build_town
 from data_synth.dataset import SynthConfig, capture_path
 from render.benchmark import default_intrinsics, town_views
 from render.camera import look_at
-from render.context import create_context
 from render.scene_mesh import SceneMeshRenderer, group_order, mesh_vertices
-
-
-@pytest.fixture(scope="module")
-def ctx():
-    context = create_context()
-    yield context
-    context.release()
 
 
 @pytest.fixture(scope="module")

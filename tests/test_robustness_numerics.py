@@ -229,15 +229,6 @@ def test_octree_and_billboard_placement_on_extreme_geometry(name):
 # billboards edge-on, from directly above, and a camera inside a voxel (GPU through EGL)
 
 
-@pytest.fixture(scope="module")
-def ctx():
-    from render.context import create_context
-
-    context = create_context()
-    yield context
-    context.release()
-
-
 def _model(centres, **kw):
     from .test_render_gpu import make_model
 
