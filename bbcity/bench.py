@@ -60,22 +60,26 @@ class Measurement:
     peak_rss: int = 0
 
 
-def _rss_bytes() -> int:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+def rss_bytes(pid: str = "self") -> int:
+    """Resident memory of a process (default this one) from /proc, bytes; 0 if it has ended."""
+    try:
+        with open(f"/proc/{pid}/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
 
 
 @contextmanager
 def measure() -> Iterator[Measurement]:
     """Time a block (wall, CPU) and sample its peak RSS every 5 ms."""
     m = Measurement()
-    base = _rss_bytes()
+    base = rss_bytes()
     peak = [base]
     stop = threading.Event()
 
     def sample() -> None:
         while not stop.wait(0.005):
-            peak[0] = max(peak[0], _rss_bytes())
+            peak[0] = max(peak[0], rss_bytes())
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
@@ -87,7 +91,7 @@ def measure() -> Iterator[Measurement]:
         m.cpu = time.process_time() - c0
         stop.set()
         sampler.join()
-        m.peak_rss = max(peak[0], _rss_bytes()) - base
+        m.peak_rss = max(peak[0], rss_bytes()) - base
 
 
 def median_of(fn: Callable[[], object], repeats: int) -> Measurement:

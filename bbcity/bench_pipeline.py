@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench import BenchConfig, Report
+from .bench import BenchConfig, Report, rss_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -38,11 +38,7 @@ class StageTime:
 
 
 def _rss_mb(pid: str = "self") -> float:
-    try:
-        with open(f"/proc/{pid}/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
-    except (OSError, ValueError, IndexError):  # the process ended meanwhile
-        return 0.0
+    return rss_bytes(pid) / 1e6
 
 
 def _children(pid: int) -> list[str]:
