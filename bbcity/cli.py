@@ -346,13 +346,15 @@ def _add_render(sub) -> None:
 
 def _run_render(args) -> int:
     from billboards.model import load
+    from billboards.sky import read_sky
     from render.fly_through import camera_path, render_path
 
     if args.frames < 1 or min(args.size) < 1:
         raise ValueError("--frames and --size must be positive")
     model = load(args.model)
     poses = camera_path(model, args.path, args.frames)
-    render_path(model, poses, args.out, tuple(args.size), decode=args.decode, cull=args.cull, fps=args.fps)
+    render_path(model, poses, args.out, tuple(args.size), decode=args.decode, cull=args.cull, fps=args.fps,
+                sky=read_sky(args.model))
     logger.info("wrote %s", args.out)
     return 0
 
@@ -418,13 +420,14 @@ def _add_view(sub) -> None:
 
 def _run_view(args) -> int:
     from billboards.model import load
+    from billboards.sky import read_sky
     from render.viewer import run_viewer
 
     model = load(args.model)
     out = run_viewer(model, size=tuple(args.size), decode=args.decode, cull=args.cull, window=args.window,
                      screenshot_dir=args.screenshot_dir, script_frames=args.script_frames,
                      screenshot=args.screenshot, mode=args.mode,
-                     script_keys=[k for k in args.script_keys.split(",") if k.strip()])
+                     script_keys=[k for k in args.script_keys.split(",") if k.strip()], sky=read_sky(args.model))
     if out is not None:
         logger.info("screenshot %s", out)
     return 0

@@ -24,6 +24,7 @@ from .benchmark import default_intrinsics
 from .camera import look_at
 from .context import create_context
 from .renderer import BillboardRenderer
+from .sky import SkyPass, render_over_sky
 from .viewer import drive_path_for
 
 logger = logging.getLogger(__name__)
@@ -78,18 +79,22 @@ def camera_path(model, path: str, frames: int) -> np.ndarray:
 
 def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 720), *, K=None,
                 decode: str = "gpu", cull: str = "frustum", fps: float = 30.0,
-                progress: bool | None = None) -> Path:
+                progress: bool | None = None, sky=None) -> Path:
     """Render ``poses`` (n, 4, 4) into ``out``: a video when it ends in a video suffix,
-    else a directory of PNG frames (``frame_NNNNNN.png``). Written atomically: a
+    else a directory of PNG frames (``frame_NNNNNN.png``). ``sky``: a
+    :class:`billboards.sky.Sky` drawn behind the model (None: a plain light-blue
+    background). Written atomically: a
     video appears under its name only when complete, and the frames replace those of
     an earlier render (no stale ones stay) only once all are written; an interrupted
     render leaves ``out`` as it was."""
     out = Path(out)
     K = default_intrinsics(*size) if K is None else np.asarray(K, np.float64)
     ctx = create_context()
+    sky_pass = None
     try:
         with BillboardRenderer(ctx, model, decode, cull=cull, background=(0.55, 0.7, 0.9)) as renderer:
-            frames = (renderer.render(K, pose, size) for pose in poses)
+            sky_pass = SkyPass(ctx, sky) if sky is not None else None
+            frames = (render_over_sky(renderer, sky_pass, K, pose, size) for pose in poses)
             bar = tqdm(frames, total=len(poses), desc="render", unit="frame",
                        disable=None if progress is None else not progress)
             if out.suffix.lower() in VIDEO_SUFFIXES:
@@ -111,6 +116,8 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
             else:
                 _write_frames(bar, out)
     finally:
+        if sky_pass is not None:
+            sky_pass.release()
         ctx.release()
     logger.info("rendered %d frames → %s", len(poses), out)
     return out

@@ -5,7 +5,9 @@ shared by every later call; each model gets a :class:`~render.renderer.Billboard
 (its atlas uploaded once) kept in a small cache keyed by the model object and decode
 mode, so rendering a sequence of views of one model uploads it once. The cache holds
 the :data:`CACHE_SIZE` most recently used renderers (it keeps their models alive);
-:func:`clear_cache` frees them.
+:func:`clear_cache` frees them. With ``sky=`` (a :class:`billboards.sky.Sky`, e.g.
+:func:`billboards.sky.read_sky` of the model directory) the view is drawn over that sky
+(:class:`render.sky.SkyPass`, one shared by every call) instead of the plain background.
 """
 
 from __future__ import annotations
@@ -17,15 +19,18 @@ import moderngl
 import numpy as np
 
 from billboards.model import BillboardModel
+from billboards.sky import Sky
 
 from .context import create_context
 from .renderer import BillboardRenderer
+from .sky import SkyPass, render_over_sky
 
 CACHE_SIZE = 2  # renderers (uploaded models) kept between calls
 
 _lock = threading.RLock()
 _ctx: moderngl.Context | None = None
 _cache: OrderedDict[tuple[int, str, tuple], tuple[BillboardModel, BillboardRenderer]] = OrderedDict()
+_sky_pass: SkyPass | None = None
 
 
 def shared_context() -> moderngl.Context:
@@ -56,21 +61,38 @@ def renderer_for(model: BillboardModel, decode: str = "gpu", **options) -> Billb
 
 
 def clear_cache() -> None:
-    """Release every cached renderer (the shared context stays)."""
+    """Release every cached renderer and the sky pass (the shared context stays)."""
+    global _sky_pass
     with _lock:
         while _cache:
             _, (_, renderer) = _cache.popitem()
             renderer.release()
+        if _sky_pass is not None:
+            _sky_pass.release()
+            _sky_pass = None
+
+
+def _sky_pass_for(sky: Sky | None) -> SkyPass | None:
+    global _sky_pass
+    if sky is None:
+        return None
+    if _sky_pass is None:
+        _sky_pass = SkyPass(shared_context(), sky)
+    _sky_pass.set_sky(sky)
+    return _sky_pass
 
 
 def render_view(model: BillboardModel, K, world_from_cam, size, decode: str = "gpu", visible=None,
-                **options) -> np.ndarray:
+                sky: Sky | None = None, **options) -> np.ndarray:
     """Render ``model`` offscreen from an OpenCV camera.
 
     K (3, 3) intrinsics; world_from_cam (4, 4) float64 pose (OpenCV camera frame);
     size = (width, height) pixels; decode "gpu" | "cpu"; visible: None (all) or
-    billboard indices; options: :class:`~render.renderer.BillboardRenderer` keywords
-    (spherical, background, clip). Returns (height, width, 3) uint8, row 0 at the top.
+    billboard indices (or an (n,) bool mask, e.g. ``model.kind == BILLBOARD``); sky:
+    drawn behind the model (None: the plain background); options:
+    :class:`~render.renderer.BillboardRenderer` keywords (spherical, background, clip).
+    Returns (height, width, 3) uint8, row 0 at the top.
     """
     with _lock:
-        return renderer_for(model, decode, **options).render(K, world_from_cam, size, visible)
+        renderer = renderer_for(model, decode, **options)
+        return render_over_sky(renderer, _sky_pass_for(sky), K, world_from_cam, size, visible)

@@ -25,6 +25,7 @@ from .benchmark import default_intrinsics
 from .camera import look_at
 from .hud import HudOverlay
 from .renderer import CULL_MODES, DECODE_MODES, BillboardRenderer
+from .sky import SkyPass
 
 logger = logging.getLogger(__name__)
 
@@ -225,7 +226,7 @@ class ViewerApp(_WindowConfig):
     gl_version = (3, 3)
 
     def __init__(self, model, decode: str = "gpu", cull: str = "frustum", background=(0.55, 0.7, 0.9),
-                 screenshot_dir: Path = Path("."), mode: str = "drive", **kwargs):
+                 screenshot_dir: Path = Path("."), mode: str = "drive", sky=None, **kwargs):
         super().__init__(**kwargs)
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}")
@@ -245,6 +246,7 @@ class ViewerApp(_WindowConfig):
         self.interpolate = True
         self.show_hud = True
         self.overlay = HudOverlay(self.ctx)
+        self.sky_pass = SkyPass(self.ctx, sky) if sky is not None else None  # drawn behind the model
         self.renderer: BillboardRenderer | None = None
         self._rebuild()
         self.fps = 0.0
@@ -278,7 +280,10 @@ class ViewerApp(_WindowConfig):
         self.ctx.wireframe = False
         r = self.renderer
         self.ctx.clear(*r.background, 1.0, depth=1.0)
-        camera = r.camera(default_intrinsics(w, h), pose, (w, h))
+        K = default_intrinsics(w, h)
+        camera = r.camera(K, pose, (w, h))
+        if self.sky_pass is not None:
+            self.sky_pass.draw(K, pose, (w, h))
         self.ctx.wireframe = self.wireframe
         try:
             stats = r.draw(camera)
@@ -389,6 +394,8 @@ class ViewerApp(_WindowConfig):
         if self.renderer is not None:
             self.renderer.release()
             self.renderer = None
+        if self.sky_pass is not None:
+            self.sky_pass.release()
         self.overlay.release()
 
 
@@ -401,8 +408,9 @@ _NO_MODIFIERS = _Modifiers()
 
 def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "frustum", window: str = "auto",
                screenshot_dir: Path = Path("."), script_frames: int = 0, screenshot: Path | None = None,
-               script_dt: float = 1 / 30, mode: str = "drive", script_keys=()) -> Path | None:
-    """Open the viewer. With ``script_frames`` > 0: render that many frames along the
+               script_dt: float = 1 / 30, mode: str = "drive", script_keys=(), sky=None) -> Path | None:
+    """Open the viewer (over ``sky``, a :class:`billboards.sky.Sky`, when given; else a plain
+    background). With ``script_frames`` > 0: render that many frames along the
     drive path with a fixed ``script_dt``, pressing the moderngl-window key names in
     ``script_keys`` (e.g. "C", "I") one per frame from the first, through the window's
     key-event handler; save the last frame to ``screenshot`` (or the screenshot dir)
@@ -412,7 +420,7 @@ def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "fru
     wnd = _make_window(window, size, "bbcity")
     logger.info("window %s, %s", type(wnd).__module__, wnd.ctx.info["GL_RENDERER"])
     timer = Timer()
-    app = ViewerApp(model, decode=decode, cull=cull, screenshot_dir=screenshot_dir, mode=mode,
+    app = ViewerApp(model, decode=decode, cull=cull, screenshot_dir=screenshot_dir, mode=mode, sky=sky,
                     ctx=wnd.ctx, wnd=wnd, timer=timer)
     wnd.config = app
     out = None
