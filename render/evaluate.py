@@ -1,34 +1,86 @@
 """Novel-view quality of a billboard model against the ground-truth renderer (``bbcity eval``).
 
-Viewpoints: capture viewpoints (camera 0 of frames spread along the path; the
-frames the model was built without, ``bbcity build --holdout N``, when it has them) and
-off-path viewpoints (the same cameras moved 2 m sideways, away from the facade
-they look at, and 1 m up). Each is rendered three ways and compared with
-:func:`data_synth.render_view`: the billboard model (GPU decode), and the
-baseline, the fused cloud projected with Open3D's
-``PointCloud.project_to_rgbd_image`` (one pixel per point, nearest wins).
-PSNR and SSIM over the whole image and over the pixels where the ground truth
-has geometry. Bytes: the model's (GPU) bytes and the cloud's (float32 xyz + RGB).
+Viewpoints: capture viewpoints (camera 0 of frames spread along the path; the frames
+the model was built without, ``bbcity build --holdout N``, when it has them: "on path")
+and the same cameras moved 2 m sideways, away from the facade they look at, and 1 m up
+("off path"). The ground truth of each is :func:`data_synth.render_view`.
+
+Methods are a dict name → callable ``(K (3, 3), world_from_cam (4, 4), size (w, h)) →
+(h, w, 3) uint8``; a callable's ``nbytes`` attribute (when it has one) is its size.
+
+- ``model``: the billboard model (GPU decode, over its sky when it has one, else black);
+  bytes: the model's arrays (+ the sky's bins).
+- ``billboards only``: the model without its facade layer (only quads of kind
+  BILLBOARD), when the model has other kinds (:func:`billboards_only_method`).
+- ``Poisson mesh``: the fused cloud meshed by screened Poisson reconstruction (depth
+  10), ray cast with interpolated vertex colours (:class:`render.baselines.PoissonMesh`).
+- ``point projection``: the fused cloud projected by Open3D, one pixel per point.
+- for the work-precision diagram: Poisson meshes of other depths (8, 9, 11) and other
+  models (e.g. other settings of the same build), on every view too.
+
+Scores: PSNR and SSIM over the whole image, over the pixels where the ground truth has
+geometry, and over the *seen* pixels, those showing a surface that some capture camera
+used for the textures saw (:mod:`render.seen`): the fair measure of what the capture
+can tell. Baselines render black where they have nothing; the model's sky (if any)
+fills its background, which shows in whole-image scores only.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import os
 import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
 
 from data_synth import load_dataset, load_scene, render_view as truth_view
-from recon.cloud_io import read_cloud_arrays
 
-from .offscreen import render_view
+from .baselines import PointProjector, PoissonMesh  # noqa: F401  (PointProjector: public here as before)
+from .seen import SeenConfig, seen_in_dataset
 
 logger = logging.getLogger(__name__)
 
 BACKGROUND = (0.0, 0.0, 0.0)
 
+#: A method: (K (3, 3), world_from_cam (4, 4), size (w, h)) → (h, w, 3) uint8.
+Method = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
+
+METRICS = ("psnr", "psnr_geometry", "psnr_seen", "ssim", "ssim_geometry", "ssim_seen")
+WHERE = ("on path", "off path")
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    views: int = 8                          # capture viewpoints (held-out frames when the model has them), each also off path
+    size: tuple[int, int] | None = None     # image size (w, h); None: the dataset camera's
+    sideways: float = 2.0                   # off-path views: moved this far back horizontally (m) …
+    up: float = 1.0                         # … and this far up (m)
+    poisson_depth: int = 10                 # octree depth of the "Poisson mesh" baseline
+    workprecision_depths: tuple[int, ...] = (8, 9, 10, 11)  # Poisson depths of the work-precision diagram
+    trim_quantile: float = 0.05             # Poisson vertices below this density quantile are removed
+    seen: SeenConfig = field(default_factory=SeenConfig)     # the seen-pixel test
+    panel_width: int = 320                  # side-by-side images: width of each panel (0: none written)
+
+    def __post_init__(self):
+        if self.views < 1:
+            raise ValueError(f"views must be ≥ 1, got {self.views}")
+        if self.size is not None and (len(self.size) != 2 or min(int(s) for s in self.size) < 1):
+            raise ValueError(f"size must be two positive integers (w, h), got {self.size}")
+        if not all(1 <= int(d) <= 16 for d in (self.poisson_depth, *self.workprecision_depths)):
+            raise ValueError("Poisson depths must lie in [1, 16]")
+        if not 0 <= self.trim_quantile < 1 or self.panel_width < 0:
+            raise ValueError("trim_quantile must be in [0, 1) and panel_width ≥ 0")
+        if not (math.isfinite(self.sideways) and math.isfinite(self.up)):
+            raise ValueError("sideways and up must be finite")
+
+
+# --------------------------------------------------------------------------- metrics
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """PSNR (dB) of uint8 images (h, w, 3) over ``mask`` (h, w) bool (all pixels if None);
@@ -74,87 +126,416 @@ def off_path(world_from_cam: np.ndarray, sideways: float = 2.0, up: float = 1.0)
     return pose
 
 
-class PointProjector:
-    """The baseline: a coloured cloud projected to images with Open3D (float32 points
-    relative to an origin, so city coordinates keep their centimetres)."""
+# --------------------------------------------------------------------------- views
 
-    def __init__(self, points: np.ndarray, colours: np.ndarray):
-        import open3d as o3d
+@dataclass(eq=False)
+class EvalView:
+    """One viewpoint with its ground truth: truth (h, w, 3) uint8; geometry (h, w) bool
+    (the ground truth hits a surface); seen (h, w) bool (a capture camera saw it)."""
 
-        self._o3d = o3d
-        self.origin = points.mean(axis=0) if len(points) else np.zeros(3)
-        self.cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor((points - self.origin).astype(np.float32)))
-        self.cloud.point.colors = o3d.core.Tensor(colours.astype(np.float32) / 255.0)
-        self.nbytes = len(points) * (3 * 4 + 3)
-
-    def render(self, K: np.ndarray, world_from_cam: np.ndarray, size) -> np.ndarray:
-        """(h, w, 3) uint8: nearest point per pixel, background black."""
-        o3d = self._o3d
-        local = np.array(world_from_cam, dtype=np.float64)
-        local[:3, 3] -= self.origin
-        image = self.cloud.project_to_rgbd_image(int(size[0]), int(size[1]), o3d.core.Tensor(np.asarray(K, np.float64)),
-                                                 o3d.core.Tensor(np.linalg.inv(local)), depth_scale=1.0,
-                                                 depth_max=1000.0)
-        colour = image.color.as_tensor().numpy()
-        return np.clip(np.rint(colour * 255), 0, 255).astype(np.uint8)
+    frame: int
+    where: str              # "on path" | "off path"
+    K: np.ndarray
+    world_from_cam: np.ndarray
+    size: tuple[int, int]
+    truth: np.ndarray
+    geometry: np.ndarray
+    seen: np.ndarray
 
 
-def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLike | str | None,
-                   views: int = 8, size: tuple[int, int] | None = None) -> dict:
-    """PSNR/SSIM of the model (and of the point projection when a cloud is given) on
-    ``views`` capture viewpoints and their off-path variants; a JSON-ready dict."""
-    t0 = time.perf_counter()
+def choose_frames(info: dict | None, num_frames: int, views: int) -> tuple[np.ndarray, list[int], bool]:
+    """(frames, texture_frames, held_out): up to ``views`` frames spread over the frames a
+    model left out of its textures (``info["held_out_frames"]``), else over all frames;
+    the frames the textures came from; whether the viewpoints were held out."""
+    held = sorted({int(f) for f in (info or {}).get("held_out_frames", []) or [] if 0 <= int(f) < num_frames})
+    pool = np.asarray(held) if held else np.arange(num_frames)
+    frames = np.unique(pool[np.linspace(0, len(pool) - 1, max(1, views)).round().astype(int)])
+    texture_frames = [f for f in range(num_frames) if f not in set(held)]
+    return frames, texture_frames, bool(held)
+
+
+def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config: EvalConfig = EvalConfig(),
+                  progress: Callable[[str], None] | None = None) -> list[EvalView]:
+    """Ground truth, geometry and seen masks of each frame's camera-0 viewpoint, on and off path."""
     ds = load_dataset(dataset_dir)
     if not ds.has_ground_truth:
         raise ValueError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
     scene = load_scene(dataset_dir)
     K = ds.rig.intrinsics[0]
-    size = tuple(ds.rig.sizes[0]) if size is None else tuple(size)
-    if size != tuple(ds.rig.sizes[0]):
-        scale = np.diag([size[0] / ds.rig.sizes[0][0], size[1] / ds.rig.sizes[0][1], 1.0])
-        K = scale @ K
-    baseline = None
-    if cloud_path is not None:
-        points, colours = read_cloud_arrays(cloud_path)
-        baseline = PointProjector(points, colours)
-        del points, colours
-    held_out = [int(f) for f in (model.info or {}).get("held_out_frames", []) if 0 <= int(f) < ds.num_frames]
-    pool = np.asarray(held_out) if held_out else np.arange(ds.num_frames)
-    frames = np.unique(pool[np.linspace(0, len(pool) - 1, max(1, views)).round().astype(int)])
-    rows = []
+    native = tuple(int(s) for s in ds.rig.sizes[0])
+    size = native if config.size is None else tuple(int(s) for s in config.size)
+    if size != native:
+        K = np.diag([size[0] / native[0], size[1] / native[1], 1.0]) @ K
+    views = []
     for f in frames:
-        for kind, pose in (("on path", ds.world_from_cam(int(f), 0)), ("off path", off_path(ds.world_from_cam(int(f), 0)))):
+        capture = ds.world_from_cam(int(f), 0)
+        for where, pose in (("on path", capture), ("off path", off_path(capture, config.sideways, config.up))):
             truth, depth = truth_view(scene, K, pose, size)
-            geometry = np.isfinite(depth)
-            renders = {"billboards": render_view(model, K, pose, size, background=BACKGROUND)}
-            if baseline is not None:
-                renders["point projection"] = baseline.render(K, pose, size)
-            for method, image in renders.items():
-                rows.append({"frame": int(f), "view": kind, "method": method,
-                             "psnr": psnr(image, truth), "psnr_geometry": psnr(image, truth, geometry),
-                             "ssim": ssim(image, truth), "ssim_geometry": ssim(image, truth, geometry)})
+            seen = seen_in_dataset(depth, K, pose, ds, texture_frames, config.seen)
+            views.append(EvalView(int(f), where, K, pose, size, truth, np.isfinite(depth), seen))
+            if progress is not None:
+                progress(f"frame {int(f)} {where}: {seen.mean():.0%} of the pixels seen")
+    return views
+
+
+def score(image: np.ndarray, view: EvalView) -> dict:
+    """The metrics of ``image`` (h, w, 3) uint8 against the view's ground truth."""
+    out = {}
+    for suffix, mask in (("", None), ("_geometry", view.geometry), ("_seen", view.seen)):
+        out["psnr" + suffix] = psnr(image, view.truth, mask)
+        out["ssim" + suffix] = ssim(image, view.truth, mask)
+    return out
+
+
+# --------------------------------------------------------------------------- methods
+
+class ModelMethod:
+    """A billboard model as a method (GPU decode, offscreen), over ``sky`` when given.
+
+    visible: None (every quad) or the indices drawn; nbytes: the model's bytes (+ the sky's)."""
+
+    def __init__(self, model, sky=None, visible=None, nbytes: int | None = None, decode: str = "gpu"):
+        self.model, self.sky, self.visible, self.decode = model, sky, visible, decode
+        self.nbytes = int(model.nbytes()["total"] + (sky.colours.nbytes if sky is not None else 0)
+                          if nbytes is None else nbytes)
+
+    def __call__(self, K, world_from_cam, size) -> np.ndarray:
+        from .offscreen import render_view
+
+        return render_view(self.model, K, world_from_cam, size, decode=self.decode, visible=self.visible,
+                           sky=self.sky, background=BACKGROUND)
+
+
+def billboards_only_method(model, sky=None) -> ModelMethod | None:
+    """The model without its facade layer: only the quads of kind BILLBOARD drawn (through
+    ``render_view(visible=…)``). None when the model has no per-quad ``kind`` array or
+    nothing but billboards (then there is nothing to leave out). Bytes: the model's, less
+    the slots and table rows of the quads left out (the octree nodes are kept)."""
+    kind = getattr(model, "kind", None)
+    if kind is None or len(kind) == 0:
+        return None
+    try:
+        from billboards.geometry import BILLBOARD
+    except ImportError:  # before the facade layer existed every quad was a billboard (kind 0)
+        BILLBOARD = 0
+    keep = np.asarray(kind) == BILLBOARD
+    if keep.all():
+        return None
+    nb = model.nbytes()
+    slots = 1 + np.asarray(model.rank, np.int64)
+    per_slot = (nb["tiles"] + nb["coefficients"] + nb["slot_tables"]) / max(1, model.num_slots)
+    per_billboard = nb["billboard_tables"] / max(1, model.num_billboards)
+    nbytes = int(round(slots[keep].sum() * per_slot + keep.sum() * per_billboard + nb["nodes"]))
+    if sky is not None:
+        nbytes += sky.colours.nbytes
+    return ModelMethod(model, sky, visible=np.flatnonzero(keep), nbytes=nbytes)
+
+
+class LazyPoisson:
+    """A :class:`PoissonMesh` method built on first use (meshing takes seconds to minutes),
+    freed by :meth:`release` once its views are scored."""
+
+    def __init__(self, cloud: dict, depth: int, trim_quantile: float):
+        self.cloud, self.depth, self.trim_quantile = cloud, int(depth), float(trim_quantile)
+        self.mesh: PoissonMesh | None = None
+        self.nbytes: int | None = None
+        self.seconds: float | None = None
+
+    def __call__(self, K, world_from_cam, size) -> np.ndarray:
+        if self.mesh is None:
+            self.mesh = PoissonMesh(self.cloud["points"], self.cloud["colours"], self.cloud["normals"],
+                                    depth=self.depth, trim_quantile=self.trim_quantile,
+                                    viewpoints=self.cloud["viewpoints"])
+            self.nbytes, self.seconds = self.mesh.nbytes, self.mesh.seconds
+        return self.mesh.render(K, world_from_cam, size)
+
+    def release(self) -> None:
+        self.mesh = None
+
+
+def read_cloud_for_baselines(cloud_path: os.PathLike | str, viewpoints: np.ndarray | None = None) -> dict:
+    """The cloud as arrays: points (N, 3) float64, colours (N, 3) uint8, normals (N, 3)
+    float64 or None, and ``viewpoints`` (v, 3) to orient estimated normals toward."""
+    from recon.cloud_io import read_cloud
+
+    pcd = read_cloud(cloud_path, require_colours=True)
+    points = np.asarray(pcd.points).copy()
+    colours = np.clip(np.rint(np.asarray(pcd.colors) * 255), 0, 255).astype(np.uint8)
+    normals = np.asarray(pcd.normals).copy() if pcd.has_normals() else None
+    del pcd
+    return {"points": points, "colours": colours, "normals": normals, "viewpoints": viewpoints}
+
+
+# --------------------------------------------------------------------------- evaluation
+
+def evaluate_methods(methods: dict[str, Method], views: list[EvalView], images: dict | None = None,
+                     keep: tuple[str, ...] = ()) -> tuple[list[dict], dict[str, dict]]:
+    """Score every method on every view, one method at a time (a method with ``release()``
+    is released after its views). Returns per-view rows and per-method info (bytes,
+    seconds). ``images``: filled with {(method, view index): image} for methods in ``keep``."""
+    rows, info = [], {}
+    for name, method in methods.items():
+        t0 = time.perf_counter()
+        for i, view in enumerate(views):
+            t1 = time.perf_counter()
+            image = method(view.K, view.world_from_cam, view.size)
+            render_s = time.perf_counter() - t1
+            rows.append({"frame": view.frame, "view": view.where, "method": name, **score(image, view),
+                         "seen_fraction": float(view.seen.mean()), "render_s": render_s})
+            if images is not None and name in keep:
+                images[name, i] = image
+        nbytes = getattr(method, "nbytes", None)
+        info[name] = {"bytes": None if nbytes is None else int(nbytes), "seconds": time.perf_counter() - t0}
+        if getattr(method, "seconds", None) is not None:
+            info[name]["build_s"] = float(method.seconds)
+        if hasattr(method, "release"):
+            method.release()
+        logger.info("%s: %s", name, ", ".join(
+            f"{w} {_nanmean([r['psnr_seen'] for r in rows if r['method'] == name and r['view'] == w]):.2f} dB seen"
+            for w in WHERE))
+    return rows, info
+
+
+def summarise(rows: list[dict]) -> dict[str, dict]:
+    """Mean of each metric per "method, view" (NaN-ignoring; NaN when no view measured it)."""
     summary = {}
-    for kind in ("on path", "off path"):
-        for method in dict.fromkeys(r["method"] for r in rows):
-            sel = [r for r in rows if r["view"] == kind and r["method"] == method]
-            summary[f"{method}, {kind}"] = {k: float(np.nanmean([r[k] for r in sel]))
-                                            for k in ("psnr", "psnr_geometry", "ssim", "ssim_geometry")}
-    return {"dataset": str(dataset_dir), "views": len(frames), "size": list(size),
-            "held_out": bool(held_out), "frames": frames.tolist(),
-            "bytes": {"billboards": int(model.nbytes()["total"]),
-                      **({"point projection": int(baseline.nbytes)} if baseline is not None else {})},
-            "summary": summary, "per_view": rows, "seconds": time.perf_counter() - t0}
+    for method in dict.fromkeys(r["method"] for r in rows):
+        for where in WHERE:
+            sel = [r for r in rows if r["method"] == method and r["view"] == where]
+            if not sel:
+                continue
+            summary[f"{method}, {where}"] = {k: _nanmean([r[k] for r in sel]) for k in (*METRICS, "seen_fraction")}
+    return summary
+
+
+def _nanmean(values) -> float:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLike | str | None = None,
+                   views: int | None = None, size: tuple[int, int] | None = None, *, sky=None,
+                   extra_models: dict | None = None, extra_methods: dict[str, Method] | None = None,
+                   config: EvalConfig | None = None, out_dir: os.PathLike | str | None = None) -> dict:
+    """Novel-view scores of ``model`` (a :class:`billboards.model.BillboardModel`, drawn over
+    ``sky`` when given) and the baselines of the cloud at ``cloud_path`` (none without one);
+    a JSON-ready dict (NaN as None).
+
+    views, size: override ``config``'s. extra_models: label → model or (model, sky), scored
+    as methods "model: label" (points of the work-precision diagram). extra_methods:
+    name → :data:`Method` (e.g. a variant renderer), scored like the rest. out_dir: where
+    the side-by-side images "ground truth | model | Poisson mesh" go (none if None).
+    The viewpoints and the seen masks follow ``model.info`` (held-out frames).
+    """
+    t0 = time.perf_counter()
+    config = config or EvalConfig()
+    overrides = {k: v for k, v in (("views", views), ("size", tuple(size) if size is not None else None))
+                 if v is not None}
+    if overrides:
+        config = dataclasses.replace(config, **overrides)
+    ds = load_dataset(dataset_dir)
+    info = model.info if isinstance(getattr(model, "info", None), dict) else {}
+    frames, texture_frames, held_out = choose_frames(info, ds.num_frames, config.views)
+    eval_views = prepare_views(dataset_dir, frames, texture_frames, config, progress=logger.info)
+
+    methods: dict[str, Method] = {"model": ModelMethod(model, sky)}
+    only = billboards_only_method(model, sky)
+    if only is not None:
+        methods["billboards only"] = only
+    for label, entry in (extra_models or {}).items():
+        m, s = entry if isinstance(entry, tuple) else (entry, None)
+        methods[f"model: {label}"] = ModelMethod(m, s)
+    methods.update(extra_methods or {})
+    poisson_name = "Poisson mesh"
+    if cloud_path is not None:
+        viewpoints = np.stack([ds.world_from_cam(f, c)[:3, 3] for f in texture_frames
+                               for c in range(ds.rig.num_cameras)]) if texture_frames else None
+        cloud = read_cloud_for_baselines(cloud_path, viewpoints)
+        methods[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile)
+        for d in config.workprecision_depths:
+            if int(d) != config.poisson_depth:
+                methods[f"Poisson depth {int(d)}"] = LazyPoisson(cloud, int(d), config.trim_quantile)
+        methods["point projection"] = PointProjector(cloud["points"], cloud["colours"])
+
+    images: dict = {}
+    rows, method_info = evaluate_methods(methods, eval_views, images, keep=("model", poisson_name))
+    summary = summarise(rows)
+    report = {
+        "dataset": str(dataset_dir), "views": len(frames), "size": list(eval_views[0].size),
+        "held_out": held_out, "frames": frames.tolist(), "texture_frames": len(texture_frames),
+        "config": {"sideways": config.sideways, "up": config.up, "poisson_depth": config.poisson_depth,
+                   "workprecision_depths": list(config.workprecision_depths),
+                   "trim_quantile": config.trim_quantile, "seen": config.seen.__dict__},
+        "sky": sky is not None,
+        "bytes": {name: i["bytes"] for name, i in method_info.items()},
+        "methods": method_info,
+        "summary": summary,
+        "work_precision": work_precision_points(summary, method_info, config.poisson_depth),
+        "per_view": rows,
+    }
+    if out_dir is not None and config.panel_width > 0:
+        report["images"] = write_side_by_side(Path(out_dir), eval_views, images, poisson_name, config.panel_width)
+    report["seconds"] = time.perf_counter() - t0
+    return json_ready(report)
+
+
+def work_precision_points(summary: dict, method_info: dict, poisson_depth: int) -> list[dict]:
+    """One point per method: family ("model", "Poisson mesh", "point projection" or the
+    method's name), label, bytes and the seen-pixel PSNR on and off path."""
+    points = []
+    for name, info in method_info.items():
+        if name == "Poisson mesh" or name.startswith("Poisson depth "):
+            family = "Poisson mesh"
+            label = f"depth {poisson_depth if name == 'Poisson mesh' else int(name.rsplit(' ', 1)[1])}"
+        elif name == "model" or name.startswith("model: "):
+            family, label = "model", name.split(": ", 1)[1] if ": " in name else "model"
+        else:
+            family, label = name, name
+        points.append({"method": name, "family": family, "label": label, "bytes": info["bytes"],
+                       **{f"psnr_seen_{w.replace(' ', '_')}": summary.get(f"{name}, {w}", {}).get("psnr_seen",
+                                                                                                 float("nan"))
+                          for w in WHERE}})
+    return points
+
+
+def json_ready(value):
+    """``value`` with non-finite floats as None (JSON null = no measurement) and numpy scalars as Python's."""
+    if isinstance(value, dict):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+# --------------------------------------------------------------------------- outputs
+
+def _panel(image: np.ndarray, width: int, label: str) -> np.ndarray:
+    h, w = image.shape[:2]
+    height = max(1, round(h * width / w))
+    out = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA if width < w else cv2.INTER_LINEAR)
+    for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
+        cv2.putText(out, label, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, thickness, cv2.LINE_AA)
+    return out
+
+
+def write_side_by_side(out_dir: Path, views: list[EvalView], images: dict, poisson_name: str,
+                       panel_width: int) -> list[str]:
+    """For each view ``view_NNNNNN_{on,off}_path.png``: ground truth | model | Poisson mesh
+    (the panels that exist), each ``panel_width`` pixels wide, labelled. Returns the names."""
+    from data_synth.fileio import write_png
+
+    names = []
+    for i, view in enumerate(views):
+        panels = [_panel(view.truth, panel_width, "ground truth")]
+        for method in ("model", poisson_name):
+            if (method, i) in images:
+                image = images[method, i]
+                panels.append(_panel(image, panel_width, f"{method} {psnr(image, view.truth, view.seen):.1f} dB seen"))
+        name = f"view_{view.frame:06d}_{view.where.replace(' ', '_')}.png"
+        write_png(out_dir / name, np.concatenate(panels, axis=1))
+        names.append(name)
+    return names
+
+
+def work_precision_plot(report: dict, path: os.PathLike | str, title: str = "Novel views: bytes against quality") -> Path:
+    """Write the work-precision diagram of ``report["work_precision"]``: bytes (log) against
+    seen-pixel PSNR, on path and off path side by side, one series per family (Poisson
+    depths joined by a line, each point labelled)."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    from data_synth.fileio import write_bytes
+
+    points = [p for p in report.get("work_precision", []) if p.get("bytes")]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    markers = {"model": "o", "Poisson mesh": "s", "point projection": "^"}
+    for ax, where in zip(axes, WHERE):
+        key = f"psnr_seen_{where.replace(' ', '_')}"
+        families = dict.fromkeys(p["family"] for p in points)
+        for i, family in enumerate(families):
+            sel = sorted((p for p in points if p["family"] == family and p.get(key) is not None
+                          and np.isfinite(p[key])), key=lambda p: p["bytes"])
+            if not sel:
+                continue
+            x, y = [p["bytes"] / 1e6 for p in sel], [p[key] for p in sel]
+            style = "-" if family == "Poisson mesh" and len(sel) > 1 else ""
+            ax.plot(x, y, style + markers.get(family, "D"), color=f"C{i}", label=family)
+            for p, xi, yi in zip(sel, x, y):
+                if p["label"] != family:
+                    ax.annotate(p["label"], (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set(xlabel="bytes (MB)", title=where)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("PSNR over seen pixels (dB)")
+    for ax in axes:
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+            break
+    fig.suptitle(title)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    return write_bytes(path, buf.getvalue())
+
+
+def _f(value, spec: str) -> str:
+    return "n/a" if value is None or (isinstance(value, float) and not math.isfinite(value)) else format(value, spec)
 
 
 def markdown(report: dict) -> str:
-    """The summary as a Markdown table."""
+    """The report as Markdown: the scores per method and viewpoints, the work-precision points."""
     kind = "held-out" if report.get("held_out") else "capture (used for the textures)"
+    cfg = report.get("config", {})
     lines = [f"# Novel views against ground truth ({report['views']} {kind} viewpoints, each also moved "
-             f"2 m sideways and 1 m up; {report['size'][0]}×{report['size'][1]})", "",
-             "| method, viewpoints | PSNR (dB) | PSNR on geometry (dB) | SSIM | SSIM on geometry | bytes |",
-             "|---|---|---|---|---|---|"]
+             f"{cfg.get('sideways', 2.0):g} m sideways and {cfg.get('up', 1.0):g} m up; "
+             f"{report['size'][0]}×{report['size'][1]})", "",
+             "Seen pixels: the ground-truth surface was seen by a capture camera whose images made the "
+             "textures (depth agreeing within 2 cm + 1 %). Geometry pixels: the ground truth hits a surface. "
+             + ("The model is drawn over its sky; the baselines' background is black." if report.get("sky")
+                else "Backgrounds are black."), "",
+             "| method, viewpoints | PSNR seen (dB) | SSIM seen | PSNR (dB) | SSIM | PSNR geometry (dB) | "
+             "SSIM geometry | seen pixels | bytes |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name, m in report["summary"].items():
-        method = name.split(",")[0]
-        lines.append(f"| {name} | {m['psnr']:.2f} | {m['psnr_geometry']:.2f} | {m['ssim']:.3f} | "
-                     f"{m['ssim_geometry']:.3f} | {report['bytes'].get(method, 0):,} |")
+        method = name.rsplit(", ", 1)[0]
+        b = report["bytes"].get(method)
+        lines.append(f"| {name} | {_f(m['psnr_seen'], '.2f')} | {_f(m['ssim_seen'], '.3f')} | {_f(m['psnr'], '.2f')} | "
+                     f"{_f(m['ssim'], '.3f')} | {_f(m['psnr_geometry'], '.2f')} | {_f(m['ssim_geometry'], '.3f')} | "
+                     f"{_f(m['seen_fraction'], '.0%')} | {_f(b, ',')} |")
+    wp = report.get("work_precision", [])
+    if wp:
+        lines += ["", "## Work-precision (workprecision.png)", "",
+                  "| method | bytes | PSNR seen, on path (dB) | PSNR seen, off path (dB) | build (s) |",
+                  "|---|---|---|---|---|"]
+        for p in sorted(wp, key=lambda p: (p["family"], p["bytes"] or 0)):
+            build = report.get("methods", {}).get(p["method"], {}).get("build_s")
+            lines.append(f"| {p['method']} | {_f(p['bytes'], ',')} | {_f(p['psnr_seen_on_path'], '.2f')} | "
+                         f"{_f(p['psnr_seen_off_path'], '.2f')} | {_f(build, '.1f')} |")
+    if report.get("images"):
+        lines += ["", "Images (ground truth | model | Poisson mesh): " + ", ".join(report["images"])]
     return "\n".join(lines) + "\n"
+
+
+def write_report(report: dict, out_dir: os.PathLike | str) -> Path:
+    """Write ``eval.json``, ``eval.md`` and ``workprecision.png`` into ``out_dir``; returns eval.md's path."""
+    from data_synth.fileio import write_bytes, write_json
+
+    out = Path(out_dir)
+    write_json(out / "eval.json", report)
+    if report.get("work_precision"):
+        work_precision_plot(report, out / "workprecision.png")
+    return write_bytes(out / "eval.md", markdown(report).encode())

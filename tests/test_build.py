@@ -211,21 +211,7 @@ def test_city_coordinates_give_the_same_model(tiny_dataset, tiny_cloud, tiny_mod
     assert 10 * np.log10(1 / max(np.mean(diff ** 2), 1e-12)) > 40
 
 
-def test_eval_of_the_tiny_model_against_ground_truth(tiny_dataset, tiny_cloud, tmp_path):
-    model = build_main(small_config(holdout=3), tiny_cloud, tiny_dataset, tmp_path / "model").model
-    held_out = billboard_model.load(model).info["held_out_frames"]
-    assert held_out == [1, 4]  # 6 frames, every 3rd from the middle of each triple
-    out = tmp_path / "eval"
-    assert cli_main(["-q", "eval", str(model), str(tiny_dataset), "--cloud", str(tiny_cloud),
-                     "--views", "2", "--out", str(out)]) == 0
-    report = json.loads((out / "eval_report.json").read_text())
-    assert report["held_out"] and report["frames"] == held_out
-    assert set(report["summary"]) == {f"{m}, {v}" for m in ("billboards", "point projection")
-                                      for v in ("on path", "off path")}
-    for m in report["summary"].values():
-        assert 5 < m["psnr"] < 100 and -1 <= m["ssim"] <= 1
-    assert report["bytes"]["billboards"] > 0 and report["bytes"]["point projection"] > 0
-    assert "off path" in (out / "eval.md").read_text()
+# `bbcity eval` on a built model: tests/test_eval.py
 
 
 def test_metrics_on_known_images():

@@ -1,0 +1,213 @@
+"""`bbcity eval`: the seen-pixel mask, the Poisson-mesh baseline, the methods dict, the report."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from render.camera import look_at
+from render.seen import back_project, seen_mask
+
+from .conftest import tiny_config
+from .test_build import small_config
+
+W, H = 64, 48
+K = np.array([[50.0, 0.0, (W - 1) / 2], [0.0, 50.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def plane_depth(K, pose, size, point, normal) -> np.ndarray:
+    """(h, w) float32 z-depth of the plane through ``point`` with ``normal`` (NaN where missed)."""
+    w, h = size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # camera frame, z = 1
+    d = rays @ pose[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((np.asarray(point) - pose[:3, 3]) @ normal) / (d @ normal)
+    return np.where(t > 0, t, np.nan).astype(np.float32)
+
+
+def test_seen_mask_hidden_visible_and_nan_points():
+    # two cameras at y = 0 looking along +y at a wall y = 5 that fills their images
+    cams = [look_at(np.array([x, 0.0, 1.5]), np.array([x, 10.0, 1.5])) for x in (-1.0, 1.0)]
+    depths = [plane_depth(K, c, (W, H), [0, 5.0, 0], np.array([0, 1.0, 0])) for c in cams]
+    points = np.array([
+        [0.0, 5.0, 1.5],       # on the wall, in both images: seen
+        [0.3, 5.0, 2.0],       # on the wall: seen
+        [0.0, 8.0, 1.5],       # behind the wall from every camera: unseen
+        [np.nan, 5.0, 1.5],    # no surface (sky): unseen
+        [0.0, 5.0, 40.0],      # on the wall's plane but outside both images: unseen
+        [0.0, -3.0, 1.5],      # behind the cameras: unseen
+    ])
+    seen = seen_mask(points, np.stack([K, K]), np.stack(cams), depths)
+    assert seen.tolist() == [True, True, False, False, False, False]
+    # a camera that sees behind the wall (beside it, at y = 6) sees the hidden point
+    side = look_at(np.array([0.0, 6.0, 1.5]), np.array([0.0, 10.0, 1.5]))
+    side_depth = plane_depth(K, side, (W, H), [0, 8.0, 0], np.array([0, 1.0, 0]))
+    seen = seen_mask(points, np.stack([K, K, K]), np.stack([*cams, side]), [*depths, side_depth])
+    assert seen.tolist() == [True, True, True, False, False, False]
+    # NaN depth in the camera (it saw nothing there) means unseen
+    assert not seen_mask(points[:1], K[None], cams[0][None], [np.full((H, W), np.nan, np.float32)])[0]
+    with pytest.raises(ValueError):
+        seen_mask(points, np.stack([K, K]), np.stack(cams), depths[:1])
+
+
+def test_seen_mask_at_a_grazing_angle():
+    """The road seen from 2 m up changes depth by far more than the tolerance between
+    neighbouring pixels; the bilinear inverse depth still matches every point on it."""
+    cam = look_at(np.array([0.0, 0.0, 2.0]), np.array([0.0, 20.0, 1.0]))
+    depth = plane_depth(K, cam, (W, H), [0, 0, 0.0], np.array([0, 0, 1.0]))
+    rng = np.random.default_rng(0)
+    ground = np.stack([rng.uniform(-4, 4, 2000), rng.uniform(6, 30, 2000), np.zeros(2000)], 1)
+    seen = seen_mask(ground, K[None], cam[None], [depth])
+    cam_pts = (ground - cam[:3, 3]) @ cam[:3, :3]
+    u = K[0, 0] * cam_pts[:, 0] / cam_pts[:, 2] + K[0, 2]
+    v = K[1, 1] * cam_pts[:, 1] / cam_pts[:, 2] + K[1, 2]
+    inside = (u >= -0.5) & (u < W - 0.5) & (v >= -0.5) & (v < H - 0.5)
+    assert inside.sum() > 500 and np.array_equal(seen, inside)
+    near = ground[:, 1] < 15  # (farther, 0.5 m above the road lies within a pixel of the road at that depth)
+    assert not seen_mask(ground[near] + [0, 0, 0.5], K[None], cam[None], [depth]).any()
+
+
+def test_back_project_round_trips():
+    cam = look_at(np.array([1e6, 2e6, 2.0]), np.array([1e6 + 3, 2e6 + 10, 1.0]))
+    depth = plane_depth(K, cam, (W, H), [0, 2e6 + 12, 0.0], np.array([0, 1.0, 0]))
+    pts = back_project(depth, K, cam)
+    finite = np.isfinite(depth).reshape(-1)
+    np.testing.assert_allclose(pts[finite, 1], 2e6 + 12, atol=1e-3)
+    assert np.all(np.isnan(pts[~finite]))
+
+
+def test_poisson_mesh_of_a_wall_shows_its_colours():
+    from render.baselines import PoissonMesh
+
+    rng = np.random.default_rng(0)
+    n = 20000
+    wall_y = 10.0 + rng.normal(0, 0.002, n)  # (a plane of zero thickness makes Poisson's isosurface speckle)
+    pts = np.stack([rng.uniform(-5, 5, n), wall_y, rng.uniform(0, 5, n)], 1) + [1e6, 2e6, 0]
+    colours = np.stack([(pts[:, 0] - 1e6 + 5) / 10 * 255, np.full(n, 100), pts[:, 2] / 5 * 255], 1).astype(np.uint8)
+    mesh = PoissonMesh(pts, colours, None, depth=7, viewpoints=np.array([[1e6, 2e6, 2.0]]))
+    V, T = len(mesh.vertices), len(mesh.triangles)
+    assert V > 100 and T > 100 and mesh.nbytes == V * 15 + T * 12
+    Kc = np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]])
+    pose = look_at(np.array([1e6, 2e6, 2.5]), np.array([1e6, 2e6 + 10, 2.5]))
+    image = mesh.render(Kc, pose, (160, 120)).astype(int)
+    u, v = np.meshgrid(np.arange(160), np.arange(120))
+    x, z = (u - 79.5) / 100 * 10, 2.5 - (v - 59.5) / 100 * 10
+    inner = (np.abs(x) < 4.5) & (z > 0.5) & (z < 4.5)
+    expected_r, expected_b = (x + 5) / 10 * 255, z / 5 * 255
+    assert np.abs(image[..., 0] - expected_r)[inner].mean() < 4 and np.abs(image[..., 2] - expected_b)[inner].mean() < 4
+    assert np.all(image[(np.abs(x) > 6)] == 0)  # beyond the wall's ends: trimmed away, black
+
+
+def test_billboards_only_hook():
+    from render.evaluate import billboards_only_method
+
+    from .test_render_gpu import make_model
+
+    model = make_model(np.zeros((4, 3)), rank=1)
+    assert billboards_only_method(model) is None  # only billboards: nothing to leave out
+    model.kind = np.array([0, 1, 0, 2], np.uint8)  # with a facade layer
+    method = billboards_only_method(model)
+    assert method is not None and method.visible.tolist() == [0, 2]
+    assert 0 < method.nbytes < model.nbytes()["total"]
+
+
+def test_work_precision_plot_and_markdown(tmp_path):
+    from render.evaluate import markdown, work_precision_plot, work_precision_points
+
+    summary = {f"{m}, {w}": {"psnr": 20.0, "psnr_geometry": 21.0, "psnr_seen": p + (w == "off path") * -2,
+                             "ssim": 0.5, "ssim_geometry": 0.5, "ssim_seen": 0.6, "seen_fraction": 0.8}
+               for m, p in (("model", 25.0), ("Poisson mesh", 22.0), ("Poisson depth 8", 20.0),
+                            ("point projection", 18.0)) for w in ("on path", "off path")}
+    summary["point projection, off path"]["psnr_seen"] = float("nan")
+    info = {"model": {"bytes": 10_000_000}, "Poisson mesh": {"bytes": 30_000_000, "build_s": 3.0},
+            "Poisson depth 8": {"bytes": 2_000_000, "build_s": 1.0}, "point projection": {"bytes": 50_000_000}}
+    points = work_precision_points(summary, info, 10)
+    assert {p["label"] for p in points if p["family"] == "Poisson mesh"} == {"depth 10", "depth 8"}
+    report = {"views": 2, "held_out": True, "size": [64, 48], "summary": summary,
+              "bytes": {k: v["bytes"] for k, v in info.items()}, "methods": info, "work_precision": points}
+    out = work_precision_plot(report, tmp_path / "wp.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = markdown(report)
+    assert "Poisson depth 8" in text and "n/a" in text and "Work-precision" in text
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory):
+    """The tiny street with frames 5 m apart (neighbouring frames overlap), its ground-truth
+    cloud (as recon writes it, without normals) and a model built with every 3rd frame held out."""
+    from billboards.build import main as build_main
+    from data_synth import load_dataset, write_dataset
+    from recon.cloud_io import PlyStreamWriter
+    from recon.points import depth_to_points
+
+    root = tmp_path_factory.mktemp("dense")
+    dataset = write_dataset(tiny_config(frames=7), root / "street", progress=False)
+    ds = load_dataset(dataset)
+    cloud = root / "cloud.ply"
+    with PlyStreamWriter(cloud, normals=False) as writer:
+        for f in range(ds.num_frames):
+            pts, cols, _ = depth_to_points(ds.gt_depth(f, 0), ds.rig.intrinsics[0], ds.world_from_cam(f, 0),
+                                           ds.image(f, 0), stride=2)
+            writer.append(pts, cols)
+    model = build_main(small_config(holdout=3), cloud, dataset, root / "model").model
+    return dataset, cloud, model
+
+
+def test_seen_pixels_of_held_out_views(street):
+    from data_synth import load_dataset, load_scene, render_view
+    from render.evaluate import off_path
+    from render.seen import SeenConfig, seen_in_dataset
+
+    dataset, _, _ = street
+    ds, scene = load_dataset(dataset), load_scene(dataset)
+    K, size = ds.rig.intrinsics[0], tuple(ds.rig.sizes[0])
+    pose = ds.world_from_cam(4, 0)
+    _, depth = render_view(scene, K, pose, size)
+    own = seen_in_dataset(depth, K, pose, ds, [4])
+    assert np.array_equal(own, np.isfinite(depth))  # a capture camera sees all it shows (NaN sky: unseen)
+    neighbours = seen_in_dataset(depth, K, pose, ds, [3, 5])
+    assert 0.3 < neighbours.mean() < np.isfinite(depth).mean()
+    assert not seen_in_dataset(depth, K, pose, ds, [3, 5], SeenConfig(max_distance=1.0)).any()  # none near
+    moved = off_path(pose)
+    _, depth_off = render_view(scene, K, moved, size)
+    assert seen_in_dataset(depth_off, K, moved, ds, [3, 4, 5]).mean() < np.isfinite(depth_off).mean()
+
+
+@pytest.mark.slow
+def test_eval_cli_on_the_tiny_street(street, tmp_path):
+    from bbcity.cli import main as cli_main
+    from billboards import model as billboard_model
+    from billboards.sky import Sky, write_sky
+    from data_synth.fileio import read_png
+
+    tiny_dataset, tiny_cloud, model = street
+    held_out = billboard_model.load(model).info["held_out_frames"]
+    assert held_out == [1, 4, 7, 10, 13]  # 14 frames, every 3rd from the middle of each triple
+    write_sky(model, Sky(np.full((16, 3), 0.8, np.float32)))
+    out = tmp_path / "eval"
+    assert cli_main(["-q", "eval", str(model), str(tiny_dataset), "--cloud", str(tiny_cloud), "--views", "2",
+                     "--out", str(out), "--poisson-depth", "7", "--workprecision-depths", "6", "7",
+                     "--models", str(model), "--panel-width", "120"]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    assert report["held_out"] and report["frames"] == [1, 13] and report["sky"]
+    methods = ("model", "model: model", "Poisson mesh", "Poisson depth 6", "point projection")
+    if np.any(billboard_model.load(model).kind != 0):  # a facade layer: the model without it too
+        methods += ("billboards only",)
+    assert set(report["summary"]) == {f"{m}, {v}" for m in methods for v in ("on path", "off path")}
+    for name, m in report["summary"].items():
+        assert 5 < m["psnr"] < 100 and -1 <= m["ssim"] <= 1, name
+        assert 5 < m["psnr_seen"] < 100 and 0 < m["seen_fraction"] < 1, name
+    on, off = report["summary"]["model, on path"], report["summary"]["model, off path"]
+    assert on["seen_fraction"] > 0.3 and on["psnr_seen"] > on["psnr_geometry"] - 3
+    assert report["summary"]["model: model, on path"]["psnr_seen"] == pytest.approx(on["psnr_seen"])
+    for name in methods:
+        assert report["bytes"][name] > 0
+    assert report["bytes"]["Poisson depth 6"] < report["bytes"]["Poisson mesh"]
+    assert {"model", "Poisson mesh", "point projection"} <= {p["family"] for p in report["work_precision"]}
+    assert (out / "workprecision.png").is_file() and "off path" in (out / "eval.md").read_text()
+    assert len(report["images"]) == 4
+    panel = read_png(out / report["images"][0])
+    assert panel.shape == (90, 360, 3)  # ground truth | model | Poisson mesh, 120×90 each
