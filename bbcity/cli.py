@@ -142,6 +142,9 @@ def _add_build(sub) -> None:
     p.add_argument("--page-size", type=int, default=8192, help="atlas page edge in texels (default 8192)")
     p.add_argument("--holdout", type=int, default=0,
                    help="leave every n-th frame's images out of the textures (for `bbcity eval`; default 0: none)")
+    p.add_argument("--layer", choices=("facades+ground", "facades", "ground", "none"), default="facades+ground",
+                   help="the facade layer under the billboards: slits on the facades found in the EPIs and/or "
+                        "blocks on flat ground (default both; none: billboards only)")
     p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_build)
 
@@ -150,6 +153,7 @@ def build_config_from_args(args):
     """The BuildConfig the ``build`` options describe."""
     from billboards.build import BuildConfig
     from billboards.geometry import DirectionConfig
+    from billboards.layer import LayerConfig
     from billboards.octree import OctreeConfig
     from billboards.pca import PcaConfig
     from billboards.sampling import SamplingConfig
@@ -170,9 +174,10 @@ def build_config_from_args(args):
     octree = OctreeConfig(voxel_size=None if args.depth is not None else args.voxel_size, depth=args.depth,
                           min_points=args.min_points)
     sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
+    layer = None if args.layer == "none" else LayerConfig(facades="facades" in args.layer, ground="ground" in args.layer)
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
-                       holdout=args.holdout)
+                       holdout=args.holdout, layer=layer)
 
 
 def _run_build(args) -> int:
@@ -192,7 +197,7 @@ def _run_build(args) -> int:
         result = build_main(conf, cloud, dataset, args.out, executor=executor, workers=workers)
     r = result.report
     psnr = r["psnr"]["decoded_rgb_opaque_db"]  # None: no opaque texel measured
-    logger.info("%d billboards, compression %.1f× at %s dB (decoded RGB), %.1f s → %s", r["voxels"],
+    logger.info("%d billboards, compression %.1f× at %s dB (decoded RGB), %.1f s → %s", r["billboards"],
                 r["compression_ratio"], "n/a" if psnr is None else f"{psnr:.2f}", r["total_s"], result.model)
     return 0
 

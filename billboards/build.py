@@ -28,7 +28,10 @@ from data_synth.fileio import write_json
 from data_synth.tasks import ordered_results
 from recon.cloud_io import read_cloud_arrays
 
-from .geometry import DirectionConfig, base_yaw_toward
+from recon.epi import EpiConfig, epi_points
+
+from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
+from .layer import Layer, LayerConfig, build_layer, facade_depth_report
 from .model import ModelWriter
 from .octree import Octree, OctreeConfig, build_octree
 from .pca import TOL, PcaConfig, eigen_textures
@@ -55,6 +58,7 @@ class BuildConfig:
     task_chunks: int = 8         # chunks per worker task (neighbouring billboards share cached images)
     error_stride: int = 4        # decode PSNR is measured on every n-th billboard (1: all)
     holdout: int = 0             # leave every n-th frame's images out of the sampling (for novel-view tests; 0: none)
+    layer: LayerConfig | None = field(default_factory=LayerConfig)  # the facade layer (None: billboards only)
 
     def __post_init__(self):
         if self.source not in SOURCES:
@@ -69,10 +73,14 @@ class BuildConfig:
 class Billboards:
     """The voxels of a cloud, ready for sampling.
 
-    octree: the voxel leaves; leaf (N,) int64 voxel of each point (−1: none);
-    voxels: the points grouped by voxel (cube centres, for z-buffers and slabs);
+    octree: the voxel leaves; leaf (N,) int64 billboard of each point (−1: none);
+    voxels: the points grouped by billboard (cube centres, for z-buffers and slabs);
     base_yaw (n,) float64 world yaw toward the capture path; quads (n, 3) float64
-    quad centres on the surface (:func:`sampling.quad_centres`).
+    quad centres on the surface (:func:`sampling.quad_centres`); kind (n,) uint8 quad
+    kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node.
+    Without a facade layer there is one billboard per voxel leaf, in leaf order; with one,
+    a leaf holds its billboard (if its own points make one) and the layer blocks whose
+    centres lie in it, so that culling by the octree covers both.
     """
 
     octree: Octree
@@ -80,10 +88,16 @@ class Billboards:
     voxels: VoxelPoints
     base_yaw: np.ndarray
     quads: np.ndarray
+    kind: np.ndarray
+    node_range: np.ndarray
+
+    @property
+    def num_billboards(self) -> int:
+        return len(self.kind)
 
     def image_sampler(self, views: Views, config: SamplingConfig) -> ImageSampler:
         return ImageSampler(views, self.quads, self.octree.voxel_size, self.base_yaw, self.voxels, config,
-                            box_centres=self.voxels.centres)
+                            box_centres=self.voxels.centres, kind=self.kind)
 
     def voxel_colours(self, colours: np.ndarray) -> np.ndarray:
         """(N', 3) uint8 colours of the points in voxels, in the order of ``voxels.points``."""
@@ -101,7 +115,59 @@ def place_billboards(points: np.ndarray, octree: Octree, viewpoints: np.ndarray 
     leaf = octree.leaves_of_points(points)
     voxels = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
     base_yaw = base_yaw_toward(centres, np.zeros((0, 3)) if viewpoints is None else viewpoints)
-    return Billboards(octree, leaf, voxels, base_yaw, quad_centres(voxels, base_yaw))
+    return Billboards(octree, leaf, voxels, base_yaw, quad_centres(voxels, base_yaw),
+                      np.full(len(centres), BILLBOARD, np.uint8), octree.node_range.astype(np.int64))
+
+
+def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarray, layer: Layer
+                 ) -> Billboards:
+    """Billboards where the cloud departs from the facade ``layer``, and the layer's blocks.
+
+    points (N, 3) float64 world; viewpoints (v, 3) float64 camera centres. The octree is
+    built over the points the layer does not explain plus each block's centre (counted
+    ``min_points`` times, so every block's cell is a leaf); a leaf gets a billboard when
+    at least ``min_points`` unexplained points fall in it. Billboards are ordered by leaf
+    (Morton order), a leaf's billboard before its blocks.
+    """
+    points = np.asarray(points, np.float64)
+    free = np.flatnonzero(~layer.explained)
+    anchors = np.concatenate([points[free], np.repeat(layer.centres, config.min_points, axis=0)])
+    octree = build_octree(anchors, config)
+    n_leaves = octree.num_voxels
+    free_leaf = octree.leaves_of_points(points[free])
+    counts = np.bincount(free_leaf[free_leaf >= 0], minlength=n_leaves)
+    board_leaves = np.flatnonzero(counts >= config.min_points)
+    block_leaves = octree.leaves_of_points(layer.centres) if len(layer.centres) else np.zeros(0, np.int64)
+    if np.any(block_leaves < 0):
+        raise AssertionError("a layer block fell outside the octree built around it")
+    item_leaf = np.concatenate([board_leaves, block_leaves])
+    item_kind = np.concatenate([np.full(len(board_leaves), BILLBOARD, np.uint8), layer.kind])
+    source = np.concatenate([board_leaves, np.arange(len(block_leaves))])  # leaf (billboard) or block index
+    order = np.lexsort((np.arange(len(item_leaf)), item_kind, item_leaf))
+    item_leaf, item_kind, source = item_leaf[order], item_kind[order], source[order]
+    n = len(item_leaf)
+    is_board = item_kind == BILLBOARD
+    # Each point's billboard: unexplained points of a billboard leaf, and points on a block.
+    item_of_board_leaf = np.full(n_leaves, -1, np.int64)
+    item_of_board_leaf[source[is_board]] = np.flatnonzero(is_board)
+    item_of_block = np.full(len(layer.centres), -1, np.int64)
+    item_of_block[source[~is_board]] = np.flatnonzero(~is_board)
+    owner = np.full(len(points), -1, np.int64)
+    owner[free] = np.where(free_leaf >= 0, item_of_board_leaf[np.maximum(free_leaf, 0)], -1)
+    on_block = np.flatnonzero(layer.explained)
+    owner[on_block] = item_of_block[layer.point_block[on_block]]
+    leaf_centres = octree.centres()
+    box_centres = np.where(is_board[:, None], leaf_centres[item_leaf],
+                           layer.centres[np.where(is_board, 0, source)] if len(layer.centres) else 0.0)
+    voxels = voxel_points(points, owner, box_centres, octree.origin, octree.voxel_size)
+    base_yaw = base_yaw_toward(box_centres, viewpoints)
+    blocks = ~is_board
+    base_yaw[blocks] = layer.base_yaw[source[blocks]]
+    quads = quad_centres(voxels, base_yaw)
+    quads[blocks] = box_centres[blocks]
+    item_begin = np.searchsorted(item_leaf, np.arange(n_leaves + 1))
+    node_range = item_begin[octree.node_range]
+    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range)
 
 
 # --------------------------------------------------------------------------- worker side
@@ -126,12 +192,14 @@ def _worker_state(state_dir: str):
     centres = np.load(root / "centres.npy")
     quads = np.load(root / "quads.npy")
     base_yaw = np.load(root / "base_yaw.npy")
+    kind = np.load(root / "kind.npy")
     voxels = VoxelPoints(np.asarray(meta["origin"], dtype=np.float64), np.load(root / "points.npy", mmap_mode="r"),
                          np.load(root / "begin.npy"), centres, meta["voxel_size"])
     if conf.source == "images":
         views = Views(np.load(root / "K.npy"), np.load(root / "world_from_cam.npy"), np.load(root / "sizes.npy"),
                       tuple(Path(p) for p in meta["paths"]))
-        sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres)
+        sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres,
+                               kind=kind)
     else:
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)
@@ -227,8 +295,11 @@ def _config_from_json(data: dict) -> BuildConfig:
     s = data["sampling"]
     sampling = SamplingConfig(**{**s, "directions": DirectionConfig(**{**s["directions"],
                                                                         "pitches_deg": tuple(s["directions"]["pitches_deg"])})})
+    layer = data.get("layer")
+    if layer is not None:
+        layer = LayerConfig(**{**layer, "epi": EpiConfig(**layer["epi"])})
     return BuildConfig(**{**data, "octree": OctreeConfig(**data["octree"]), "sampling": sampling,
-                          "pca": PcaConfig(**data["pca"])})
+                          "pca": PcaConfig(**data["pca"]), "layer": layer})
 
 
 def _peak_rss_mb() -> dict:
@@ -257,18 +328,9 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     points, colours = read_cloud_arrays(cloud_path, require_colours=True)
     stages["read_cloud_s"] = time.perf_counter() - t0
 
-    t1 = time.perf_counter()
-    octree = build_octree(points, conf.octree)
-    stages["octree_s"] = time.perf_counter() - t1
-    if octree.num_voxels == 0:
-        raise ValueError(f"{cloud_path}: no voxel holds {conf.octree.min_points} points "
-                         f"at voxel size {octree.voxel_size:g} m; nothing to build")
-    centres = octree.centres()
-    logger.info("%d points → %d voxels of %.3g m (depth %d)", len(points), octree.num_voxels,
-                octree.voxel_size, octree.depth)
-
     views = None
     held_out: list[int] = []
+    cameras = 0
     if dataset_dir is not None:
         dataset = load_dataset(dataset_dir)
         frames = list(range(dataset.num_frames))
@@ -276,8 +338,37 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             held_out = [f for f in frames if f % conf.holdout == conf.holdout // 2]
             frames = [f for f in frames if f % conf.holdout != conf.holdout // 2]
         views = views_from_dataset(dataset, frames)
+        cameras = dataset.rig.num_cameras
     elif conf.source == "images":
         raise ValueError("source 'images' needs the dataset's images and poses (--images DATASET)")
+
+    layer = None
+    layer_report: dict = {"enabled": False}
+    if conf.layer is not None and views is not None and conf.source == "images" and len(views) and len(points):
+        t1 = time.perf_counter()
+        passes = epi_points(views.K, views.world_from_cam, views.image, cameras, conf.layer.epi)
+        stages["epi_s"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        size = conf.octree.voxel_size or build_octree(points, conf.octree).voxel_size
+        layer = build_layer(points, passes, size, points.min(axis=0), views.centres, conf.layer)
+        stages["layer_s"] = time.perf_counter() - t1
+        layer_report = _layer_report(layer, passes, points, dataset_dir, size, conf.layer)
+
+    t1 = time.perf_counter()
+    if layer is not None and len(layer.centres):
+        octree_conf = replace(conf.octree, voxel_size=size, depth=None)
+        placed = place_hybrid(points, octree_conf, views.centres, layer)
+        octree = placed.octree
+    else:
+        octree = build_octree(points, conf.octree)
+        placed = None
+    stages["octree_s"] = time.perf_counter() - t1
+    if octree.num_voxels == 0:
+        raise ValueError(f"{cloud_path}: no voxel holds {conf.octree.min_points} points "
+                         f"at voxel size {octree.voxel_size:g} m; nothing to build")
+    logger.info("%d points → %d voxels of %.3g m (depth %d)", len(points), octree.num_voxels,
+                octree.voxel_size, octree.depth)
+
     sampling = conf.sampling
     if views is None and sampling.directions.count * sampling.directions.spacing_deg < 360:
         # No capture path: sample the whole circle.
@@ -289,13 +380,16 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     model_dir.parent.mkdir(parents=True, exist_ok=True)
     state = Path(tempfile.mkdtemp(prefix=f".{model_dir.name}.build-", dir=model_dir.parent))
     try:
-        placed = place_billboards(points, octree, views.centres if views is not None else None)
-        grouped, base_yaw, quads = placed.voxels, placed.base_yaw, placed.quads
+        if placed is None:
+            placed = place_billboards(points, octree, views.centres if views is not None else None)
+        grouped, base_yaw, quads, kind = placed.voxels, placed.base_yaw, placed.quads, placed.kind
+        node_range = placed.node_range
         np.save(state / "quads.npy", quads)
         np.save(state / "points.npy", grouped.points)
         np.save(state / "begin.npy", grouped.begin)
-        np.save(state / "centres.npy", centres)
+        np.save(state / "centres.npy", grouped.centres)
         np.save(state / "base_yaw.npy", base_yaw)
+        np.save(state / "kind.npy", kind)
         if conf.source == "points":
             np.save(state / "colours.npy", placed.voxel_colours(colours))
         meta = {"config": _config_to_json(conf), "origin": octree.origin.tolist(), "voxel_size": octree.voxel_size}
@@ -305,10 +399,10 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             np.save(state / "sizes.npy", views.sizes)
             meta["paths"] = [str(p) for p in views.paths]
         (state / "meta.json").write_text(json.dumps(meta))
-        del points, colours, grouped, placed
+        del points, colours, grouped, placed, layer
         stages["prepare_s"] = time.perf_counter() - t2
 
-        n = octree.num_voxels
+        n = len(kind)
         step = conf.chunk * conf.task_chunks
         tasks = [_Task(str(state), b, min(n, b + step)) for b in range(0, n, step)]
         t3 = time.perf_counter()
@@ -322,12 +416,13 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                 for arrays, stats in chunks:
                     b = len(arrays["rank"])
                     writer.append(centres=(quads[done:done + b] - octree.origin).astype(np.float32),
-                                  base_yaw=base_yaw[done:done + b].astype(np.float32), **arrays)
+                                  base_yaw=base_yaw[done:done + b].astype(np.float32), kind=kind[done:done + b],
+                                  **arrays)
                     done += b
                     totals.add(stats)
             stages["sample_compress_s"] = time.perf_counter() - t3
             t4 = time.perf_counter()
-            nodes = _node_table(octree)
+            nodes = _node_table(octree, node_range)
             info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,
                     "cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir),
                     "held_out_frames": held_out}
@@ -341,6 +436,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     from .model import load
     model = load(model_dir)
     report = totals.report(model, conf, octree, len(views) if views is not None else 0)
+    report["layer"] = layer_report
     report.update(cloud=str(cloud_path), dataset=None if dataset_dir is None else str(dataset_dir),
                   stages=stages, total_s=time.perf_counter() - t0, peak_memory=_peak_rss_mb(),
                   config=_config_to_json(conf))
@@ -351,10 +447,24 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     return BuildResult(model_dir, report)
 
 
-def _node_table(octree: Octree) -> dict:
+def _node_table(octree: Octree, node_range: np.ndarray) -> dict:
+    """The model's node arrays; node_range (k, 2) [begin, end) billboards under each node."""
     bounds = octree.node_bounds() - octree.origin
     return {"node_level": octree.node_level.astype(np.uint8), "node_bounds": bounds.astype(np.float32),
-            "node_children": octree.node_children.astype(np.int32), "node_range": octree.node_range.astype(np.int32)}
+            "node_children": octree.node_children.astype(np.int32), "node_range": node_range.astype(np.int32)}
+
+
+def _layer_report(layer: Layer, passes, points: np.ndarray, dataset_dir, size: float, config: LayerConfig) -> dict:
+    """Counts of the facade layer and, with ground truth, its facade depth against the truth."""
+    report = {"enabled": True, "passes": len(passes), "epi_points": int(sum(len(p.points) for p in passes)),
+              "facade_blocks": int((layer.kind != GROUND).sum()), "ground_blocks": int((layer.kind == GROUND).sum()),
+              "explained_points": int(layer.explained.sum()), "points": int(len(points))}
+    if dataset_dir is not None and layer.columns:
+        from data_synth import load_dataset as _load
+        if _load(dataset_dir).has_ground_truth:
+            from data_synth import load_scene
+            report["facade_depth"] = facade_depth_report(layer.columns, points, load_scene(dataset_dir), config)
+    return report
 
 
 def _psnr_db(sq_err: float, count: int) -> float | None:
@@ -394,7 +504,7 @@ class _Totals:
         nbytes = model.nbytes()
         last = int(np.max(np.flatnonzero(self.ranks))) if self.ranks.any() else 0
         return {
-            "voxels": octree.num_voxels, "octree_depth": octree.depth, "voxel_size": octree.voxel_size,
+            "billboards": model.num_billboards, "voxels": octree.num_voxels, "octree_depth": octree.depth, "voxel_size": octree.voxel_size,
             "nodes": int(octree.num_nodes), "views": num_views, "directions": conf.sampling.directions.num_directions,
             "tile": conf.sampling.tile, "slots": model.num_slots, "pages": len(model.pages),
             "rank_histogram": {str(r): int(c) for r, c in enumerate(self.ranks[:last + 1])},

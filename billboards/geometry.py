@@ -13,6 +13,12 @@ Quad frame for a viewer at yaw ψ, pitch φ (world, z up):
 Texel (row, col) of a t×t texture lies at
   centre + ((col + ½)/t − ½)·s·r + (½ − (row + ½)/t)·s·u,
 so row 0 is the top and the texture reads like an image seen from the viewer.
+
+Blocks of the facade layer are quads of the same size that do not turn: a FACADE
+block is vertical and faces its base yaw ψ₀ (r = (−sin ψ₀, cos ψ₀, 0), u = z); a
+GROUND block lies flat (normal z, the same r, u = (−cos ψ₀, −sin ψ₀, 0): its rows
+run away from the capture path). Their textures are sampled over the same
+directions as a billboard's.
 """
 
 from __future__ import annotations
@@ -20,6 +26,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+
+#: Quad kinds: one quad of the voxel edge each, the same textures and decode.
+BILLBOARD, FACADE, GROUND = 0, 1, 2
+KINDS = (BILLBOARD, FACADE, GROUND)
 
 
 @dataclass(frozen=True)
@@ -85,6 +96,23 @@ def quad_frames(yaw: np.ndarray, pitch: np.ndarray, pitched: bool = False
         up = np.zeros_like(right)
         up[..., 2] = 1.0
     return normal, right, up
+
+
+def kind_frames(kind: np.ndarray, base_yaw: np.ndarray, yaw: np.ndarray, pitch: np.ndarray,
+                pitched: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normal, right and up axes (..., 3) float64 of quads of ``kind`` (...) seen from yaw/pitch (...):
+    billboards face the viewer (:func:`quad_frames`), layer blocks stay at ``base_yaw`` (...)."""
+    kind, base_yaw = np.broadcast_to(kind, yaw.shape), np.broadcast_to(base_yaw, yaw.shape)
+    normal, right, up = quad_frames(yaw, pitch, pitched)
+    fixed = kind != BILLBOARD
+    if not fixed.any():
+        return normal, right, up
+    f_normal, f_right, f_up = quad_frames(base_yaw, np.zeros_like(base_yaw))
+    ground = (kind == GROUND)[..., None]
+    f_up = np.where(ground, -f_normal, f_up)
+    f_normal = np.where(ground, np.array([0.0, 0.0, 1.0]), f_normal)
+    fixed = fixed[..., None]
+    return np.where(fixed, f_normal, normal), np.where(fixed, f_right, right), np.where(fixed, f_up, up)
 
 
 def texel_offsets(tile: int) -> np.ndarray:

@@ -7,6 +7,10 @@ Layout of a model directory::
                          lists, array files, build info; written last
     centres.npy          (n, 3) float32 billboard centres relative to origin (metres)
     base_yaw.npy         (n,) float32 world yaw (radians) that yaw offset 0 looks from
+    kind.npy             (n,) uint8 what the quad is: BILLBOARD (turns toward the eye about the
+                         vertical), FACADE (a fixed vertical block of the facade layer facing
+                         base_yaw) or GROUND (a fixed horizontal block; texture rows run away from
+                         base_yaw)
     rank.npy             (n,) uint8 eigen images per billboard
     first_slot.npy       (n,) int32 slot of the billboard's mean tile
     slot_scale.npy       (m, 4) float32 tile dequantisation: value = offset + scale·q
@@ -51,12 +55,13 @@ import numpy as np
 
 from data_synth.fileio import DataFormatError, load_npy, save_npy, write_json
 
+from .geometry import KINDS
 from .atlas import AtlasLayout, AtlasWriter, RowWriter, atlas_layout, read_rows, read_tiles, row_layout
 
 logger = logging.getLogger(__name__)
 
 FORMAT = "bbcity-billboards"
-VERSION = 1
+VERSION = 2
 MANIFEST = "manifest.json"
 UNITS = "metre"
 
@@ -67,6 +72,7 @@ COEF_MODES = {"f32": np.dtype(np.float32), "f16": np.dtype(np.float16), "u8": np
 ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
     "centres": (np.dtype(np.float32), ("n", 3)),
     "base_yaw": (np.dtype(np.float32), ("n",)),
+    "kind": (np.dtype(np.uint8), ("n",)),
     "rank": (np.dtype(np.uint8), ("n",)),
     "first_slot": (np.dtype(np.int32), ("n",)),
     "slot_scale": (np.dtype(np.float32), ("m", 4)),
@@ -78,7 +84,7 @@ ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
     "node_children": (np.dtype(np.int32), ("k", 8)),
     "node_range": (np.dtype(np.int32), ("k", 2)),
 }
-_BILLBOARD_ARRAYS = ("centres", "base_yaw", "rank")
+_BILLBOARD_ARRAYS = ("centres", "base_yaw", "kind", "rank")
 _SLOT_ARRAYS = ("slot_scale", "slot_offset", "coef_scale", "coef_offset")
 
 _MAX_MANIFEST_BYTES = 64 << 20
@@ -114,6 +120,11 @@ class BillboardModel:
     node_children: np.ndarray  # (k, 8) int32, −1 = none
     node_range: np.ndarray  # (k, 2) int32 [begin, end) billboards
     info: dict  # free-form build info (JSON-serialisable)
+    kind: np.ndarray | None = None  # (n,) uint8 BILLBOARD | FACADE | GROUND; None: all BILLBOARD
+
+    def __post_init__(self):
+        if self.kind is None:
+            self.kind = np.zeros(len(self.centres), dtype=np.uint8)
 
     @property
     def num_billboards(self) -> int:
@@ -494,6 +505,10 @@ def _table_problem(a: dict[str, np.ndarray], d: int) -> tuple[str, str] | None:
             return name, "contains NaN or inf"
     n, m, k = len(a["rank"]), len(a["slot_scale"]), len(a["node_level"])
     rank = a["rank"].astype(np.int64)
+    bad = np.flatnonzero(~np.isin(a["kind"], KINDS))
+    if bad.size:
+        i = int(bad[0])
+        return "kind", f"billboard {i} has kind {int(a['kind'][i])}, valid are {list(KINDS)}"
     if n and rank.max() > d:
         i = int(np.argmax(rank))
         return "rank", f"billboard {i} has rank {rank[i]}, more than the {d} view directions"
@@ -692,10 +707,11 @@ class ModelWriter:
         self._state = "open"
 
     def append(self, *, centres, base_yaw, rank, tiles, slot_scale, slot_offset, coef_rows, coef_scale,
-               coef_offset) -> None:
+               coef_offset, kind=None) -> None:
         """Append b billboards with their m = Σ(1 + rank) slots.
 
         centres (b, 3) float32 relative to origin; base_yaw (b,) radians; rank (b,) ≤ d;
+        kind (b,) uint8 (None: all BILLBOARD);
         tiles (m, t, t, 4) uint8 ("u8") or float ("f16"), per billboard [mean, eigen_1 … eigen_r];
         slot_scale, slot_offset (m, 4); coef_rows (m, d) in the coefficient dtype (any float
         for "f32"/"f16", uint8 for "u8"); coef_scale, coef_offset (m,).
@@ -713,6 +729,7 @@ class ModelWriter:
         arrays = {
             "centres": _as(centres, np.float32, (b, 3), "centres"),
             "base_yaw": _as(base_yaw, np.float32, (b,), "base_yaw"),
+            "kind": _as(np.zeros(b, np.uint8) if kind is None else kind, np.uint8, (b,), "kind"),
             "rank": rank.astype(np.uint8),
             "slot_scale": _as(slot_scale, np.float32, (m, 4), "slot_scale"),
             "slot_offset": _as(slot_offset, np.float32, (m, 4), "slot_offset"),

@@ -35,7 +35,7 @@ import numpy as np
 
 from data_synth.fileio import read_png
 
-from .geometry import DirectionConfig, direction_angles, quad_frames, texel_offsets, unit_vectors
+from .geometry import BILLBOARD, DirectionConfig, direction_angles, kind_frames, texel_offsets, unit_vectors
 
 logger = logging.getLogger(__name__)
 
@@ -267,18 +267,23 @@ class ImageSampler:
     centres (n, 3) float64 world quad centres; size: voxel edge (m); base_yaw (n,)
     float64; voxels: the cloud grouped by voxel (z-buffers and own points);
     box_centres (n, 3) float64 voxel cube centres when the quads sit elsewhere
-    (see :func:`quad_centres`), default the quad centres.
+    (see :func:`quad_centres`), default the quad centres; kind (n,) uint8 quad kinds
+    (:data:`geometry.KINDS`, default all billboards). A layer block (kind ≠ BILLBOARD)
+    is a surface: every texel shows what the camera sees through it unless something
+    stands in front of its cube (then the next camera is tried), never see-through.
     """
 
     def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,
                  voxels: VoxelPoints, config: SamplingConfig = SamplingConfig(),
-                 box_centres: np.ndarray | None = None):
+                 box_centres: np.ndarray | None = None, kind: np.ndarray | None = None):
         self.views, self.config = views, config
         self.centres = np.asarray(centres, dtype=np.float64)
         # The voxel cubes (the slab of each billboard); the quads may sit off their centres.
         self.box_centres = self.centres if box_centres is None else np.asarray(box_centres, dtype=np.float64)
         self.size = float(size)
         self.base_yaw = np.asarray(base_yaw, dtype=np.float64)
+        self.kind = (np.full(len(self.centres), BILLBOARD, np.uint8) if kind is None
+                     else np.asarray(kind, dtype=np.uint8))
         self.cache = _ViewCache(views, voxels, config)
 
     # -- choosing cameras ------------------------------------------------------------
@@ -333,7 +338,8 @@ class ImageSampler:
         """Per sample: camera rotation R (m, 3, 3), centre C (m, 3), K (m, 3, 3), and the quad's
         centre c (relative to C), right and up axes (m, 3) float64."""
         pose = self.views.world_from_cam[views]
-        _, right, up = quad_frames(yaw, pitch, self.config.directions.pitched_quads)
+        _, right, up = kind_frames(self.kind[ids], self.base_yaw[ids], yaw, pitch,
+                                   self.config.directions.pitched_quads)
         return pose[:, :3, :3], pose[:, :3, 3], self.views.K[views], self.centres[ids] - pose[:, :3, 3], right, up
 
     def _grid(self, base, along_col, along_row):
@@ -455,6 +461,8 @@ class ImageSampler:
             # pixel (a gap between a pillar's points must not show the wall behind as see-through).
             own |= np.isfinite(self._own_depth(ids, np.zeros_like(c), c, right, up))
             own &= ~(np.isfinite(nearest) & (nearest > t_out + tol + margin))
+        layer = self.kind[ids] != BILLBOARD
+        own[layer] = True   # a layer block is a surface: glass and flat paint show, nothing is see-through
         status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
             status[own & (nearest < t_in - tol)] = OCCLUDED
@@ -561,6 +569,9 @@ class ImageSampler:
                      transparent=int((status == TRANSPARENT).sum()),
                      hidden=int((status == OCCLUDED).sum()), unseen=int((status == UNSEEN).sum()))
         rgba = fill_directions(colour, status, dirs.count)
+        layer = self.kind[ids] != BILLBOARD
+        if layer.any():
+            rgba[layer] = close_holes(rgba[layer])
         return SampledTextures(rgba, view_used, distance, elevation, stats)
 
 
@@ -574,6 +585,40 @@ def _stack_filter(images: np.ndarray, op, size: int, border_value) -> np.ndarray
     flat = padded.reshape(m * (t0 + 2 * r), t1 + 2 * r)
     out = op(flat, np.ones((size, size), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=border_value)
     return out.reshape(padded.shape)[:, r:r + t0, r:r + t1]
+
+
+def close_holes(rgba: np.ndarray) -> np.ndarray:
+    """Make surface tiles opaque: texels that no camera saw in any direction (behind a beam
+    from every capture viewpoint) grow inward from their opaque 4-neighbours (the mean of
+    those). rgba (..., t, t, 4) uint8 → the same shape; a tile without an opaque texel stays
+    transparent."""
+    shape = rgba.shape
+    t0, t1 = shape[-3], shape[-2]
+    flat = rgba.reshape(-1, t0, t1, 4)
+    colour = flat[..., :3].astype(np.float32)
+    opaque = flat[..., 3] > 0
+    for _ in range(t0 + t1):
+        if opaque.all():
+            break
+        total = np.zeros_like(colour)
+        count = np.zeros(opaque.shape, np.float32)
+        weighted = colour * opaque[..., None]
+        for axis, step in ((1, 1), (1, -1), (2, 1), (2, -1)):
+            src = [slice(None)] * 3
+            dst = [slice(None)] * 3
+            src[axis] = slice(None, -1) if step == 1 else slice(1, None)
+            dst[axis] = slice(1, None) if step == 1 else slice(None, -1)
+            total[tuple(dst)] += weighted[tuple(src)]
+            count[tuple(dst)] += opaque[tuple(src)]
+        grow = ~opaque & (count > 0)
+        if not grow.any():
+            break
+        colour[grow] = total[grow] / count[grow][:, None]
+        opaque |= grow
+    out = np.empty_like(flat)
+    out[..., :3] = np.rint(colour).astype(np.uint8)
+    out[..., 3] = np.where(opaque, np.uint8(255), np.uint8(0))
+    return out.reshape(shape)
 
 
 def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> np.ndarray:

@@ -23,12 +23,12 @@ from billboards.model import BillboardModel, decode, direction_index
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
 from .program import load_program
-from .resources import InstanceStream, check_billboards, release_all, set_uniform
+from .resources import InstanceStream, check_billboards, release_all, set_uniform, vertex_binding
 
 logger = logging.getLogger(__name__)
 
-CPU_INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("tile", "<i4")])
-CPU_INSTANCE_FORMAT = "3f 1i/i"
+CPU_INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("tile", "<i4"), ("kind", "<i4")])
+CPU_INSTANCE_FORMAT = "3f 1f 1i 1i/i"
 
 
 def decode_for_eye(model: BillboardModel, billboards: np.ndarray, eye: np.ndarray, chunk: int = 512,
@@ -84,8 +84,8 @@ class CpuDecoder:
         try:
             self.stream = InstanceStream(ctx, CPU_INSTANCE_DTYPE.itemsize)
             self._objects.append(self.stream)
-            self.vao = ctx.vertex_array(self.program, [(self.stream.buffer, CPU_INSTANCE_FORMAT,
-                                                        "in_centre", "in_tile")])
+            self.vao = ctx.vertex_array(self.program, [vertex_binding(
+                self.program, self.stream.buffer, CPU_INSTANCE_FORMAT, ("in_centre", "in_base_yaw", "in_tile", "in_kind"))])
             self._objects.append(self.vao)
         except BaseException:
             self.release()
@@ -140,7 +140,9 @@ class CpuDecoder:
         sent = self.upload(tiles)
         rec = np.empty(len(b), CPU_INSTANCE_DTYPE)
         rec["centre"] = self.model.centres[b]
+        rec["base_yaw"] = self.model.base_yaw[b]
         rec["tile"] = np.arange(len(b))
+        rec["kind"] = self.model.kind[b]
         sent += self.stream.write(rec)
         stats.update(upload_bytes=sent, decode_s=t1 - t0, upload_s=time.perf_counter() - t1)
         prog = self.program

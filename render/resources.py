@@ -40,10 +40,10 @@ from .context import max_array_layers, max_texture_size
 
 logger = logging.getLogger(__name__)
 
-#: Per-billboard instance record (attributes in_centre, in_base_yaw, in_slot = (first slot, rank)).
-INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("slot", "<i4", 2)])
-INSTANCE_FORMAT = "3f 1f 2i/i"
-INSTANCE_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_slot")
+#: Per-billboard instance record (attributes in_centre, in_base_yaw, in_slot = (first slot, rank), in_kind).
+INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("slot", "<i4", 2), ("kind", "<i4")])
+INSTANCE_FORMAT = "3f 1f 2i 1i/i"
+INSTANCE_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_slot", "in_kind")
 _FORMAT_BYTES = {"f": 4, "i": 4, "u": 4}
 
 _TILE_DTYPE = {"u8": "f1", "f16": "f2"}  # moderngl texture dtypes: normalised unsigned byte, half float
@@ -84,6 +84,7 @@ def instance_records(model: BillboardModel, billboards=None) -> np.ndarray:
     rec["base_yaw"] = model.base_yaw[idx]
     rec["slot"][:, 0] = model.first_slot[idx]
     rec["slot"][:, 1] = model.rank[idx]
+    rec["kind"] = model.kind[idx]
     return rec
 
 

@@ -553,7 +553,7 @@ CORRUPTIONS = {
     "NaN in JSON": (_text('{"origin": [NaN, 0, 0]}'), "manifest.json"),
     "not an object": (_text("[1, 2]"), "manifest.json"),
     "wrong format": (_set("format", "bbcity-dataset"), "manifest.json"),
-    "newer version": (_set("version", 2), "manifest.json"),
+    "newer version": (_set("version", bm.VERSION + 1), "manifest.json"),
     "version as string": (_set("version", "1"), "manifest.json"),
     "units": (_set("units", "feet"), "manifest.json"),
     "origin short": (_set("origin", [0.0, 1.0]), "manifest.json"),

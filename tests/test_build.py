@@ -22,7 +22,8 @@ from recon.points import depth_to_points
 def small_config(**overrides) -> BuildConfig:
     base = dict(octree=OctreeConfig(voxel_size=0.5, min_points=10),
                 sampling=SamplingConfig(tile=8, directions=DirectionConfig(count=8, spacing_deg=10.0)),
-                pca=PcaConfig(ratio=0.95, max_error=2.0, max_rank=4), chunk=32, task_chunks=2, page_size=64)
+                pca=PcaConfig(ratio=0.95, max_error=2.0, max_rank=4), chunk=32, task_chunks=2, page_size=64,
+                layer=None)
     base.update(overrides)
     return BuildConfig(**base)
 

@@ -2,8 +2,8 @@
 // Billboards with eigen-texture decode on the GPU: one instanced draw of triangle strips
 // (4 vertices per billboard, corners from gl_VertexID; no vertex buffer, only instances).
 //
-// Per instance: centre (model coordinates), first slot and rank. The vertex stage turns
-// the quad toward the eye. The view-dependent part of the decode (direction
+// Per instance: centre (model coordinates), base yaw, first slot, rank and kind. The vertex
+// stage turns a billboard toward the eye and leaves a layer block fixed. The view-dependent part of the decode (direction
 // interpolation and eigen weights) has been done per slot by billboard_weights.glsl, so
 // the fragment stage is colour = clamp(C + Σ_{k=0..r} T_k·q_k, 0, 1) with q_k the
 // texel of tile k: two fetches per tile. Alpha < 0.5 is discarded. Nearest texel
@@ -15,14 +15,17 @@
 #if defined VERTEX_SHADER
 
 in vec3 in_centre;       // model coordinates (m)
+in float in_base_yaw;    // world yaw (radians) a layer block faces
 in ivec2 in_slot;        // (first slot, rank)
+in int in_kind;          // 0 billboard, 1 facade block, 2 ground block
 
 out vec2 v_texel;
 flat out ivec2 v_slot;
 
 void main() {
     v_slot = in_slot;
-    gl_Position = quad_vertex(in_centre, view_angles(in_centre), quad_corner(gl_VertexID), v_texel);
+    gl_Position = quad_vertex(in_centre, quad_angles(in_centre, in_base_yaw, in_kind), in_kind,
+                              quad_corner(gl_VertexID), v_texel);
 }
 
 #elif defined FRAGMENT_SHADER

@@ -1,12 +1,16 @@
 // Shared by billboard.glsl (GPU decode) and billboard_cpu.glsl (CPU decode): the quad
 // geometry of billboards.geometry, so that both paths rasterise exactly the same pixels.
 //
-// A billboard is a square of edge u_size centred at its centre, turned toward the eye:
+// Every quad is a square of edge u_size centred at its centre. A billboard (kind 0) turns
+// toward the eye:
 //   normal n = (cos φ cos ψ, cos φ sin ψ, sin φ)   (toward the eye)
 //   right  r = (−sin ψ, cos ψ, 0)
 //   up     u = (0, 0, 1), or n × r for spherical facing (u_spherical)
-// where ψ, φ are the yaw and pitch of the vector from the centre to the eye. Texel
-// (row, col) of a t×t tile lies at centre + ((col+½)/t − ½)·s·r + (½ − (row+½)/t)·s·u.
+// where ψ, φ are the yaw and pitch of the vector from the centre to the eye. Blocks of the
+// facade layer stay fixed at ψ = base yaw: a facade block (kind 1) is vertical with the same
+// r and u; a ground block (kind 2) lies flat with u = (−cos ψ, −sin ψ, 0), so its rows run
+// away from the capture path. Texel (row, col) of a t×t tile lies at
+// centre + ((col+½)/t − ½)·s·r + (½ − (row+½)/t)·s·u.
 
 uniform mat4 u_projection;   // GL clip from GL eye
 uniform mat4 u_view;         // GL eye from model coordinates (world − origin)
@@ -25,18 +29,28 @@ vec2 view_angles(vec3 centre) {
     return vec2(yaw, pitch);
 }
 
+const int KIND_BILLBOARD = 0;
+const int KIND_GROUND = 2;
+
+// The angles a quad faces: toward the eye for billboards, the base yaw for layer blocks.
+vec2 quad_angles(vec3 centre, float base_yaw, int kind) {
+    return kind == KIND_BILLBOARD ? view_angles(centre) : vec2(base_yaw, 0.0);
+}
+
 // Corner of the triangle strip for gl_VertexID 0..3: (0,0), (1,0), (0,1), (1,1) along (right, up).
 vec2 quad_corner(int vertex_id) {
     return vec2(float(vertex_id & 1), float((vertex_id >> 1) & 1));
 }
 
-// Clip-space position of `corner` of the quad at `centre` facing `angles`;
+// Clip-space position of `corner` of the quad of `kind` at `centre` facing `angles`;
 // `texel` receives the continuous tile coordinate (x = col, y = row, 0..t; row 0 at the top).
-vec4 quad_vertex(vec3 centre, vec2 angles, vec2 corner, out vec2 texel) {
+vec4 quad_vertex(vec3 centre, vec2 angles, int kind, vec2 corner, out vec2 texel) {
     float yaw = angles.x, pitch = angles.y;
     vec3 right = vec3(-sin(yaw), cos(yaw), 0.0);
     vec3 up = vec3(0.0, 0.0, 1.0);
-    if (u_spherical) {
+    if (kind == KIND_GROUND) {
+        up = vec3(-cos(yaw), -sin(yaw), 0.0);
+    } else if (u_spherical && kind == KIND_BILLBOARD) {
         vec3 n = vec3(cos(pitch) * cos(yaw), cos(pitch) * sin(yaw), sin(pitch));
         up = cross(n, right);
     }
