@@ -55,7 +55,8 @@ def test_quick_bench_writes_every_section(tmp_path):
     town = {r["cull"]: r for r in sections["Rendering: culling (town meshes)"]}
     assert town["occlusion"]["drawn"] < town["frustum"]["drawn"] <= town["none"]["drawn"]
     methods = {r["method"] for r in sections["Novel views"]}
-    assert methods == {"billboards", "point projection (baseline)", "uncompressed billboards"}
-    for png in ("scaling.png", "stereo_sweep.png", "texture_sweep.png"):
+    assert {"billboards", "point projection (baseline)", "uncompressed billboards",
+            "Poisson mesh, depth 10 (baseline)", "Poisson depth 8"} <= methods
+    for png in ("scaling.png", "stereo_sweep.png", "texture_sweep.png", "novel_views_workprecision.png"):
         assert (tmp_path / png).stat().st_size > 1000
     assert "## Scaling" in (tmp_path / "report.md").read_text()
