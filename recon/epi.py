@@ -87,14 +87,14 @@ class EpiPass:
 
 
 def split_passes(centres: np.ndarray, max_turn_deg: float) -> list[np.ndarray]:
-    """Frames (index arrays) of the straight runs of a trajectory: centres (F, 3) float64.
+    """Frames (index arrays, at least two each) of the straight runs of a trajectory: centres (F, 3) float64.
 
     A run ends where the heading of a step turns more than ``max_turn_deg`` from the run's
     first step, or where a step is more than five times the median step (a jump).
     """
     F = len(centres)
     if F < 2:
-        return [np.arange(F)] if F else []
+        return []
     steps = np.diff(centres[:, :2], axis=0)
     length = np.linalg.norm(steps, axis=1)
     median = float(np.median(length[length > 0])) if np.any(length > 0) else 0.0

@@ -223,9 +223,13 @@ VIEWPOINTS = {  # eye, target relative to the model origin
 }
 
 
-@pytest.mark.parametrize("tile_mode, coef_mode", [("u8", "f32"), ("f16", "u8")])
-def test_gpu_and_cpu_decode_give_the_same_image(ctx, tile_mode, coef_mode):
+@pytest.mark.parametrize("tile_mode, coef_mode, layer", [("u8", "f32", False), ("f16", "u8", False),
+                                                         ("u8", "f16", True)])
+def test_gpu_and_cpu_decode_give_the_same_image(ctx, tile_mode, coef_mode, layer):
     model = street_model(tile_mode, coef_mode)
+    if layer:  # facade and ground blocks among the billboards: both paths place them alike
+        model.kind = np.random.default_rng(5).integers(0, 3, model.num_billboards).astype(np.uint8)
+        model.check()
     assert len(model.pages) > 2 and len(model.coef_pages) > 1  # several layers, last cropped
     K, size = intrinsics(300.0, 320, 240), (320, 240)
     gpu = BillboardRenderer(ctx, model, "gpu", background=SKY)
@@ -236,7 +240,7 @@ def test_gpu_and_cpu_decode_give_the_same_image(ctx, tile_mode, coef_mode):
             a = gpu.render(K, pose, size).astype(int)
             b = cpu.render(K, pose, size).astype(int)
             covered = np.mean(np.any(a != SKY_U8, axis=-1))
-            assert covered > 0.1, f"{name}: only {covered:.0%} of the image shows billboards"
+            assert covered > (0.03 if layer else 0.1), f"{name}: only {covered:.0%} of the image shows billboards"
             diff = np.abs(a - b)
             assert diff.mean() <= 2 / 255 * 255, f"{name}: mean abs difference {diff.mean():.3f}"
             assert np.mean(diff.max(-1) <= 8) >= 0.99, f"{name}: {np.mean(diff.max(-1) > 8):.2%} pixels differ"
