@@ -7,10 +7,11 @@ Estimation (:func:`estimate_sky`) has no ground truth to go by, so a pixel of a 
 image counts as sky when it lies
 
 - in the upper part of the image (``SkyConfig.upper``),
-- above the cloud's horizon: no cloud point splats onto it, nor onto any pixel below it
-  in its column (a z-buffer of the cloud at reduced resolution,
-  :func:`billboards.sampling.zbuffer`, grown by ``margin`` cells), so glass and flat
-  paint that stereo left without points (below a roof line) are never taken for sky,
+- above the cloud's horizon: in a column where some cloud point splats (a z-buffer of
+  the cloud at reduced resolution, :func:`billboards.sampling.zbuffer`, grown by
+  ``margin`` cells), above the first such pixel; so glass and flat paint that stereo
+  left without points (below a roof line), and columns the cloud does not reach at
+  all, are never taken for sky,
 - bright and smooth (luma and gradient of the slightly blurred image below thresholds).
 
 The sky pixels' colours are averaged per elevation bin; bins with too few pixels take
@@ -52,13 +53,13 @@ _MAX_BINS = 4096
 class SkyConfig:
     bins: int = 16                                   # elevation bins
     elevation_deg: tuple[float, float] = (-10.0, 90.0)  # world elevation range the bins split evenly (degrees)
-    max_views: int = 24                              # capture images used at most, evenly spread over the views
+    max_views: int = 64                              # capture images used at most, evenly spread over the views
     upper: float = 0.6                               # candidates lie in this top fraction of an image's rows
     min_luma: float = 0.35                           # candidates are at least this bright (luma in [0, 1])
     max_gradient: float = 0.02                       # … and this smooth (gradient of the blurred luma per pixel)
     zbuffer_scale: int = 4                           # cloud z-buffer at 1/scale of the image resolution
     margin: int = 2                                  # z-buffer cells next to covered ones count as covered
-    max_points: int = 2_000_000                      # the cloud is thinned (every k-th point) to at most this many
+    max_points: int = 1_000_000                      # the cloud is thinned (every k-th point) to at most this many
     min_pixels: int = 20                             # a bin with fewer sky pixels is interpolated
 
     def __post_init__(self):
@@ -141,7 +142,8 @@ def pixel_elevations(K: np.ndarray, world_from_cam: np.ndarray, size) -> np.ndar
 def sky_candidates(image: np.ndarray, covered: np.ndarray, config: SkyConfig = SkyConfig()) -> np.ndarray:
     """(h, w) bool: pixels of ``image`` (h, w, 3) uint8 taken for sky, given ``covered``
     (h, w) bool, the pixels a cloud point splats onto: above every covered pixel of its
-    column, in the top ``config.upper`` of the rows, bright and smooth."""
+    column (and none in a column without one), in the top ``config.upper`` of the rows,
+    bright and smooth."""
     h, w = image.shape[:2]
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
     blurred = cv2.GaussianBlur(grey, (5, 5), 1.0, borderType=cv2.BORDER_REPLICATE)
@@ -149,8 +151,9 @@ def sky_candidates(image: np.ndarray, covered: np.ndarray, config: SkyConfig = S
     gy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE) / 8.0
     smooth = np.hypot(gx, gy) <= config.max_gradient
     rows = np.arange(h)[:, None]
-    # the first covered row of each column (h where none): sky lies above it
-    top = np.where(covered.any(axis=0), covered.argmax(axis=0), h)
+    # the cloud's horizon: the first covered row of each column; sky lies above it (nothing in a
+    # column the cloud does not reach: without a horizon, a bright wall could pass for sky)
+    top = np.where(covered.any(axis=0), covered.argmax(axis=0), 0)
     above = rows < top[None, :]
     return above & (rows < config.upper * h) & (grey >= config.min_luma) & smooth
 
@@ -224,15 +227,19 @@ def estimate_sky(views, points: np.ndarray, origin=None, config: SkyConfig = Sky
     return Sky(np.clip(colours, 0, 1).astype(np.float32), tuple(config.elevation_deg), info)
 
 
-def write_sky(model_dir: os.PathLike | str, sky: Sky) -> Path:
+def write_sky(model_dir: os.PathLike | str, sky: Sky | None) -> Path | None:
     """Write ``sky`` into the model directory: ``sky.json``, then ``sky.npy`` (each atomically;
     a sky being replaced is removed first, so an interrupted write leaves no sky, never a
-    mismatched one). Returns the path of ``sky.npy``."""
+    mismatched one). Returns the path of ``sky.npy``. ``sky=None`` (what :func:`estimate_sky`
+    returns when it finds no sky) removes any sky: the model renders on the plain background."""
     model_dir = Path(model_dir)
     if not model_dir.is_dir():
         raise FileNotFoundError(f"{model_dir}: no model directory to write the sky into")
     npy = model_dir / SKY_NPY
     npy.unlink(missing_ok=True)
+    if sky is None:
+        (model_dir / SKY_JSON).unlink(missing_ok=True)
+        return None
     write_json(model_dir / SKY_JSON, {"format": SKY_FORMAT, "version": SKY_VERSION, "bins": sky.bins,
                                       "elevation_deg": list(sky.elevation_deg), **sky.info})
     return save_npy(npy, sky.colours)
