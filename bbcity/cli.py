@@ -387,6 +387,8 @@ def _add_eval(sub) -> None:
                    help="Poisson depths of the work-precision diagram (default 8 9 10 11; none: only --poisson-depth)")
     p.add_argument("--panel-width", type=int, default=320,
                    help="width of each panel of the side-by-side images (default 320; 0: no images)")
+    p.add_argument("--no-sky", action="store_true",
+                   help="draw the model(s) on black like the baselines, not over their sky")
     p.set_defaults(func=_run_eval)
 
 
@@ -397,7 +399,7 @@ def _run_eval(args) -> int:
 
     config = EvalConfig(views=args.views, size=None if args.size is None else tuple(args.size),
                         poisson_depth=args.poisson_depth, workprecision_depths=tuple(args.workprecision_depths),
-                        panel_width=args.panel_width)
+                        panel_width=args.panel_width, model_sky=not args.no_sky)
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]
     extra = {label: (load(m), read_sky(m)) for label, m in zip(labels, args.models)}
     report = evaluate_views(load(args.model), args.dataset, args.cloud, sky=read_sky(args.model), extra_models=extra,

@@ -66,6 +66,7 @@ class EvalConfig:
     trim_quantile: float = 0.05             # Poisson vertices below this density quantile are removed
     seen: SeenConfig = field(default_factory=SeenConfig)     # the seen-pixel test
     panel_width: int = 320                  # side-by-side images: width of each panel (0: none written)
+    model_sky: bool = True                  # draw models over their sky (False: on black, like the baselines)
 
     def __post_init__(self):
         if self.views < 1:
@@ -334,6 +335,9 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
                  if v is not None}
     if overrides:
         config = dataclasses.replace(config, **overrides)
+    if not config.model_sky:
+        sky = None
+        extra_models = {k: (v[0] if isinstance(v, tuple) else v) for k, v in (extra_models or {}).items()}
     ds = load_dataset(dataset_dir)
     info = model.info if isinstance(getattr(model, "info", None), dict) else {}
     frames, texture_frames, held_out = choose_frames(info, ds.num_frames, config.views)

@@ -211,3 +211,9 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     assert len(report["images"]) == 4
     panel = read_png(out / report["images"][0])
     assert panel.shape == (90, 360, 3)  # ground truth | model | Poisson mesh, 120×90 each
+    plain = tmp_path / "plain"
+    assert cli_main(["-q", "eval", str(model), str(tiny_dataset), "--views", "1", "--out", str(plain), "--no-sky",
+                     "--panel-width", "0"]) == 0
+    report = json.loads((plain / "eval.json").read_text())
+    assert not report["sky"] and set(report["summary"]) >= {"model, on path", "model, off path"}
+    assert "images" not in report and not list(plain.glob("view_*.png"))
