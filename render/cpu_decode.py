@@ -64,12 +64,14 @@ class CpuDecoder:
 
     ``page_size``: edge of the per-frame atlas pages (capped at GL_MAX_TEXTURE_SIZE);
     ``chunk``: billboards decoded at once; ``interpolate``: blend the sampled directions
-    around the view (else the nearest one only).
+    around the view (else the nearest one only); ``linear``: texels bilinear within each
+    tile (else the nearest texel).
     """
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, spherical: bool = False,
-                 page_size: int = 4096, chunk: int = 512, interpolate: bool = True):
+                 page_size: int = 4096, chunk: int = 512, interpolate: bool = True, linear: bool = True):
         self.ctx = ctx
+        self.linear = bool(linear)
         self.model = model
         self.spherical = bool(spherical)
         self.interpolate = bool(interpolate)
@@ -151,7 +153,7 @@ class CpuDecoder:
         lay = atlas_layout(0, self.model.tile, self.page_size)
         for name, value in (("u_tiles_per_row", lay.tiles_per_row), ("u_tiles_per_page", lay.tiles_per_page),
                             ("u_tile", int(self.model.tile)), ("u_size", float(self.model.voxel_size)),
-                            ("u_spherical", self.spherical),
+                            ("u_spherical", self.spherical), ("u_linear", self.linear),
                             ("u_eye", tuple(np.asarray(camera.eye, np.float32).tolist()))):
             set_uniform(prog, name, value)
         prog["u_projection"].write(gl_bytes(camera.projection))

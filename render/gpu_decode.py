@@ -33,14 +33,16 @@ class GpuDecoder:
     ``resources`` is borrowed (not released here). ``spherical``: quads pitch toward
     the eye too (else they turn about the vertical axis only). ``interpolate``: blend
     the sampled directions around the view (else the nearest one only); may be changed
-    between draws.
+    between draws. ``linear``: texels bilinear within each tile (else the nearest texel);
+    may be changed between draws.
     """
 
     TERMS_UNIT, CONSTS_UNIT = 6, 7  # texture units of the weight textures (ModelResources uses 0…4)
 
     def __init__(self, ctx: moderngl.Context, resources: ModelResources, spherical: bool = False,
-                 interpolate: bool = True):
+                 interpolate: bool = True, linear: bool = True):
         self.ctx = ctx
+        self.linear = bool(linear)
         self.resources = resources
         self.spherical = bool(spherical)
         self.interpolate = bool(interpolate)
@@ -140,6 +142,7 @@ class GpuDecoder:
         prog["u_view"].write(gl_bytes(camera.view))
         set_uniform(prog, "u_eye", tuple(np.asarray(camera.eye, np.float32).tolist()))
         set_uniform(prog, "u_spherical", self.spherical)
+        set_uniform(prog, "u_linear", self.linear)
         vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=count)
         stats["draw_calls"] = 1
         return stats

@@ -40,6 +40,8 @@ class BillboardRenderer:
     draw of the per-frame atlas). spherical: quads also pitch toward the eye; None
     takes the model's ``pitched_quads``. interpolate: blend the sampled view
     directions around the view (else the nearest one; settable between frames).
+    linear: texels bilinear within each tile, never reading a neighbouring tile (else
+    the nearest texel; settable between frames).
     background: RGB in [0, 1] (or 0–255).
     clip: near/far planes (m). cull: "none"; "frustum" (the model's octree nodes
     against the view frustum); "occlusion" (frustum, then hardware occlusion queries
@@ -52,8 +54,8 @@ class BillboardRenderer:
     """
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, decode: str = "gpu", *,
-                 spherical: bool | None = None, interpolate: bool = True, background=(0.0, 0.0, 0.0),
-                 clip: ClipPlanes = ClipPlanes(), cull: str = "none"):
+                 spherical: bool | None = None, interpolate: bool = True, linear: bool = True,
+                 background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "none"):
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
         if cull not in CULL_MODES:
@@ -74,9 +76,9 @@ class BillboardRenderer:
         try:
             if decode == "gpu":
                 self.resources = ModelResources(ctx, model)
-                self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate)
+                self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate, linear)
             else:
-                self.decoder = CpuDecoder(ctx, model, self.spherical, interpolate=interpolate)
+                self.decoder = CpuDecoder(ctx, model, self.spherical, interpolate=interpolate, linear=linear)
         except BaseException:
             self.release()
             raise
@@ -89,6 +91,15 @@ class BillboardRenderer:
     @interpolate.setter
     def interpolate(self, value: bool) -> None:
         self.decoder.interpolate = bool(value)
+
+    @property
+    def linear(self) -> bool:
+        """Texels bilinear within each tile (else the nearest texel)."""
+        return self.decoder.linear
+
+    @linear.setter
+    def linear(self, value: bool) -> None:
+        self.decoder.linear = bool(value)
 
     def camera(self, K, world_from_cam, size) -> GLCamera:
         """The :class:`GLCamera` of an OpenCV camera for this model's origin."""

@@ -183,6 +183,7 @@ class ModelResources:
         rows = model.coef_layout()
         self.tiles = self._keep(_page_array(ctx, model.pages, tiles.tiles_per_row * model.tile, 4,
                                             _TILE_DTYPE[model.tile_mode], "atlas"))
+        self.tiles.filter = (moderngl.LINEAR, moderngl.LINEAR)  # sampled bilinear only within a tile
         self.coefs = self._keep(_page_array(ctx, model.coef_pages, rows.tiles_per_row * rows.cell_width, 1,
                                             _COEF_DTYPE[model.coef_mode], "coefficient"))
         limit = max_texture_size(ctx)

@@ -224,3 +224,59 @@ def test_slits_on_a_street_match_the_ground_truth(layer_street, layer_cloud, tmp
     assert psnr > plain_psnr, f"facade PSNR {psnr:.1f} dB with the layer, {plain_psnr:.1f} dB without"
     print(f"facade PSNR {psnr:.2f} dB with the layer, {plain_psnr:.2f} dB billboards only; holes "
           f"{empty[wall].mean():.2%} / {np.all(plain == 0, axis=-1)[wall].mean():.2%}")
+
+
+@pytest.mark.parametrize("decode", ["gpu", "cpu"])
+def test_no_seams_on_a_flat_textured_wall(ctx, decode):
+    """A wall of 4 × 3 facade blocks whose tiles continue one smooth texture, seen frontally
+    and obliquely: no background pixel inside the wall, and no colour step between neighbouring
+    pixels larger than one texel of the texture's own gradient (bilinear texels never read a
+    neighbouring tile; at a block edge the two border texels meet)."""
+    from billboards.atlas import pack_rows, pack_tiles
+    from billboards.model import BillboardModel
+    from render.camera import look_at
+    from render.renderer import BillboardRenderer
+
+    t, s, cols, rows = 8, 0.5, 4, 3
+    col, row = np.meshgrid(np.arange(cols), np.arange(rows), indexing="ij")
+    centres = np.stack([(col.ravel() + 0.5) * s, np.zeros(col.size), (rows - row.ravel() - 0.5) * s], 1)
+    # A smooth texture over the wall: texel (r, c) of block (i, j) at wall coordinates x, z.
+    u = (np.arange(t) + 0.5) / t
+    tiles = np.zeros((len(centres), t, t, 4), np.uint8)
+    for b, (i, j) in enumerate(zip(col.ravel(), row.ravel())):
+        x = (i + u)[None, :] * s
+        z = (j + u)[:, None] * s
+        tiles[b, ..., 0] = np.rint(40 + 60 * x + 0 * z)
+        tiles[b, ..., 1] = np.rint(60 + 70 * z + 0 * x)
+        tiles[b, ..., 2] = np.rint(128 + 20 * np.sin(3 * x) + 0 * z)
+        tiles[b, ..., 3] = 255
+    n = len(centres)
+    model = BillboardModel(
+        origin=np.zeros(3), voxel_size=s, tile=t, page_size=64, yaw_offsets=np.deg2rad([-30.0, 0.0, 30.0]),
+        pitches=np.zeros(1), pitched_quads=False, tile_mode="u8", coef_mode="f32",
+        centres=centres.astype(np.float32), base_yaw=np.full(n, -np.pi / 2, np.float32), rank=np.zeros(n, np.uint8),
+        first_slot=np.arange(n, dtype=np.int32), slot_scale=np.ones((n, 4), np.float32),
+        slot_offset=np.zeros((n, 4), np.float32), coef_scale=np.ones(n, np.float32),
+        coef_offset=np.zeros(n, np.float32), pages=pack_tiles(tiles, 64), coef_pages=pack_rows(np.zeros((n, 3), np.float32), 64),
+        node_level=np.zeros(1, np.uint8), node_bounds=np.array([[[0, -0.1, 0], [2, 0.1, 1.5]]], np.float32),
+        node_children=-np.ones((1, 8), np.int32), node_range=np.array([[0, n]], np.int32), info={},
+        kind=np.full(n, FACADE, np.uint8))
+    model.check()
+    K, size = np.array([[400.0, 0, 159.5], [0, 400.0, 119.5], [0, 0, 1]]), (320, 240)
+    with BillboardRenderer(ctx, model, decode, background=(1.0, 0.0, 1.0)) as renderer:
+        for eye in ((1.0, -3.0, 0.75), (-0.5, -2.5, 1.2)):
+            image = renderer.render(K, look_at(np.array(eye), np.array([1.0, 0.0, 0.75])), size).astype(int)
+            background = np.all(image == [255, 0, 255], axis=-1)
+            inner = ~background
+            inner[1:-1, 1:-1] &= ~background[:-2, 1:-1] & ~background[2:, 1:-1] & ~background[1:-1, :-2] \
+                & ~background[1:-1, 2:]
+            # The wall is one solid region: every pixel between its leftmost and rightmost in a row is drawn.
+            for r in np.flatnonzero(inner.any(axis=1)):
+                c = np.flatnonzero(~background[r])
+                assert np.all(~background[r, c.min():c.max() + 1]), f"hole in row {r} from {eye}"
+            # Steps between neighbouring pixels: at most one texel's change of the texture (+1 rounding).
+            texel_step = max(60, 70) * s / t + 1
+            for axis in (0, 1):
+                both = (inner[1:] & inner[:-1]) if axis == 0 else (inner[:, 1:] & inner[:, :-1])
+                step = np.abs(np.diff(image, axis=axis)).max(-1)[both]
+                assert step.max() <= texel_step, f"a seam: a step of {step.max()} from {eye}"

@@ -160,7 +160,7 @@ def test_facing_billboard_shows_its_decoded_texture(ctx, case, mode):
     yaw = 0.7 + np.deg2rad(17.0)  # between yaw samples
     ray = np.array([np.cos(elevation) * np.cos(yaw), np.cos(elevation) * np.sin(yaw), np.sin(elevation)])
     eye = model.origin + centre + 4.0 * ray  # 1 m quad at 4 m with f = 256: 64 px, 8 px per texel
-    renderer = BillboardRenderer(ctx, model, mode, background=SKY)
+    renderer = BillboardRenderer(ctx, model, mode, background=SKY, linear=False)
     image = renderer.render(intrinsics(256.0, 128, 128), look_at(eye, model.origin + centre), (128, 128))
     renderer.release()
     assert image.shape == (128, 128, 3) and image.dtype == np.uint8
@@ -184,7 +184,7 @@ def test_without_interpolation_the_nearest_direction_is_shown(ctx, mode):
     model = make_model([centre], base_yaw=0.7, page_size=32, tile_mode="u8", coef_mode="f32", rank=4)
     K, size = intrinsics(256.0, 128, 128), (128, 128)
     images = {}
-    with BillboardRenderer(ctx, model, mode, background=SKY, interpolate=False) as renderer:
+    with BillboardRenderer(ctx, model, mode, background=SKY, interpolate=False, linear=False) as renderer:
         for offset_deg in (17.0, 12.0):
             yaw = 0.7 + np.deg2rad(offset_deg)
             ray = np.array([np.cos(yaw), np.sin(yaw), 0.0])
@@ -208,12 +208,12 @@ def test_without_interpolation_the_nearest_direction_is_shown(ctx, mode):
 # GPU against CPU decode
 
 
-def street_model(tile_mode, coef_mode, seed=3, n=300) -> BillboardModel:
+def street_model(tile_mode, coef_mode, seed=3, n=300, rank=None) -> BillboardModel:
     rng = np.random.default_rng(seed)
     centres = np.stack([rng.uniform(-10, 10, n), rng.uniform(-3, 3, n), rng.uniform(0, 5, n)], 1)
     return make_model(centres, voxel_size=0.8, d_yaw=7, yaw_span_deg=180.0, pitches_deg=(0.0, 25.0),
                       tile_mode=tile_mode, coef_mode=coef_mode, seed=seed, origin=BIG_ORIGIN, page_size=64,
-                      holes=True)
+                      holes=True, rank=rank)
 
 
 VIEWPOINTS = {  # eye, target relative to the model origin
@@ -223,17 +223,21 @@ VIEWPOINTS = {  # eye, target relative to the model origin
 }
 
 
+@pytest.mark.parametrize("linear", [False, True])
 @pytest.mark.parametrize("tile_mode, coef_mode, layer", [("u8", "f32", False), ("f16", "u8", False),
                                                          ("u8", "f16", True)])
-def test_gpu_and_cpu_decode_give_the_same_image(ctx, tile_mode, coef_mode, layer):
-    model = street_model(tile_mode, coef_mode)
+def test_gpu_and_cpu_decode_give_the_same_image(ctx, tile_mode, coef_mode, layer, linear):
+    """Both paths agree, with nearest or bilinear texels. Bilinear: the means only, since the
+    CPU path clamps each decoded texel to [0, 1] before filtering and the GPU after (random
+    eigen images leave [0, 1]; real ones barely do)."""
+    model = street_model(tile_mode, coef_mode, rank=0 if linear else None)
     if layer:  # facade and ground blocks among the billboards: both paths place them alike
         model.kind = np.random.default_rng(5).integers(0, 3, model.num_billboards).astype(np.uint8)
         model.check()
     assert len(model.pages) > 2 and len(model.coef_pages) > 1  # several layers, last cropped
     K, size = intrinsics(300.0, 320, 240), (320, 240)
-    gpu = BillboardRenderer(ctx, model, "gpu", background=SKY)
-    cpu = BillboardRenderer(ctx, model, "cpu", background=SKY)
+    gpu = BillboardRenderer(ctx, model, "gpu", background=SKY, linear=linear)
+    cpu = BillboardRenderer(ctx, model, "cpu", background=SKY, linear=linear)
     try:
         for name, (eye, target) in VIEWPOINTS.items():
             pose = look_at(model.origin + eye, model.origin + target)
@@ -348,6 +352,8 @@ def test_render_view_public_api():
         assert renderer_for(model) is renderer_for(model)  # uploaded once, reused
         cpu = render_view(model, K, pose, size, decode="cpu")
         assert gpu.shape == (60, 80, 3) and gpu.dtype == np.uint8 and np.any(gpu)
+        # Nearest texels: equal to rounding (bilinear ones differ where random eigen images leave [0, 1]).
+        gpu, cpu = (render_view(model, K, pose, size, decode=d, linear=False) for d in ("gpu", "cpu"))
         assert np.abs(gpu.astype(int) - cpu).max() <= 2
         with pytest.raises(ValueError):
             render_view(model, K, pose, size, decode="fast")

@@ -6,8 +6,8 @@
 // stage turns a billboard toward the eye and leaves a layer block fixed. The view-dependent part of the decode (direction
 // interpolation and eigen weights) has been done per slot by billboard_weights.glsl, so
 // the fragment stage is colour = clamp(C + Σ_{k=0..r} T_k·q_k, 0, 1) with q_k the
-// texel of tile k: two fetches per tile. Alpha < 0.5 is discarded. Nearest texel
-// (texelFetch), no filtering, so it matches the CPU decode texel for texel.
+// texel of tile k: two fetches per tile. Alpha < 0.5 is discarded. Texels are bilinear
+// within each tile (u_linear) or the nearest one, as in the CPU decode path.
 
 #include "billboard_quad.glsl"
 #include "billboard_slots.glsl"
@@ -39,11 +39,10 @@ flat in ivec2 v_slot;
 out vec4 f_color;
 
 void main() {
-    ivec2 texel = tile_texel(v_texel);
     int first = v_slot.x;
     vec4 colour = texelFetch(u_slot_const, slot_texel(first), 0);
     for (int k = 0; k <= v_slot.y; ++k) {
-        colour += texelFetch(u_slot_terms, slot_texel(first + k), 0) * tile_q(first + k, texel);
+        colour += texelFetch(u_slot_terms, slot_texel(first + k), 0) * tile_q(first + k, v_texel);
     }
     colour = clamp(colour, 0.0, 1.0);
     if (colour.a < 0.5) discard;

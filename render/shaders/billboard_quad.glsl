@@ -63,3 +63,10 @@ vec4 quad_vertex(vec3 centre, vec2 angles, int kind, vec2 corner, out vec2 texel
 ivec2 tile_texel(vec2 texel) {
     return clamp(ivec2(floor(texel)), ivec2(0), ivec2(u_tile - 1));
 }
+
+// Bilinear filtering that never reads a neighbouring tile: the sample point is kept between
+// the tile's outer texel centres, so a tile's edge repeats its border texels.
+// Returns the continuous texel coordinate inside a tile whose top-left texel is `origin`.
+vec2 tile_point(ivec2 origin, vec2 texel) {
+    return vec2(origin) + clamp(texel, vec2(0.5), vec2(float(u_tile) - 0.5));
+}

@@ -12,6 +12,7 @@ uniform int u_tiles_per_page;
 uniform int u_d;                   // directions per coefficient row
 uniform int u_rows_per_line;       // coefficient rows per texture row
 uniform int u_rows_per_page;       // coefficient rows per page
+uniform bool u_linear;             // bilinear texels within each tile (else the nearest texel)
 
 // Texel (x, y) of `slot` in a texture with one texel per slot, u_slots_per_row per row.
 ivec2 slot_texel(int slot) {
@@ -26,13 +27,20 @@ vec4 slot_entry(int slot, int which) {
     return texelFetch(u_slot_table, ivec2(t.x * 3 + which, t.y), 0);
 }
 
-// Quantised texel q of the tile in `slot` (dequantised: offset + scale·q).
-vec4 tile_q(int slot, ivec2 texel) {
+// Quantised value q of the tile in `slot` (dequantised: offset + scale·q) at the continuous tile
+// coordinate `texel` (0…t): the nearest texel, or bilinear within the tile (u_linear). The
+// decode is linear in q, so filtering q filters the decoded colour.
+vec4 tile_q(int slot, vec2 texel) {
     int page = slot / u_tiles_per_page;
     int rest = slot - page * u_tiles_per_page;
     int row = rest / u_tiles_per_row;
     int col = rest - row * u_tiles_per_row;
-    return texelFetch(u_tiles, ivec3(col * u_tile + texel.x, row * u_tile + texel.y, page), 0);
+    ivec2 origin = ivec2(col, row) * u_tile;
+    if (u_linear) {
+        vec2 size = vec2(textureSize(u_tiles, 0).xy);
+        return texture(u_tiles, vec3(tile_point(origin, texel) / size, float(page)));
+    }
+    return texelFetch(u_tiles, ivec3(origin + tile_texel(texel), page), 0);
 }
 
 // Weight w = Σ_c weights_c · (coef_offset + coef_scale·q_c) of the eigen tile in `slot` over
