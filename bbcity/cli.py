@@ -378,6 +378,8 @@ def _add_eval(sub) -> None:
     p.add_argument("dataset", type=Path, help="synthetic dataset with gt/")
     p.add_argument("--out", type=Path, required=True, help="report directory")
     p.add_argument("--cloud", type=Path, default=None, help="fused cloud for the Poisson-mesh and point baselines")
+    p.add_argument("--billboards-only", type=Path, default=None, metavar="MODEL",
+                   help="a model of the same cloud built with --layer none, scored as 'billboards only'")
     p.add_argument("--models", type=Path, nargs="+", default=[], metavar="MODEL",
                    help="more model directories (other build settings): more points of the work-precision diagram")
     p.add_argument("--views", type=int, default=8, help="capture viewpoints (default 8; each also off path)")
@@ -402,8 +404,9 @@ def _run_eval(args) -> int:
                         panel_width=args.panel_width, model_sky=not args.no_sky)
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]
     extra = {label: (load(m), read_sky(m)) for label, m in zip(labels, args.models)}
+    only = None if args.billboards_only is None else (load(args.billboards_only), read_sky(args.billboards_only))
     report = evaluate_views(load(args.model), args.dataset, args.cloud, sky=read_sky(args.model), extra_models=extra,
-                            config=config, out_dir=args.out)
+                            billboards_only=only, config=config, out_dir=args.out)
     write_report(report, args.out)
     for name, m in report["summary"].items():
         logger.info("%s: PSNR %s dB over seen pixels (%s over the image), SSIM %s", name, _num(m["psnr_seen"]),

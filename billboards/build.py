@@ -27,7 +27,6 @@ from data_synth import load_dataset
 from data_synth.fileio import write_json
 from data_synth.tasks import ordered_results
 from recon.cloud_io import read_cloud_arrays
-
 from recon.epi import EpiConfig, epi_points
 
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
@@ -38,6 +37,7 @@ from .pca import TOL, PcaConfig, eigen_textures
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
                        voxel_points)
+from .sky import estimate_sky, write_sky
 from .splat import PointSampler
 
 logger = logging.getLogger(__name__)
@@ -399,8 +399,12 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             np.save(state / "sizes.npy", views.sizes)
             meta["paths"] = [str(p) for p in views.paths]
         (state / "meta.json").write_text(json.dumps(meta))
-        del points, colours, grouped, placed, layer
         stages["prepare_s"] = time.perf_counter() - t2
+        t1 = time.perf_counter()
+        # The sky behind the model, from the capture's own sky pixels (the whole cloud marks what is not sky).
+        sky = estimate_sky(views, points) if views is not None and conf.source == "images" else None
+        stages["sky_s"] = time.perf_counter() - t1
+        del points, colours, grouped, placed, layer
 
         n = len(kind)
         step = conf.chunk * conf.task_chunks
@@ -433,6 +437,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     finally:
         shutil.rmtree(state, ignore_errors=True)
 
+    write_sky(model_dir, sky)
     from .model import load
     model = load(model_dir)
     report = totals.report(model, conf, octree, len(views) if views is not None else 0)

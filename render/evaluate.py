@@ -10,8 +10,8 @@ Methods are a dict name → callable ``(K (3, 3), world_from_cam (4, 4), size (w
 
 - ``model``: the billboard model (GPU decode, over its sky when it has one, else black);
   bytes: the model's arrays (+ the sky's bins).
-- ``billboards only``: the model without its facade layer (only quads of kind
-  BILLBOARD), when the model has other kinds (:func:`billboards_only_method`).
+- ``billboards only``: a model of the same cloud built without the facade layer
+  (``bbcity build --layer none``), when given (``billboards_only=``).
 - ``Poisson mesh``: the fused cloud meshed by screened Poisson reconstruction (depth
   10), ray cast with interpolated vertex colours (:class:`render.baselines.PoissonMesh`).
 - ``point projection``: the fused cloud projected by Open3D, one pixel per point.
@@ -207,31 +207,6 @@ class ModelMethod:
                            sky=self.sky, background=BACKGROUND)
 
 
-def billboards_only_method(model, sky=None) -> ModelMethod | None:
-    """The model without its facade layer: only the quads of kind BILLBOARD drawn (through
-    ``render_view(visible=…)``). None when the model has no per-quad ``kind`` array or
-    nothing but billboards (then there is nothing to leave out). Bytes: the model's, less
-    the slots and table rows of the quads left out (the octree nodes are kept)."""
-    kind = getattr(model, "kind", None)
-    if kind is None or len(kind) == 0:
-        return None
-    try:
-        from billboards.geometry import BILLBOARD
-    except ImportError:  # before the facade layer existed every quad was a billboard (kind 0)
-        BILLBOARD = 0
-    keep = np.asarray(kind) == BILLBOARD
-    if keep.all():
-        return None
-    nb = model.nbytes()
-    slots = 1 + np.asarray(model.rank, np.int64)
-    per_slot = (nb["tiles"] + nb["coefficients"] + nb["slot_tables"]) / max(1, model.num_slots)
-    per_billboard = nb["billboard_tables"] / max(1, model.num_billboards)
-    nbytes = int(round(slots[keep].sum() * per_slot + keep.sum() * per_billboard + nb["nodes"]))
-    if sky is not None:
-        nbytes += sky.colours.nbytes
-    return ModelMethod(model, sky, visible=np.flatnonzero(keep), nbytes=nbytes)
-
-
 class LazyPoisson:
     """A :class:`PoissonMesh` method built on first use (meshing takes seconds to minutes),
     freed by :meth:`release` once its views are scored."""
@@ -317,14 +292,16 @@ def _nanmean(values) -> float:
 
 def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLike | str | None = None,
                    views: int | None = None, size: tuple[int, int] | None = None, *, sky=None,
-                   extra_models: dict | None = None, extra_methods: dict[str, Method] | None = None,
+                   billboards_only=None, extra_models: dict | None = None, extra_methods: dict[str, Method] | None = None,
                    config: EvalConfig | None = None, out_dir: os.PathLike | str | None = None) -> dict:
     """Novel-view scores of ``model`` (a :class:`billboards.model.BillboardModel`, drawn over
     ``sky`` when given) and the baselines of the cloud at ``cloud_path`` (none without one);
     a JSON-ready dict (NaN as None).
 
-    views, size: override ``config``'s. extra_models: label → model or (model, sky), scored
-    as methods "model: label" (points of the work-precision diagram). extra_methods:
+    views, size: override ``config``'s. billboards_only: the model (or (model, sky)) of the
+    same cloud built without the facade layer, scored as "billboards only". extra_models:
+    label → model or (model, sky), scored as methods "model: label" (points of the
+    work-precision diagram). extra_methods:
     name → :data:`Method` (e.g. a variant renderer), scored like the rest. out_dir: where
     the side-by-side images "ground truth | model | Poisson mesh" go (none if None).
     The viewpoints and the seen masks follow ``model.info`` (held-out frames).
@@ -344,9 +321,9 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     eval_views = prepare_views(dataset_dir, frames, texture_frames, config, progress=logger.info)
 
     methods: dict[str, Method] = {"model": ModelMethod(model, sky)}
-    only = billboards_only_method(model, sky)
-    if only is not None:
-        methods["billboards only"] = only
+    if billboards_only is not None:
+        m, s = billboards_only if isinstance(billboards_only, tuple) else (billboards_only, None)
+        methods["billboards only"] = ModelMethod(m, s if config.model_sky else None)
     for label, entry in (extra_models or {}).items():
         m, s = entry if isinstance(entry, tuple) else (entry, None)
         methods[f"model: {label}"] = ModelMethod(m, s)

@@ -101,19 +101,6 @@ def test_poisson_mesh_of_a_wall_shows_its_colours():
     assert np.all(image[(np.abs(x) > 6)] == 0)  # beyond the wall's ends: trimmed away, black
 
 
-def test_billboards_only_hook():
-    from render.evaluate import billboards_only_method
-
-    from .test_render_gpu import make_model
-
-    model = make_model(np.zeros((4, 3)), rank=1)
-    assert billboards_only_method(model) is None  # only billboards: nothing to leave out
-    model.kind = np.array([0, 1, 0, 2], np.uint8)  # with a facade layer
-    method = billboards_only_method(model)
-    assert method is not None and method.visible.tolist() == [0, 2]
-    assert 0 < method.nbytes < model.nbytes()["total"]
-
-
 def test_work_precision_plot_and_markdown(tmp_path):
     from render.evaluate import markdown, work_precision_plot, work_precision_points
 
@@ -190,12 +177,10 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     out = tmp_path / "eval"
     assert cli_main(["-q", "eval", str(model), str(tiny_dataset), "--cloud", str(tiny_cloud), "--views", "2",
                      "--out", str(out), "--poisson-depth", "7", "--workprecision-depths", "6", "7",
-                     "--models", str(model), "--panel-width", "120"]) == 0
+                     "--models", str(model), "--billboards-only", str(model), "--panel-width", "120"]) == 0
     report = json.loads((out / "eval.json").read_text())
     assert report["held_out"] and report["frames"] == [1, 13] and report["sky"]
-    methods = ("model", "model: model", "Poisson mesh", "Poisson depth 6", "point projection")
-    if np.any(billboard_model.load(model).kind != 0):  # a facade layer: the model without it too
-        methods += ("billboards only",)
+    methods = ("model", "model: model", "billboards only", "Poisson mesh", "Poisson depth 6", "point projection")
     assert set(report["summary"]) == {f"{m}, {v}" for m in methods for v in ("on path", "off path")}
     for name, m in report["summary"].items():
         assert 5 < m["psnr"] < 100 and -1 <= m["ssim"] <= 1, name
