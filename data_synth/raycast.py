@@ -59,7 +59,7 @@ class Renderer:
         colour[~hit] = sky(directions[~hit])
         if hit.any():
             p = origin + t[hit, None] * directions[hit]
-            colour[hit] = shade(self.scene, p, normal[hit], self.scene.triangle_object[prim[hit]])
+            colour[hit] = shade(self.scene, p, normal[hit], self.scene.triangle_object[prim[hit]], directions[hit])
         return colour
 
     def render(self, K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int],
@@ -158,7 +158,7 @@ class Renderer:
                 obj = self.scene.triangle_object[prim[hit]]
                 ids_all[s:e][hit] = obj
                 p = o[hit] + t[hit, None] * d[hit]
-                colour[hit] = shade(self.scene, p, hit_info["primitive_normals"].numpy()[hit], obj)
+                colour[hit] = shade(self.scene, p, hit_info["primitive_normals"].numpy()[hit], obj, d[hit])
             t_all[s:e] = t
             colour_all[s:e] = colour
         return t_all, ids_all, colour_all

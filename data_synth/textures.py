@@ -26,13 +26,20 @@ class Hits:
     """Ray hits on objects of one kind.
 
     p: (n, 3) float64 points; normal: (n, 3) float64 unit normals;
-    obj: (n,) int object ids; scene: the scene (object tables).
+    obj: (n,) int object ids; scene: the scene (object tables);
+    view: (n, 3) float64 unit directions from the eye to each hit, or None
+    (seen head-on, along −normal: the colour a view-independent caller gets).
     """
 
     p: np.ndarray
     normal: np.ndarray
     obj: np.ndarray
     scene: Scene
+    view: np.ndarray | None = None
+
+    def view_dirs(self) -> np.ndarray:
+        """(n, 3) float64 unit eye → hit directions (−normal where no view was given)."""
+        return -self.normal if self.view is None else self.view
 
     @property
     def lo(self) -> np.ndarray:
@@ -57,7 +64,8 @@ class Hits:
         return colours[idx[self.obj]]
 
     def subset(self, mask: np.ndarray) -> "Hits":
-        return Hits(self.p[mask], self.normal[mask], self.obj[mask], self.scene)
+        return Hits(self.p[mask], self.normal[mask], self.obj[mask], self.scene,
+                    None if self.view is None else self.view[mask])
 
 
 def _mix(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -121,22 +129,45 @@ def _sign_letters(u, fy, seed, top, colour):
     return _mix(colour, np.full_like(colour, 0.95), lit)
 
 
-def _glass(u, v, fy, seed, sill_y, win_h, lit_room):
-    """Window panes: dark sky reflection, brighter towards the top, some rooms lit."""
-    t = (fy - sill_y) / win_h
-    glass = (np.array([0.16, 0.2, 0.26]) + 0.25 * t[:, None] * np.array([0.5, 0.6, 0.7])
-             + 0.08 * (value_noise(u, v, 0.3, seed + 5) - 0.5)[:, None])
-    return np.where(lit_room[:, None], glass + np.array([0.35, 0.28, 0.12]), glass)
+#: Glass: reflectance at normal incidence (Schlick's F0), per building in this range
+#: (single panes about 0.04; double glazing and coatings reflect more).
+GLASS_F0 = (0.06, 0.15)
+
+
+def fresnel_schlick(cos_theta: np.ndarray, f0: np.ndarray) -> np.ndarray:
+    """Schlick's reflectance F0 + (1 − F0)(1 − cos θ)⁵. cos_theta, f0: (n,) → (n,) in [F0, 1]."""
+    c = np.clip(cos_theta, 0.0, 1.0)
+    return f0 + (1.0 - f0) * (1.0 - c) ** 5
+
+
+def _glass(u, v, fy, seed, sill_y, win_h, lit_room, normal, view, f0):
+    """Window panes: the room behind (dark, some lit) plus the sky mirrored in the pane.
+
+    The view ray (n, 3) unit is mirrored about the pane's normal (n, 3) and looks up
+    :func:`sky`; Schlick's Fresnel weight (F0 per building, more at grazing angles)
+    mixes it with the interior. The result is radiance (not lit again by the sun)
+    and depends on the direction the pane is seen from: stereo finds no stable
+    texture on it, as on real glass.
+    """
+    t = np.clip((fy - sill_y) / win_h, 0.0, 1.0)
+    dim = 0.8 + 0.4 * value_noise(u, v, 0.3, seed + 5) - 0.15 * t  # curtains, furniture, ceiling shadow
+    interior = np.array([0.07, 0.075, 0.085]) * dim[:, None]
+    interior = np.where(lit_room[:, None], np.array([0.55, 0.45, 0.28]) * dim[:, None], interior)
+    cos_theta = -np.einsum("ij,ij->i", view, normal)
+    mirrored = view + 2.0 * cos_theta[:, None] * normal
+    weight = fresnel_schlick(np.abs(cos_theta), f0)[:, None]
+    return (1.0 - weight) * interior + weight * sky(mirrored)
 
 
 _FRAMES = np.array([[0.95, 0.95, 0.93], [0.25, 0.22, 0.20], [0.45, 0.30, 0.18]])
 _DOORS = np.array([[0.40, 0.24, 0.12], [0.18, 0.22, 0.30], [0.30, 0.10, 0.08]])
 
 
-def facade(h: Hits, house: bool = False) -> np.ndarray:
+def facade(h: Hits, house: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Building walls: bricks or plaster, windows with frames, mullions and sills,
     a door, shop windows and a lettered sign on the ground floor; flat roofs on top.
-    Returns (n, 3) float64 colour."""
+    Returns colour (n, 3) float64 and radiance (n,) bool: True where the colour is
+    already the light leaving the surface (glass), not an albedo to light."""
     p, normal, seed = h.p, h.normal, h.seed
     lo, hi = h.lo, h.hi
     u, v = facade_uv(p, normal, lo)
@@ -170,7 +201,9 @@ def facade(h: Hits, house: bool = False) -> np.ndarray:
     colour = _mix(colour, frame_col, win & ~inner)
     pane = inner & ~mullion
     lit_room = rand01(seed, col, storey, 3) < 0.15
-    _where(pane, colour, _glass, u, v, fy, seed, sill_y, win_h, lit_room)
+    view, f0 = h.view_dirs(), h.param(14, *GLASS_F0)
+    _where(pane, colour, _glass, u, v, fy, seed, sill_y, win_h, lit_room, normal, view, f0)
+    radiance = pane.copy()
     colour = _mix(colour, frame_col, mullion)
     sill = upper & (np.abs(fx) < win_w / 2 + 0.08) & (fy > sill_y - 0.08) & (fy <= sill_y)
     colour[sill] = 0.85
@@ -186,7 +219,8 @@ def facade(h: Hits, house: bool = False) -> np.ndarray:
         shop = ground & ~door & (np.abs(fx) < pitch / 2 - 0.3) & (fy > 0.5) & (fy < 2.3)
         shop_inner = shop & (np.abs(fx) < pitch / 2 - 0.38) & (fy > 0.58) & (fy < 2.22)
         colour = _mix(colour, frame_col * 0.8, shop & ~shop_inner)
-        _where(shop_inner, colour, _glass, u, v, fy, seed, 0.58, 1.64, lit_room)
+        _where(shop_inner, colour, _glass, u, v, fy, seed, 0.58, 1.64, lit_room, normal, view, f0)
+        radiance |= shop_inner
         sign_top = floor_h - 0.12
         sign = ((h.param(11, 0, 1) < 0.7) & (storey == 0) & (fy > sign_top - 0.55) & (fy < sign_top)
                 & (u > 0.3) & (u < width - 0.3))
@@ -195,7 +229,7 @@ def facade(h: Hits, house: bool = False) -> np.ndarray:
     up = normal[:, 2] > 0.5
     _where(up, colour, lambda x, y, s: np.array([0.32, 0.31, 0.30]) * (0.8 + 0.4 * value_noise(x, y, 0.03, s))[:, None],
            p[:, 0], p[:, 1], seed + 21)
-    return colour
+    return colour, radiance & ~up
 
 
 _PILLARS = np.array([[0.78, 0.76, 0.72], [0.55, 0.53, 0.50], [0.70, 0.20, 0.15], [0.25, 0.35, 0.30]])
@@ -276,13 +310,14 @@ def roof(h: Hits) -> np.ndarray:
     return _mix(colour, colour * 0.5, (z / 0.12 - row) < 0.15)
 
 
-def house(h: Hits) -> np.ndarray:
-    """Small town houses: plain facades below, tiled gable roofs (sloped faces) above."""
-    colour = facade(h, house=True)
+def house(h: Hits) -> tuple[np.ndarray, np.ndarray]:
+    """Small town houses: plain facades below, tiled gable roofs (sloped faces) above.
+    Returns colour (n, 3) and radiance (n,) bool, as :func:`facade`."""
+    colour, radiance = facade(h, house=True)
     sloped = (h.normal[:, 2] > 0.2) & (h.normal[:, 2] < 0.99)
     if sloped.any():
         colour[sloped] = roof(h.subset(sloped))
-    return colour
+    return colour, radiance & ~sloped
 
 
 _MATERIALS = {
@@ -297,19 +332,34 @@ _MATERIALS = {
 }
 
 
-def shade(scene: Scene, p: np.ndarray, normal: np.ndarray, obj: np.ndarray) -> np.ndarray:
-    """Colour of hits: material albedo times simple sun + ambient light.
+def shade(scene: Scene, p: np.ndarray, normal: np.ndarray, obj: np.ndarray,
+          view: np.ndarray | None = None) -> np.ndarray:
+    """Colour of hits: material albedo times simple sun + ambient light; glass
+    reflects the sky as seen from ``view``.
 
     p: (n, 3) float64 hit points; normal: (n, 3) float32 unit normals;
-    obj: (n,) int object ids (all valid). Returns (n, 3) float64 in [0, 1].
+    obj: (n,) int object ids (all valid); view: (n, 3) directions from the eye
+    to each hit (any length), or None for a head-on view of every hit.
+    A material returns an albedo (n, 3), or (colour (n, 3), radiance (n,) bool)
+    where some colours are already radiance and are not lit again.
+    Returns (n, 3) float64 in [0, 1].
     """
     normal = normal.astype(np.float64)
+    if view is not None:
+        view = np.asarray(view, dtype=np.float64)
+        view = view / np.linalg.norm(view, axis=1, keepdims=True)
     colour = np.zeros((len(p), 3))
+    radiance = np.zeros(len(p), dtype=bool)
     kinds = scene.object_kind[obj]
     for kind in np.unique(kinds):
         m = kinds == kind
-        colour[m] = _MATERIALS[Kind(int(kind))](Hits(p[m], normal[m], obj[m], scene))
+        out = _MATERIALS[Kind(int(kind))](Hits(p[m], normal[m], obj[m], scene, None if view is None else view[m]))
+        if isinstance(out, tuple):
+            colour[m], radiance[m] = out
+        else:
+            colour[m] = out
     light = AMBIENT + (1.0 - AMBIENT) * np.clip(normal @ SUN, 0.0, 1.0)
+    light[radiance] = 1.0
     return np.clip(colour * light[:, None], 0.0, 1.0)
 
 

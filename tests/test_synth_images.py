@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from data_synth import Kind, RigConfig, StreetConfig, build_street, load_dataset, make_rig
 from data_synth.raycast import Renderer
@@ -71,3 +72,72 @@ def test_occluders_appear_in_front_of_facades_in_the_images():
     facade = (result.ids >= 0) & (kinds == Kind.BUILDING)
     assert occ.sum() > 50 and facade.sum() > 50
     assert np.median(result.depth[occ]) < np.median(result.depth[facade])
+
+
+def _pane_and_wall_points(scene):
+    """Points on the window glass and on the rest of the street face of a brick building
+    with three storeys or more: glass (g, 3), wall (b, 3), the face's outward normal (3,)."""
+    from data_synth.textures import Hits, facade
+
+    for o in np.flatnonzero(scene.object_kind == Kind.BUILDING):
+        lo, hi = scene.object_bounds[o]
+        if lo[1] > 0 or hi[2] < 10:  # right side of the street: its street face is y = hi_y, normal +y
+            continue
+        x, z = np.meshgrid(np.arange(lo[0] + 0.3, hi[0] - 0.3, 0.05), np.arange(3.0, hi[2] - 1.0, 0.05))
+        p = np.stack([x.ravel(), np.full(x.size, hi[1]), z.ravel()], -1)
+        hits = Hits(p, np.tile([0.0, 1.0, 0.0], (len(p), 1)), np.full(len(p), o), scene)
+        if hits.param(1, 0, 1)[0] >= 0.45:  # the facade material's brick/plaster choice
+            continue
+        _, glass = facade(hits)
+        if glass.sum() > 500:
+            return p[glass], p[~glass], np.array([0.0, 1.0, 0.0])
+    raise AssertionError("no brick building with windows")
+
+
+def test_glass_reflects_the_sky_depending_on_the_view_and_brick_does_not():
+    scene = build_street(StreetConfig(length=120.0))
+    glass, wall, normal = _pane_and_wall_points(scene)
+    renderer = Renderer(scene)
+    head_on = glass.mean(axis=0) + 6.0 * normal  # in front of the panes, across the sidewalk
+    oblique = head_on + np.array([8.0, 0.0, -1.5])  # along the street and lower: a grazing view
+
+    def colours(points, eye):
+        origins = np.broadcast_to(eye, points.shape)
+        t, _, colour = renderer.cast(origins, points - origins)
+        return colour, np.abs(t - 1.0) < 1e-4  # visible: the ray's first hit is the point itself
+
+    g, b = glass[::5], wall[::5]
+    (cg0, v0), (cg1, v1) = colours(g, head_on), colours(g, oblique)
+    (cb0, w0), (cb1, w1) = colours(b, head_on), colours(b, oblique)
+    both, wall_both = v0 & v1, w0 & w1
+    assert both.sum() > 100 and wall_both.sum() > 100
+    diff = np.abs(cg0 - cg1).max(axis=1)[both]
+    assert diff.mean() > 0.02  # the panes change with the view...
+    # ...towards the bright sky where the view is more grazing (smaller cosine to the normal)
+    cos0 = (head_on - g) @ normal / np.linalg.norm(head_on - g, axis=1)
+    cos1 = (oblique - g) @ normal / np.linalg.norm(oblique - g, axis=1)
+    clear = both & (np.abs(cos0 - cos1) > 0.2)
+    assert clear.sum() > 50
+    brighter_where_grazing = (cg1.mean(axis=1) > cg0.mean(axis=1)) == (cos1 < cos0)
+    assert np.mean(brighter_where_grazing[clear]) > 0.9
+    np.testing.assert_allclose(cb0[wall_both], cb1[wall_both], atol=2e-3)  # the wall does not
+    np.testing.assert_array_equal(cg1, colours(g, oblique)[0])  # same rays, same colours
+
+
+def test_fresnel_weight_grows_towards_grazing():
+    from data_synth.textures import fresnel_schlick
+
+    cos = np.cos(np.radians([0.0, 30.0, 60.0, 75.0, 89.0]))
+    w = fresnel_schlick(cos, np.full(5, 0.04))
+    assert w[0] == pytest.approx(0.04) and np.all(np.diff(w) > 0) and w[-1] > 0.9
+
+
+def test_rendering_with_glass_is_deterministic():
+    scene = build_street(StreetConfig(length=30.0))
+    rig = make_rig(RigConfig(width=96, height=160))
+    world_from_rig = np.eye(4)
+    world_from_rig[:3, 3] = [12.0, -1.75, 0.0]
+    pose = rig.world_from_cam(world_from_rig, 0)
+    a = Renderer(scene).render(rig.intrinsics[0], pose, rig.sizes[0])
+    b = Renderer(build_street(StreetConfig(length=30.0))).render(rig.intrinsics[0], pose, rig.sizes[0])
+    np.testing.assert_array_equal(a.rgb, b.rgb)
