@@ -3,7 +3,8 @@
 Layout of a dataset directory::
 
     dataset.json              manifest, written last: its presence marks a complete dataset
-    synth_report.json         timings of the run that wrote it (the only file that varies)
+    synth_report.json         timings of the run that wrote it (the only file that varies) and the
+                              street's coverage (shares of road, sidewalk and facades the rig sees)
     rig.json                  intrinsics (distortion none) and cam_from_rig per camera
     poses.json                world_from_rig per frame, float64
     images/cam{c}/NNNNNN.png  RGB images
@@ -34,6 +35,7 @@ import numpy as np
 import open3d as o3d
 
 from .colmap_export import write_colmap_text
+from .coverage import street_coverage
 from .fileio import DataFormatError, atomic_path, load_npy, read_json, read_png, save_npy, write_json, write_png
 from .raycast import Renderer
 from .rig import Rig, RigConfig, drive_path, load_poses, make_rig, save_poses
@@ -230,6 +232,15 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
     t1 = time.perf_counter()
     frame_seconds = run_tasks(_render_frame, todo, executor, desc="render", progress=progress)
     t_render = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    coverage = street_coverage(scene, rig, world_from_rig) if cfg.scene == "street" else None
+    if coverage is not None:
+        pct = {k: "n/a" if coverage[k] is None else f"{100 * coverage[k]:.1f} %"
+               for k in ("road_sidewalk", "road_sidewalk_outboard", "facade", "facade_top_1m")}
+        logger.info("the rig sees %s of road + sidewalk (%s of the part beside its paths), %s of the facades, "
+                    "%s of their top metre", pct["road_sidewalk"], pct["road_sidewalk_outboard"], pct["facade"],
+                    pct["facade_top_1m"])
+    t_coverage = time.perf_counter() - t2
 
     write_json(root / "dataset.json", {
         "format": DATASET_FORMAT, "version": FORMAT_VERSION, "scene": cfg.scene,
@@ -241,6 +252,7 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
     write_json(root / "synth_report.json", {
         "scene_seconds": t_scene, "render_seconds": t_render, "frames_rendered": len(todo),
         "median_frame_seconds": float(np.median(frame_seconds)) if frame_seconds else None,
+        "coverage_seconds": t_coverage, "coverage": coverage,
     })
     return root
 

@@ -163,6 +163,26 @@ class Renderer:
             colour_all[s:e] = colour
         return t_all, ids_all, colour_all
 
+    def hit_distance(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """First-hit parameter t (n,) float64 of rays, inf where nothing is hit; no shading.
+
+        origins, directions: (n, 3) float64 world; t in multiples of each direction's
+        length (as :meth:`cast`, with the same precision note), in chunks.
+        """
+        origins = np.asarray(origins, dtype=np.float64)
+        directions = np.asarray(directions, dtype=np.float64)
+        if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
+            raise ValueError(f"origins and directions must both be (n, 3), got {origins.shape}, {directions.shape}")
+        raycaster, offset = self._cast_frame()
+        t_all = np.empty(len(origins))
+        for s in range(0, len(origins), MAX_RAYS_PER_CHUNK):
+            e = min(len(origins), s + MAX_RAYS_PER_CHUNK)
+            rays = np.empty((e - s, 6), dtype=np.float32)
+            rays[:, :3] = origins[s:e] - offset
+            rays[:, 3:] = directions[s:e]
+            t_all[s:e] = raycaster.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        return t_all
+
     def _cast_frame(self):
         """(RaycastingScene, offset (3,) float64) that :meth:`cast` uses; see its precision note."""
         frame = getattr(self, "_local_frame", None)
