@@ -151,8 +151,33 @@ def test_depth_from_disparity_nan_never_inf():
 # --------------------------------------------------------------------------- disparity on rendered data
 
 
+def _glass_pixels(ds, scene, frame: int, cam: int) -> np.ndarray:
+    """(h, w) bool: pixel centres whose ray first hits window glass (view-dependent: it mirrors the sky)."""
+    import open3d as o3d
+
+    from data_synth.scene import Kind
+    from data_synth.textures import Hits, facade
+
+    (w, h), K, pose = ds.rig.sizes[cam], ds.rig.intrinsics[cam], ds.world_from_cam(frame, cam)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    dirs = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], -1) @ (pose[:3, :3] @ np.linalg.inv(K)).T
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(scene.vertices.astype(np.float32)),
+                     o3d.core.Tensor(scene.triangles.astype(np.uint32)))
+    rays = np.concatenate([np.broadcast_to(pose[:3, 3], dirs.shape), dirs], 1).astype(np.float32)
+    hit = rc.cast_rays(o3d.core.Tensor(rays))
+    t = hit["t_hit"].numpy().astype(np.float64)
+    obj = np.where(np.isfinite(t), scene.triangle_object[np.minimum(hit["primitive_ids"].numpy(),
+                                                                    len(scene.triangle_object) - 1)], -1)
+    glass = np.zeros(len(t), bool)
+    b = (obj >= 0) & (scene.object_kind[np.maximum(obj, 0)] == Kind.BUILDING)
+    p = pose[:3, 3] + t[b, None] * dirs[b]
+    glass[b] = facade(Hits(p, hit["primitive_normals"].numpy()[b].astype(np.float64), obj[b], scene))[1]
+    return glass.reshape(h, w)
+
+
 @pytest.mark.parametrize("frame", [0, 4])
-def test_disparity_matches_ground_truth(tiny, frame):
+def test_disparity_matches_ground_truth(tiny, tiny_dataset, frame):
     ds, pairs = tiny
     p = pairs[(0, 2)]
     left, right = p.rectify(ds.image(frame, 0), ds.image(frame, 2))
@@ -164,8 +189,12 @@ def test_disparity_matches_ground_truth(tiny, frame):
     z = depth_from_disparity(d, p.focal, p.baseline)
     both = finite & np.isfinite(gt)
     rel = np.abs(z[both] - gt[both]) / gt[both]
-    # measured: 74 % / 69 % valid, median 0.8 % / 1.0 %, share above 5 %: 0.8 % / 0.2 %
-    assert both.sum() > 0.6 * np.isfinite(gt).sum()
+    # Window glass mirrors the sky, differently in each camera: like real glass it has no
+    # stable texture to match, so it counts apart (14 % / 28 % of the pixels with depth).
+    glass = _glass_pixels(ds, load_scene(tiny_dataset), frame, 0)
+    matchable = np.isfinite(gt) & ~glass
+    # measured: 74 % / 72 % of the matchable pixels valid, median 0.8 % / 0.9 %, share above 5 %: 0.5 % / 0.1 %
+    assert (both & ~glass).sum() > 0.6 * matchable.sum()
     assert np.median(rel) < 0.02
     assert (rel > 0.05).mean() < 0.05
 
