@@ -25,10 +25,12 @@ def _add_synth(sub) -> None:
     p.add_argument("--frames", type=int, default=100, help="frames per pass (default 100); a return pass doubles it")
     p.add_argument("--length", type=float, default=300.0,
                    help="street length, or the town drive's length, in metres (default 300)")
-    p.add_argument("--width", type=int, default=640, help="image width in pixels (default 640)")
-    p.add_argument("--height", type=int, default=480, help="image height in pixels (default 480)")
+    p.add_argument("--width", type=int, default=None, help="image width in pixels (default 416)")
+    p.add_argument("--height", type=int, default=None, help="image height in pixels (default 736, portrait)")
     p.add_argument("--seed", type=int, default=0, help="scene seed; same seed, same bytes (default 0)")
-    p.add_argument("--hfov", type=float, default=75.0, help="horizontal field of view in degrees (default 75)")
+    p.add_argument("--hfov", type=float, default=None, help="horizontal field of view in degrees (default 115)")
+    p.add_argument("--pitch", type=float, default=None,
+                   help="upward tilt of the cameras in degrees (default 8; negative looks down)")
     p.add_argument("--spp", type=int, default=2, help="anti-aliasing: spp×spp rays per pixel (default 2)")
     p.add_argument("--no-return", action="store_true", help="drive one pass only (one side of the street)")
     p.add_argument("--no-gt-depth", action="store_true", help="skip per-image ground-truth depth and ids")
@@ -45,7 +47,8 @@ def _run_synth(args) -> int:
         scene=args.scene,
         street=StreetConfig(length=args.length, seed=args.seed),
         town=TownConfig(seed=args.seed),
-        rig=RigConfig(width=args.width, height=args.height, hfov_deg=args.hfov),
+        rig=RigConfig(**{k: v for k, v in (("width", args.width), ("height", args.height),
+                                           ("hfov_deg", args.hfov), ("pitch_deg", args.pitch)) if v is not None}),
         frames=args.frames, return_pass=not args.no_return, town_path_length=args.length,
         spp=args.spp, ground_truth_depth=not args.no_gt_depth)
     start = time.perf_counter()

@@ -5,6 +5,12 @@ below the rig. The cameras sit in a row on the roof, optical axes parallel,
 looking to the right of the car (−y), so that successive cameras are displaced
 along their own x axis: a rectified horizontal stereo rig. Camera frames follow
 OpenCV (x right, y down, z forward).
+
+The default cameras are portrait (416×736, 9:16, about the pixels of 640×480)
+with a 115° horizontal and 140° vertical field of view, pitched up 8°: they see
+from 62° below the horizon (the road from about 1 m beside the path, the kerb,
+the whole sidewalk) to 78° above it (the roofline of a 24 m facade standing
+right at the back of the sidewalk). ``data_synth.coverage`` measures this.
 """
 
 from __future__ import annotations
@@ -24,12 +30,27 @@ FORMAT_VERSION = 1
 
 @dataclass(frozen=True)
 class RigConfig:
-    width: int = 640  # image width, pixels
-    height: int = 480  # image height, pixels
-    hfov_deg: float = 75.0  # horizontal field of view, degrees
+    width: int = 416  # image width, pixels (along the row: the stereo baseline)
+    height: int = 736  # image height, pixels (portrait: road to roofline)
+    hfov_deg: float = 115.0  # horizontal field of view, degrees (vertical: vfov_deg)
     baselines: tuple[float, ...] = (0.0, 0.4, 0.8)  # offset of each camera from cam0 along the row, metres
     mount_height: float = 2.0  # height of the optical centres above the road, metres
-    pitch_deg: float = 10.0  # upward tilt of the (parallel) optical axes, degrees
+    pitch_deg: float = 8.0  # upward tilt of the (parallel) optical axes, degrees
+
+    def __post_init__(self):
+        if not (0 < self.hfov_deg < 170):
+            raise ValueError(f"hfov_deg must be in (0, 170), got {self.hfov_deg}")
+        if self.width < 8 or self.height < 8:
+            raise ValueError(f"image size {self.width}x{self.height} is too small")
+        if not -90.0 <= self.pitch_deg <= 90.0:
+            raise ValueError(f"pitch_deg must be in [-90, 90], got {self.pitch_deg}")
+        if not self.baselines or not all(np.isfinite(b) for b in self.baselines):
+            raise ValueError(f"baselines must be a non-empty tuple of finite offsets, got {self.baselines!r}")
+
+    @property
+    def vfov_deg(self) -> float:
+        """Vertical field of view, degrees (square pixels, centred principal point)."""
+        return float(np.degrees(2 * np.arctan(self.height / self.width * np.tan(np.radians(self.hfov_deg) / 2))))
 
 
 @dataclass(frozen=True)

@@ -59,7 +59,7 @@ MODES = {
 @dataclass(frozen=True)
 class StereoConfig:
     block_size: int = 5  # SGBM matching block, pixels (odd, ≥ 1)
-    min_depth: float = 2.0  # nearest depth searched, metres (sets the largest disparity)
+    min_depth: float = 0.7  # nearest depth searched, metres (sets the largest disparity; road beside the default rig: 0.77)
     max_depth: float = 60.0  # farthest depth kept, metres (sets the smallest disparity; may be inf)
     min_disparity: int | None = None  # explicit kept range start, pixels; overrides the depth range when set
     num_disparities: int | None = None  # explicit search width, a positive multiple of 16; with min_disparity

@@ -340,7 +340,7 @@ def test_rmse_reports_missing_frames_as_nan_and_aligns_groups_separately():
 @pytest.fixture(scope="module")
 def sfm_dataset(tmp_path_factory):
     """One 21 m pass, 8 frames 3 m apart (as in the default street), 320×240."""
-    cfg = tiny_config(frames=8, return_pass=False, rig=RigConfig(width=320, height=240),
+    cfg = tiny_config(frames=8, return_pass=False, rig=RigConfig(width=320, height=240, hfov_deg=75.0, pitch_deg=10.0),
                       street=StreetConfig(length=21.0, seed=0), ground_truth_depth=False, spp=1)
     return write_dataset(cfg, tmp_path_factory.mktemp("sfm") / "street", progress=False)
 

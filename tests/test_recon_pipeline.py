@@ -91,7 +91,7 @@ def test_sfm_poses_reconstruct_the_street(tmp_path):
 
     from .conftest import tiny_config
 
-    cfg = tiny_config(frames=8, return_pass=False, rig=RigConfig(width=320, height=240),
+    cfg = tiny_config(frames=8, return_pass=False, rig=RigConfig(width=320, height=240, hfov_deg=75.0, pitch_deg=10.0),
                       street=StreetConfig(length=21.0, seed=0), spp=1)
     dataset = write_dataset(cfg, tmp_path / "street", progress=False)
     conf = dataclasses.replace(TINY, poses="sfm", fusion=FusionConfig(voxel_size=0.03))

@@ -216,7 +216,7 @@ def sky_pairs(tiny_dataset):
     """Stereo pairs (cam0, cam2) of the tiny street seen pitched up 40°: 4–16 % sky."""
     ds = load_dataset(tiny_dataset)
     scene = load_scene(tiny_dataset)
-    rig = make_rig(RigConfig(width=160, height=120, pitch_deg=40))
+    rig = make_rig(RigConfig(width=160, height=120, hfov_deg=75.0, pitch_deg=40))
     out = []
     for f in (0, 4):
         T = ds.world_from_rig[f]

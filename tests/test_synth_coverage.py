@@ -7,8 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from data_synth import Kind, Rig, StreetConfig, build_street, load_dataset, load_scene
-from data_synth.coverage import sample_surface, seen_by
+from data_synth import Kind, Rig, RigConfig, StreetConfig, SynthConfig, build_street, load_dataset, load_scene, make_rig
+from data_synth.coverage import sample_surface, seen_by, street_coverage
+from data_synth.dataset import capture_path
 from data_synth.raycast import Renderer
 
 
@@ -72,9 +73,51 @@ def test_seen_samples_agree_with_the_ground_truth_depth(tiny_dataset):
     assert seen.sum() >= seen_here.sum()  # more cameras see more
 
 
+def test_default_rig_sees_road_sidewalk_and_rooflines():
+    """The rig the README describes: coverage of a 60 m street, against the old landscape rig."""
+    cfg = SynthConfig(street=StreetConfig(length=60.0), frames=20)
+    scene = build_street(cfg.street)
+    world_from_rig, _ = capture_path(cfg)
+    renderer = Renderer(scene)
+    new = street_coverage(scene, make_rig(cfg.rig), world_from_rig, renderer=renderer)
+    old = street_coverage(scene, make_rig(RigConfig(width=640, height=480, hfov_deg=75.0, pitch_deg=10.0)),
+                          world_from_rig, renderer=renderer)
+    assert old["road"] == 0.0 and old["facade"] < 0.6 and old["facade_top_1m"] < 0.4
+    assert new["sidewalk"] > 0.99 and new["road_sidewalk_outboard"] > 0.8
+    assert new["facade"] > 0.95 and new["facade_top_1m"] > 0.8
+    # the strip between the two passes' paths is out of reach of sideways-looking cameras
+    assert new["road_sidewalk"] < new["road_sidewalk_outboard"]
+    assert new["road_sidewalk_outboard_area_m2"] < new["road_sidewalk_area_m2"] - 3.0 * 60.0
+
+
 def test_synth_report_holds_the_coverage(tiny_dataset):
     report = json.loads((tiny_dataset / "synth_report.json").read_text())
     cov = report["coverage"]
     for key in ("road_sidewalk", "road_sidewalk_outboard", "road", "sidewalk", "facade", "facade_top_1m"):
         assert 0.0 <= cov[key] <= 1.0, key
     assert cov["road_sidewalk"] <= cov["road_sidewalk_outboard"]
+
+
+def test_default_rig_spans_road_to_roofline_and_recon_searches_that_near():
+    from recon.stereo import StereoConfig
+
+    cfg = RigConfig()
+    rig = make_rig(cfg)
+    w, h = rig.sizes[0]
+    assert h > w and abs(w * h - 640 * 480) <= 0.01 * 640 * 480  # portrait, the pixels of 640×480
+    rig_from_cam = np.linalg.inv(rig.cam_from_rig[0])
+    K_inv = np.linalg.inv(rig.intrinsics[0])
+
+    def ray(v):  # rig-frame direction through the middle of image row v (edges at −0.5, h − 0.5)
+        d = rig_from_cam[:3, :3] @ K_inv @ np.array([(w - 1) / 2, v, 1.0])
+        return d / np.linalg.norm(d)
+
+    axis = rig_from_cam[:3, 2]
+    assert axis[1] < -0.9 and abs(axis[0]) < 1e-12  # looking right of the car, across the street
+    top, bottom = ray(-0.5), ray(h - 0.5)
+    # a 24 m roofline at the back of the sidewalk, 4.75 m from the lane centre: 77.8° up
+    assert np.degrees(np.arcsin(top[2])) > np.degrees(np.arctan2(24.0 - cfg.mount_height, 4.75))
+    lateral = cfg.mount_height * np.hypot(bottom[0], bottom[1]) / -bottom[2]
+    assert lateral < 1.1  # the road from about a metre beside the path
+    nearest_road_depth = cfg.mount_height / -bottom[2] * (bottom @ axis)  # z-depth where that ray meets the road
+    assert StereoConfig().min_depth < nearest_road_depth < 1.0

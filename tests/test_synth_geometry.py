@@ -40,8 +40,9 @@ def test_projection_epipolar_relation_and_disparity():
     world_from_rig[:3, 3] = [12.0, -1.75, 0.0]
     rng = np.random.default_rng(1)
     poses = [rig.world_from_cam(world_from_rig, c) for c in range(3)]
-    # points in front of cam0 at 3..60 m
-    uv0 = rng.uniform([0, 0], [639, 479], (200, 2))
+    # points in front of cam0 at 3..60 m, anywhere in its image
+    w, h = rig.sizes[0]
+    uv0 = rng.uniform([0, 0], [w - 1, h - 1], (200, 2))
     z = rng.uniform(3, 60, 200)
     X = backproject(rig.intrinsics[0], poses[0], uv0, z)
     f = rig.intrinsics[0][0, 0]
