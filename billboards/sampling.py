@@ -455,14 +455,15 @@ class ImageSampler:
         # that parallax moves behind this quad (cut exactly, it would be on neither quad).
         margin = np.float32(cfg.slab_margin * s)
         own = np.isfinite(filled) & (filled >= t_in - tol) & (filled <= t_out + tol + margin)
-        if cfg.own_points:
+        board = np.flatnonzero(self.kind[ids] == BILLBOARD)
+        if cfg.own_points and len(board):
             # The voxel's own points on the ray count even where the z-buffer has a hole between
             # points; the camera sees past the voxel only where nothing lies within one z-buffer
             # pixel (a gap between a pillar's points must not show the wall behind as see-through).
-            own |= np.isfinite(self._own_depth(ids, np.zeros_like(c), c, right, up))
-            own &= ~(np.isfinite(nearest) & (nearest > t_out + tol + margin))
-        layer = self.kind[ids] != BILLBOARD
-        own[layer] = True   # a layer block is a surface: glass and flat paint show, nothing is see-through
+            hit = np.isfinite(self._own_depth(ids[board], np.zeros((len(board), 3)), c[board], right[board], up[board]))
+            beyond = np.isfinite(nearest[board]) & (nearest[board] > t_out[board] + tol[board] + margin)
+            own[board] = (own[board] | hit) & ~beyond
+        own[self.kind[ids] != BILLBOARD] = True   # a layer block is a surface: glass and paint show, never see-through
         status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
             status[own & (nearest < t_in - tol)] = OCCLUDED
@@ -589,36 +590,14 @@ def _stack_filter(images: np.ndarray, op, size: int, border_value) -> np.ndarray
 
 def close_holes(rgba: np.ndarray) -> np.ndarray:
     """Make surface tiles opaque: texels that no camera saw in any direction (behind a beam
-    from every capture viewpoint) grow inward from their opaque 4-neighbours (the mean of
-    those). rgba (..., t, t, 4) uint8 → the same shape; a tile without an opaque texel stays
-    transparent."""
-    shape = rgba.shape
-    t0, t1 = shape[-3], shape[-2]
-    flat = rgba.reshape(-1, t0, t1, 4)
-    colour = flat[..., :3].astype(np.float32)
-    opaque = flat[..., 3] > 0
-    for _ in range(t0 + t1):
-        if opaque.all():
-            break
-        total = np.zeros_like(colour)
-        count = np.zeros(opaque.shape, np.float32)
-        weighted = colour * opaque[..., None]
-        for axis, step in ((1, 1), (1, -1), (2, 1), (2, -1)):
-            src = [slice(None)] * 3
-            dst = [slice(None)] * 3
-            src[axis] = slice(None, -1) if step == 1 else slice(1, None)
-            dst[axis] = slice(1, None) if step == 1 else slice(None, -1)
-            total[tuple(dst)] += weighted[tuple(src)]
-            count[tuple(dst)] += opaque[tuple(src)]
-        grow = ~opaque & (count > 0)
-        if not grow.any():
-            break
-        colour[grow] = total[grow] / count[grow][:, None]
-        opaque |= grow
-    out = np.empty_like(flat)
-    out[..., :3] = np.rint(colour).astype(np.uint8)
-    out[..., 3] = np.where(opaque, np.uint8(255), np.uint8(0))
-    return out.reshape(shape)
+    from every capture viewpoint) keep the colour :func:`fill_directions` gave them, the
+    billboard's mean opaque colour. rgba (..., t, t, 4) uint8 → the same shape; a tile
+    without an opaque texel stays transparent."""
+    out = rgba.copy()
+    alpha = out[..., 3]
+    seen = (alpha > 0).any(axis=(-2, -1), keepdims=True)
+    alpha[...] = np.where(seen, np.uint8(255), alpha)
+    return out
 
 
 def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> np.ndarray:

@@ -147,9 +147,10 @@ def test_kind_frames_of_blocks():
 
 def test_close_holes():
     tile = np.zeros((2, 4, 4, 4), np.uint8)
-    tile[0, :, :2] = (200, 100, 50, 255)     # left half opaque, right half unseen
+    tile[0, :, :2] = (200, 100, 50, 255)     # left half opaque, right half unseen (mean colour, alpha 0)
+    tile[0, :, 2:] = (180, 90, 40, 0)
     out = close_holes(tile)
-    assert np.all(out[0, ..., 3] == 255) and np.all(out[0, ..., :3] == (200, 100, 50))
+    assert np.all(out[0, ..., 3] == 255) and np.all(out[0, ..., :3] == tile[0, ..., :3])
     assert np.all(out[1] == 0)               # nothing seen: stays transparent
 
 
