@@ -148,6 +148,8 @@ def _add_build(sub) -> None:
     p.add_argument("--layer", choices=("facades+ground", "facades", "ground", "none"), default="facades+ground",
                    help="the facade layer under the billboards: slits on the facades found in the EPIs and/or "
                         "blocks on flat ground (default both; none: billboards only)")
+    p.add_argument("--block-size", type=float, default=None,
+                   help="edge of the layer's blocks in metres (default: the voxel size)")
     p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_build)
 
@@ -177,7 +179,8 @@ def build_config_from_args(args):
     octree = OctreeConfig(voxel_size=None if args.depth is not None else args.voxel_size, depth=args.depth,
                           min_points=args.min_points)
     sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
-    layer = None if args.layer == "none" else LayerConfig(facades="facades" in args.layer, ground="ground" in args.layer)
+    layer = None if args.layer == "none" else LayerConfig(facades="facades" in args.layer, ground="ground" in args.layer,
+                                                          block_size=args.block_size)
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer)

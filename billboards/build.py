@@ -90,6 +90,7 @@ class Billboards:
     quads: np.ndarray
     kind: np.ndarray
     node_range: np.ndarray
+    block_size: float | None = None
 
     @property
     def num_billboards(self) -> int:
@@ -97,7 +98,7 @@ class Billboards:
 
     def image_sampler(self, views: Views, config: SamplingConfig) -> ImageSampler:
         return ImageSampler(views, self.quads, self.octree.voxel_size, self.base_yaw, self.voxels, config,
-                            box_centres=self.voxels.centres, kind=self.kind)
+                            box_centres=self.voxels.centres, kind=self.kind, block_size=self.block_size)
 
     def voxel_colours(self, colours: np.ndarray) -> np.ndarray:
         """(N', 3) uint8 colours of the points in voxels, in the order of ``voxels.points``."""
@@ -119,11 +120,12 @@ def place_billboards(points: np.ndarray, octree: Octree, viewpoints: np.ndarray 
                       np.full(len(centres), BILLBOARD, np.uint8), octree.node_range.astype(np.int64))
 
 
-def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarray, layer: Layer
-                 ) -> Billboards:
+def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarray, layer: Layer,
+                 block_size: float | None = None) -> Billboards:
     """Billboards where the cloud departs from the facade ``layer``, and the layer's blocks.
 
-    points (N, 3) float64 world; viewpoints (v, 3) float64 camera centres. The octree is
+    points (N, 3) float64 world; viewpoints (v, 3) float64 camera centres; block_size: edge of
+    the layer's blocks (m; None: the voxel size). The octree is
     built over the points the layer does not explain plus each block's centre (counted
     ``min_points`` times, so every block's cell is a leaf); a leaf gets a billboard when
     at least ``min_points`` unexplained points fall in it. Billboards are ordered by leaf
@@ -160,6 +162,8 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     box_centres = np.where(is_board[:, None], leaf_centres[item_leaf],
                            layer.centres[np.where(is_board, 0, source)] if len(layer.centres) else 0.0)
     voxels = voxel_points(points, owner, box_centres, octree.origin, octree.voxel_size)
+    if block_size is not None:  # a block's points reach up to a block and a half from its centre
+        voxels = replace(voxels, reach=1.5 * float(block_size))
     base_yaw = base_yaw_toward(box_centres, viewpoints)
     blocks = ~is_board
     base_yaw[blocks] = layer.base_yaw[source[blocks]]
@@ -167,7 +171,7 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     quads[blocks] = box_centres[blocks]
     item_begin = np.searchsorted(item_leaf, np.arange(n_leaves + 1))
     node_range = item_begin[octree.node_range]
-    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range)
+    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size)
 
 
 # --------------------------------------------------------------------------- worker side
@@ -194,12 +198,12 @@ def _worker_state(state_dir: str):
     base_yaw = np.load(root / "base_yaw.npy")
     kind = np.load(root / "kind.npy")
     voxels = VoxelPoints(np.asarray(meta["origin"], dtype=np.float64), np.load(root / "points.npy", mmap_mode="r"),
-                         np.load(root / "begin.npy"), centres, meta["voxel_size"])
+                         np.load(root / "begin.npy"), centres, meta["voxel_size"], meta["reach"])
     if conf.source == "images":
         views = Views(np.load(root / "K.npy"), np.load(root / "world_from_cam.npy"), np.load(root / "sizes.npy"),
                       tuple(Path(p) for p in meta["paths"]))
         sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres,
-                               kind=kind)
+                               kind=kind, block_size=meta["block_size"])
     else:
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)
@@ -350,18 +354,21 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         stages["epi_s"] = time.perf_counter() - t1
         t1 = time.perf_counter()
         size = conf.octree.voxel_size or build_octree(points, conf.octree).voxel_size
-        layer = build_layer(points, passes, size, points.min(axis=0), views.centres, conf.layer)
+        block_size = conf.layer.block_size or size
+        layer = build_layer(points, passes, block_size, points.min(axis=0), views.centres, conf.layer)
         stages["layer_s"] = time.perf_counter() - t1
-        layer_report = _layer_report(layer, passes, points, dataset_dir, size, conf.layer)
+        layer_report = _layer_report(layer, passes, points, dataset_dir, conf.layer)
+        layer_report["block_size"] = block_size
 
     t1 = time.perf_counter()
     if layer is not None and len(layer.centres):
         octree_conf = replace(conf.octree, voxel_size=size, depth=None)
-        placed = place_hybrid(points, octree_conf, views.centres, layer)
+        placed = place_hybrid(points, octree_conf, views.centres, layer, block_size)
         octree = placed.octree
     else:
         octree = build_octree(points, conf.octree)
         placed = None
+        block_size = None
     stages["octree_s"] = time.perf_counter() - t1
     if octree.num_voxels == 0:
         raise ValueError(f"{cloud_path}: no voxel holds {conf.octree.min_points} points "
@@ -392,7 +399,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         np.save(state / "kind.npy", kind)
         if conf.source == "points":
             np.save(state / "colours.npy", placed.voxel_colours(colours))
-        meta = {"config": _config_to_json(conf), "origin": octree.origin.tolist(), "voxel_size": octree.voxel_size}
+        meta = {"config": _config_to_json(conf), "origin": octree.origin.tolist(), "voxel_size": octree.voxel_size,
+                "block_size": block_size, "reach": grouped.reach}
         if views is not None:
             np.save(state / "K.npy", views.K)
             np.save(state / "world_from_cam.npy", views.world_from_cam)
@@ -432,7 +440,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                     "held_out_frames": held_out}
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,
                           yaw_offsets=conf.sampling.directions.yaw_offsets, pitches=conf.sampling.directions.pitches,
-                          pitched_quads=conf.sampling.directions.pitched_quads, info=info, **nodes)
+                          pitched_quads=conf.sampling.directions.pitched_quads, info=info, block_size=block_size,
+                          **nodes)
             stages["write_s"] = time.perf_counter() - t4
     finally:
         shutil.rmtree(state, ignore_errors=True)
@@ -459,7 +468,7 @@ def _node_table(octree: Octree, node_range: np.ndarray) -> dict:
             "node_children": octree.node_children.astype(np.int32), "node_range": node_range.astype(np.int32)}
 
 
-def _layer_report(layer: Layer, passes, points: np.ndarray, dataset_dir, size: float, config: LayerConfig) -> dict:
+def _layer_report(layer: Layer, passes, points: np.ndarray, dataset_dir, config: LayerConfig) -> dict:
     """Counts of the facade layer and, with ground truth, its facade depth against the truth."""
     report = {"enabled": True, "passes": len(passes), "epi_points": int(sum(len(p.points) for p in passes)),
               "facade_blocks": int((layer.kind != GROUND).sum()), "ground_blocks": int((layer.kind == GROUND).sum()),

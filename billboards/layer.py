@@ -35,6 +35,8 @@ logger = logging.getLogger(__name__)
 class LayerConfig:
     facades: bool = True            # slits on the facades found in the EPIs
     ground: bool = True             # horizontal blocks where the cloud shows flat ground
+    block_size: float | None = None # block edge (m; None: the voxel size); larger blocks are cheaper, with
+                                    # coarser texels and a coarser outline
     slab: float = 0.3               # cloud points this close to a facade plane (m) are explained by it
     min_points: int = 15            # EPI points a column (with its neighbours) needs to hold a facade
     min_depth: float = 2.0          # facades nearer to the path than this (m) are not searched
@@ -48,6 +50,8 @@ class LayerConfig:
     epi: EpiConfig = field(default_factory=EpiConfig)
 
     def __post_init__(self):
+        if self.block_size is not None and not (np.isfinite(self.block_size) and self.block_size > 0):
+            raise ValueError(f"block_size must be a finite number > 0 or None, got {self.block_size}")
         if not (self.slab > 0 and self.histogram_bin > 0 and self.ground_tolerance > 0 and self.min_depth > 0):
             raise ValueError("slab, histogram_bin, ground_tolerance and min_depth must be > 0")
         if self.min_points < 1 or self.ground_min_points < 1 or self.smooth_columns < 0:

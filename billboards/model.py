@@ -2,7 +2,7 @@
 
 Layout of a model directory::
 
-    manifest.json        format, version, units, origin (float64), voxel size, view
+    manifest.json        format, version, units, origin (float64), voxel size, layer block size, view
                          directions, tile and page size, quantisation modes, counts, page
                          lists, array files, build info; written last
     centres.npy          (n, 3) float32 billboard centres relative to origin (metres)
@@ -121,10 +121,18 @@ class BillboardModel:
     node_range: np.ndarray  # (k, 2) int32 [begin, end) billboards
     info: dict  # free-form build info (JSON-serialisable)
     kind: np.ndarray | None = None  # (n,) uint8 BILLBOARD | FACADE | GROUND; None: all BILLBOARD
+    block_size: float | None = None  # edge of FACADE and GROUND blocks (m); None: voxel_size
 
     def __post_init__(self):
         if self.kind is None:
             self.kind = np.zeros(len(self.centres), dtype=np.uint8)
+        if self.block_size is None:
+            self.block_size = self.voxel_size
+
+    def quad_sizes(self, billboards=None) -> np.ndarray:
+        """(B,) float32 edge of each quad (m): voxel_size for billboards, block_size for layer blocks."""
+        kind = self.kind if billboards is None else self.kind[billboards]
+        return np.where(kind == 0, np.float32(self.voxel_size), np.float32(self.block_size)).astype(np.float32)
 
     @property
     def num_billboards(self) -> int:
@@ -200,6 +208,7 @@ class BillboardModel:
 class _Meta:
     origin: np.ndarray
     voxel_size: float
+    block_size: float
     tile: int
     page_size: int
     yaw_offsets: np.ndarray
@@ -242,6 +251,7 @@ def _manifest_doc(model: BillboardModel, pages: list[dict] | None = None,
         "units": UNITS,
         "origin": [float(v) for v in np.asarray(model.origin, dtype=np.float64).reshape(-1)],
         "voxel_size": float(model.voxel_size),
+        "block_size": float(model.block_size),
         "tile": tile,
         "page_size": page_size,
         "directions": {
@@ -364,6 +374,9 @@ def _parse_manifest(doc: Any, path: Path) -> _Meta:
     voxel_size = r.num(r.get(doc, "voxel_size"), "voxel_size")
     if voxel_size <= 0:
         raise r.fail(f"voxel_size must be > 0, got {voxel_size}")
+    block_size = r.num(r.get(doc, "block_size"), "block_size")
+    if block_size <= 0:
+        raise r.fail(f"block_size must be > 0, got {block_size}")
     tile = r.int(r.get(doc, "tile"), "tile", 1, _MAX_PAGE_SIZE)
     page_size = r.int(r.get(doc, "page_size"), "page_size", 1, _MAX_PAGE_SIZE)
     if page_size < tile:
@@ -410,7 +423,7 @@ def _parse_manifest(doc: Any, path: Path) -> _Meta:
     if len(set(names)) != len(names):
         raise r.fail("the same file is named twice among arrays and pages")
     info = r.obj(r.get(doc, "info"), "info")
-    return _Meta(origin, voxel_size, tile, page_size, yaw, pitch, pitched, tile_mode, coef_mode,
+    return _Meta(origin, voxel_size, block_size, tile, page_size, yaw, pitch, pitched, tile_mode, coef_mode,
                  n, m, k, d, pages, coef_pages, files, info)
 
 
@@ -596,7 +609,8 @@ def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
     coef_pages = [_load_array(path / f, COEF_MODES[meta.coef_mode], (h, w), mmap) for f, h, w in meta.coef_pages]
 
     return BillboardModel(
-        origin=meta.origin, voxel_size=meta.voxel_size, tile=meta.tile, page_size=meta.page_size,
+        origin=meta.origin, voxel_size=meta.voxel_size, block_size=meta.block_size, tile=meta.tile,
+        page_size=meta.page_size,
         yaw_offsets=meta.yaw_offsets, pitches=meta.pitches, pitched_quads=meta.pitched_quads,
         tile_mode=meta.tile_mode, coef_mode=meta.coef_mode, pages=pages, coef_pages=coef_pages,
         info=meta.info, **arrays)
@@ -756,7 +770,7 @@ class ModelWriter:
         self.num_slots += m
 
     def finish(self, *, origin, voxel_size, yaw_offsets, pitches, pitched_quads, node_level, node_bounds,
-               node_children, node_range, info) -> Path:
+               node_children, node_range, info, block_size=None) -> Path:
         """Write the tables, coefficient pages and (last) the manifest, then rename into ``path``."""
         if self._state != "open":
             raise RuntimeError(f"ModelWriter is {self._state}")
@@ -774,7 +788,8 @@ class ModelWriter:
             first = np.zeros(len(rank), dtype=np.int64)
             np.cumsum(1 + rank[:-1], out=first[1:])
             model = BillboardModel(
-                origin=np.asarray(origin, dtype=np.float64), voxel_size=voxel_size, tile=self.tile,
+                origin=np.asarray(origin, dtype=np.float64), voxel_size=voxel_size, block_size=block_size,
+                tile=self.tile,
                 page_size=self.page_size, yaw_offsets=yaw, pitches=pitch, pitched_quads=pitched_quads,
                 tile_mode=self.tile_mode, coef_mode=self.coef_mode, first_slot=first.astype(np.int32),
                 pages=[np.load(self._tmp / e["file"], mmap_mode="r") for e in pages],

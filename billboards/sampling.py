@@ -108,20 +108,23 @@ def views_from_dataset(dataset, frames=None) -> Views:
 class VoxelPoints:
     """The cloud grouped by voxel, for z-buffers: points (N, 3) float32 relative to
     ``origin`` sorted by voxel; begin (n + 1,) int64 offsets of each voxel's run;
-    centres (n, 3) float64 world voxel centres; size = voxel edge (m)."""
+    centres (n, 3) float64 world voxel centres; size = voxel edge (m); reach: how far (m)
+    a voxel's points may lie from its centre, when more than the voxel's half diagonal (the
+    larger blocks of a facade layer)."""
 
     origin: np.ndarray
     points: np.ndarray
     begin: np.ndarray
     centres: np.ndarray
     size: float
+    reach: float | None = None
 
     def in_view(self, K: np.ndarray, world_from_cam: np.ndarray, image_size, max_distance: float) -> np.ndarray:
         """(m, 3) float32 points (relative to origin) of the voxels that may appear in the view."""
         w, h = image_size
         R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
         cam = _transform(self.centres - C, R.T)
-        radius = self.size * 0.8660254
+        radius = max(self.size * 0.8660254, self.reach or 0.0)
         z = cam[:, 2]
         # Conservative frustum test of the voxel's bounding sphere.
         ok = (z > -radius) & (np.linalg.norm(cam, axis=1) < max_distance + radius)
@@ -270,12 +273,14 @@ class ImageSampler:
     (see :func:`quad_centres`), default the quad centres; kind (n,) uint8 quad kinds
     (:data:`geometry.KINDS`, default all billboards). A layer block (kind ≠ BILLBOARD)
     is a surface: every texel shows what the camera sees through it unless something
-    stands in front of its cube (then the next camera is tried), never see-through.
+    stands in front of its cube (then the next camera is tried), never see-through;
+    its edge is ``block_size`` (default: ``size``).
     """
 
     def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,
                  voxels: VoxelPoints, config: SamplingConfig = SamplingConfig(),
-                 box_centres: np.ndarray | None = None, kind: np.ndarray | None = None):
+                 box_centres: np.ndarray | None = None, kind: np.ndarray | None = None,
+                 block_size: float | None = None):
         self.views, self.config = views, config
         self.centres = np.asarray(centres, dtype=np.float64)
         # The voxel cubes (the slab of each billboard); the quads may sit off their centres.
@@ -284,6 +289,8 @@ class ImageSampler:
         self.base_yaw = np.asarray(base_yaw, dtype=np.float64)
         self.kind = (np.full(len(self.centres), BILLBOARD, np.uint8) if kind is None
                      else np.asarray(kind, dtype=np.uint8))
+        # Quad edge per billboard (m): the voxel's, or the layer block's.
+        self.sizes = np.where(self.kind == BILLBOARD, self.size, self.size if block_size is None else float(block_size))
         self.cache = _ViewCache(views, voxels, config)
 
     # -- choosing cameras ------------------------------------------------------------
@@ -342,11 +349,12 @@ class ImageSampler:
                                    self.config.directions.pitched_quads)
         return pose[:, :3, :3], pose[:, :3, 3], self.views.K[views], self.centres[ids] - pose[:, :3, 3], right, up
 
-    def _grid(self, base, along_col, along_row):
-        """base + a_col·along_col − a_row·along_row over the texel grid: (m,) each → (m, t, t) float32."""
-        a = (texel_offsets(self.config.tile) * self.size).astype(np.float32)
-        return (base.astype(np.float32)[:, None, None] + along_col.astype(np.float32)[:, None, None] * a[None, None, :]
-                - along_row.astype(np.float32)[:, None, None] * a[None, :, None])
+    def _grid(self, base, along_col, along_row, sizes):
+        """base + a_col·along_col − a_row·along_row over the texel grid of quads of edge sizes (m,):
+        (m,) each → (m, t, t) float32."""
+        a = texel_offsets(self.config.tile).astype(np.float32)[None, :] * sizes.astype(np.float32)[:, None]
+        return (base.astype(np.float32)[:, None, None] + along_col.astype(np.float32)[:, None, None] * a[:, None, :]
+                - along_row.astype(np.float32)[:, None, None] * a[:, :, None])
 
     def _project(self, views, K, x, y, z):
         """Camera coordinates (m, t, t) → pixel u, v (float32, (−1, −1) outside) and the inside mask."""
@@ -412,7 +420,7 @@ class ImageSampler:
         # The surface point along each texel's virtual ray, then into the real camera.
         point = [None] * 3
         for k in range(3):
-            p_k = self._grid(c[:, k], right[:, k], up[:, k])
+            p_k = self._grid(c[:, k], right[:, k], up[:, k], self.sizes[ids])
             e_k = eye[:, k].astype(np.float32)[:, None, None]
             point[k] = e_k + np.where(covered, depth, 1.0) * (p_k - e_k)
         Rf = R.astype(np.float32)
@@ -424,25 +432,25 @@ class ImageSampler:
         if cfg.occlusion:
             status[covered & (nearest < z - tol)] = OCCLUDED
         status[~inside] = UNSEEN
-        footprint = (self.size / cfg.tile) * K[:, 0, 0] / np.maximum(distance, 1e-6)
+        footprint = (self.sizes[ids] / cfg.tile) * K[:, 0, 0] / np.maximum(distance, 1e-6)
         return self._colours(entries, local, u, v, footprint), status
 
     def _sample_projective(self, views, ids, yaw, pitch):
         """The quad projected into the camera (a homography): each texel is what the camera
         sees through it, accepted where that lies inside the voxel cube."""
         cfg = self.config
-        s = self.size
+        s = self.sizes[ids]                                                  # (m,) quad edges
         R, C, K, c, right, up = self._frames(views, ids, yaw, pitch)
         # Texel positions are affine in (col, row): camera coordinates follow without a matmul.
         cc, cr, cu = (np.einsum("mk,mkj->mj", v, R) for v in (c, right, up))
-        x, y, z = (self._grid(cc[:, k], cr[:, k], cu[:, k]) for k in range(3))
+        x, y, z = (self._grid(cc[:, k], cr[:, k], cu[:, k], s) for k in range(3))
         u, v, inside = self._project(views, K, x, y, z)
         # Where each texel's ray (from the camera, in z-depth units) crosses the voxel cube.
         box = self.box_centres[ids] - C
         t_in = t_out = None
         with np.errstate(divide="ignore", invalid="ignore"):
             for k in range(3):
-                scale_k = z / self._grid(c[:, k], right[:, k], up[:, k])   # world axis k, camera-relative
+                scale_k = z / self._grid(c[:, k], right[:, k], up[:, k], s)   # world axis k, camera-relative
                 lo = (box[:, k] - s / 2).astype(np.float32)[:, None, None] * scale_k
                 hi = (box[:, k] + s / 2).astype(np.float32)[:, None, None] * scale_k
                 near, far = np.fmin(lo, hi), np.fmax(lo, hi)
@@ -453,7 +461,7 @@ class ImageSampler:
         # The surface the camera sees through the texel belongs to the billboard if it lies in
         # the voxel's slab, or within slab_margin beyond it: the part of a neighbour's surface
         # that parallax moves behind this quad (cut exactly, it would be on neither quad).
-        margin = np.float32(cfg.slab_margin * s)
+        margin = (cfg.slab_margin * s).astype(np.float32)[:, None, None]
         own = np.isfinite(filled) & (filled >= t_in - tol) & (filled <= t_out + tol + margin)
         board = np.flatnonzero(self.kind[ids] == BILLBOARD)
         if cfg.own_points and len(board):
@@ -461,7 +469,7 @@ class ImageSampler:
             # points; the camera sees past the voxel only where nothing lies within one z-buffer
             # pixel (a gap between a pillar's points must not show the wall behind as see-through).
             hit = np.isfinite(self._own_depth(ids[board], np.zeros((len(board), 3)), c[board], right[board], up[board]))
-            beyond = np.isfinite(nearest[board]) & (nearest[board] > t_out[board] + tol[board] + margin)
+            beyond = np.isfinite(nearest[board]) & (nearest[board] > t_out[board] + tol[board] + margin[board])
             own[board] = (own[board] | hit) & ~beyond
         own[self.kind[ids] != BILLBOARD] = True   # a layer block is a surface: glass and paint show, never see-through
         status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
@@ -482,10 +490,11 @@ class ImageSampler:
         point). Gaps between cloud points are closed morphologically; (m, t, t) float32,
         inf where the ray meets nothing.
         """
-        t, s, m = self.config.tile, self.size, len(ids)
+        t, m = self.config.tile, len(ids)
         vox = self.cache.voxels
         starts, ends = vox.begin[ids], vox.begin[ids + 1]
         lengths = ends - starts
+        s = np.repeat(self.sizes[ids].astype(np.float32), lengths)   # quad edge, per point
         owner = np.repeat(np.arange(m), lengths)
         index = np.arange(int(lengths.sum())) + np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
         # Points relative to each sample's eye; the quad's centre ce and axes likewise.

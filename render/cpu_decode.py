@@ -153,6 +153,7 @@ class CpuDecoder:
         lay = atlas_layout(0, self.model.tile, self.page_size)
         for name, value in (("u_tiles_per_row", lay.tiles_per_row), ("u_tiles_per_page", lay.tiles_per_page),
                             ("u_tile", int(self.model.tile)), ("u_size", float(self.model.voxel_size)),
+                            ("u_block_size", float(self.model.block_size)),
                             ("u_spherical", self.spherical), ("u_linear", self.linear),
                             ("u_eye", tuple(np.asarray(camera.eye, np.float32).tolist()))):
             set_uniform(prog, name, value)

@@ -48,6 +48,15 @@ def billboard_radius(voxel_size: float) -> float:
     return float(voxel_size) * math.sqrt(3.0) / 2.0
 
 
+def model_quad_radius(model) -> float:
+    """How far any quad of ``model`` reaches beyond its octree leaf: the billboard radius, or
+    half a layer block's diagonal (a block's centre lies in its leaf) if that is larger."""
+    radius = billboard_radius(model.voxel_size)
+    if np.any(model.kind != 0):
+        radius = max(radius, float(model.block_size) * math.sqrt(2.0) / 2.0)
+    return radius
+
+
 # ---------------------------------------------------------------------------------------------
 # Planes and boxes
 

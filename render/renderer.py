@@ -19,7 +19,7 @@ import numpy as np
 from billboards.model import BillboardModel
 
 from .camera import ClipPlanes, GLCamera, gl_camera
-from .culling import billboard_radius, frustum_cull_nodes, frustum_planes, ranges_to_indices
+from .culling import frustum_cull_nodes, model_quad_radius, frustum_planes, ranges_to_indices
 from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder
@@ -128,7 +128,7 @@ class BillboardRenderer:
         model = self.model
         t0 = time.perf_counter()
         view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
-        pad = billboard_radius(model.voxel_size)
+        pad = model_quad_radius(model)
         frustum = frustum_cull_nodes(frustum_planes(view_proj), model.node_bounds, model.node_children,
                                      model.node_range, pad=pad, centres=model.centres, radius=pad,
                                      split_inside_above=256)

@@ -206,7 +206,7 @@ class ModelResources:
         records = instance_records(model)
         self.instances = self._keep(ctx.buffer(records)) if len(records) else None
         self.uniforms = {
-            "u_size": float(model.voxel_size), "u_tile": int(model.tile),
+            "u_size": float(model.voxel_size), "u_block_size": float(model.block_size), "u_tile": int(model.tile),
             "u_d_yaw": len(model.yaw_offsets), "u_d_pitch": len(model.pitches),
             "u_slots_per_row": self.slots_per_row,
             "u_tiles_per_row": tiles.tiles_per_row, "u_tiles_per_page": tiles.tiles_per_page,

@@ -227,12 +227,13 @@ def test_slits_on_a_street_match_the_ground_truth(layer_street, layer_cloud, tmp
           f"{empty[wall].mean():.2%} / {np.all(plain == 0, axis=-1)[wall].mean():.2%}")
 
 
-@pytest.mark.parametrize("decode", ["gpu", "cpu"])
-def test_no_seams_on_a_flat_textured_wall(ctx, decode):
+@pytest.mark.parametrize("decode, voxel_size", [("gpu", 0.5), ("cpu", 0.5), ("gpu", 0.25), ("cpu", 0.25)])
+def test_no_seams_on_a_flat_textured_wall(ctx, decode, voxel_size):
     """A wall of 4 × 3 facade blocks whose tiles continue one smooth texture, seen frontally
     and obliquely: no background pixel inside the wall, and no colour step between neighbouring
     pixels larger than one texel of the texture's own gradient (bilinear texels never read a
-    neighbouring tile; at a block edge the two border texels meet)."""
+    neighbouring tile; at a block edge the two border texels meet). The blocks are 0.5 m,
+    in models of 0.5 m voxels and of 0.25 m voxels (blocks larger than the billboards)."""
     from billboards.atlas import pack_rows, pack_tiles
     from billboards.model import BillboardModel
     from render.camera import look_at
@@ -253,7 +254,7 @@ def test_no_seams_on_a_flat_textured_wall(ctx, decode):
         tiles[b, ..., 3] = 255
     n = len(centres)
     model = BillboardModel(
-        origin=np.zeros(3), voxel_size=s, tile=t, page_size=64, yaw_offsets=np.deg2rad([-30.0, 0.0, 30.0]),
+        origin=np.zeros(3), voxel_size=voxel_size, block_size=s, tile=t, page_size=64, yaw_offsets=np.deg2rad([-30.0, 0.0, 30.0]),
         pitches=np.zeros(1), pitched_quads=False, tile_mode="u8", coef_mode="f32",
         centres=centres.astype(np.float32), base_yaw=np.full(n, -np.pi / 2, np.float32), rank=np.zeros(n, np.uint8),
         first_slot=np.arange(n, dtype=np.int32), slot_scale=np.ones((n, 4), np.float32),

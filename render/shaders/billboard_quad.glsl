@@ -1,7 +1,8 @@
 // Shared by billboard.glsl (GPU decode) and billboard_cpu.glsl (CPU decode): the quad
 // geometry of billboards.geometry, so that both paths rasterise exactly the same pixels.
 //
-// Every quad is a square of edge u_size centred at its centre. A billboard (kind 0) turns
+// Every quad is a square centred at its centre, of edge u_size for a billboard and u_block_size
+// for a block of the facade layer. A billboard (kind 0) turns
 // toward the eye:
 //   normal n = (cos φ cos ψ, cos φ sin ψ, sin φ)   (toward the eye)
 //   right  r = (−sin ψ, cos ψ, 0)
@@ -16,6 +17,7 @@ uniform mat4 u_projection;   // GL clip from GL eye
 uniform mat4 u_view;         // GL eye from model coordinates (world − origin)
 uniform vec3 u_eye;          // camera centre in model coordinates
 uniform float u_size;        // billboard edge (m)
+uniform float u_block_size;  // facade and ground block edge (m)
 uniform bool u_spherical;    // quads also pitch toward the eye
 uniform int u_tile;          // texels per tile side t
 
@@ -54,7 +56,8 @@ vec4 quad_vertex(vec3 centre, vec2 angles, int kind, vec2 corner, out vec2 texel
         vec3 n = vec3(cos(pitch) * cos(yaw), cos(pitch) * sin(yaw), sin(pitch));
         up = cross(n, right);
     }
-    vec3 p = centre + (corner.x - 0.5) * u_size * right + (corner.y - 0.5) * u_size * up;
+    float size = kind == KIND_BILLBOARD ? u_size : u_block_size;
+    vec3 p = centre + (corner.x - 0.5) * size * right + (corner.y - 0.5) * size * up;
     texel = vec2(corner.x, 1.0 - corner.y) * float(u_tile);
     return u_projection * (u_view * vec4(p, 1.0));
 }
