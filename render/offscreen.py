@@ -8,12 +8,23 @@ the :data:`CACHE_SIZE` most recently used renderers (it keeps their models alive
 :func:`clear_cache` frees them. With ``sky=`` (a :class:`billboards.sky.Sky`, e.g.
 :func:`billboards.sky.read_sky` of the model directory) the view is drawn over that sky
 (:class:`render.sky.SkyPass`, one shared by every call) instead of the plain background.
+
+An OpenGL context only takes the calls of the thread it is *current* on, and creating
+or releasing any other context (a viewer's, a benchmark's, a test's) changes which one
+that is; moderngl does not switch per call. So every function here makes the shared
+context current for its own GL work and then restores whatever context was current
+before, and so must a caller that draws with :func:`renderer_for`'s
+renderer itself: ``with shared_context(): renderer.render(...)``.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import threading
 from collections import OrderedDict
+from contextlib import contextmanager
+from typing import Iterator
 
 import moderngl
 import numpy as np
@@ -34,16 +45,74 @@ _sky_pass: SkyPass | None = None
 
 
 def shared_context() -> moderngl.Context:
-    """The process-wide headless context :func:`render_view` draws with (created on first use)."""
+    """The process-wide headless context :func:`render_view` draws with (created on first use,
+    leaving current the context that was current before, if any)."""
     global _ctx
     with _lock:
         if _ctx is None:
-            _ctx = create_context()
+            with _egl_current_kept():
+                _ctx = create_context()
         return _ctx
 
 
+@contextmanager
+def _current() -> Iterator[moderngl.Context]:
+    """The shared context, current for the block; the previously current one restored after
+    (leaving ``with ctx:``, moderngl makes no context current: EGL's is restored here)."""
+    with _lock:
+        ctx = shared_context()
+        with _egl_current_kept(), ctx:
+            yield ctx
+
+
+@contextmanager
+def _egl_current_kept() -> Iterator[None]:
+    """Restore the calling thread's current EGL context after the block (creating a context
+    makes it current; leaving ``with ctx:`` makes none current). A no-op where libEGL cannot
+    be loaded or no EGL context was current."""
+    egl = _libegl()
+    saved = None
+    if egl is not None:
+        saved = (egl.eglGetCurrentDisplay(), egl.eglGetCurrentSurface(0x3059),  # EGL_DRAW
+                 egl.eglGetCurrentSurface(0x305A), egl.eglGetCurrentContext())  # EGL_READ
+    try:
+        yield
+    finally:
+        if saved is not None and saved[0] and saved[3]:
+            egl.eglMakeCurrent(*saved)
+
+
+_egl: ctypes.CDLL | None | bool = False  # False: not looked up yet; None: not available
+
+
+def _libegl() -> ctypes.CDLL | None:
+    global _egl
+    if _egl is False:
+        try:
+            lib = ctypes.CDLL(ctypes.util.find_library("EGL") or "libEGL.so.1")
+            for name in ("eglGetCurrentDisplay", "eglGetCurrentContext"):
+                getattr(lib, name).restype = ctypes.c_void_p
+                getattr(lib, name).argtypes = []
+            lib.eglGetCurrentSurface.restype = ctypes.c_void_p
+            lib.eglGetCurrentSurface.argtypes = [ctypes.c_int32]
+            lib.eglMakeCurrent.restype = ctypes.c_uint
+            lib.eglMakeCurrent.argtypes = [ctypes.c_void_p] * 4
+            _egl = lib
+        except (OSError, AttributeError):
+            _egl = None
+    return _egl
+
+
 def renderer_for(model: BillboardModel, decode: str = "gpu", **options) -> BillboardRenderer:
-    """The cached renderer of ``model`` (same object) for ``decode`` and ``options``, made on first use."""
+    """The cached renderer of ``model`` (same object) for ``decode`` and ``options``, made on first use.
+
+    It draws in :func:`shared_context`, which must be current when it is used directly:
+    ``with shared_context(): renderer.render(...)``."""
+    with _current():
+        return _renderer_for(model, decode, **options)
+
+
+def _renderer_for(model: BillboardModel, decode: str = "gpu", **options) -> BillboardRenderer:
     key = (id(model), decode, tuple(sorted((k, repr(v)) for k, v in options.items())))
     with _lock:
         hit = _cache.get(key)
@@ -64,12 +133,15 @@ def clear_cache() -> None:
     """Release every cached renderer and the sky pass (the shared context stays)."""
     global _sky_pass
     with _lock:
-        while _cache:
-            _, (_, renderer) = _cache.popitem()
-            renderer.release()
-        if _sky_pass is not None:
-            _sky_pass.release()
-            _sky_pass = None
+        if _ctx is None:
+            return
+        with _current():
+            while _cache:
+                _, (_, renderer) = _cache.popitem()
+                renderer.release()
+            if _sky_pass is not None:
+                _sky_pass.release()
+                _sky_pass = None
 
 
 def _sky_pass_for(sky: Sky | None) -> SkyPass | None:
@@ -93,6 +165,6 @@ def render_view(model: BillboardModel, K, world_from_cam, size, decode: str = "g
     :class:`~render.renderer.BillboardRenderer` keywords (spherical, background, clip).
     Returns (height, width, 3) uint8, row 0 at the top.
     """
-    with _lock:
-        renderer = renderer_for(model, decode, **options)
+    with _current():
+        renderer = _renderer_for(model, decode, **options)
         return render_over_sky(renderer, _sky_pass_for(sky), K, world_from_cam, size, visible)

@@ -361,6 +361,41 @@ def test_render_view_public_api():
         clear_cache()
 
 
+def test_render_view_survives_other_contexts(ctx):
+    """Creating or releasing another context (a benchmark's, a viewer's) changes which one
+    is current; render_view still draws in its own (cached and new uploads alike) and
+    leaves the caller's context current."""
+    from render.context import create_context
+
+    def clear_colour(c, colour) -> list:
+        fbo = c.simple_framebuffer((4, 4))
+        fbo.use()
+        fbo.clear(*colour, 1.0)
+        pixel = list(fbo.read(components=3)[:3])
+        fbo.release()
+        return pixel
+
+    def model():
+        return make_model([[0.0, 0.0, 0.0], [0.0, 1.5, 0.5]], rank=2, origin=BIG_ORIGIN)
+
+    first = model()
+    K, size = intrinsics(120.0, 80, 60), (80, 60)
+    pose = look_at(first.origin + [5.0, 0.5, 0.5], first.origin + [0.0, 0.5, 0.3])
+    try:
+        before = render_view(first, K, pose, size, linear=False)
+        assert np.any(before != SKY_U8)
+        other = create_context()
+        other.release()  # now no context is current
+        assert np.array_equal(render_view(first, K, pose, size, linear=False), before)  # cached renderer
+        assert np.array_equal(render_view(model(), K, pose, size, linear=False), before)  # a new upload
+        ctx.__enter__()  # make the caller's context current (moderngl's exit would leave none current)
+        render_view(first, K, pose, size, linear=False)
+        assert clear_colour(ctx, (1.0, 0.0, 0.0)) == [255, 0, 0]
+    finally:
+        clear_cache()
+        ctx.__enter__()  # the module's later tests draw in ctx
+
+
 def test_shader_files_and_attribute_padding(ctx):
     from render.program import ShaderError, load_program, stage_sources
     from render.resources import vertex_binding
