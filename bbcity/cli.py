@@ -133,7 +133,7 @@ def _add_build(sub) -> None:
     p.add_argument("--spacing", type=float, default=6.0, help="degrees between directions (default 6)")
     p.add_argument("--pitches", type=float, nargs="+", default=[0.0], help="pitch rows in degrees (default 0)")
     p.add_argument("--pitched-quads", action="store_true", help="quads also tilt toward the viewer's elevation")
-    p.add_argument("--tile", type=int, default=16, help="texels per billboard side (default 16)")
+    p.add_argument("--tile", type=int, default=8, help="texels per billboard side (default 8)")
     p.add_argument("--naive", action="store_true", help="nearest-frame sampling without the occlusion test")
     p.add_argument("--ratio", type=float, default=None, help="PCA cumulative contribution ratio (default: the PcaConfig's)")
     p.add_argument("--max-error", type=float, default=None,

@@ -45,7 +45,7 @@ VISIBLE, TRANSPARENT, OCCLUDED, UNSEEN = 0, 1, 2, 3
 
 @dataclass(frozen=True)
 class SamplingConfig:
-    tile: int = 16                  # texels per side (3.1 cm on the default 0.5 m voxels)
+    tile: int = 8                   # texels per side (6.25 cm on the default 0.5 m voxels: about the default rig's pixel on a facade)
     directions: DirectionConfig = field(default_factory=DirectionConfig)
     occlusion: bool = True          # False: naive nearest-frame sampling (no occlusion test, one camera)
     candidates: int = 4             # cameras tried per direction, best first, while texels stay hidden
