@@ -34,8 +34,10 @@ demo: $(INSTALL_STAMP)
 	$(BIN)/bbcity synth street --out $(DEMO_DIR)/street
 	$(BIN)/bbcity recon $(DEMO_DIR)/street --out $(DEMO_DIR)/work
 	$(BIN)/bbcity build $(DEMO_DIR)/work --out $(DEMO_DIR)/model --holdout 10
+	$(BIN)/bbcity build $(DEMO_DIR)/work --out $(DEMO_DIR)/model-billboards --holdout 10 --layer none
 	$(BIN)/bbcity render $(DEMO_DIR)/model --path capture --frames 300 --out $(DEMO_DIR)/flythrough.mp4
-	$(BIN)/bbcity eval $(DEMO_DIR)/model $(DEMO_DIR)/street --cloud $(DEMO_DIR)/work/cloud.ply --out $(DEMO_DIR)/eval
+	$(BIN)/bbcity eval $(DEMO_DIR)/model $(DEMO_DIR)/street --cloud $(DEMO_DIR)/work/cloud.ply \
+		--billboards-only $(DEMO_DIR)/model-billboards --out $(DEMO_DIR)/eval
 
 test: $(INSTALL_STAMP)
 	$(BIN)/python -m pytest -q
