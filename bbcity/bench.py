@@ -18,9 +18,12 @@ import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from data_synth import RigConfig
 
 logger = logging.getLogger(__name__)
 
@@ -49,6 +52,17 @@ class BenchConfig:
     def quick_config(cls, **overrides) -> "BenchConfig":
         """The smoke run's settings: a 6 m street at 1× and 2×, one repeat."""
         return cls(**{"quick": True, "repeats": 1, "street_length": 6.0, "scales": (1, 2), **overrides})
+
+    def rig(self) -> "RigConfig":
+        """The capture rig of the street runs: the default rig (:class:`data_synth.RigConfig`,
+        what ``make demo`` builds), at half its width and height for quick runs (the same
+        aspect ratio, field of view and pitch)."""
+        from dataclasses import replace
+
+        from data_synth import RigConfig
+
+        rig = RigConfig()
+        return replace(rig, width=rig.width // 2, height=rig.height // 2) if self.quick else rig
 
 
 @dataclass
@@ -165,7 +179,7 @@ def bench_synthesis(cfg: BenchConfig, report: Report) -> None:
     """Scene generation, the renderer against bare ray casting, serial vs parallel frames."""
     import open3d as o3d
 
-    from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig, build_street, build_town, make_rig
+    from data_synth import StreetConfig, SynthConfig, TownConfig, build_street, build_town, make_rig
     from data_synth.dataset import capture_path, write_dataset
     from data_synth.raycast import Renderer
 
@@ -179,8 +193,9 @@ def bench_synthesis(cfg: BenchConfig, report: Report) -> None:
                                         "triangles": len(scene.triangles), "wall s": m.wall, "cpu s": m.cpu,
                                         "peak MB": m.peak_rss / 1e6, "objects/s": scene.num_objects / m.wall})
 
-    width, height = (320, 240) if cfg.quick else (640, 480)
-    synth = SynthConfig(street=street_cfg, rig=RigConfig(width=width, height=height), frames=4 if cfg.quick else 10)
+    rig_cfg = cfg.rig()
+    width, height = rig_cfg.width, rig_cfg.height
+    synth = SynthConfig(street=street_cfg, rig=rig_cfg, frames=4 if cfg.quick else 10)
     rig = make_rig(synth.rig)
     poses, _ = capture_path(synth)
     pose = rig.world_from_cam(poses[len(poses) // 4], 0)
@@ -359,7 +374,7 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    report = Report(settings=asdict(cfg))
+    report = Report(settings={**asdict(cfg), "rig": asdict(cfg.rig())})
     start = time.perf_counter()
     timings = report.settings.setdefault("section_seconds", {})
 

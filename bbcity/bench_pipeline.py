@@ -144,13 +144,13 @@ class PipelineRun:
 
 
 def street_config(cfg: BenchConfig, length: float):
-    """The benchmark street: ``length`` m at the default frame spacing (3 m per frame and pass)."""
-    from data_synth import RigConfig, StreetConfig, SynthConfig
+    """The benchmark street: ``length`` m at the default frame spacing (3 m per frame and pass),
+    seen by :meth:`BenchConfig.rig` (the default rig; half its resolution when quick)."""
+    from data_synth import StreetConfig, SynthConfig
 
-    width, height = (320, 240) if cfg.quick else (640, 480)
     frames = max(3, int(round(length / 3.0)))
-    return SynthConfig(street=StreetConfig(length=float(length)), rig=RigConfig(width=width, height=height),
-                       frames=frames, spp=1 if cfg.quick else 2)
+    return SynthConfig(street=StreetConfig(length=float(length)), rig=cfg.rig(), frames=frames,
+                       spp=1 if cfg.quick else 2)
 
 
 def run_pipeline(cfg: BenchConfig, length: float, out: Path, holdout: int = 0) -> PipelineRun:
@@ -240,8 +240,10 @@ def bench_pipeline(cfg: BenchConfig, report: Report, out: Path) -> PipelineRun:
         if scale == cfg.scales[0]:
             for r in run.rows:
                 report.add("Pipeline stages", r)
+    rig = cfg.rig()
     report.notes["Pipeline stages"] = (
-        f"A {base:g} m street at {street_config(cfg, base).rig.width}×{street_config(cfg, base).rig.height}, "
+        f"A {base:g} m street seen by the default rig at {rig.width}×{rig.height} ({rig.hfov_deg:g}° horizontal "
+        f"field of view, pitched up {rig.pitch_deg:g}°), "
         f"3 m between frames, both lanes, {cfg.workers} worker processes. Each stage runs in a fresh process "
         "(its start-up, 2–3 s of imports, is in the wall time); CPU s and peak MB are that process's and its "
         "workers'. Indented stages come from the stage reports (worker CPU where noted). The build holds every "

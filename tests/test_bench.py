@@ -32,6 +32,19 @@ def test_config_refuses_bad_settings():
     assert quick.quick and quick.scene == "town" and quick.scales == (1, 2)
 
 
+def test_bench_rig_is_the_default_rig_scaled_down_when_quick():
+    from data_synth import RigConfig
+
+    default = RigConfig()
+    assert BenchConfig().rig() == default  # what `make demo` builds
+    quick = BenchConfig.quick_config().rig()
+    assert (quick.width, quick.height) == (default.width // 2, default.height // 2)
+    assert quick.width * default.height == quick.height * default.width  # same aspect ratio …
+    same = ("hfov_deg", "pitch_deg", "baselines", "mount_height")
+    assert [getattr(quick, k) for k in same] == [getattr(default, k) for k in same]
+    assert abs(quick.vfov_deg - default.vfov_deg) < 1e-9  # … and field of view
+
+
 @pytest.mark.slow
 def test_quick_bench_writes_every_section(tmp_path):
     """The smoke run (about 2 minutes): every section present, each speed paired with a
