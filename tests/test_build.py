@@ -153,17 +153,18 @@ def _work_dir(tmp_path, tiny_dataset, tiny_cloud):
 def test_texture_sweep_writes_table_and_plot(tiny_dataset, tiny_cloud, tmp_path):
     work = _work_dir(tmp_path, tiny_dataset, tiny_cloud)
     out = tmp_path / "sweep"
-    assert cli_main(["-q", "texture-sweep", str(work), "--out", str(out), "--count", "48", "--tiles", "8", "32"]) == 0
+    assert cli_main(["-q", "texture-sweep", str(work), "--out", str(out), "--count", "48", "--tiles", "16", "32"]) == 0
     result = json.loads((out / "texture_sweep.json").read_text())
     rows = {r["setting"]: r for r in result["sweep"]}
     assert (out / "texture_sweep.png").stat().st_size > 0 and "rank 4" in (out / "texture_sweep.md").read_text()
     # More rank buys quality and costs bytes; rank 0 stores the mean tile only.
     assert rows["rank 0"]["mean_rank"] == 0 and rows["rank 16"]["psnr_rgb_db"] >= rows["rank 2"]["psnr_rgb_db"]
     assert rows["rank 0"]["bytes_per_billboard"] < rows["rank 2"]["bytes_per_billboard"]
-    assert rows["rank 0"]["compression"] > 25  # 32 directions, one mean tile: 32× less the per-tile tables
-    assert {r["tile"] for r in result["sweep"]} == {8, 16, 32}  # the build's 16 is always swept
+    # 32 directions, one mean tile of 8×8 texels (256 bytes): 32× less the per-slot tables (about 120 bytes)
+    assert rows["rank 0"]["compression"] > 20
+    assert {r["tile"] for r in result["sweep"]} == {8, 16, 32}  # the build's 8 is always swept
     assert rows["default, f16 tiles, f32 coefficients"]["bytes_per_billboard"] > rows["default (build's)"]["bytes_per_billboard"]
-    assert "default, 8×8 texels" in rows
+    assert "default, 16×16 texels" in rows and "default, 32×32 texels" in rows
 
 
 def test_sampling_eval_cli(tiny_dataset, tiny_cloud, tmp_path):
