@@ -37,7 +37,7 @@ from .pca import TOL, PcaConfig, eigen_textures
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
                        voxel_points)
-from .sky import estimate_sky, with_ground, write_sky
+from .sky import estimate_sky, write_sky
 from .splat import PointSampler
 
 logger = logging.getLogger(__name__)
@@ -411,9 +411,6 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         t1 = time.perf_counter()
         # The sky behind the model, from the capture's own sky pixels (the whole cloud marks what is not sky).
         sky = estimate_sky(views, points) if views is not None and conf.source == "images" else None
-        low = points[:, 2] < views.centres[:, 2].min() - 1.0 if sky is not None else None
-        if sky is not None and low.any():  # under the horizon: the mean colour of the ground the capture saw
-            sky = with_ground(sky, colours[low].mean(axis=0) / 255.0)
         stages["sky_s"] = time.perf_counter() - t1
         del points, colours, grouped, placed, layer
 

@@ -124,15 +124,6 @@ class Sky:
         return self.colour(ray_elevation(directions))
 
 
-def with_ground(sky: Sky, colour) -> Sky:
-    """``sky`` with the bins centred below the horizon set to ``colour`` (3,) RGB in [0, 1]:
-    under the horizon the background stands for ground the capture did not see (the far
-    lane under a sideways rig), not for sky."""
-    colours = sky.colours.copy()
-    colours[sky.bin_centres() < 0] = np.clip(np.asarray(colour, np.float32).reshape(3), 0, 1)
-    return Sky(colours, sky.elevation_deg, {**sky.info, "ground_colour": [float(c) for c in colours[0]]})
-
-
 def ray_elevation(directions: np.ndarray) -> np.ndarray:
     """(...) float64 world elevation (radians, z up) of ray ``directions`` (..., 3)."""
     d = np.asarray(directions, dtype=np.float64)

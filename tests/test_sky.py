@@ -198,15 +198,3 @@ def test_render_cli_and_viewer_draw_the_models_sky(tmp_path):
         wnd.destroy()
     sky = np.all(np.abs(image - green_u8) <= 1, -1)
     assert 0.2 < sky.mean() < 0.98
-
-
-def test_with_ground_sets_the_bins_below_the_horizon():
-    from billboards.sky import Sky, with_ground
-
-    sky = Sky(np.full((16, 3), 0.8, np.float32))
-    out = with_ground(sky, (0.2, 0.3, 0.4))
-    below = sky.bin_centres() < 0
-    assert below.sum() == 2   # bins of 6.25° from −10°: centres at −6.9° and −0.6°
-    np.testing.assert_allclose(out.colours[below], [[0.2, 0.3, 0.4]])
-    np.testing.assert_allclose(out.colours[~below], sky.colours[~below])
-    np.testing.assert_allclose(out.colour(np.deg2rad(-45.0)), [0.2, 0.3, 0.4], atol=1e-6)
