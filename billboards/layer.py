@@ -20,13 +20,14 @@ cloud departs from the layer (pillars, poles, beams, trees, roofs).
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from recon.epi import EpiConfig, EpiPass
 
-from .geometry import FACADE, GROUND
+from .geometry import FACADE, GROUND, base_yaw_toward
 
 logger = logging.getLogger(__name__)
 
@@ -92,11 +93,9 @@ def _running_median(values: np.ndarray, radius: int) -> np.ndarray:
         return values.copy()
     padded = np.pad(values, radius, constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * radius + 1)
-    with np.errstate(all="ignore"):
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            out = np.nanmedian(windows, axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN windows: NaN, as intended
+        out = np.nanmedian(windows, axis=1)
     return np.where(np.isnan(values), np.nan, out)
 
 
@@ -275,7 +274,6 @@ def _ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray,
     centres[:, :2] = grid_origin[:2] + (cells + 0.5) * size
     centres[:, 2] = ground_z
     # Rows run away from the nearest viewpoint, snapped to the grid (blocks tile without gaps).
-    from .geometry import base_yaw_toward
     yaw = base_yaw_toward(centres, viewpoints)
     yaw = np.round(yaw / (np.pi / 2)) * (np.pi / 2)
     point_block = np.full(len(cloud), -1, np.int64)
