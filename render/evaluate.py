@@ -52,6 +52,7 @@ BACKGROUND = (0.0, 0.0, 0.0)
 Method = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
 
 METRICS = ("psnr", "psnr_geometry", "psnr_seen", "ssim", "ssim_geometry", "ssim_seen")
+_UNUSED_COLOUR = (1.0, 0.0, 1.0)  # background for finding the pixels a model draws (magenta, absent from streets)
 WHERE = ("on path", "off path")
 
 
@@ -206,6 +207,14 @@ class ModelMethod:
         return render_view(self.model, K, world_from_cam, size, decode=self.decode, visible=self.visible,
                            sky=self.sky, background=BACKGROUND)
 
+    def covered(self, K, world_from_cam, size) -> np.ndarray:
+        """(h, w) bool: the pixels the model draws (rendered once more over a colour no texel has)."""
+        from .offscreen import render_view
+
+        image = render_view(self.model, K, world_from_cam, size, decode=self.decode, visible=self.visible,
+                            background=_UNUSED_COLOUR)
+        return np.any(image != np.round(np.asarray(_UNUSED_COLOUR) * 255).astype(np.uint8), axis=-1)
+
 
 class LazyPoisson:
     """A :class:`PoissonMesh` method built on first use (meshing takes seconds to minutes),
@@ -256,8 +265,12 @@ def evaluate_methods(methods: dict[str, Method], views: list[EvalView], images: 
             t1 = time.perf_counter()
             image = method(view.K, view.world_from_cam, view.size)
             render_s = time.perf_counter() - t1
+            # Coverage: the share of seen pixels the method draws (baselines draw black elsewhere).
+            drawn = (method.covered(view.K, view.world_from_cam, view.size) if hasattr(method, "covered")
+                     else np.any(image != 0, axis=-1))
+            coverage = float(drawn[view.seen].mean()) if view.seen.any() else float("nan")
             rows.append({"frame": view.frame, "view": view.where, "method": name, **score(image, view),
-                         "seen_fraction": float(view.seen.mean()), "render_s": render_s})
+                         "seen_fraction": float(view.seen.mean()), "coverage_seen": coverage, "render_s": render_s})
             if images is not None and name in keep:
                 images[name, i] = image
         nbytes = getattr(method, "nbytes", None)
@@ -280,7 +293,8 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
             sel = [r for r in rows if r["method"] == method and r["view"] == where]
             if not sel:
                 continue
-            summary[f"{method}, {where}"] = {k: _nanmean([r[k] for r in sel]) for k in (*METRICS, "seen_fraction")}
+            summary[f"{method}, {where}"] = {k: _nanmean([r.get(k, float("nan")) for r in sel])
+                                             for k in (*METRICS, "seen_fraction", "coverage_seen")}
     return summary
 
 
@@ -489,14 +503,14 @@ def markdown(report: dict) -> str:
              + ("The model is drawn over its sky; the baselines' background is black." if report.get("sky")
                 else "Backgrounds are black."), "",
              "| method, viewpoints | PSNR seen (dB) | SSIM seen | PSNR (dB) | SSIM | PSNR geometry (dB) | "
-             "SSIM geometry | seen pixels | bytes |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "SSIM geometry | seen pixels | seen pixels drawn | bytes |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, m in report["summary"].items():
         method = name.rsplit(", ", 1)[0]
         b = report["bytes"].get(method)
         lines.append(f"| {name} | {_f(m['psnr_seen'], '.2f')} | {_f(m['ssim_seen'], '.3f')} | {_f(m['psnr'], '.2f')} | "
                      f"{_f(m['ssim'], '.3f')} | {_f(m['psnr_geometry'], '.2f')} | {_f(m['ssim_geometry'], '.3f')} | "
-                     f"{_f(m['seen_fraction'], '.0%')} | {_f(b, ',')} |")
+                     f"{_f(m['seen_fraction'], '.0%')} | {_f(m.get('coverage_seen'), '.1%')} | {_f(b, ',')} |")
     wp = report.get("work_precision", [])
     if wp:
         lines += ["", "## Work-precision (workprecision.png)", "",

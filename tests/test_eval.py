@@ -185,8 +185,10 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     for name, m in report["summary"].items():
         assert 5 < m["psnr"] < 100 and -1 <= m["ssim"] <= 1, name
         assert 5 < m["psnr_seen"] < 100 and 0 < m["seen_fraction"] < 1, name
+        assert 0 <= m["coverage_seen"] <= 1, name
     on, off = report["summary"]["model, on path"], report["summary"]["model, off path"]
     assert on["seen_fraction"] > 0.3 and on["psnr_seen"] > on["psnr_geometry"] - 3
+    assert on["coverage_seen"] > 0.5   # the model draws most of what the capture saw
     assert report["summary"]["model: model, on path"]["psnr_seen"] == pytest.approx(on["psnr_seen"])
     for name in methods:
         assert report["bytes"][name] > 0
