@@ -153,11 +153,14 @@ def facade_columns(epi: EpiPass, cloud: np.ndarray, size: float, config: LayerCo
     strength = wide.sum(axis=1)
     mode = (peak + b0 + 0.5) * config.histogram_bin
     offset = np.full(c, np.nan)
-    near = np.abs(off - mode[col]) <= 2 * config.histogram_bin
+    order = np.argsort(col, kind="stable")
+    starts = np.searchsorted(col[order], np.arange(c + 1))
     for k in np.flatnonzero(strength >= config.min_points):
-        sel = near & (np.abs(col - k) <= 1)
-        if sel.sum() >= max(3, config.min_points // 4):
-            offset[k] = np.median(off[sel])
+        # The points of the column and its neighbours near this column's peak.
+        nearby = off[order[starts[max(k - 1, 0)]:starts[min(k + 2, c)]]]
+        sel = nearby[np.abs(nearby - mode[k]) <= 2 * config.histogram_bin]
+        if len(sel) >= max(3, config.min_points // 4):
+            offset[k] = np.median(sel)
     offset = _fill_gaps(_running_median(offset, config.smooth_columns), config.max_gap_columns, config.slab / 3)
     # Heights: EPI and cloud points on the plane, per column.
     bottom, top = np.full(c, np.nan), np.full(c, np.nan)
