@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_synth import load_dataset
+from data_synth import load_dataset, load_scene
 from data_synth.fileio import write_json
 from data_synth.tasks import ordered_results
 from recon.cloud_io import read_cloud_arrays
@@ -357,7 +357,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         block_size = conf.layer.block_size or size
         layer = build_layer(points, passes, block_size, points.min(axis=0), views.centres, conf.layer)
         stages["layer_s"] = time.perf_counter() - t1
-        layer_report = _layer_report(layer, passes, points, dataset_dir, conf.layer)
+        layer_report = _layer_report(layer, passes, points, dataset, conf.layer)
         layer_report["block_size"] = block_size
 
     t1 = time.perf_counter()
@@ -468,16 +468,13 @@ def _node_table(octree: Octree, node_range: np.ndarray) -> dict:
             "node_children": octree.node_children.astype(np.int32), "node_range": node_range.astype(np.int32)}
 
 
-def _layer_report(layer: Layer, passes, points: np.ndarray, dataset_dir, config: LayerConfig) -> dict:
-    """Counts of the facade layer and, with ground truth, its facade depth against the truth."""
+def _layer_report(layer: Layer, passes, points: np.ndarray, dataset, config: LayerConfig) -> dict:
+    """Counts of the facade layer and, when ``dataset`` has ground truth, its facade depth against it."""
     report = {"enabled": True, "passes": len(passes), "epi_points": int(sum(len(p.points) for p in passes)),
               "facade_blocks": int((layer.kind != GROUND).sum()), "ground_blocks": int((layer.kind == GROUND).sum()),
               "explained_points": int(layer.explained.sum()), "points": int(len(points))}
-    if dataset_dir is not None and layer.columns:
-        from data_synth import load_dataset as _load
-        if _load(dataset_dir).has_ground_truth:
-            from data_synth import load_scene
-            report["facade_depth"] = facade_depth_report(layer.columns, points, load_scene(dataset_dir), config)
+    if layer.columns and dataset.has_ground_truth:
+        report["facade_depth"] = facade_depth_report(layer.columns, points, load_scene(dataset.root), config)
     return report
 
 

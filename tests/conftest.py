@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from data_synth import RigConfig, StreetConfig, SynthConfig, write_dataset
+from data_synth import RigConfig, StreetConfig, SynthConfig, load_dataset, write_dataset
 
 
 #: A small landscape rig (the geometry of the pre-portrait default: 75° hfov, pitched up 10°)
@@ -35,3 +35,19 @@ def ctx():
     context = create_context()
     yield context
     context.release()
+
+
+def write_ground_truth_cloud(dataset_dir, path, cameras=(0,), stride: int = 2):
+    """The dataset's ground-truth depth of ``cameras`` in every frame, back-projected into a
+    PLY cloud at ``path`` (as recon writes it, without normals); returns ``path``."""
+    from recon.cloud_io import PlyStreamWriter
+    from recon.points import depth_to_points
+
+    ds = load_dataset(dataset_dir)
+    with PlyStreamWriter(path, normals=False) as writer:
+        for f in range(ds.num_frames):
+            for c in cameras:
+                pts, cols, _ = depth_to_points(ds.gt_depth(f, c), ds.rig.intrinsics[c], ds.world_from_cam(f, c),
+                                               ds.image(f, c), stride=stride)
+                writer.append(pts, cols)
+    return path

@@ -16,7 +16,8 @@ from billboards.pca import PcaConfig
 from billboards.sampling import SamplingConfig
 from data_synth import DataFormatError, load_dataset
 from recon.cloud_io import PlyStreamWriter
-from recon.points import depth_to_points
+
+from .conftest import write_ground_truth_cloud
 
 
 def small_config(**overrides) -> BuildConfig:
@@ -31,14 +32,7 @@ def small_config(**overrides) -> BuildConfig:
 @pytest.fixture(scope="module")
 def tiny_cloud(tiny_dataset, tmp_path_factory):
     """The tiny street's ground-truth depth back-projected into a PLY cloud (as recon writes it)."""
-    ds = load_dataset(tiny_dataset)
-    path = tmp_path_factory.mktemp("cloud") / "cloud.ply"
-    with PlyStreamWriter(path, normals=False) as writer:
-        for f in range(ds.num_frames):
-            K = ds.rig.intrinsics[0]
-            pts, cols, _ = depth_to_points(ds.gt_depth(f, 0), K, ds.world_from_cam(f, 0), ds.image(f, 0), stride=2)
-            writer.append(pts, cols)
-    return path
+    return write_ground_truth_cloud(tiny_dataset, tmp_path_factory.mktemp("cloud") / "cloud.ply")
 
 
 @pytest.fixture(scope="module")

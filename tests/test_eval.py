@@ -10,7 +10,7 @@ import pytest
 from render.camera import look_at
 from render.seen import back_project, seen_mask
 
-from .conftest import tiny_config
+from .conftest import tiny_config, write_ground_truth_cloud
 from .test_build import small_config
 
 W, H = 64, 48
@@ -126,19 +126,11 @@ def street(tmp_path_factory):
     """The tiny street with frames 5 m apart (neighbouring frames overlap), its ground-truth
     cloud (as recon writes it, without normals) and a model built with every 3rd frame held out."""
     from billboards.build import main as build_main
-    from data_synth import load_dataset, write_dataset
-    from recon.cloud_io import PlyStreamWriter
-    from recon.points import depth_to_points
+    from data_synth import write_dataset
 
     root = tmp_path_factory.mktemp("dense")
     dataset = write_dataset(tiny_config(frames=7), root / "street", progress=False)
-    ds = load_dataset(dataset)
-    cloud = root / "cloud.ply"
-    with PlyStreamWriter(cloud, normals=False) as writer:
-        for f in range(ds.num_frames):
-            pts, cols, _ = depth_to_points(ds.gt_depth(f, 0), ds.rig.intrinsics[0], ds.world_from_cam(f, 0),
-                                           ds.image(f, 0), stride=2)
-            writer.append(pts, cols)
+    cloud = write_ground_truth_cloud(dataset, root / "cloud.ply")
     model = build_main(small_config(holdout=3), cloud, dataset, root / "model").model
     return dataset, cloud, model
 

@@ -16,7 +16,7 @@ from billboards.sampling import SamplingConfig, close_holes
 from data_synth import StreetConfig, load_dataset, load_scene, write_dataset
 from recon.epi import EpiConfig, EpiPass, epi_points, hough_votes, hough_votes_reference, split_passes
 
-from .conftest import tiny_config
+from .conftest import tiny_config, write_ground_truth_cloud
 
 
 def _look_right(x: float, y: float = 0.0, z: float = 2.0) -> np.ndarray:
@@ -164,18 +164,8 @@ def layer_street(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def layer_cloud(layer_street, tmp_path_factory):
-    from recon.cloud_io import PlyStreamWriter
-    from recon.points import depth_to_points
-
-    ds = load_dataset(layer_street)
     path = tmp_path_factory.mktemp("layer_cloud") / "cloud.ply"
-    with PlyStreamWriter(path, normals=False) as writer:
-        for f in range(ds.num_frames):
-            for c in range(ds.rig.num_cameras):
-                pts, cols, _ = depth_to_points(ds.gt_depth(f, c), ds.rig.intrinsics[c], ds.world_from_cam(f, c),
-                                               ds.image(f, c), stride=2)
-                writer.append(pts, cols)
-    return path
+    return write_ground_truth_cloud(layer_street, path, cameras=(0, 1, 2))
 
 
 @pytest.mark.slow
