@@ -129,11 +129,6 @@ class BillboardModel:
         if self.block_size is None:
             self.block_size = self.voxel_size
 
-    def quad_sizes(self, billboards=None) -> np.ndarray:
-        """(B,) float32 edge of each quad (m): voxel_size for billboards, block_size for layer blocks."""
-        kind = self.kind if billboards is None else self.kind[billboards]
-        return np.where(kind == 0, np.float32(self.voxel_size), np.float32(self.block_size)).astype(np.float32)
-
     @property
     def num_billboards(self) -> int:
         return len(self.centres)

@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from billboards.geometry import BILLBOARD
+
 #: Relative tolerance of plane tests: a point is outside only if its signed distance is
 #: below −PLANE_REL_EPS·(|n|·|x| + |d| + extent). float32 clip coordinates on the GPU are
 #: good to ~1e-7 of the same magnitudes; 1e-5 leaves a wide margin (1 mm at 100 m).
@@ -52,7 +54,7 @@ def model_quad_radius(model) -> float:
     """How far any quad of ``model`` reaches beyond its octree leaf: the billboard radius, or
     half a layer block's diagonal (a block's centre lies in its leaf) if that is larger."""
     radius = billboard_radius(model.voxel_size)
-    if np.any(model.kind != 0):
+    if np.any(model.kind != BILLBOARD):
         radius = max(radius, float(model.block_size) * math.sqrt(2.0) / 2.0)
     return radius
 
