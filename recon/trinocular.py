@@ -30,7 +30,7 @@ agree), 0 where there is no estimate.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -209,8 +209,10 @@ def frame_depth(images: Sequence[np.ndarray], pairs: Mapping[tuple[int, int], Re
     ref_K, ref_T, ref_size = _reference_camera(pairs, config.reference)
     keys = list(pairs)
     per_pair = {k: pair_depth_in_reference(images, pairs[k], ref_K, ref_T, ref_size, config.stereo) for k in keys}
+    # a binocular rig has one pair: its depths need no partner to agree with
+    fusion = config if config.min_agree <= len(keys) else replace(config, min_agree=len(keys))
     depth, conf, num = fuse_depths(np.stack([per_pair[k] for k in keys]),
-                                   [pairs[k].focal_baseline for k in keys], config)
+                                   [pairs[k].focal_baseline for k in keys], fusion)
     logger.debug("frame depth: %.1f%% fused, pairs %s", 100.0 * np.isfinite(depth).mean(),
                  {k: round(float(np.isfinite(v).mean()), 3) for k, v in per_pair.items()})
     return FrameDepth(depth=depth, confidence=conf, num_agree=num, pair_depth=per_pair)
