@@ -31,6 +31,9 @@ def _add_synth(sub) -> None:
     p.add_argument("--hfov", type=float, default=None, help="horizontal field of view in degrees (default 115)")
     p.add_argument("--pitch", type=float, default=None,
                    help="upward tilt of the cameras in degrees (default 8; negative looks down)")
+    p.add_argument("--distortion", choices=["none", "radtan", "fisheye"], default="none",
+                   help="lens of the raw images: none (pinhole, default), or a radial-tangential or fisheye "
+                        "preset; images are stored distorted and read back undistorted")
     p.add_argument("--spp", type=int, default=2, help="anti-aliasing: spp×spp rays per pixel (default 2)")
     p.add_argument("--no-return", action="store_true", help="drive one pass only (one side of the street)")
     p.add_argument("--no-gt-depth", action="store_true", help="skip per-image ground-truth depth and ids")
@@ -48,7 +51,8 @@ def _run_synth(args) -> int:
         street=StreetConfig(length=args.length, seed=args.seed),
         town=TownConfig(seed=args.seed),
         rig=RigConfig(**{k: v for k, v in (("width", args.width), ("height", args.height),
-                                           ("hfov_deg", args.hfov), ("pitch_deg", args.pitch)) if v is not None}),
+                                           ("hfov_deg", args.hfov), ("pitch_deg", args.pitch),
+                                           ("distortion", args.distortion)) if v is not None}),
         frames=args.frames, return_pass=not args.no_return, town_path_length=args.length,
         spp=args.spp, ground_truth_depth=not args.no_gt_depth)
     start = time.perf_counter()

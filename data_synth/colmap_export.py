@@ -14,6 +14,11 @@ Conventions bridged here
   lengths are unchanged.
 * **Camera frame.** Both use x right, y down, z forward, so rotations need no
   axis flip.
+* **Lens distortion.** A camera with a lens is written as its raw camera:
+  radtan → ``OPENCV`` (fx, fy, cx, cy, k1, k2, p1, p2), or ``FULL_OPENCV``
+  (k3 and k4 = k5 = k6 = 0, the same polynomial) when k3 ≠ 0; fisheye →
+  ``OPENCV_FISHEYE`` (fx, fy, cx, cy, k1, k2, k3, k4). COLMAP's models use
+  OpenCV's formulas.
 * **Rig frame.** COLMAP's rig frame *is* the reference sensor's frame (camera 0
   here). For camera ``i`` we store ``sensor_from_rig = cam_i_from_cam0 =
   cam_from_rig[i] @ inv(cam_from_rig[0])`` and for frame ``k`` we store
@@ -39,9 +44,11 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import pycolmap
 
+from .distortion import Distortion
+
 logger = logging.getLogger(__name__)
 
-__all__ = ["write_colmap_text", "OPENCV_TO_COLMAP_PIXEL_OFFSET"]
+__all__ = ["write_colmap_text", "colmap_camera_model", "OPENCV_TO_COLMAP_PIXEL_OFFSET"]
 
 #: Added to an OpenCV principal point (cx, cy) to get COLMAP's.
 OPENCV_TO_COLMAP_PIXEL_OFFSET = 0.5
@@ -179,12 +186,26 @@ def _to_rigid3d(T: np.ndarray) -> pycolmap.Rigid3d:
     return pycolmap.Rigid3d(pycolmap.Rotation3d(np.ascontiguousarray(R)), np.ascontiguousarray(T[:3, 3]))
 
 
+def colmap_camera_model(K: np.ndarray, distortion: Distortion | None) -> tuple[str, list[float]]:
+    """COLMAP model name and parameters of an OpenCV camera K (3, 3) float64 with a lens (or None)."""
+    params = [K[0, 0], K[1, 1], K[0, 2] + OPENCV_TO_COLMAP_PIXEL_OFFSET, K[1, 2] + OPENCV_TO_COLMAP_PIXEL_OFFSET]
+    if distortion is None:
+        return "PINHOLE", [float(p) for p in params]
+    if distortion.model == "fisheye":
+        return "OPENCV_FISHEYE", [float(p) for p in params + list(distortion.coeffs)]
+    k1, k2, p1, p2, k3 = distortion.coeffs
+    if k3 == 0.0:
+        return "OPENCV", [float(p) for p in params + [k1, k2, p1, p2]]
+    return "FULL_OPENCV", [float(p) for p in params + [k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]]
+
+
 def _build_reconstruction(
     K: np.ndarray,
     sizes: list[tuple[int, int]],
     cam_from_rig: np.ndarray,
     world_from_rig: np.ndarray,
     image_names: list[list[str]],
+    distortions: list[Distortion | None],
 ) -> pycolmap.Reconstruction:
     c = K.shape[0]
     n = world_from_rig.shape[0]
@@ -192,12 +213,8 @@ def _build_reconstruction(
 
     for i in range(c):
         w, h = sizes[i]
-        fx, fy = K[i, 0, 0], K[i, 1, 1]
-        cx = K[i, 0, 2] + OPENCV_TO_COLMAP_PIXEL_OFFSET
-        cy = K[i, 1, 2] + OPENCV_TO_COLMAP_PIXEL_OFFSET
-        cam = pycolmap.Camera(
-            camera_id=i + 1, model="PINHOLE", width=w, height=h, params=[fx, fy, cx, cy]
-        )
+        model, params = colmap_camera_model(K[i], distortions[i])
+        cam = pycolmap.Camera(camera_id=i + 1, model=model, width=w, height=h, params=params)
         rec.add_camera(cam)
 
     def sensor(i: int) -> pycolmap.sensor_t:
@@ -255,11 +272,12 @@ def write_colmap_text(
     cam_from_rig: np.ndarray,
     world_from_rig: np.ndarray,
     image_names: list[list[str]],
+    distortions: list[Distortion | None] | None = None,
 ) -> Path:
     """Write a rig's cameras and known poses as a COLMAP text model (via pycolmap).
 
     Builds a ``pycolmap.Reconstruction`` with one PINHOLE camera per rig
-    camera, one rig (camera 0 is the reference sensor), one registered frame
+    camera (OPENCV, FULL_OPENCV or OPENCV_FISHEYE for a camera with a lens), one rig (camera 0 is the reference sensor), one registered frame
     per pose and one image per camera per frame; no 3D points. Writes
     ``cameras.txt``, ``rigs.txt``, ``frames.txt``, ``images.txt`` and
     ``points3D.txt`` into a temporary sibling directory and renames it over
@@ -276,6 +294,8 @@ def write_colmap_text(
     world_from_rig: (n, 4, 4) float64 per frame.
     image_names: n lists of c relative image paths, e.g. "cam0/000000.png"
         (relative to the dataset's images/ dir); unique, no whitespace.
+    distortions: c × (Distortion or None), the lens of each camera's images (then
+        ``intrinsics`` are the raw, distorted cameras' K); None: all pinhole.
     Returns out_dir.
 
     Raises ValueError on inconsistent shapes, non-finite values, non-rigid
@@ -283,7 +303,10 @@ def write_colmap_text(
     """
     out_dir = Path(out_dir)
     K, sizes_v, cfr, wfr, names = _validate(intrinsics, sizes, cam_from_rig, world_from_rig, image_names)
-    rec = _build_reconstruction(K, sizes_v, cfr, wfr, names)
+    distortions = [None] * len(K) if distortions is None else list(distortions)
+    if len(distortions) != len(K) or not all(d is None or isinstance(d, Distortion) for d in distortions):
+        raise ValueError(f"distortions must hold a Distortion or None for each of the {len(K)} cameras")
+    rec = _build_reconstruction(K, sizes_v, cfr, wfr, names, distortions)
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp_dir = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex}")

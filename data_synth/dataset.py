@@ -5,7 +5,7 @@ Layout of a dataset directory::
     dataset.json              manifest, written last: its presence marks a complete dataset
     synth_report.json         timings of the run that wrote it (the only file that varies) and the
                               street's coverage (shares of road, sidewalk and facades the rig sees)
-    rig.json                  intrinsics (distortion none) and cam_from_rig per camera
+    rig.json                  intrinsics, lens distortion ("none", radtan or fisheye) and cam_from_rig per camera
     poses.json                world_from_rig per frame, float64
     images/cam{c}/NNNNNN.png  RGB images
     colmap/                   the same cameras and poses as a COLMAP text model
@@ -15,6 +15,10 @@ Layout of a dataset directory::
     gt/triangle_object.npy    object id per mesh triangle (m,) int32
     gt/depth/cam{c}/NNNNNN.npy  z-depth (h, w) float32, NaN = sky
     gt/ids/cam{c}/NNNNNN.npy    object id (h, w) int32, −1 = sky
+
+Images and ground truth are stored as the raw cameras see them (distorted, when
+rig.json gives a lens); :class:`Dataset` returns them undistorted, lined up with
+``rig.intrinsics``.
 
 A user's own capture needs only ``rig.json``, ``poses.json`` and ``images/``.
 """
@@ -96,7 +100,10 @@ def capture_path(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _config_json(cfg: SynthConfig) -> dict:
-    return json.loads(json.dumps(asdict(cfg)))
+    data = json.loads(json.dumps(asdict(cfg)))
+    if data["rig"].get("distortion") == "none":  # pinhole datasets keep the bytes they had before lenses
+        del data["rig"]["distortion"]
+    return data
 
 
 def config_from_json(data: dict) -> SynthConfig:
@@ -139,7 +146,9 @@ def _render_frame(task: tuple[str, str, str, list, bool, int]) -> float:
     root = Path(root_str)
     pose = np.asarray(world_from_rig, dtype=np.float64)
     for c in range(rig.num_cameras):
-        result = renderer.render(rig.intrinsics[c], rig.world_from_cam(pose, c), rig.sizes[c], spp=spp)
+        # the raw camera: distorted images (and ground truth in raw pixels) for a lens
+        result = renderer.render(rig.raw_K(c), rig.world_from_cam(pose, c), rig.sizes[c], spp=spp,
+                                 distortion=rig.distortion(c))
         if gt:
             save_npy(root / "gt" / "depth" / f"cam{c}" / f"{name}.npy", result.depth)
             save_npy(root / "gt" / "ids" / f"cam{c}" / f"{name}.npy", result.ids)
@@ -221,8 +230,10 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
     rig.save(root / "rig.json")
     save_poses(root / "poses.json", world_from_rig, passes)
     names = [f"{i:06d}" for i in range(len(world_from_rig))]
-    write_colmap_text(root / "colmap", rig.intrinsics, list(rig.sizes), rig.cam_from_rig, world_from_rig,
-                      [[f"cam{c}/{n}.png" for c in range(rig.num_cameras)] for n in names])
+    write_colmap_text(root / "colmap", np.array([rig.raw_K(c) for c in range(rig.num_cameras)]), list(rig.sizes),
+                      rig.cam_from_rig, world_from_rig,
+                      [[f"cam{c}/{n}.png" for c in range(rig.num_cameras)] for n in names],
+                      distortions=[rig.distortion(c) for c in range(rig.num_cameras)])
 
     cfg_json = json.dumps(cfg_dict, sort_keys=True)
     todo = [(str(root), cfg_json, n, T.tolist(), cfg.ground_truth_depth, cfg.spp)
@@ -281,8 +292,9 @@ class Dataset:
         return self.root / "images" / f"cam{cam}" / f"{self.frame_names[frame]}.png"
 
     def image(self, frame: int, cam: int) -> np.ndarray:
-        """(h, w, 3) uint8 RGB; a missing, truncated or wrongly sized file raises DataFormatError."""
-        return read_png(self.image_path(frame, cam), self.rig.sizes[cam])
+        """(h, w, 3) uint8 RGB, undistorted when the camera has a lens (pinhole ``rig.intrinsics``);
+        a missing, truncated or wrongly sized file raises DataFormatError."""
+        return self.rig.undistort(read_png(self.image_path(frame, cam), self.rig.sizes[cam]), cam)
 
     def world_from_cam(self, frame: int, cam: int) -> np.ndarray:
         """(4, 4) float64 camera pose."""
@@ -291,14 +303,16 @@ class Dataset:
     def _gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
         w, h = self.rig.sizes[cam]
         path = self.root / "gt" / kind / f"cam{cam}" / f"{self.frame_names[frame]}.npy"
-        return load_npy(path, dtype=dtype, shape=(h, w))
+        # nearest raw pixel: no blending across depth edges or between object ids
+        return self.rig.undistort(load_npy(path, dtype=dtype, shape=(h, w)), cam, nearest=True)
 
     def gt_depth(self, frame: int, cam: int) -> np.ndarray:
-        """(h, w) float32 ground-truth z-depth, NaN where nothing is hit."""
+        """(h, w) float32 ground-truth z-depth, NaN where nothing is hit; undistorted like
+        :meth:`image` (nearest raw pixel, so within half a raw pixel of each pixel's ray)."""
         return self._gt("depth", frame, cam, np.float32)
 
     def gt_ids(self, frame: int, cam: int) -> np.ndarray:
-        """(h, w) int32 ground-truth object id, −1 where nothing is hit."""
+        """(h, w) int32 ground-truth object id, −1 where nothing is hit; undistorted like :meth:`gt_depth`."""
         return self._gt("ids", frame, cam, np.int32)
 
     def verify(self) -> None:

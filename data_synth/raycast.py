@@ -4,6 +4,8 @@ Colour is supersampled (``spp × spp`` stratified rays per pixel) for
 anti-aliasing; depth and object id come from the ray through the pixel centre,
 so depth is exact: metres along the camera's z axis, NaN where nothing is hit.
 Rays are cast in row chunks, so memory is bounded whatever the image size.
+A camera with a lens distortion renders its raw, distorted image: each raw
+pixel's ray goes through its undistorted normalised coordinate.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from .distortion import Distortion, undistort
 from .scene import Scene
 from .textures import shade, sky
 
@@ -31,10 +34,12 @@ class RenderResult:
 
 
 class Renderer:
-    """Holds the scene's ray-casting acceleration structure; renders any pinhole camera."""
+    """Holds the scene's ray-casting acceleration structure; renders any pinhole camera,
+    with or without lens distortion."""
 
     def __init__(self, scene: Scene):
         self.scene = scene
+        self._rays: dict[tuple, np.ndarray] = {}  # undistorted normalised coordinates per distorted camera
         self._raycaster = o3d.t.geometry.RaycastingScene()
         self._raycaster.add_triangles(
             o3d.core.Tensor(scene.vertices.astype(np.float32)),
@@ -63,12 +68,17 @@ class Renderer:
         return colour
 
     def render(self, K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int],
-               spp: int = 2) -> RenderResult:
+               spp: int = 2, distortion: Distortion | None = None) -> RenderResult:
         """Render one view.
 
-        K: (3, 3) float64 pinhole; world_from_cam: (4, 4) float64 OpenCV camera pose;
-        size: (width, height); spp: supersampling factor per axis (≥ 1).
+        K: (3, 3) float64 pinhole (with ``distortion``: of the raw image); world_from_cam:
+        (4, 4) float64 OpenCV camera pose; size: (width, height); spp: supersampling factor
+        per axis (≥ 1); distortion: lens of the raw image, or None. With a lens, depth and ids
+        are those of the raw pixels' centre rays; raw pixels that no ray reaches (outside a
+        fisheye's image circle) are black, NaN and −1.
         """
+        if distortion is not None:
+            return self._render_distorted(K, world_from_cam, size, spp, distortion)
         K = np.asarray(K, dtype=np.float64)
         world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
         w, h = (int(s) for s in size)
@@ -105,6 +115,76 @@ class Renderer:
                 for du in offsets:
                     pix = np.stack([uu.ravel() + du, vv.ravel() + dv, np.ones(uu.size)], -1)
                     acc += self._colour(origin, pix @ ray_matrix.T)
+            acc *= 255.0 / (spp * spp)
+            rgb[r0:r1] = np.clip(np.rint(acc), 0, 255).astype(np.uint8).reshape(r1 - r0, w, 3)
+        return RenderResult(rgb, depth, ids)
+
+    def _undistorted_grid(self, K: np.ndarray, size: tuple[int, int], spp: int,
+                          distortion: Distortion) -> np.ndarray:
+        """(1 + spp², h, w, 2) float64 undistorted normalised coordinates of every raw pixel's
+        centre, then of its spp × spp subsamples (NaN: no ray). Kept per camera: the rig's
+        cameras share one lens, and undistortion costs about as much as shading."""
+        key = (K.tobytes(), size, spp, distortion)
+        grid = self._rays.get(key)
+        if grid is None:
+            w, h = size
+            offsets = (np.arange(spp) + 0.5) / spp - 0.5
+            shifts = [(0.0, 0.0)] + [(du, dv) for dv in offsets for du in offsets]
+            u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+            K_inv = np.linalg.inv(K)
+            grid = np.empty((len(shifts), h, w, 2))
+            for i, (du, dv) in enumerate(shifts):
+                pix = np.stack([u.ravel() + du, v.ravel() + dv, np.ones(u.size)], -1) @ K_inv.T
+                grid[i] = undistort(pix[:, :2] / pix[:, 2:], distortion).reshape(h, w, 2)
+            if len(self._rays) >= 4:
+                self._rays.clear()
+            self._rays[key] = grid
+        return grid
+
+    def _render_distorted(self, K, world_from_cam, size, spp, distortion) -> RenderResult:
+        """:meth:`render` of a raw, distorted image (same chunking, same shading)."""
+        K = np.asarray(K, dtype=np.float64)
+        world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
+        w, h = (int(s) for s in size)
+        if K.shape != (3, 3) or world_from_cam.shape != (4, 4):
+            raise ValueError(f"K must be (3, 3) and world_from_cam (4, 4), got {K.shape}, {world_from_cam.shape}")
+        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(world_from_cam))):
+            raise ValueError("K and world_from_cam must be finite")
+        if w < 1 or h < 1 or spp < 1:
+            raise ValueError(f"size must be positive and spp ≥ 1, got {size}, spp={spp}")
+        grid = self._undistorted_grid(K, (w, h), spp, distortion)
+        R = world_from_cam[:3, :3]
+        origin = world_from_cam[:3, 3]
+
+        def directions(xy: np.ndarray) -> np.ndarray:
+            # camera-frame directions with z = 1 (t_hit is the z-depth); NaN rows become 0 below
+            return np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ R.T
+
+        rgb = np.empty((h, w, 3), dtype=np.uint8)
+        depth = np.empty((h, w), dtype=np.float32)
+        ids = np.empty((h, w), dtype=np.int32)
+        rows_per_chunk = max(1, MAX_RAYS_PER_CHUNK // (w * spp * spp))
+        for r0 in range(0, h, rows_per_chunk):
+            r1 = min(h, r0 + rows_per_chunk)
+            centre = grid[0, r0:r1].reshape(-1, 2)
+            valid = np.isfinite(centre).all(axis=1)
+            t = np.full(len(centre), np.nan)
+            obj = np.full(len(centre), -1, dtype=np.int32)
+            if valid.any():
+                tv, prim, _ = self._cast(origin, directions(centre[valid]))
+                hit = np.isfinite(tv)
+                t[valid] = np.where(hit, tv, np.nan)
+                obj_v = np.full(len(tv), -1, dtype=np.int32)
+                obj_v[hit] = self.scene.triangle_object[prim[hit]]
+                obj[valid] = obj_v
+            depth[r0:r1] = t.reshape(r1 - r0, w)
+            ids[r0:r1] = obj.reshape(r1 - r0, w)
+            acc = np.zeros((len(centre), 3))
+            for s in range(1, spp * spp + 1):
+                xy = grid[s, r0:r1].reshape(-1, 2)
+                ok = np.isfinite(xy).all(axis=1)  # outside the image circle: black
+                if ok.any():
+                    acc[ok] += self._colour(origin, directions(xy[ok]))
             acc *= 255.0 / (spp * spp)
             rgb[r0:r1] = np.clip(np.rint(acc), 0, 255).astype(np.uint8).reshape(r1 - r0, w, 3)
         return RenderResult(rgb, depth, ids)

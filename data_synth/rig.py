@@ -11,6 +11,11 @@ with a 115° horizontal and 140° vertical field of view, pitched up 8°: they s
 from 62° below the horizon (the road from about 1 m beside the path, the kerb,
 the whole sidewalk) to 78° above it (the roofline of a 24 m facade standing
 right at the back of the sidewalk). ``data_synth.coverage`` measures this.
+
+Lens distortion (``data_synth.distortion``): a rig may hold raw, distorted
+cameras. ``Rig.intrinsics`` are always the pinhole matrices of the undistorted
+images that ``Dataset.image`` returns; the raw K and the lens are kept beside
+them so that ``rig.json`` round-trips.
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .distortion import PRESETS as DISTORTION_PRESETS
+from .distortion import Distortion, UndistortTables, cached_tables, pinhole_for
 from .fileio import DataFormatError, as_matrix, check_rigid, read_json, write_json
 
 RIG_FORMAT = "bbcity-rig"
@@ -36,8 +43,12 @@ class RigConfig:
     baselines: tuple[float, ...] = (0.0, 0.4, 0.8)  # offset of each camera from cam0 along the row, metres
     mount_height: float = 2.0  # height of the optical centres above the road, metres
     pitch_deg: float = 8.0  # upward tilt of the (parallel) optical axes, degrees
+    distortion: str = "none"  # lens of the raw images: "none" (pinhole), or the preset "radtan" or "fisheye"
 
     def __post_init__(self):
+        if self.distortion != "none" and self.distortion not in DISTORTION_PRESETS:
+            raise ValueError(f"distortion must be \"none\" or one of {', '.join(DISTORTION_PRESETS)}, "
+                             f"got {self.distortion!r}")
         if not (0 < self.hfov_deg < 170):
             raise ValueError(f"hfov_deg must be in (0, 170), got {self.hfov_deg}")
         if self.width < 8 or self.height < 8:
@@ -57,18 +68,71 @@ class RigConfig:
 class Rig:
     """Calibrated cameras of a rig.
 
-    intrinsics: (c, 3, 3) float64 OpenCV pinhole matrices (pixel centres at integers).
-    sizes: c × (width, height) in pixels.
+    intrinsics: (c, 3, 3) float64 OpenCV pinhole matrices (pixel centres at integers) of the
+        images downstream stages see (the undistorted ones where a camera has a lens distortion).
+    sizes: c × (width, height) in pixels (raw and undistorted images alike).
     cam_from_rig: (c, 4, 4) float64 rigid transforms.
+    raw_intrinsics: (c, 3, 3) float64 K of the raw, distorted images, or None when no camera
+        is distorted (then the raw images are the pinhole images).
+    distortions: c × (Distortion or None), or None when no camera is distorted.
+    Build distorted rigs with :meth:`from_raw`.
     """
 
     intrinsics: np.ndarray
     sizes: tuple[tuple[int, int], ...]
     cam_from_rig: np.ndarray
+    raw_intrinsics: np.ndarray | None = None
+    distortions: tuple[Distortion | None, ...] | None = None
+
+    def __post_init__(self):
+        if (self.raw_intrinsics is None) != (self.distortions is None):
+            raise ValueError("raw_intrinsics and distortions go together (use Rig.from_raw)")
+        if self.distortions is not None and (len(self.distortions) != len(self.sizes)
+                                             or len(self.raw_intrinsics) != len(self.sizes)):
+            raise ValueError(f"{len(self.sizes)} cameras but {len(self.distortions)} distortions "
+                             f"and {len(self.raw_intrinsics)} raw intrinsics")
+
+    @classmethod
+    def from_raw(cls, raw_intrinsics: np.ndarray, sizes, cam_from_rig: np.ndarray,
+                 distortions) -> "Rig":
+        """A rig from its raw cameras: K (c, 3, 3) float64 and a Distortion or None each.
+
+        The pinhole ``intrinsics`` of distorted cameras are those of their undistorted images
+        (``data_synth.distortion.pinhole_for``). Without any distortion this is the plain rig.
+        """
+        raw = np.asarray(raw_intrinsics, dtype=np.float64)
+        sizes = tuple((int(w), int(h)) for w, h in sizes)
+        distortions = tuple(distortions)
+        if all(d is None for d in distortions):
+            return cls(raw, sizes, np.asarray(cam_from_rig, dtype=np.float64))
+        Ks = np.array([K if d is None else pinhole_for(K, d, s) for K, d, s in zip(raw, distortions, sizes)])
+        return cls(Ks, sizes, np.asarray(cam_from_rig, dtype=np.float64), raw, distortions)
 
     @property
     def num_cameras(self) -> int:
         return len(self.sizes)
+
+    def distortion(self, cam: int) -> Distortion | None:
+        """Lens distortion of camera ``cam``'s raw images (None: pinhole)."""
+        return None if self.distortions is None else self.distortions[cam]
+
+    def raw_K(self, cam: int) -> np.ndarray:
+        """(3, 3) float64 K of camera ``cam``'s raw images (its pinhole K when undistorted)."""
+        return self.intrinsics[cam] if self.raw_intrinsics is None else self.raw_intrinsics[cam]
+
+    def undistort_tables(self, cam: int) -> UndistortTables | None:
+        """Remap tables of camera ``cam`` (computed once per process and camera); None when pinhole."""
+        d = self.distortion(cam)
+        return None if d is None else cached_tables(self.raw_K(cam), d, self.sizes[cam])
+
+    def undistort(self, raw: np.ndarray, cam: int, nearest: bool = False) -> np.ndarray:
+        """Camera ``cam``'s raw image (h, w, 3) uint8 → the undistorted one (bilinear), or with
+        ``nearest`` any per-pixel array (h, w) (depth, ids) by nearest raw pixel. A pinhole
+        camera's array is returned as it is (no copy)."""
+        tables = self.undistort_tables(cam)
+        if tables is None:
+            return raw
+        return tables.nearest_values(raw) if nearest else tables.image(raw)
 
     def world_from_cam(self, world_from_rig: np.ndarray, cam: int) -> np.ndarray:
         """(4, 4) float64 pose of camera ``cam`` for a rig pose (4, 4) float64."""
@@ -76,11 +140,12 @@ class Rig:
 
     def to_json(self) -> dict:
         cams = []
-        for i, (K, (w, h), T) in enumerate(zip(self.intrinsics, self.sizes, self.cam_from_rig)):
+        for i, ((w, h), T) in enumerate(zip(self.sizes, self.cam_from_rig)):
+            K, d = self.raw_K(i), self.distortion(i)  # rig.json holds the raw camera
             cams.append({
                 "name": f"cam{i}", "model": "pinhole", "width": int(w), "height": int(h),
                 "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
-                "distortion": "none", "cam_from_rig": T.tolist(),
+                "distortion": "none" if d is None else d.to_json(), "cam_from_rig": T.tolist(),
             })
         return {"format": RIG_FORMAT, "version": FORMAT_VERSION, "pixel_centre": "integer (OpenCV)",
                 "reference_camera": 0, "cameras": cams}
@@ -100,7 +165,7 @@ class Rig:
         cams = data.get("cameras")
         if not isinstance(cams, list) or not cams:
             raise DataFormatError(path, "\"cameras\" must be a non-empty list")
-        Ks, sizes, Ts = [], [], []
+        Ks, sizes, Ts, distortions = [], [], [], []
         for i, cam in enumerate(cams):
             where = f"cameras[{i}]"
             if not isinstance(cam, dict):
@@ -108,8 +173,7 @@ class Rig:
             missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy", "cam_from_rig") if k not in cam]
             if missing:
                 raise DataFormatError(path, f"{where} lacks {', '.join(missing)}")
-            if cam.get("distortion", "none") != "none":
-                raise DataFormatError(path, f"{where}.distortion must be \"none\" (undistort images first)")
+            distortions.append(Distortion.from_json(cam.get("distortion", "none"), path, f"{where}.distortion"))
             w, h = cam["width"], cam["height"]
             if not (isinstance(w, int) and isinstance(h, int) and 0 < w <= 65536 and 0 < h <= 65536):
                 raise DataFormatError(path, f"{where} width/height must be positive integers, got {w!r}x{h!r}")
@@ -120,7 +184,10 @@ class Rig:
             sizes.append((w, h))
             Ts.append(check_rigid(as_matrix(cam["cam_from_rig"], (4, 4), path, f"{where}.cam_from_rig"),
                                   path, f"{where}.cam_from_rig"))
-        return cls(np.array(Ks), tuple(sizes), np.array(Ts))
+        try:
+            return cls.from_raw(np.array(Ks), tuple(sizes), np.array(Ts), distortions)
+        except ValueError as e:  # a lens that leaves no pinhole image inside the raw one
+            raise DataFormatError(path, f"cannot undistort the cameras ({e})") from None
 
 
 def pinhole(width: int, height: int, hfov_deg: float) -> np.ndarray:
@@ -129,8 +196,38 @@ def pinhole(width: int, height: int, hfov_deg: float) -> np.ndarray:
     return np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
 
 
+#: A synthetic fisheye's image corners stay this far off axis at most: a pinhole image (what the
+#: undistorted images are) can show nothing at 90°, and little of what lies near it.
+FISHEYE_MAX_CORNER_DEG = 85.0
+
+
+def raw_camera(cfg: RigConfig) -> tuple[np.ndarray, Distortion | None]:
+    """K (3, 3) float64 and lens of the synthetic rig's raw images.
+
+    none: the pinhole of ``hfov_deg``. radtan: the same K with the preset's (barrel) lens.
+    fisheye: an equidistant lens that spans ``hfov_deg`` across the width, unless that puts the
+    image corners beyond FISHEYE_MAX_CORNER_DEG off axis (the default portrait camera's 115°
+    would put its top and bottom edges 100° off axis); then the corners set the focal length.
+    """
+    K = pinhole(cfg.width, cfg.height, cfg.hfov_deg)
+    if cfg.distortion == "none":
+        return K, None
+    d = Distortion.preset(cfg.distortion)
+    if d.model == "fisheye":
+        def theta_d(theta: float) -> float:
+            t2 = theta * theta
+            k1, k2, k3, k4 = d.coeffs
+            return theta * (1 + k1 * t2 + k2 * t2 ** 2 + k3 * t2 ** 3 + k4 * t2 ** 4)
+        f_width = 0.5 * cfg.width / theta_d(np.radians(cfg.hfov_deg) / 2)
+        f_corner = np.hypot(K[0, 2], K[1, 2]) / theta_d(np.radians(FISHEYE_MAX_CORNER_DEG))
+        K = K.copy()
+        K[0, 0] = K[1, 1] = max(f_width, f_corner)
+    return K, d
+
+
 def make_rig(cfg: RigConfig) -> Rig:
-    """Cameras in a row looking right (−y of the rig), pitched up by ``cfg.pitch_deg``."""
+    """Cameras in a row looking right (−y of the rig), pitched up by ``cfg.pitch_deg``;
+    with ``cfg.distortion`` their raw images are distorted (see :func:`raw_camera`)."""
     if not (0 < cfg.hfov_deg < 170):
         raise ValueError(f"hfov_deg must be in (0, 170), got {cfg.hfov_deg}")
     if cfg.width < 8 or cfg.height < 8:
@@ -140,7 +237,7 @@ def make_rig(cfg: RigConfig) -> Rig:
     y_axis = np.array([0.0, -np.sin(a), -np.cos(a)])  # down in the image
     x_axis = np.cross(y_axis, z_axis)  # = −x of the rig: the row runs backwards
     rig_from_cam_rot = np.stack([x_axis, y_axis, z_axis], axis=1)
-    K = pinhole(cfg.width, cfg.height, cfg.hfov_deg)
+    K, distortion = raw_camera(cfg)
     Ts = []
     for b in cfg.baselines:
         T = np.eye(4)
@@ -148,6 +245,9 @@ def make_rig(cfg: RigConfig) -> Rig:
         T[:3, 3] = np.array([0.0, 0.0, cfg.mount_height]) + b * x_axis
         Ts.append(np.linalg.inv(T))
     n = len(cfg.baselines)
+    if distortion is not None:
+        return Rig.from_raw(np.repeat(K[None], n, axis=0), ((cfg.width, cfg.height),) * n, np.array(Ts),
+                            (distortion,) * n)
     return Rig(np.repeat(K[None], n, axis=0), ((cfg.width, cfg.height),) * n, np.array(Ts))
 
 
