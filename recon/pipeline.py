@@ -14,7 +14,7 @@ import os
 import resource
 import time
 from concurrent.futures import Executor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +27,7 @@ from . import poses
 from .cloud_io import PlyStreamWriter, read_cloud
 from .evaluate import evaluate_cloud
 from .fusion import FusionConfig, TileSpill, merge_tiles
+from .motion_stereo import MotionStereoConfig, motion_depth, select_partners
 from .points import depth_to_points
 from .poses import SfmConfig
 from .rectify import rectify_rig
@@ -48,6 +49,7 @@ class ReconConfig:
     pixel_stride: int = 1  # back-project every n-th pixel of each depth map
     evaluate: bool = True  # compare with ground truth when the dataset has it
     keep_spill: bool = False  # keep the voxel tiles under WORK/spill after the merge
+    motion: MotionStereoConfig = field(default_factory=MotionStereoConfig)  # one-camera rigs: partner frames
 
 
 @dataclass(frozen=True)
@@ -60,6 +62,8 @@ class _FrameTask:
     trinocular: TrinocularConfig
     fusion: FusionConfig
     pixel_stride: int
+    motion: MotionStereoConfig | None = None  # one-camera rigs: motion stereo settings
+    partners: tuple = ()  # one-camera rigs: (frame, world_from_rig as a list) of each partner frame
 
 
 _PAIRS_CACHE: dict[str, dict] = {}
@@ -69,6 +73,8 @@ def _process_frame(task: _FrameTask) -> dict:
     """Stereo for one frame, then spill its points. Runs in a worker process."""
     t0 = time.perf_counter()
     ds = load_dataset(task.dataset)
+    if ds.rig.num_cameras == 1:  # one camera: stereo with neighbouring frames
+        return _process_frame_motion(task, ds, t0)
     if task.dataset not in _PAIRS_CACHE:  # rectification maps: once per rig and worker
         _PAIRS_CACHE.clear()
         _PAIRS_CACHE[task.dataset] = rectify_rig(ds.rig)
@@ -85,6 +91,42 @@ def _process_frame(task: _FrameTask) -> dict:
     voxels = spill.add_frame(ds.frame_names[task.frame], points, colours, conf)
     return {"frame": task.frame, "points": int(len(points)), "voxels": voxels,
             "read_s": t_read - t0, "stereo_s": t_stereo - t_read, "total_s": time.perf_counter() - t0}
+
+
+def _process_frame_motion(task: _FrameTask, ds, t0: float) -> dict:
+    """:func:`_process_frame` for a one-camera rig: motion stereo with the partner frames."""
+    frames = [task.frame] + [f for f, _ in task.partners]
+    rig_poses = [task.world_from_rig] + [T for _, T in task.partners]
+    cam_from_rig = ds.rig.cam_from_rig[0]
+    world_from_cam = np.stack([np.asarray(T, dtype=np.float64) @ np.linalg.inv(cam_from_rig) for T in rig_poses])
+    images = [ds.image(f, 0) for f in frames]
+    t_read = time.perf_counter()
+    intrinsics = np.repeat(np.asarray(ds.rig.intrinsics[:1], dtype=np.float64), len(frames), axis=0)
+    fd = motion_depth(images, intrinsics, world_from_cam, task.motion or MotionStereoConfig(), task.trinocular)
+    t_stereo = time.perf_counter()
+    points, colours, conf = depth_to_points(fd.depth, ds.rig.intrinsics[0], world_from_cam[0], images[0],
+                                            fd.confidence, stride=task.pixel_stride)
+    spill = TileSpill(Path(task.spill_root), np.asarray(task.origin), task.fusion)
+    voxels = spill.add_frame(ds.frame_names[task.frame], points, colours, conf)
+    return {"frame": task.frame, "points": int(len(points)), "voxels": voxels, "partners": frames[1:],
+            "read_s": t_read - t0, "stereo_s": t_stereo - t_read, "total_s": time.perf_counter() - t0}
+
+
+def _with_motion_partners(tasks: list, ds, world_from_rig: np.ndarray, excluded, config: MotionStereoConfig) -> list:
+    """Give each task of a one-camera rig its stereo partners among the posed frames that are
+    not ``excluded`` (held out: their images stay out of the model)."""
+    world_from_cam = world_from_rig @ np.linalg.inv(ds.rig.cam_from_rig[0])
+    world_from_cam[list(excluded)] = np.nan  # never a partner
+    partners = select_partners(world_from_cam, ds.rig.intrinsics[0], ds.rig.sizes[0], config,
+                               frames=[t.frame for t in tasks])
+    out = []
+    for t in tasks:
+        chosen = tuple((int(j), world_from_rig[j].tolist()) for j in partners[t.frame] if j >= 0)
+        if not chosen:
+            logger.warning("frame %d has no stereo partner (baselines %.2f–%.2f m, see MotionStereoConfig)",
+                           t.frame, config.min_baseline, config.max_baseline)
+        out.append(replace(t, motion=config, partners=chosen))
+    return out
 
 
 def _peak_rss_mb() -> float:
@@ -151,6 +193,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         TileSpill(spill_root, origin, conf.fusion).cleanup()  # never mix with an earlier run
     tasks = [_FrameTask(str(dataset_dir), f, world_from_rig[f].tolist(), str(spill_root), origin.tolist(),
                         conf.trinocular, conf.fusion, conf.pixel_stride) for f in frames]
+    if ds.rig.num_cameras == 1:  # one camera: each frame's stereo partners are neighbouring frames
+        tasks = _with_motion_partners(tasks, ds, world_from_rig, (), conf.motion)
 
     logger.info("stereo on %d frames × %d cameras, poses: %s", len(tasks), ds.rig.num_cameras, conf.poses)
     t1 = time.perf_counter()

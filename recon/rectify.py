@@ -15,6 +15,8 @@ along x, like the synthetic one) the rectification is the identity up to
 floating-point noise.
 
 The remap maps are computed once per pair (per rig), not per frame.
+Motion stereo (two frames of one moving camera) rectifies from the frames'
+relative pose with :func:`rectify_views`; its maps are per pair of frames.
 
 Geometry helpers: :func:`backproject_rectified` lifts a depth map of the
 rectified left image to 3-D points in the rig frame, and :func:`splat_depth`
@@ -190,6 +192,39 @@ def rectify_rig(rig, pairs: tuple[tuple[int, int], ...] = RIG_PAIRS) -> dict[tup
             a, b = b, a
         out[(a, b)] = rectify_pair(rig, a, b)
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class Views:
+    """Views of one moving camera (or any cameras) posed in a common frame, shaped like
+    ``data_synth.Rig`` so that :func:`rectify_pair` / :func:`rectify_rig` take it.
+
+    intrinsics: (c, 3, 3) float64. sizes: c × (width, height). cam_from_rig: (c, 4, 4)
+    float64, the "rig" being any frame shared by the views (motion stereo: the reference view).
+    """
+
+    intrinsics: np.ndarray
+    sizes: tuple[tuple[int, int], ...]
+    cam_from_rig: np.ndarray
+
+
+def rectify_views(intrinsics: np.ndarray, cam_from_ref: np.ndarray, size: tuple[int, int],
+                  pairs: tuple[tuple[int, int], ...]) -> dict[tuple[int, int], RectifiedPair]:
+    """Rectify pairs of views posed relative to a reference frame (two frames of one moving
+    camera: stereo from its relative pose, the baseline being the motion between them).
+
+    intrinsics: (c, 3, 3) float64; cam_from_ref: (c, 4, 4) float64 (identity for the
+    reference view); size: (w, h) shared by all views. Each pair is ordered so that its
+    right view lies to the right (see :func:`rectify_rig`); a pair whose baseline is more
+    than :data:`MAX_BASELINE_ANGLE_DEG` from the x axis (forward or vertical motion) or
+    zero raises ValueError. The rectified pairs' ``rig`` frame is the reference frame.
+    """
+    K = np.asarray(intrinsics, dtype=np.float64)
+    T = np.asarray(cam_from_ref, dtype=np.float64)
+    if K.ndim != 3 or K.shape[1:] != (3, 3) or T.shape != (len(K), 4, 4):
+        raise ValueError(f"need intrinsics (c, 3, 3) and cam_from_ref (c, 4, 4), got {K.shape} and {T.shape}")
+    views = Views(K, ((int(size[0]), int(size[1])),) * len(K), T)
+    return rectify_rig(views, pairs)
 
 
 def backproject_rectified(depth: np.ndarray, K: np.ndarray, rig_from_cam: np.ndarray) -> np.ndarray:
