@@ -19,10 +19,17 @@ Methods are a dict name → callable ``(K (3, 3), world_from_cam (4, 4), size (w
   models (e.g. other settings of the same build), on every view too.
 
 Scores: PSNR and SSIM over the whole image, over the pixels where the ground truth has
-geometry, and over the *seen* pixels, those showing a surface that some capture camera
+geometry, over the *seen* pixels, those showing a surface that some capture camera
 used for the textures saw (:mod:`render.seen`): the fair measure of what the capture
-can tell. Baselines render black where they have nothing; the model's sky (if any)
-fills its background, which shows in whole-image scores only.
+can tell, and over the pixels each method *covers* (draws). Baselines render black where
+they have nothing; the model's sky (if any) fills its background, which shows in
+whole-image scores only.
+
+A real capture (a dataset without ``gt/``) has no ground-truth renderer: its views are
+the held-out frames' own camera-0 images, on path only ("real" views). There, geometry
+and seen pixels are the pixels below the horizon (rays pointing down: road, cars,
+facades' lower storeys; the sky and tree tops above it are background), and coverage is
+the share of those that a method draws.
 """
 
 from __future__ import annotations
@@ -51,14 +58,15 @@ BACKGROUND = (0.0, 0.0, 0.0)
 #: A method: (K (3, 3), world_from_cam (4, 4), size (w, h)) → (h, w, 3) uint8.
 Method = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
 
-METRICS = ("psnr", "psnr_geometry", "psnr_seen", "ssim", "ssim_geometry", "ssim_seen")
+METRICS = ("psnr", "psnr_geometry", "psnr_seen", "psnr_covered", "ssim", "ssim_geometry", "ssim_seen", "ssim_covered")
 _UNUSED_COLOUR = (1.0, 0.0, 1.0)  # background for finding the pixels a model draws (magenta, absent from streets)
 WHERE = ("on path", "off path")
 
 
 @dataclass(frozen=True)
 class EvalConfig:
-    views: int = 8                          # capture viewpoints (held-out frames when the model has them), each also off path
+    views: int | None = None                # viewpoints: held-out frames when the model has them (synthetic: each also
+                                            # off path); None: 8 synthetic, every held-out frame of a real capture
     size: tuple[int, int] | None = None     # image size (w, h); None: the dataset camera's
     sideways: float = 2.0                   # off-path views: moved this far back horizontally (m) …
     up: float = 1.0                         # … and this far up (m)
@@ -70,7 +78,7 @@ class EvalConfig:
     model_sky: bool = True                  # draw models over their sky (False: on black, like the baselines)
 
     def __post_init__(self):
-        if self.views < 1:
+        if self.views is not None and self.views < 1:
             raise ValueError(f"views must be ≥ 1, got {self.views}")
         if self.size is not None and (len(self.size) != 2 or min(int(s) for s in self.size) < 1):
             raise ValueError(f"size must be two positive integers (w, h), got {self.size}")
@@ -145,12 +153,13 @@ class EvalView:
     seen: np.ndarray
 
 
-def choose_frames(info: dict | None, num_frames: int, views: int) -> tuple[np.ndarray, list[int], bool]:
-    """(frames, texture_frames, held_out): up to ``views`` frames spread over the frames a
-    model left out of its textures (``info["held_out_frames"]``), else over all frames;
-    the frames the textures came from; whether the viewpoints were held out."""
+def choose_frames(info: dict | None, num_frames: int, views: int | None) -> tuple[np.ndarray, list[int], bool]:
+    """(frames, texture_frames, held_out): up to ``views`` frames (None: all) spread over the
+    frames a model left out of its textures (``info["held_out_frames"]``), else over all
+    frames; the frames the textures came from; whether the viewpoints were held out."""
     held = sorted({int(f) for f in (info or {}).get("held_out_frames", []) or [] if 0 <= int(f) < num_frames})
     pool = np.asarray(held) if held else np.arange(num_frames)
+    views = len(pool) if views is None else views
     frames = np.unique(pool[np.linspace(0, len(pool) - 1, max(1, views)).round().astype(int)])
     texture_frames = [f for f in range(num_frames) if f not in set(held)]
     return frames, texture_frames, bool(held)
@@ -180,10 +189,42 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
     return views
 
 
-def score(image: np.ndarray, view: EvalView) -> dict:
-    """The metrics of ``image`` (h, w, 3) uint8 against the view's ground truth."""
+def below_horizon(K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(h, w) bool: the pixels whose viewing ray points down (world z < 0) — for a camera on
+    a car, everything that is ground or stands on it, never the sky."""
+    w, h = size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T
+    return (rays @ np.asarray(world_from_cam, np.float64)[:3, :3].T)[..., 2] < 0
+
+
+def prepare_real_views(dataset, frames, config: EvalConfig = EvalConfig()) -> list[EvalView]:
+    """The camera-0 images of ``frames`` of a real capture as views (on path; geometry and
+    seen pixels: those below the horizon)."""
+    K = dataset.rig.intrinsics[0]
+    native = tuple(int(s) for s in dataset.rig.sizes[0])
+    size = native if config.size is None else tuple(int(s) for s in config.size)
+    if size != native:
+        K = np.diag([size[0] / native[0], size[1] / native[1], 1.0]) @ K
+    views = []
+    for f in frames:
+        pose = dataset.world_from_cam(int(f), 0)
+        truth = dataset.image(int(f), 0)
+        if size != native:
+            truth = cv2.resize(truth, size, interpolation=cv2.INTER_AREA)
+        ground = below_horizon(K, pose, size)
+        views.append(EvalView(int(f), "on path", K, pose, size, truth, ground, ground))
+    return views
+
+
+def score(image: np.ndarray, view: EvalView, covered: np.ndarray | None = None) -> dict:
+    """The metrics of ``image`` (h, w, 3) uint8 against the view's ground truth; with
+    ``covered`` (h, w) bool (the pixels the method draws) also over those."""
     out = {}
-    for suffix, mask in (("", None), ("_geometry", view.geometry), ("_seen", view.seen)):
+    masks = [("", None), ("_geometry", view.geometry), ("_seen", view.seen)]
+    if covered is not None:
+        masks.append(("_covered", covered))
+    for suffix, mask in masks:
         out["psnr" + suffix] = psnr(image, view.truth, mask)
         out["ssim" + suffix] = ssim(image, view.truth, mask)
     return out
@@ -269,7 +310,7 @@ def evaluate_methods(methods: dict[str, Method], views: list[EvalView], images: 
             drawn = (method.covered(view.K, view.world_from_cam, view.size) if hasattr(method, "covered")
                      else np.any(image != 0, axis=-1))
             coverage = float(drawn[view.seen].mean()) if view.seen.any() else float("nan")
-            rows.append({"frame": view.frame, "view": view.where, "method": name, **score(image, view),
+            rows.append({"frame": view.frame, "view": view.where, "method": name, **score(image, view, drawn),
                          "seen_fraction": float(view.seen.mean()), "coverage_seen": coverage, "render_s": render_s})
             if images is not None and name in keep:
                 images[name, i] = image
@@ -331,8 +372,16 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         extra_models = {k: (v[0] if isinstance(v, tuple) else v) for k, v in (extra_models or {}).items()}
     ds = load_dataset(dataset_dir)
     info = model.info if isinstance(getattr(model, "info", None), dict) else {}
-    frames, texture_frames, held_out = choose_frames(info, ds.num_frames, config.views)
-    eval_views = prepare_views(dataset_dir, frames, texture_frames, config, progress=logger.info)
+    real = not ds.has_ground_truth
+    frames, texture_frames, held_out = choose_frames(info, ds.num_frames,
+                                                     config.views if config.views or real else 8)
+    if real:
+        if not held_out:
+            logger.warning("%s is a real capture and the model was built from every frame: the scores are of "
+                           "frames it has seen (build with --holdout 4 for held-out views)", dataset_dir)
+        eval_views = prepare_real_views(ds, frames, config)
+    else:
+        eval_views = prepare_views(dataset_dir, frames, texture_frames, config, progress=logger.info)
 
     methods: dict[str, Method] = {"model": ModelMethod(model, sky)}
     if billboards_only is not None:
@@ -358,7 +407,7 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     summary = summarise(rows)
     report = {
         "dataset": str(dataset_dir), "views": len(frames), "size": list(eval_views[0].size),
-        "held_out": held_out, "frames": frames.tolist(), "texture_frames": len(texture_frames),
+        "real": real, "held_out": held_out, "frames": frames.tolist(), "texture_frames": len(texture_frames),
         "config": {"sideways": config.sideways, "up": config.up, "poisson_depth": config.poisson_depth,
                    "workprecision_depths": list(config.workprecision_depths),
                    "trim_quantile": config.trim_quantile, "seen": config.seen.__dict__},
@@ -370,7 +419,8 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         "per_view": rows,
     }
     if out_dir is not None and config.panel_width > 0:
-        report["images"] = write_side_by_side(Path(out_dir), eval_views, images, poisson_name, config.panel_width)
+        report["images"] = write_side_by_side(Path(out_dir), eval_views, images, poisson_name, config.panel_width,
+                                              truth_label="real" if real else "ground truth")
     report["seconds"] = time.perf_counter() - t0
     return json_ready(report)
 
@@ -419,18 +469,20 @@ def _panel(image: np.ndarray, width: int, label: str) -> np.ndarray:
 
 
 def write_side_by_side(out_dir: Path, views: list[EvalView], images: dict, poisson_name: str,
-                       panel_width: int) -> list[str]:
-    """For each view ``view_NNNNNN_{on,off}_path.png``: ground truth | model | Poisson mesh
-    (the panels that exist), each ``panel_width`` pixels wide, labelled. Returns the names."""
+                       panel_width: int, truth_label: str = "ground truth") -> list[str]:
+    """For each view ``view_NNNNNN_{on,off}_path.png``: ground truth (``truth_label``) |
+    model | Poisson mesh (the panels that exist), each ``panel_width`` pixels wide,
+    labelled. Returns the names."""
     from data_synth.fileio import write_png
 
     names = []
     for i, view in enumerate(views):
-        panels = [_panel(view.truth, panel_width, "ground truth")]
+        panels = [_panel(view.truth, panel_width, truth_label)]
         for method in ("model", poisson_name):
             if (method, i) in images:
                 image = images[method, i]
-                panels.append(_panel(image, panel_width, f"{method} {psnr(image, view.truth, view.seen):.1f} dB seen"))
+                where = "below horizon" if truth_label == "real" else "seen"
+                panels.append(_panel(image, panel_width, f"{method} {psnr(image, view.truth, view.seen):.1f} dB {where}"))
         name = f"view_{view.frame:06d}_{view.where.replace(' ', '_')}.png"
         write_png(out_dir / name, np.concatenate(panels, axis=1))
         names.append(name)
@@ -491,8 +543,34 @@ def _f(value, spec: str) -> str:
     return "n/a" if value is None or (isinstance(value, float) and not math.isfinite(value)) else format(value, spec)
 
 
+def markdown_real(report: dict) -> str:
+    """The report of a real capture as Markdown: scores over covered pixels, coverage of the
+    pixels below the horizon, whole-image scores."""
+    kind = "held-out" if report.get("held_out") else "capture (used for the textures; build with --holdout)"
+    lines = [f"# Novel views of a real capture ({report['views']} {kind} frames; "
+             f"{report['size'][0]}×{report['size'][1]}, {report['texture_frames']} frames made the textures)", "",
+             "Each method's render at a held-out frame's pose against that frame's image. Covered pixels: those the "
+             "method draws. Coverage: the share of the pixels below the horizon (rays pointing down) drawn. "
+             + ("The model is drawn over its sky; the baselines' background is black." if report.get("sky")
+                else "Backgrounds are black."), "",
+             "| method | PSNR covered (dB) | SSIM covered | coverage below horizon | PSNR below horizon (dB) | "
+             "PSNR image (dB) | SSIM image | bytes |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, m in report["summary"].items():
+        method = name.rsplit(", ", 1)[0]
+        b = report["bytes"].get(method)
+        lines.append(f"| {method} | {_f(m['psnr_covered'], '.2f')} | {_f(m['ssim_covered'], '.3f')} | "
+                     f"{_f(m.get('coverage_seen'), '.1%')} | {_f(m['psnr_seen'], '.2f')} | {_f(m['psnr'], '.2f')} | "
+                     f"{_f(m['ssim'], '.3f')} | {_f(b, ',')} |")
+    if report.get("images"):
+        lines += ["", "Images (real | model | Poisson mesh): " + ", ".join(report["images"])]
+    return "\n".join(lines) + "\n"
+
+
 def markdown(report: dict) -> str:
     """The report as Markdown: the scores per method and viewpoints, the work-precision points."""
+    if report.get("real"):
+        return markdown_real(report)
     kind = "held-out" if report.get("held_out") else "capture (used for the textures)"
     cfg = report.get("config", {})
     lines = [f"# Novel views against ground truth ({report['views']} {kind} viewpoints, each also moved "
