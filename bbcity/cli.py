@@ -154,6 +154,9 @@ def _add_build(sub) -> None:
                         "blocks on flat ground (default both; none: billboards only)")
     p.add_argument("--block-size", type=float, default=None,
                    help="edge of the layer's blocks in metres (default: the voxel size)")
+    p.add_argument("--photometry", choices=("on", "off"), default="on",
+                   help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
+                        "out before sampling textures (default on)")
     p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_build)
 
@@ -165,6 +168,7 @@ def build_config_from_args(args):
     from billboards.layer import LayerConfig
     from billboards.octree import OctreeConfig
     from billboards.pca import PcaConfig
+    from billboards.photometry import PhotometryConfig
     from billboards.sampling import SamplingConfig
 
     pca = PcaConfig()
@@ -187,7 +191,8 @@ def build_config_from_args(args):
                                                           block_size=args.block_size)
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
-                       holdout=args.holdout, layer=layer)
+                       holdout=args.holdout, layer=layer,
+                       photometry=PhotometryConfig() if args.photometry == "on" else None)
 
 
 def _run_build(args) -> int:

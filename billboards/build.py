@@ -34,6 +34,7 @@ from .layer import Layer, LayerConfig, build_layer, facade_depth_report
 from .model import ModelWriter
 from .octree import Octree, OctreeConfig, build_octree
 from .pca import TOL, PcaConfig, eigen_textures
+from .photometry import PhotometryConfig, estimate_gains
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
                        voxel_points)
@@ -59,6 +60,8 @@ class BuildConfig:
     error_stride: int = 4        # decode PSNR is measured on every n-th billboard (1: all)
     holdout: int = 0             # leave every n-th frame's images out of the sampling (for novel-view tests; 0: none)
     layer: LayerConfig | None = field(default_factory=LayerConfig)  # the facade layer (None: billboards only)
+    photometry: PhotometryConfig | None = field(default_factory=PhotometryConfig)  # per-image gains divided out
+                                                                                  # before sampling (None: off)
 
     def __post_init__(self):
         if self.source not in SOURCES:
@@ -200,8 +203,9 @@ def _worker_state(state_dir: str):
     voxels = VoxelPoints(np.asarray(meta["origin"], dtype=np.float64), np.load(root / "points.npy", mmap_mode="r"),
                          np.load(root / "begin.npy"), centres, meta["voxel_size"], meta["reach"])
     if conf.source == "images":
+        gains = np.load(root / "gains.npy") if (root / "gains.npy").exists() else None
         views = Views(np.load(root / "K.npy"), np.load(root / "world_from_cam.npy"), np.load(root / "sizes.npy"),
-                      tuple(Path(p) for p in meta["paths"]))
+                      tuple(Path(p) for p in meta["paths"]), gains)
         sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres,
                                kind=kind, block_size=meta["block_size"])
     else:
@@ -302,8 +306,11 @@ def _config_from_json(data: dict) -> BuildConfig:
     layer = data.get("layer")
     if layer is not None:
         layer = LayerConfig(**{**layer, "epi": EpiConfig(**layer["epi"])})
+    photometry = data.get("photometry")
+    if photometry is not None:
+        photometry = PhotometryConfig(**photometry)
     return BuildConfig(**{**data, "octree": OctreeConfig(**data["octree"]), "sampling": sampling,
-                          "pca": PcaConfig(**data["pca"]), "layer": layer})
+                          "pca": PcaConfig(**data["pca"]), "layer": layer, "photometry": photometry})
 
 
 def _peak_rss_mb() -> dict:
@@ -345,6 +352,17 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         cameras = dataset.rig.num_cameras
     elif conf.source == "images":
         raise ValueError("source 'images' needs the dataset's images and poses (--images DATASET)")
+
+    photometry_report: dict = {"enabled": False}
+    if (conf.photometry is not None and conf.photometry.enabled and views is not None and conf.source == "images"
+            and len(views) and len(points)):
+        # Exposure and white balance divided out of every image before anything reads its colours
+        # (the layer's EPIs, the sky, the textures), so the eigen-textures spend no rank on them.
+        t1 = time.perf_counter()
+        photometry = estimate_gains(views, points, conf.photometry, progress=progress)
+        views = replace(views, gains=photometry.gains)
+        stages["photometry_s"] = time.perf_counter() - t1
+        photometry_report = photometry.report()
 
     layer = None
     layer_report: dict = {"enabled": False}
@@ -405,6 +423,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             np.save(state / "K.npy", views.K)
             np.save(state / "world_from_cam.npy", views.world_from_cam)
             np.save(state / "sizes.npy", views.sizes)
+            if views.gains is not None:
+                np.save(state / "gains.npy", views.gains)
             meta["paths"] = [str(p) for p in views.paths]
         (state / "meta.json").write_text(json.dumps(meta))
         stages["prepare_s"] = time.perf_counter() - t2
@@ -451,6 +471,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     model = load(model_dir)
     report = totals.report(model, conf, octree, len(views) if views is not None else 0)
     report["layer"] = layer_report
+    report["photometry"] = photometry_report
     report.update(cloud=str(cloud_path), dataset=None if dataset_dir is None else str(dataset_dir),
                   stages=stages, total_s=time.perf_counter() - t0, peak_memory=_peak_rss_mb(),
                   config=_config_to_json(conf))

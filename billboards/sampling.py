@@ -71,12 +71,15 @@ class SamplingConfig:
 @dataclass(frozen=True, eq=False)
 class Views:
     """The captured images. K (v, 3, 3) float64; world_from_cam (v, 4, 4) float64;
-    sizes (v, 2) int (width, height); paths: PNG file per view."""
+    sizes (v, 2) int (width, height); paths: PNG file per view; gains (v, 3) float64
+    per-view RGB exposure × white-balance gains that :meth:`image` divides out
+    (:mod:`billboards.photometry`; None: images as captured)."""
 
     K: np.ndarray
     world_from_cam: np.ndarray
     sizes: np.ndarray
     paths: tuple[Path, ...]
+    gains: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -87,8 +90,12 @@ class Views:
         return self.world_from_cam[:, :3, 3]
 
     def image(self, i: int) -> np.ndarray:
-        """(h, w, 3) uint8 RGB; a bad file raises DataFormatError naming it."""
-        return read_png(self.paths[i], tuple(int(s) for s in self.sizes[i]))
+        """(h, w, 3) uint8 RGB, divided by the view's gains; a bad file raises DataFormatError naming it."""
+        image = read_png(self.paths[i], tuple(int(s) for s in self.sizes[i]))
+        if self.gains is None:
+            return image
+        from .photometry import apply_gains  # (photometry imports this module)
+        return apply_gains(image, self.gains[i])
 
 
 def views_from_dataset(dataset, frames=None) -> Views:
