@@ -200,7 +200,10 @@ def test_colmap_full_opencv_with_rational_terms_imports_undistorted_images(synth
         line: "1 FULL_OPENCV 160 120 104.25802982729645 104.25802982729645 80 60 0 0 0 0 0 0.01 0 0"})
     out = import_colmap(model, synth / "images", tmp_path / "ds")
     ds = load_dataset(out)
-    assert ds.rig.distortion(0) is None and ds.rig.sizes[0] == (int(ds.rig.sizes[0][0]), int(ds.rig.sizes[0][1]))
+    raw = pycolmap.Reconstruction(model).cameras[1]
+    pinhole = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), raw)
+    assert ds.rig.distortion(0) is None and ds.rig.sizes[0] == (pinhole.width, pinhole.height)
+    np.testing.assert_allclose(ds.rig.intrinsics[0, :2, 2], np.asarray(pinhole.params[2:]) - 0.5)
     assert ds.image(0, 0).shape == (ds.rig.sizes[0][1], ds.rig.sizes[0][0], 3)
     assert json.loads((out / "dataset.json").read_text())["source"]["undistorted_here"] == ["cam0"]
     assert ds.image_path(0, 1).read_bytes() == (synth / "images" / "cam1" / "000000.png").read_bytes()
