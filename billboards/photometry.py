@@ -235,14 +235,16 @@ def collect_observations(views, points: np.ndarray, config: PhotometryConfig = P
         sel = np.flatnonzero(ok)
         if len(sel) == 0:
             continue
-        # Unoccluded: no cloud surface in front of the point at its z-buffer pixel.
+        # Seen: the cloud's surface at the point's z-buffer pixel is the point's own (a hole in the
+        # z-buffer could hide an occluder), and nothing around it lies in front (depth edges blend colours).
         pts = cells.in_view(K, pose, size, config.max_distance)
-        filled, _ = zbuffer(pts, cells.origin, K, pose, size, config.zbuffer_scale)
+        filled, nearest = zbuffer(pts, cells.origin, K, pose, size, config.zbuffer_scale)
         s = config.zbuffer_scale
-        zi = filled[np.minimum(((v[sel] + 0.5) / s).astype(np.int64), filled.shape[0] - 1),
-                    np.minimum(((u[sel] + 0.5) / s).astype(np.int64), filled.shape[1] - 1)]
-        tol = config.abs_tolerance + config.rel_tolerance * z[sel]
-        sel = sel[~(zi < z[sel] - tol)]
+        zr = np.minimum(((v[sel] + 0.5) / s).astype(np.int64), filled.shape[0] - 1)
+        zc = np.minimum(((u[sel] + 0.5) / s).astype(np.int64), filled.shape[1] - 1)
+        zs = z[sel]
+        tol = config.abs_tolerance + config.rel_tolerance * zs
+        sel = sel[(np.abs(filled[zr, zc] - zs) <= tol) & (nearest[zr, zc] >= zs - tol)]
         if len(sel) == 0:
             continue
         image = views.image(i)
