@@ -31,6 +31,9 @@ import numpy as np
 #: Quad kinds: one quad of the voxel edge each, the same textures and decode.
 BILLBOARD, FACADE, GROUND = 0, 1, 2
 KINDS = (BILLBOARD, FACADE, GROUND)
+#: A ground block is drawn this share of its edge larger on every side (the renderer's
+#: GROUND_OVERLAP), hiding the small steps between blocks of a sloping road.
+GROUND_OVERLAP = 0.08
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,37 @@ def base_yaw_toward(centres: np.ndarray, viewpoints: np.ndarray, chunk: int = 40
         d2 = np.sum((viewpoints[None, :, :2] - c) ** 2, axis=-1)
         nearest = viewpoints[np.argmin(d2, axis=1), :2] - c[:, 0]
         out[s:s + chunk] = np.arctan2(nearest[:, 1], nearest[:, 0])
+    return out
+
+
+def base_yaw_seen(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, sizes: np.ndarray,
+                  max_distance: float = 60.0, chunk: int = 1024) -> np.ndarray:
+    """Base yaw of each item toward the cameras that see it: the yaw of the mean horizontal
+    unit vector from it to the centres of the cameras (within ``max_distance``) in whose
+    image it lies, in front. Items no camera sees face the nearest camera
+    (:func:`base_yaw_toward`).
+
+    centres (n, 3) float64; K (v, 3, 3), world_from_cam (v, 4, 4) float64; sizes (v, 2)
+    (width, height) → (n,) float64 radians. A forward-looking camera sees the road ahead,
+    not below itself: the nearest camera is the wrong side to face.
+    """
+    centres = np.asarray(centres, dtype=np.float64)
+    out = base_yaw_toward(centres, world_from_cam[:, :3, 3])
+    R, C = world_from_cam[:, :3, :3], world_from_cam[:, :3, 3]
+    w, h = np.asarray(sizes, np.float64)[:, 0], np.asarray(sizes, np.float64)[:, 1]
+    for s in range(0, len(centres), chunk):
+        to_cam = C[None, :, :] - centres[s:s + chunk, None, :]                 # (m, v, 3)
+        cam = np.einsum("mvk,vkj->mvj", -to_cam, R)
+        z = cam[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[None, :, 0, 0] * cam[..., 0] / z + K[None, :, 0, 2]
+            v = K[None, :, 1, 1] * cam[..., 1] / z + K[None, :, 1, 2]
+        flat = np.linalg.norm(to_cam[..., :2], axis=-1)
+        seen = (z > 0.3) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & (flat > 1e-6) \
+            & (np.linalg.norm(to_cam, axis=-1) < max_distance)
+        unit = np.where(seen[..., None], to_cam[..., :2] / np.maximum(flat, 1e-12)[..., None], 0.0).sum(axis=1)
+        any_seen = seen.any(axis=1) & (np.linalg.norm(unit, axis=-1) > 1e-9)
+        out[s:s + chunk][any_seen] = np.arctan2(unit[any_seen, 1], unit[any_seen, 0])
     return out
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from recon.epi import EpiConfig, EpiPass
 
-from .geometry import FACADE, GROUND, base_yaw_toward
+from .geometry import FACADE, GROUND, base_yaw_seen, base_yaw_toward
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +48,9 @@ class LayerConfig:
     top_fraction: float = 0.25      # a row of blocks is kept when the facade covers this share of it
     ground_tolerance: float = 0.06  # ground points lie this close (m) to their cell's ground height
     ground_min_points: int = 20     # cloud points a ground cell needs
+    ground_step: float = 0.05       # neighbouring ground cells this close in height (m) are one smooth surface
+    ground_fill_neighbours: int = 5 # a cell without flat ground but with this many ground neighbours (of 8) is filled
+    ground_fill_passes: int = 2     # rounds of that filling (0: none)
     epi: EpiConfig = field(default_factory=EpiConfig)
 
     def __post_init__(self):
@@ -55,6 +58,8 @@ class LayerConfig:
             raise ValueError(f"block_size must be a finite number > 0 or None, got {self.block_size}")
         if not (self.slab > 0 and self.histogram_bin > 0 and self.ground_tolerance > 0 and self.min_depth > 0):
             raise ValueError("slab, histogram_bin, ground_tolerance and min_depth must be > 0")
+        if not (self.ground_step >= 0 and 1 <= self.ground_fill_neighbours <= 8 and self.ground_fill_passes >= 0):
+            raise ValueError("ground_step ≥ 0, ground_fill_neighbours in [1, 8] and ground_fill_passes ≥ 0 required")
         if self.min_points < 1 or self.ground_min_points < 1 or self.smooth_columns < 0:
             raise ValueError("min_points, ground_min_points ≥ 1 and smooth_columns ≥ 0 required")
         if not (0 <= self.top_fraction < 1):
@@ -244,21 +249,74 @@ def _facade_blocks(columns: FacadeColumns, cloud: np.ndarray, grid_z0: float, co
     return centres, np.full(len(centres), yaw), point_block
 
 
+#: The 8 neighbours of a grid cell, (8, 2) int64.
+_NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)], np.int64)
+
+
+def _cell_keys(cells: np.ndarray) -> np.ndarray:
+    """(m, 2) int64 grid cells → (m,) int64 keys (cells within ±2³¹)."""
+    return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
+
+
+def _neighbour_heights(cells: np.ndarray, heights: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """(q, 8) float64: the heights of the 8 neighbours of each query cell (q, 2) int64 among
+    ``cells`` (m, 2) int64 with ``heights`` (m,); NaN where a neighbour is not a cell."""
+    keys = _cell_keys(cells)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    out = np.full((len(queries), len(_NEIGHBOURS)), np.nan)
+    if len(cells) == 0:
+        return out
+    for k, step in enumerate(_NEIGHBOURS):
+        q = _cell_keys(queries + step)
+        at = np.minimum(np.searchsorted(sorted_keys, q), len(keys) - 1)
+        hit = sorted_keys[at] == q
+        out[hit, k] = heights[order[at[hit]]]
+    return out
+
+
+def _plane_at_centre(heights: np.ndarray) -> np.ndarray:
+    """(q,) float64: the least-squares plane through the finite entries of ``heights``
+    (q, 9) float64 — a cell (column 0, offset (0, 0)) and its 8 neighbours (:data:`_NEIGHBOURS`),
+    NaN where absent — evaluated at the cell's centre. Unlike a median it is unbiased on a
+    slope with neighbours on one side only; a small ridge on the slopes keeps one or two
+    collinear cells well-posed (their mean)."""
+    offsets = np.vstack([[0, 0], _NEIGHBOURS]).astype(np.float64)                # (9, 2)
+    design = np.column_stack([np.ones(9), offsets])                                # (9, 3)
+    w = np.isfinite(heights).astype(np.float64)
+    z = np.where(w > 0, heights, 0.0)
+    normal = np.einsum("qk,ki,kj->qij", w, design, design) + np.diag([0.0, 1e-6, 1e-6])
+    rhs = np.einsum("qk,ki->qi", w * z, design)
+    return np.linalg.solve(normal, rhs[..., None])[:, 0, 0]
+
+
+def _nearest_height(xy: np.ndarray, viewpoints: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """(m,) float64: the height of the viewpoint horizontally nearest each of ``xy`` (m, 2)."""
+    out = np.empty(len(xy))
+    for a in range(0, len(xy), chunk):
+        d = ((xy[a:a + chunk, None, :] - viewpoints[None, :, :2]) ** 2).sum(-1)
+        out[a:a + chunk] = viewpoints[np.argmin(d, axis=1), 2]
+    return out
+
+
 def _ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, size: float,
-                   viewpoints: np.ndarray, config: LayerConfig):
+                   viewpoints: np.ndarray, config: LayerConfig, cameras: tuple | None = None):
     """Horizontal blocks on the ground grid (cells of ``size`` from ``grid_origin``) where the
-    lowest cloud points of a cell (among ``free`` ones) form a flat surface."""
+    lowest cloud points of a cell (among ``free`` ones) form a flat surface.
+
+    A cell's height is then the plane through its own and its neighbours' within
+    ``ground_step`` (noise would show as steps, and steps as cracks at grazing views;
+    kerbs stay). Cells without a flat surface but with at least ``ground_fill_neighbours``
+    ground neighbours get a block on the plane through theirs, ``ground_fill_passes`` times:
+    asphalt without texture gives stereo no points, yet the road continues there."""
     idx = np.flatnonzero(free)
     if len(idx) == 0 or len(viewpoints) == 0:
         return np.zeros((0, 3)), np.zeros(0), np.full(len(cloud), -1, np.int64)
     p = cloud[idx]
-    # Only points below the cameras can be ground.
-    low = p[:, 2] < viewpoints[:, 2].min() - 0.5
-    idx, p = idx[low], p[low]
     cell = np.floor((p[:, :2] - grid_origin[:2]) / size).astype(np.int64)
-    key = cell[:, 0] * (1 << 32) + cell[:, 1]
+    key = _cell_keys(cell)
     order = np.lexsort((p[:, 2], key))
-    key, idx, p = key[order], idx[order], p[order]
+    key, idx, p, cell = key[order], idx[order], p[order], cell[order]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     counts = np.diff(np.r_[starts, len(key)])
     # Ground height: the 10th percentile of the cell's heights (robust to a few low outliers).
@@ -267,17 +325,36 @@ def _ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray,
     cell_of = np.repeat(np.arange(len(starts)), counts)
     on = np.abs(p[:, 2] - height[cell_of]) <= config.ground_tolerance
     n_on = np.bincount(cell_of[on], minlength=len(starts))
-    good = n_on >= config.ground_min_points
-    block_of_cell = np.where(good, np.cumsum(good) - 1, -1)
+    cells = cell[starts]
+    centre_xy = grid_origin[:2] + (cells + 0.5) * size
+    # Only surfaces below the nearest camera can be ground (the road may climb along the path).
+    good = (n_on >= config.ground_min_points) & (height < _nearest_height(centre_xy, viewpoints) - 0.5)
     sums = np.bincount(cell_of[on], weights=p[on, 2], minlength=len(starts))
-    ground_z = sums[good] / n_on[good]
-    cells = np.stack([key[starts] >> 32, key[starts] & 0xFFFFFFFF], axis=1)[good]
-    cells[:, 1] = np.where(cells[:, 1] >= 1 << 31, cells[:, 1] - (1 << 32), cells[:, 1])
-    centres = np.empty((len(cells), 3))
-    centres[:, :2] = grid_origin[:2] + (cells + 0.5) * size
+    ground_z = sums[good] / np.maximum(n_on[good], 1)
+    ground_cells = cells[good]
+    near = _neighbour_heights(ground_cells, ground_z, ground_cells)
+    near[np.abs(near - ground_z[:, None]) > config.ground_step] = np.nan
+    ground_z = _plane_at_centre(np.concatenate([ground_z[:, None], near], axis=1))
+    block_of_cell = np.where(good, np.cumsum(good) - 1, -1)
+    for _ in range(config.ground_fill_passes):
+        lo, hi = ground_cells.min(axis=0) - 1, ground_cells.max(axis=0) + 1
+        around = (ground_cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 2)
+        around = np.unique(around[np.all((around >= lo) & (around <= hi), axis=1)], axis=0)
+        taken = np.isin(_cell_keys(around), _cell_keys(ground_cells))
+        around = around[~taken]
+        near = _neighbour_heights(ground_cells, ground_z, around)
+        fill = np.isfinite(near).sum(axis=1) >= config.ground_fill_neighbours
+        if not fill.any():
+            break
+        ground_cells = np.concatenate([ground_cells, around[fill]])
+        own = np.full((int(fill.sum()), 1), np.nan)
+        ground_z = np.concatenate([ground_z, _plane_at_centre(np.concatenate([own, near[fill]], axis=1))])
+    centres = np.empty((len(ground_cells), 3))
+    centres[:, :2] = grid_origin[:2] + (ground_cells + 0.5) * size
     centres[:, 2] = ground_z
-    # Rows run away from the nearest viewpoint, snapped to the grid (blocks tile without gaps).
-    yaw = base_yaw_toward(centres, viewpoints)
+    # Rows run away from the cameras that see the block (its textures' directions centre
+    # there), snapped to the grid (blocks tile without gaps).
+    yaw = base_yaw_toward(centres, viewpoints) if cameras is None else base_yaw_seen(centres, *cameras)
     yaw = np.round(yaw / (np.pi / 2)) * (np.pi / 2)
     point_block = np.full(len(cloud), -1, np.int64)
     mine = on & good[cell_of]
@@ -286,12 +363,14 @@ def _ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray,
 
 
 def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_origin: np.ndarray,
-                viewpoints: np.ndarray, config: LayerConfig = LayerConfig()) -> Layer:
+                viewpoints: np.ndarray, config: LayerConfig = LayerConfig(), cameras: tuple | None = None) -> Layer:
     """The facade layer of a capture.
 
     cloud (N, 3) float64 world points; passes: EPI points per straight pass; size: block
     edge (m, the voxel size); grid_origin (3,) float64: block rows and ground cells follow
-    the grid from here (the octree's origin); viewpoints (v, 3) float64 camera centres.
+    the grid from here (the octree's origin); viewpoints (v, 3) float64 camera centres;
+    cameras: (K (v, 3, 3), world_from_cam (v, 4, 4), sizes (v, 2)) of the capture, so that
+    ground blocks face the cameras that see them (None: the nearest viewpoint).
     """
     cloud = np.asarray(cloud, np.float64)
     point_block = np.full(len(cloud), -1, np.int64)
@@ -312,7 +391,7 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
             total += len(c)
     if config.ground:
         c, y, pb = _ground_blocks(cloud, point_block < 0, np.asarray(grid_origin, np.float64), size,
-                                  np.asarray(viewpoints, np.float64).reshape(-1, 3), config)
+                                  np.asarray(viewpoints, np.float64).reshape(-1, 3), config, cameras)
         take = pb >= 0
         point_block[take] = pb[take] + total
         centres.append(c)

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from billboards.geometry import BILLBOARD
+from billboards.geometry import BILLBOARD, GROUND, GROUND_OVERLAP
 
 #: Relative tolerance of plane tests: a point is outside only if its signed distance is
 #: below −PLANE_REL_EPS·(|n|·|x| + |d| + extent). float32 clip coordinates on the GPU are
@@ -55,7 +55,8 @@ def model_quad_radius(model) -> float:
     half a layer block's diagonal (a block's centre lies in its leaf) if that is larger."""
     radius = billboard_radius(model.voxel_size)
     if np.any(model.kind != BILLBOARD):
-        radius = max(radius, float(model.block_size) * math.sqrt(2.0) / 2.0)
+        grown = 1.0 + 2.0 * GROUND_OVERLAP if np.any(model.kind == GROUND) else 1.0
+        radius = max(radius, float(model.block_size) * grown * math.sqrt(2.0) / 2.0)
     return radius
 
 

@@ -272,3 +272,55 @@ def test_no_seams_on_a_flat_textured_wall(ctx, decode, voxel_size):
                 both = (inner[1:] & inner[:-1]) if axis == 0 else (inner[:, 1:] & inner[:, :-1])
                 step = np.abs(np.diff(image, axis=axis)).max(-1)[both]
                 assert step.max() <= texel_step, f"a seam: a step of {step.max()} from {eye}"
+
+
+def _forward_cameras(xs, slope: float, height: float = 1.65):
+    """Cameras on a road z = slope·x at x = xs, ``height`` above it, looking ahead (+x) and
+    slightly down, 1226×370 with a 707 px focal (KITTI's): K, world_from_cam, sizes."""
+    from render.camera import look_at
+
+    poses = np.stack([look_at([x, 0.0, slope * x + height], [x + 10.0, 0.0, slope * (x + 10.0) + 0.5]) for x in xs])
+    K = np.repeat(np.array([[707.0, 0, 612.5], [0, 707.0, 184.5], [0, 0, 1]])[None], len(xs), axis=0)
+    return K, poses, np.repeat([[1226, 370]], len(xs), axis=0)
+
+
+def test_ground_follows_a_climbing_road_fills_a_bare_strip_and_faces_the_cameras_that_see_it():
+    """An 8 % climb (the road ends above the first camera), a strip of asphalt where stereo
+    found no points, and forward-looking cameras: the ground layer covers the whole road,
+    its blocks step by the slope only, and their textures face back along the path."""
+    slope, size = 0.08, 0.5
+    rng = np.random.default_rng(1)
+    xy = np.stack([rng.uniform(0, 30, 60000), rng.uniform(-4, 4, 60000)], axis=1)
+    bare = (np.abs(xy[:, 1]) < 1.0) & (xy[:, 0] > 12) & (xy[:, 0] < 13)
+    xy = xy[~bare]
+    cloud = np.column_stack([xy, slope * xy[:, 0] + rng.normal(0, 0.005, len(xy))])
+    K, poses, sizes = _forward_cameras(np.arange(0.0, 30.0, 1.5), slope)
+    config = LayerConfig(facades=False)
+    layer = build_layer(cloud, [], size, np.zeros(3), poses[:, :3, 3], config, cameras=(K, poses, sizes))
+    ground = layer.centres[layer.kind == GROUND]
+    cells = {(int(np.floor(x / size)), int(np.floor(y / size))): z for x, y, z in ground}
+    interior = [(i, j) for i in range(2, 58) for j in range(-7, 7)]
+    assert all(c in cells for c in interior)                                         # the bare strip is filled
+    assert max(abs(cells[c] - slope * (c[0] + 0.5) * size) for c in interior) < 0.02  # on the road
+    steps = [abs(cells[(i + 1, j)] - cells[(i, j)]) for i, j in interior if (i + 1, j) in cells]
+    assert max(steps) < slope * size + 0.02
+    on_path = (np.abs(ground[:, 1]) < 1.0) & (ground[:, 0] > 8) & (ground[:, 0] < 25)
+    np.testing.assert_allclose(np.cos(layer.base_yaw[layer.kind == GROUND][on_path]), -1.0, atol=1e-9)
+    # without the cameras, blocks on the path face whichever camera is nearest: some ahead of them
+    nearest = build_layer(cloud, [], size, np.zeros(3), poses[:, :3, 3], config)
+    assert np.any(np.cos(nearest.base_yaw[nearest.kind == GROUND][on_path]) > 0.5)
+    with pytest.raises(ValueError):
+        LayerConfig(ground_fill_neighbours=9)
+
+
+def test_base_yaw_seen_faces_the_seeing_cameras_else_the_nearest():
+    from billboards.geometry import base_yaw_seen
+
+    K, poses, sizes = _forward_cameras([0.0, 2.0], slope=0.0)
+    items = np.array([[12.0, 0.0, 0.0],     # ahead of both cameras: seen from −x
+                      [1.0, 0.0, 0.0],      # below and between them: seen by neither
+                      [-5.0, 0.5, 0.0]])    # behind both: seen by neither
+    yaw = base_yaw_seen(items, K, poses, sizes)
+    assert yaw[0] == pytest.approx(np.pi)
+    nearest = np.arctan2(poses[[0, 0], 1, 3] - items[1:, 1], poses[[0, 0], 0, 3] - items[1:, 0])
+    np.testing.assert_allclose(yaw[1:], nearest)

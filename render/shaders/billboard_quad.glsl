@@ -11,7 +11,10 @@
 // facade layer stay fixed at ψ = base yaw: a facade block (kind 1) is vertical with the same
 // r and u; a ground block (kind 2) lies flat with u = (−cos ψ, −sin ψ, 0), so its rows run
 // away from the capture path. Texel (row, col) of a t×t tile lies at
-// centre + ((col+½)/t − ½)·s·r + (½ − (row+½)/t)·s·u.
+// centre + ((col+½)/t − ½)·s·r + (½ − (row+½)/t)·s·u. A ground block is drawn
+// GROUND_OVERLAP of its edge larger on every side, repeating its border texels: on a
+// sloping road each block's far edge is a small step above the next block, and seen from
+// a car such steps would be cracks of background.
 
 uniform mat4 u_projection;   // GL clip from GL eye
 uniform mat4 u_view;         // GL eye from model coordinates (world − origin)
@@ -33,6 +36,7 @@ vec2 view_angles(vec3 centre) {
 
 const int KIND_BILLBOARD = 0;
 const int KIND_GROUND = 2;
+const float GROUND_OVERLAP = 0.08;
 
 // The angles a quad faces: toward the eye for billboards, the base yaw for layer blocks.
 vec2 quad_angles(vec3 centre, float base_yaw, int kind) {
@@ -57,6 +61,7 @@ vec4 quad_vertex(vec3 centre, vec2 angles, int kind, vec2 corner, out vec2 texel
         up = cross(n, right);
     }
     float size = kind == KIND_BILLBOARD ? u_size : u_block_size;
+    if (kind == KIND_GROUND) corner = (corner - 0.5) * (1.0 + 2.0 * GROUND_OVERLAP) + 0.5;
     vec3 p = centre + (corner.x - 0.5) * size * right + (corner.y - 0.5) * size * up;
     texel = vec2(corner.x, 1.0 - corner.y) * float(u_tile);
     return u_projection * (u_view * vec4(p, 1.0));
