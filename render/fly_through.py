@@ -61,7 +61,11 @@ def file_poses(path: os.PathLike | str) -> np.ndarray:
         from data_synth import load_dataset
 
         ds = load_dataset(path)
-        return np.stack([ds.world_from_cam(f, 0) for f in range(ds.num_frames)])
+        posed = [f for f in range(ds.num_frames) if np.isfinite(ds.world_from_rig[f]).all()]
+        if not posed:
+            raise DataFormatError(path / "poses.json", "no frame has a pose (--path capture follows the poses "
+                                                       "the model was built with)")
+        return np.stack([ds.world_from_cam(f, 0) for f in posed])
     data = read_json(path)
     if not isinstance(data, list) or not data:
         raise DataFormatError(path, "expected a non-empty JSON list of 4×4 world_from_cam matrices")

@@ -156,15 +156,22 @@ class DrivePath:
 
 
 def drive_path_for(model, height: float = 2.0) -> DrivePath:
-    """The capture path from ``model.info["dataset"]`` (poses.json, at ``height`` above
-    the rig), else a straight line at ``height`` along the model's x extent."""
-    dataset = (model.info or {}).get("dataset") if isinstance(model.info, dict) else None
+    """The capture path from the poses the model was built with (``model.info["poses"]``, a
+    recon's WORK/poses.json, else ``model.info["dataset"]``'s poses.json; frames without a
+    pose skipped), at ``height`` above the rig, else a straight line at ``height`` along the
+    model's x extent."""
+    info = model.info if isinstance(model.info, dict) else {}
+    dataset = info.get("dataset")
     if dataset:
         try:
             from data_synth.rig import load_poses
 
-            world_from_rig, _ = load_poses(Path(dataset) / "poses.json")
+            poses = info.get("poses") or Path(dataset) / "poses.json"
+            world_from_rig, _ = load_poses(poses)
             pts = world_from_rig[:, :3, 3] + [0.0, 0.0, height]
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            if len(pts) < 2:
+                raise ValueError(f"{poses}: fewer than two frames have a pose")
             return DrivePath(pts)
         except Exception as e:  # missing or moved dataset: fall back to the model's extent
             logger.info("no capture path from %s (%s); driving along the model", dataset, e)
