@@ -31,6 +31,9 @@ def _add_synth(sub) -> None:
     p.add_argument("--hfov", type=float, default=None, help="horizontal field of view in degrees (default 115)")
     p.add_argument("--pitch", type=float, default=None,
                    help="upward tilt of the cameras in degrees (default 8; negative looks down)")
+    p.add_argument("--cameras", type=int, choices=(1, 2, 3), default=None,
+                   help="cameras in the rig's row: 1 (one camera: recon matches neighbouring frames), 2 (0.8 m "
+                        "apart) or 3 (0, 0.4, 0.8 m; the default)")
     p.add_argument("--distortion", choices=["none", "radtan", "fisheye"], default="none",
                    help="lens of the raw images: none (pinhole, default), or a radial-tangential or fisheye "
                         "preset; images are stored distorted and read back undistorted")
@@ -39,6 +42,10 @@ def _add_synth(sub) -> None:
     p.add_argument("--no-gt-depth", action="store_true", help="skip per-image ground-truth depth and ids")
     p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_synth)
+
+
+#: `synth --cameras N`: each camera's offset along the row, metres.
+_CAMERA_BASELINES = {1: (0.0,), 2: (0.0, 0.8), 3: (0.0, 0.4, 0.8)}
 
 
 def _run_synth(args) -> int:
@@ -52,7 +59,8 @@ def _run_synth(args) -> int:
         town=TownConfig(seed=args.seed),
         rig=RigConfig(**{k: v for k, v in (("width", args.width), ("height", args.height),
                                            ("hfov_deg", args.hfov), ("pitch_deg", args.pitch),
-                                           ("distortion", args.distortion)) if v is not None}),
+                                           ("distortion", args.distortion),
+                                           ("baselines", _CAMERA_BASELINES.get(args.cameras))) if v is not None}),
         frames=args.frames, return_pass=not args.no_return, town_path_length=args.length,
         spp=args.spp, ground_truth_depth=not args.no_gt_depth)
     start = time.perf_counter()

@@ -30,8 +30,11 @@ one partner (first or last frame of a pass) nothing can cross-check it, so its
 estimates are kept unchecked (1), guarded only by the matcher's left–right
 check; their confidence is scaled by the share of the expected pairs present,
 so that they weigh less where a voxel also has checked estimates.
-``outer_pair`` adds the pair (before, after) itself (twice the baseline, like
-the rig's (0, 2) pair), three pairs in all, of which 2 must agree by default.
+``outer_pair`` (the default) adds the pair (before, after) itself (twice the
+baseline, like the rig's (0, 2) pair), three pairs in all, of which 2 must
+agree by default. On a 40 m street (416×736, frames 0.82 m apart, partners
+±0.82 m) it took accuracy from 2.35 to 1.76 cm median (p90 9.5 → 6.5 cm) and
+completeness within 20 cm from 94.8 to 95.6 %, for 1.4× the stereo time.
 """
 
 from __future__ import annotations
@@ -59,7 +62,7 @@ class MotionStereoConfig:
     min_overlap: float = 0.5  # share of the reference image the partner must see at overlap_depth
     overlap_depth: float = 8.0  # depth at which the overlap is measured, metres (a facade across a sidewalk)
     max_frame_gap: int = 8  # partners are searched this many frames before and after the reference
-    outer_pair: bool = False  # also match the two partners with each other (three pairs, like the rig)
+    outer_pair: bool = True  # also match the two partners with each other (three pairs, like the rig)
     min_agree: int | None = None  # estimates that must agree; None: 2 with two or more pairs, 1 with one
 
     def __post_init__(self):

@@ -200,7 +200,8 @@ def test_depth_of_a_textured_plane_from_neighbouring_frames():
     gt = renders[1][1]
     cams = np.stack([poses[1], poses[0], poses[2]])
     Ks = np.stack([K] * 3)
-    fd = motion_depth(images, Ks, cams)
+    two = MotionStereoConfig(outer_pair=False)
+    fd = motion_depth(images, Ks, cams, two)
     assert set(fd.pair_depth) == {(1, 0), (0, 2)}  # partner 1 (x = −0.6 m) is on the left: (left, right)
     valid = np.isfinite(fd.depth)
     assert valid.mean() > 0.6
@@ -210,13 +211,14 @@ def test_depth_of_a_textured_plane_from_neighbouring_frames():
     assert (fd.num_agree[valid] == 2).all()
     # one partner: unchecked estimates, half the confidence; SGBM's sub-pixel error (about
     # 0.1 px, here 4 cm) is no longer averaged with a second pair
-    one = motion_depth(images[:2], Ks[:2], cams[:2])
+    one = motion_depth(images[:2], Ks[:2], cams[:2], two)
     ok = np.isfinite(one.depth)
     assert ok.mean() > 0.6 and np.median(np.abs(one.depth[ok] - gt[ok])) < 0.06
     assert one.confidence[ok].max() == pytest.approx(0.5)
+    assert motion_depth(images[:2], Ks[:2], cams[:2]).confidence.max() == pytest.approx(1 / 3)  # 1 of 3 pairs
     # the outer pair (the two partners, 1.3 m apart) makes three pairs
-    three = motion_depth(images, Ks, cams, MotionStereoConfig(outer_pair=True))
-    assert len(three.pair_depth) == 3 and np.isfinite(three.depth).mean() >= valid.mean() - 0.02
+    three = motion_depth(images, Ks, cams)
+    assert set(three.pair_depth) == {(1, 0), (0, 2), (1, 2)} and np.isfinite(three.depth).mean() >= valid.mean() - 0.02
     # no partner: nothing, without failing
     none = motion_depth(images[:1], Ks[:1], cams[:1], trinocular=TrinocularConfig())
     assert np.isnan(none.depth).all() and not none.confidence.any() and none.pair_depth == {}
@@ -237,3 +239,19 @@ def test_one_camera_street_end_to_end(tmp_path):
     assert acc["accuracy_median_m"] < 0.06
     assert acc["accuracy_p90_m"] < 0.20
     assert acc["facade_completeness_20cm"] > 0.7
+
+
+def test_synth_cameras_option(tmp_path):
+    from bbcity.cli import main as cli_main
+    from data_synth import load_dataset
+
+    for n in (1, 2):
+        out = tmp_path / f"s{n}"
+        assert cli_main(["-q", "synth", "street", "--out", str(out), "--frames", "1", "--length", "20", "--width",
+                         "48", "--height", "32", "--workers", "1", "--no-return", "--no-gt-depth",
+                         "--cameras", str(n)]) == 0
+        rig = load_dataset(out).rig
+        assert rig.num_cameras == n
+        if n == 2:  # 0.8 m apart along the row
+            c0, c1 = (np.linalg.inv(T)[:3, 3] for T in rig.cam_from_rig)
+            assert np.linalg.norm(c1 - c0) == pytest.approx(0.8)
