@@ -10,8 +10,10 @@ SYSDEPS_STAMP := $(VENV)/.sysdeps
 INSTALL_STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo
 BENCH_DIR ?= bench
+KITTI_DIR ?= ../shared/data/kitti06
+KITTI_OUT ?= $(DEMO_DIR)/kitti06
 
-.PHONY: demo test bench setup sysdeps clean
+.PHONY: demo kitti test bench setup sysdeps clean
 
 setup: $(INSTALL_STAMP)
 
@@ -38,6 +40,15 @@ demo: $(INSTALL_STAMP)
 	$(BIN)/bbcity render $(DEMO_DIR)/model --path capture --frames 300 --out $(DEMO_DIR)/flythrough.mp4
 	$(BIN)/bbcity eval $(DEMO_DIR)/model $(DEMO_DIR)/street --cloud $(DEMO_DIR)/work/cloud.ply \
 		--billboards-only $(DEMO_DIR)/model-billboards --out $(DEMO_DIR)/eval
+
+# A KITTI odometry sequence (calib.txt, poses.txt, a stereo pair of image folders) end to end:
+# every 4th frame held out of the cloud and the textures, and scored against its real image.
+kitti: $(INSTALL_STAMP)
+	[ -d $(KITTI_OUT)/dataset ] || $(BIN)/bbcity import kitti $(KITTI_DIR) --out $(KITTI_OUT)/dataset
+	$(BIN)/bbcity recon $(KITTI_OUT)/dataset --out $(KITTI_OUT)/work --min-depth 3 --max-depth 80 --holdout 4
+	$(BIN)/bbcity build $(KITTI_OUT)/work --out $(KITTI_OUT)/model
+	$(BIN)/bbcity eval $(KITTI_OUT)/model $(KITTI_OUT)/dataset --cloud $(KITTI_OUT)/work/cloud.ply \
+		--workprecision-depths --out $(KITTI_OUT)/eval
 
 test: $(INSTALL_STAMP)
 	$(BIN)/python -m pytest -q

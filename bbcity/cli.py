@@ -71,11 +71,84 @@ def _run_synth(args) -> int:
     return 0
 
 
+def _add_import(sub) -> None:
+    p = sub.add_parser(
+        "import", help="a capture of your own (KITTI sequence, COLMAP model, photo folder) → a dataset directory",
+        description="Turn a capture into a dataset directory (rig.json, poses.json, images/) that recon, build "
+                    "and eval read like a synthetic one. The new directory is written whole or not at all.")
+    kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
+    k = kinds.add_parser("kitti", help="a KITTI odometry sequence (calib.txt, poses.txt, a stereo pair of image folders)",
+                         description="Import a KITTI odometry sequence: calib.txt (P0..P3), poses.txt (world_from_cam0 "
+                                     "per frame) and image_0/1 (grey), image_2/3 (colour) or image_l/r.")
+    k.add_argument("sequence", type=Path, help="sequence directory")
+    k.add_argument("--out", type=Path, required=True, help="new dataset directory")
+    k.add_argument("--cameras", choices=("auto", "grey", "colour", "lr"), default="auto",
+                   help="which stereo pair (default auto: colour, else grey, else image_l/r)")
+    k.add_argument("--camera-height", type=float, default=1.65,
+                   help="height of the left camera above the road in metres (default 1.65, KITTI's car)")
+    k.add_argument("--first", type=int, default=0, help="first frame (default 0)")
+    k.add_argument("--count", type=int, default=None, help="frames to import (default: all)")
+    k.add_argument("--step", type=int, default=1, help="every n-th frame (default 1)")
+    k.set_defaults(func=_run_import_kitti)
+    c = kinds.add_parser("colmap", help="a COLMAP sparse model (text or binary) and its image folder",
+                         description="Import a COLMAP model: its cameras (pinhole, radtan and fisheye models kept, "
+                                     "other lenses undistorted here), a rig of several cameras or one camera, and "
+                                     "the registered poses, turned so that z points up (cameras held roughly "
+                                     "level). The model's scale is kept.")
+    c.add_argument("model", type=Path, help="COLMAP model directory (cameras, images[, rigs, frames] .txt or .bin)")
+    c.add_argument("--images", type=Path, required=True, help="folder that the model's image names are relative to")
+    c.add_argument("--out", type=Path, required=True, help="new dataset directory")
+    c.add_argument("--metric", action="store_true", help="the model is in metres (recorded in dataset.json)")
+    c.set_defaults(func=_run_import_colmap)
+    f = kinds.add_parser("photos", help="a folder of one camera's photos (poses unknown: recon --poses sfm)",
+                         description="Import a folder of JPEG/PNG photos of one camera, all the same size, in file-name "
+                                     "order. Intrinsics from --intrinsics or the photos' EXIF focal length. The poses "
+                                     "are unknown: reconstruct with `bbcity recon DATASET --poses sfm`, which scales "
+                                     "the result to --step-length metres between consecutive photos.")
+    f.add_argument("folder", type=Path, help="folder of photos")
+    f.add_argument("--out", type=Path, required=True, help="new dataset directory")
+    f.add_argument("--intrinsics", type=Path, default=None,
+                   help="K file: 3 lines of a 3×3 matrix or one line \"fx fy cx cy\" (OpenCV pixel centres), "
+                        "optionally followed by \"k1 k2 p1 p2 [k3]\" (default: EXIF)")
+    f.add_argument("--sensor-width", type=float, default=None,
+                   help="sensor width in mm, with EXIF FocalLength when the photos lack a 35 mm equivalent")
+    f.add_argument("--step-length", type=float, default=1.0,
+                   help="metres between consecutive photos; SfM's scale (default 1.0)")
+    f.set_defaults(func=_run_import_photos)
+
+
+def _run_import_colmap(args) -> int:
+    from recon.importers.colmap import ColmapImportConfig, import_colmap
+
+    out = import_colmap(args.model, args.images, args.out, ColmapImportConfig(metric=args.metric))
+    logger.info("wrote %s", out)
+    return 0
+
+
+def _run_import_photos(args) -> int:
+    from recon.importers.photos import PhotosConfig, import_photos
+
+    conf = PhotosConfig(intrinsics=args.intrinsics, sensor_width_mm=args.sensor_width, step_length=args.step_length)
+    out = import_photos(args.folder, args.out, conf)
+    logger.info("wrote %s; its poses are unknown: bbcity recon %s --poses sfm", out, out)
+    return 0
+
+
+def _run_import_kitti(args) -> int:
+    from recon.importers.kitti import KittiConfig, import_kitti
+
+    conf = KittiConfig(cameras=args.cameras, camera_height=args.camera_height, first=args.first, count=args.count,
+                       step=args.step)
+    out = import_kitti(args.sequence, args.out, conf)
+    logger.info("wrote %s", out)
+    return 0
+
+
 def _add_recon(sub) -> None:
     p = sub.add_parser(
-        "recon", help="three-camera stereo → fused coloured point cloud (cloud.ply)",
-        description="Rectify each camera pair, match by SGBM with a left-right check, fuse the three "
-                    "pairs per frame, merge all frames by voxel hashing, remove outliers and write "
+        "recon", help="stereo (rig of 1, 2 or 3 cameras) → fused coloured point cloud (cloud.ply)",
+        description="Rectify each camera pair, match by SGBM with a left-right check, fuse the pairs per frame "
+                    "(three cameras: three pairs that must agree; two: one pair; one: neighbouring frames), merge all frames by voxel hashing, remove outliers and write "
                     "WORK/cloud.ply and WORK/recon_report.json (with accuracy and completeness when "
                     "the dataset has ground truth).")
     p.add_argument("dataset", type=Path, help="dataset directory (rig.json, poses.json, images/)")
@@ -90,6 +163,9 @@ def _add_recon(sub) -> None:
     p.add_argument("--wls", action="store_true", help="WLS-filter the disparities (smoother, slower)")
     p.add_argument("--min-agree", type=int, choices=(2, 3), default=3,
                    help="pairs that must agree on a pixel's depth (default 3; 2 keeps more, with more errors)")
+    p.add_argument("--holdout", type=int, default=0,
+                   help="leave every n-th frame out of the cloud, for `bbcity eval` on held-out views (default 0: "
+                        "none; 4 uses 75 %% of the frames); `bbcity build` of this WORK leaves the same frames out")
     p.add_argument("--no-eval", action="store_true", help="skip the ground-truth evaluation")
     p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_recon)
@@ -113,7 +189,7 @@ def _run_recon(args) -> int:
     stereo = dataclasses.replace(stereo, **overrides)
     conf = ReconConfig(trinocular=TrinocularConfig(stereo=stereo, min_agree=args.min_agree), fusion=FusionConfig(voxel_size=args.voxel_size),
                        poses=source, colmap_model=rest[0] if rest else None, frame_stride=args.frame_stride,
-                       evaluate=not args.no_eval)
+                       evaluate=not args.no_eval, holdout=args.holdout)
     from .executor import executor_scope
 
     with executor_scope(args.workers) as executor:
@@ -136,6 +212,9 @@ def _add_build(sub) -> None:
     p.add_argument("--cloud", type=Path, default=None, help="a PLY/PCD cloud of your own (instead of WORK/cloud.ply)")
     p.add_argument("--images", type=Path, default=None,
                    help="dataset directory with rig.json, poses.json and images/ (default: the one WORK was built from)")
+    p.add_argument("--poses", type=Path, default=None,
+                   help="a poses.json to use instead of the dataset's (default: WORK/poses.json when the recon "
+                        "computed its poses, e.g. --poses sfm on a photo folder: the cloud is in their frame)")
     p.add_argument("--texture-source", choices=("images", "points"), default="images",
                    help="sample textures from the images (default) or splat the cloud's own points")
     p.add_argument("--voxel-size", type=float, default=0.5, help="billboard/voxel edge in metres (default 0.5)")
@@ -155,8 +234,9 @@ def _add_build(sub) -> None:
     p.add_argument("--tile-mode", choices=("u8", "f16"), default="u8", help="eigen image precision (default u8)")
     p.add_argument("--coef-mode", choices=("f32", "f16", "u8"), default="f16", help="coefficient precision (default f16)")
     p.add_argument("--page-size", type=int, default=8192, help="atlas page edge in texels (default 8192)")
-    p.add_argument("--holdout", type=int, default=0,
-                   help="leave every n-th frame's images out of the textures (for `bbcity eval`; default 0: none)")
+    p.add_argument("--holdout", type=int, default=None,
+                   help="leave every n-th frame's images out of the textures (for `bbcity eval`; default: the "
+                        "recon's --holdout, else 0: none)")
     p.add_argument("--layer", choices=("facades+ground", "facades", "ground", "none"), default="facades+ground",
                    help="the facade layer under the billboards: slits on the facades found in the EPIs and/or "
                         "blocks on flat ground (default both; none: billboards only)")
@@ -214,10 +294,15 @@ def _run_build(args) -> int:
     dataset = args.images
     if dataset is None and args.work is not None and args.texture_source == "images":
         dataset = _work_dataset(args.work)
+    if args.holdout is None:
+        args.holdout = _work_holdout(args.work) if args.work is not None and args.cloud is None else 0
+    poses = args.poses
+    if poses is None and args.work is not None and args.cloud is None and dataset is not None:
+        poses = _work_poses(args.work)  # WORK's cloud lies in the frame of the poses its recon used
     conf = build_config_from_args(args)
     workers = args.workers or default_workers()
     with executor_scope(args.workers) as executor:
-        result = build_main(conf, cloud, dataset, args.out, executor=executor, workers=workers)
+        result = build_main(conf, cloud, dataset, args.out, executor=executor, workers=workers, poses=poses)
     r = result.report
     psnr = r["psnr"]["decoded_rgb_opaque_db"]  # None: no opaque texel measured
     logger.info("%d billboards, compression %.1f× at %s dB (decoded RGB), %.1f s → %s", r["billboards"],
@@ -233,6 +318,33 @@ def _work_dataset(work: Path) -> Path:
     if not isinstance(report, dict) or not isinstance(report.get("dataset"), str):
         raise ValueError(f"{work / 'recon_report.json'}: does not name the dataset; pass --images")
     return Path(report["dataset"])
+
+
+def _work_poses(work: Path) -> Path | None:
+    """The poses.json a recon WORK directory wrote (its recon_report.json "poses_file": the
+    poses were not the dataset's own), else None (the dataset's poses.json)."""
+    from data_synth.fileio import read_json
+
+    report = read_json(work / "recon_report.json")
+    name = report.get("poses_file") if isinstance(report, dict) else None
+    if not isinstance(name, str):
+        return None
+    path = Path(name)
+    if not path.is_file() and (work / path.name).is_file():  # WORK moved since: the file beside the report
+        path = work / path.name
+    if not path.is_file():
+        raise ValueError(f"{work / 'recon_report.json'}: its poses file {name} is missing (the cloud lies in the "
+                         "frame of those poses; rerun recon or pass --poses)")
+    return path
+
+
+def _work_holdout(work: Path) -> int:
+    """The ``--holdout`` a recon WORK directory was made with (0 when its report predates it)."""
+    from data_synth.fileio import read_json
+
+    report = read_json(work / "recon_report.json")
+    holdout = report.get("config", {}).get("holdout", 0) if isinstance(report, dict) else 0
+    return holdout if isinstance(holdout, int) else 0
 
 
 def _add_texture_sweep(sub) -> None:
@@ -387,10 +499,32 @@ def _run_render(args) -> int:
     return 0
 
 
+def _eval_dataset(model, dataset_dir: Path):
+    """The dataset to evaluate ``model`` on: with the poses the model was built with (its
+    info "poses": a recon's WORK/poses.json, e.g. from SfM) instead of the dataset's own."""
+    import numpy as np
+
+    from data_synth import load_dataset
+
+    info = model.info if isinstance(model.info, dict) else {}
+    poses = info.get("poses")
+    if not isinstance(poses, str):
+        ds = load_dataset(dataset_dir)
+        if not np.isfinite(ds.world_from_rig).all(axis=(1, 2)).any():
+            raise ValueError(f"{dataset_dir}: no frame has a pose, and the model records no poses file (build it "
+                             "from the WORK of `bbcity recon --poses sfm`)")
+        return dataset_dir
+    logger.info("poses: %s (the model's)", poses)
+    return load_dataset(dataset_dir, poses=poses)
+
+
 def _add_eval(sub) -> None:
-    p = sub.add_parser("eval", help="novel-view quality of a model against ground truth (vs Poisson mesh, points)",
+    p = sub.add_parser("eval", help="novel-view quality of a model against ground truth or held-out real images",
                        description="Render MODEL at capture viewpoints of DATASET (its held-out frames when built with "
-                                   "--holdout) and at the same viewpoints moved 2 m sideways and 1 m up; compare with "
+                                   "--holdout). A real capture (no gt/): compare with those frames' images, PSNR and "
+                                   "SSIM over the pixels each method covers and the whole image, coverage of the pixels "
+                                   "below the horizon. A synthetic dataset: also at the same viewpoints moved 2 m "
+                                   "sideways and 1 m up; compare with "
                                    "the ground-truth renderer: PSNR and SSIM over the image, over geometry pixels and "
                                    "over seen pixels (a surface a capture camera used for the textures saw). With "
                                    "--cloud, the fused cloud is the baseline twice: meshed by Open3D's screened "
@@ -398,14 +532,16 @@ def _add_eval(sub) -> None:
                                    "Writes eval.json, eval.md, workprecision.png (bytes against seen-pixel PSNR: "
                                    "Poisson depths, the model(s), the points) and one side-by-side PNG per view.")
     p.add_argument("model", type=Path, help="billboard model directory")
-    p.add_argument("dataset", type=Path, help="synthetic dataset with gt/")
+    p.add_argument("dataset", type=Path,
+                   help="the dataset: synthetic with gt/, or a real capture (scored against its held-out images)")
     p.add_argument("--out", type=Path, required=True, help="report directory")
     p.add_argument("--cloud", type=Path, default=None, help="fused cloud for the Poisson-mesh and point baselines")
     p.add_argument("--billboards-only", type=Path, default=None, metavar="MODEL",
                    help="a model of the same cloud built with --layer none, scored as 'billboards only'")
     p.add_argument("--models", type=Path, nargs="+", default=[], metavar="MODEL",
                    help="more model directories (other build settings): more points of the work-precision diagram")
-    p.add_argument("--views", type=int, default=8, help="capture viewpoints (default 8; each also off path)")
+    p.add_argument("--views", type=int, default=None,
+                   help="viewpoints (default: 8, each also off path; a real capture: every held-out frame)")
     p.add_argument("--size", type=int, nargs=2, default=None, metavar=("W", "H"), help="default: the camera's")
     p.add_argument("--poisson-depth", type=int, default=10, help="octree depth of the Poisson-mesh baseline (10)")
     p.add_argument("--workprecision-depths", type=int, nargs="*", default=[8, 9, 10, 11], metavar="D",
@@ -428,12 +564,18 @@ def _run_eval(args) -> int:
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]
     extra = {label: (load(m), read_sky(m)) for label, m in zip(labels, args.models)}
     only = None if args.billboards_only is None else (load(args.billboards_only), read_sky(args.billboards_only))
-    report = evaluate_views(load(args.model), args.dataset, args.cloud, sky=read_sky(args.model), extra_models=extra,
-                            billboards_only=only, config=config, out_dir=args.out)
+    model = load(args.model)
+    report = evaluate_views(model, _eval_dataset(model, args.dataset), args.cloud, sky=read_sky(args.model),
+                            extra_models=extra, billboards_only=only, config=config, out_dir=args.out)
     write_report(report, args.out)
     for name, m in report["summary"].items():
-        logger.info("%s: PSNR %s dB over seen pixels (%s over the image), SSIM %s", name, _num(m["psnr_seen"]),
-                    _num(m["psnr"]), _num(m["ssim_seen"], ".3f"))
+        if report.get("real"):
+            logger.info("%s: PSNR %s dB over covered pixels (%s over the image), SSIM %s, %s of the pixels below "
+                        "the horizon covered", name, _num(m["psnr_covered"]), _num(m["psnr"]),
+                        _num(m["ssim_covered"], ".3f"), _num(m["coverage_seen"], ".1%"))
+        else:
+            logger.info("%s: PSNR %s dB over seen pixels (%s over the image), SSIM %s", name, _num(m["psnr_seen"]),
+                        _num(m["psnr"]), _num(m["ssim_seen"], ".3f"))
     logger.info("wrote %s", args.out / "eval.md")
     return 0
 
@@ -497,6 +639,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_synth(sub)
+    _add_import(sub)
     _add_recon(sub)
     _add_build(sub)
     _add_texture_sweep(sub)

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from data_synth import load_dataset, load_scene
+from data_synth.dataset import held_out_frames
 from data_synth.fileio import write_json
 from data_synth.tasks import ordered_results
 from recon.cloud_io import read_cloud_arrays
@@ -204,8 +205,13 @@ def _worker_state(state_dir: str):
                          np.load(root / "begin.npy"), centres, meta["voxel_size"], meta["reach"])
     if conf.source == "images":
         gains = np.load(root / "gains.npy") if (root / "gains.npy").exists() else None
+        lens = {}
+        if (root / "rig.json").exists():  # distorted cameras: the views undistort their raw images
+            from data_synth.rig import Rig
+
+            lens = dict(rig=Rig.load(root / "rig.json"), cams=np.load(root / "cams.npy"))
         views = Views(np.load(root / "K.npy"), np.load(root / "world_from_cam.npy"), np.load(root / "sizes.npy"),
-                      tuple(Path(p) for p in meta["paths"]), gains)
+                      tuple(Path(p) for p in meta["paths"]), gains, **lens)
         sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres,
                                kind=kind, block_size=meta["block_size"])
     else:
@@ -327,11 +333,14 @@ class BuildResult:
 
 def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathLike | str | None,
          model_dir: os.PathLike | str, executor: Executor | None = None, progress: bool | None = None,
-         workers: int = 1) -> BuildResult:
+         workers: int = 1, poses: os.PathLike | str | None = None) -> BuildResult:
     """Build ``model_dir`` from a cloud and (for ``source="images"``) a dataset's images and poses.
 
     Writes ``model_dir/build_report.json`` too. ``workers`` only sizes the number of
-    tasks kept in flight; ``executor`` runs them (None: this process).
+    tasks kept in flight; ``executor`` runs them (None: this process). ``poses``: a
+    ``poses.json`` used instead of the dataset's own (``WORK/poses.json`` of a recon whose
+    poses came from SfM or a COLMAP model), recorded in the model's info so that eval and
+    render use it too; frames without a pose are left out.
     """
     model_dir = Path(model_dir)
     stages: dict[str, float] = {}
@@ -343,11 +352,15 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     held_out: list[int] = []
     cameras = 0
     if dataset_dir is not None:
-        dataset = load_dataset(dataset_dir)
-        frames = list(range(dataset.num_frames))
-        if conf.holdout:
-            held_out = [f for f in frames if f % conf.holdout == conf.holdout // 2]
-            frames = [f for f in frames if f % conf.holdout != conf.holdout // 2]
+        dataset = load_dataset(dataset_dir, poses=poses)
+        posed = np.isfinite(dataset.world_from_rig).all(axis=(1, 2))
+        if not posed.any():
+            where = poses if poses is not None else Path(dataset_dir) / "poses.json"
+            raise ValueError(f"{where}: no frame has a pose (a photo folder: `bbcity recon DATASET --poses sfm`, "
+                             "then `bbcity build WORK`)")
+        # the frames left out of the textures that can be viewpoints (eval needs their poses)
+        held_out = [f for f in held_out_frames(dataset.num_frames, conf.holdout) if posed[f]]
+        frames = [f for f in range(dataset.num_frames) if f not in set(held_out) and posed[f]]
         views = views_from_dataset(dataset, frames)
         cameras = dataset.rig.num_cameras
     elif conf.source == "images":
@@ -373,7 +386,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         t1 = time.perf_counter()
         size = conf.octree.voxel_size or build_octree(points, conf.octree).voxel_size
         block_size = conf.layer.block_size or size
-        layer = build_layer(points, passes, block_size, points.min(axis=0), views.centres, conf.layer)
+        layer = build_layer(points, passes, block_size, points.min(axis=0), views.centres, conf.layer,
+                            cameras=(views.K, views.world_from_cam, views.sizes))
         stages["layer_s"] = time.perf_counter() - t1
         layer_report = _layer_report(layer, passes, points, dataset, conf.layer)
         layer_report["block_size"] = block_size
@@ -425,6 +439,9 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             np.save(state / "sizes.npy", views.sizes)
             if views.gains is not None:
                 np.save(state / "gains.npy", views.gains)
+            if views.rig is not None:
+                views.rig.save(state / "rig.json")
+                np.save(state / "cams.npy", views.cams)
             meta["paths"] = [str(p) for p in views.paths]
         (state / "meta.json").write_text(json.dumps(meta))
         stages["prepare_s"] = time.perf_counter() - t2
@@ -458,6 +475,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,
                     "cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir),
                     "held_out_frames": held_out}
+            if poses is not None and dataset_dir is not None:
+                info["poses"] = str(poses)
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,
                           yaw_offsets=conf.sampling.directions.yaw_offsets, pitches=conf.sampling.directions.pitches,
                           pitched_quads=conf.sampling.directions.pitched_quads, info=info, block_size=block_size,
@@ -473,7 +492,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     report["layer"] = layer_report
     report["photometry"] = photometry_report
     report.update(cloud=str(cloud_path), dataset=None if dataset_dir is None else str(dataset_dir),
-                  stages=stages, total_s=time.perf_counter() - t0, peak_memory=_peak_rss_mb(),
+                  poses=None if poses is None or dataset_dir is None else str(poses), stages=stages, total_s=time.perf_counter() - t0, peak_memory=_peak_rss_mb(),
                   config=_config_to_json(conf))
     write_json(model_dir / "build_report.json", report)
     logger.info("model: %d billboards, %d slots, %.1f MB, compression %.1f×, decode PSNR %s dB → %s",

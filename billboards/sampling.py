@@ -35,7 +35,7 @@ import numpy as np
 
 from data_synth.fileio import read_png
 
-from .geometry import BILLBOARD, DirectionConfig, direction_angles, kind_frames, texel_offsets, unit_vectors
+from .geometry import BILLBOARD, GROUND, DirectionConfig, direction_angles, kind_frames, texel_offsets, unit_vectors
 
 logger = logging.getLogger(__name__)
 
@@ -73,13 +73,18 @@ class Views:
     """The captured images. K (v, 3, 3) float64; world_from_cam (v, 4, 4) float64;
     sizes (v, 2) int (width, height); paths: PNG file per view; gains (v, 3) float64
     per-view RGB exposure × white-balance gains that :meth:`image` divides out
-    (:mod:`billboards.photometry`; None: images as captured)."""
+    (:mod:`billboards.photometry`; None: images as captured). rig and cams (v,) int64: the
+    :class:`data_synth.rig.Rig` and camera of each view, whose lens :meth:`image` removes
+    (the PNG files hold the raw images; K is the undistorted pinhole); None: the files are
+    pinhole images already. Picklable (a rig is arrays and small dataclasses)."""
 
     K: np.ndarray
     world_from_cam: np.ndarray
     sizes: np.ndarray
     paths: tuple[Path, ...]
     gains: np.ndarray | None = None
+    rig: object | None = None
+    cams: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -92,6 +97,8 @@ class Views:
     def image(self, i: int) -> np.ndarray:
         """(h, w, 3) uint8 RGB, divided by the view's gains; a bad file raises DataFormatError naming it."""
         image = read_png(self.paths[i], tuple(int(s) for s in self.sizes[i]))
+        if self.rig is not None:  # a distorted camera's raw image → the pinhole image K describes
+            image = self.rig.undistort(image, int(self.cams[i]))
         if self.gains is None:
             return image
         from .photometry import apply_gains  # (photometry imports this module)
@@ -99,16 +106,24 @@ class Views:
 
 
 def views_from_dataset(dataset, frames=None) -> Views:
-    """The (frame, camera) images of a :class:`data_synth.Dataset`: every frame, or ``frames``."""
-    K, poses, sizes, paths = [], [], [], []
+    """The (frame, camera) images of a :class:`data_synth.Dataset`: every frame, or ``frames``;
+    frames without a pose (NaN ``world_from_rig``: not registered by SfM) are left out.
+    ``Views.image`` returns what ``dataset.image`` does (undistorted where a camera has a lens)."""
+    K, poses, sizes, paths, cams = [], [], [], [], []
     for f in (range(dataset.num_frames) if frames is None else frames):
+        if not np.all(np.isfinite(dataset.world_from_rig[f])):
+            continue
         for c in range(dataset.rig.num_cameras):
             K.append(dataset.rig.intrinsics[c])
             poses.append(dataset.world_from_cam(f, c))
             sizes.append(dataset.rig.sizes[c])
             paths.append(dataset.image_path(f, c))
-    return Views(np.asarray(K, dtype=np.float64), np.asarray(poses, dtype=np.float64),
-                 np.asarray(sizes, dtype=np.int64), tuple(paths))
+            cams.append(c)
+    distorted = dataset.rig.distortions is not None  # pinhole rigs: the files are read as they are
+    return Views(np.asarray(K, dtype=np.float64).reshape(-1, 3, 3),
+                 np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4),
+                 np.asarray(sizes, dtype=np.int64).reshape(-1, 2), tuple(paths),
+                 rig=dataset.rig if distorted else None, cams=np.asarray(cams, dtype=np.int64) if distorted else None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -481,7 +496,10 @@ class ImageSampler:
         own[self.kind[ids] != BILLBOARD] = True   # a layer block is a surface: glass and paint show, never see-through
         status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
-            status[own & (nearest < t_in - tol)] = OCCLUDED
+            # Ground seen at a grazing angle changes depth by decimetres per pixel row: the
+            # neighbourhood minimum would find the road in front of a ground block and hide it.
+            ground = (self.kind[ids] == GROUND)[:, None, None]
+            status[own & (np.where(ground, filled, nearest) < t_in - tol)] = OCCLUDED
         status[~inside] = UNSEEN
         footprint = (s / cfg.tile) * K[:, 0, 0] / np.maximum(np.linalg.norm(c, axis=1), 1e-6)
         return self._colours(entries, local, u, v, footprint), status

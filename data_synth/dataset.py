@@ -32,7 +32,7 @@ import re
 import shutil
 import time
 from concurrent.futures import Executor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -280,6 +280,12 @@ class Dataset:
     world_from_rig: np.ndarray
     frame_names: tuple[str, ...]
 
+    def __fspath__(self) -> str:  # a dataset stands for its directory (load_dataset returns it as it is)
+        return str(self.root)
+
+    def __str__(self) -> str:
+        return str(self.root)
+
     @property
     def num_frames(self) -> int:
         return len(self.frame_names)
@@ -322,9 +328,18 @@ class Dataset:
                 self.image(f, c)
 
 
-def load_dataset(path: os.PathLike | str) -> Dataset:
+def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None) -> Dataset:
     """Open a dataset directory: validate ``rig.json``, ``poses.json`` and that
-    every image exists. Errors name the offending file."""
+    every image exists. Errors name the offending file.
+
+    poses: another ``poses.json`` to use instead of the dataset's own (the poses a
+    ``bbcity recon --poses sfm`` found, ``WORK/poses.json``): the same frame names in the
+    same order; frames it gives ``null`` have no pose (NaN). A :class:`Dataset` passed as
+    ``path`` is returned as it is (its poses kept; ``poses`` still replaces them), so that
+    functions taking a dataset directory also take a dataset with poses from elsewhere.
+    """
+    if isinstance(path, Dataset):
+        return path if poses is None else replace(path, world_from_rig=_replacement_poses(path, poses))
     root = Path(path)
     if not root.is_dir():
         raise DataFormatError(root, "dataset directory does not exist")
@@ -333,12 +348,23 @@ def load_dataset(path: os.PathLike | str) -> Dataset:
     if not names:
         raise DataFormatError(root / "poses.json", "has no frames")
     dataset = Dataset(root, rig, world_from_rig, tuple(names))
+    if poses is not None:
+        dataset = replace(dataset, world_from_rig=_replacement_poses(dataset, poses))
     for f in range(dataset.num_frames):
         for c in range(rig.num_cameras):
             p = dataset.image_path(f, c)
             if not p.is_file():
                 raise DataFormatError(p, f"image of frame {names[f]} camera {c} is missing")
     return dataset
+
+
+def _replacement_poses(dataset: Dataset, path: os.PathLike | str) -> np.ndarray:
+    """world_from_rig (n, 4, 4) float64 of ``path`` (a poses.json) for ``dataset``'s frames."""
+    world_from_rig, names = load_poses(path)
+    if tuple(names) != dataset.frame_names:
+        raise DataFormatError(path, f"its {len(names)} frames are not the {dataset.num_frames} frames of "
+                                    f"{dataset.root / 'poses.json'} (names and order must agree)")
+    return world_from_rig
 
 
 def load_scene(dataset_dir: os.PathLike | str) -> Scene:
@@ -356,3 +382,11 @@ def load_scene(dataset_dir: os.PathLike | str) -> Scene:
         raise DataFormatError(path, "the re-created scene differs from the one the dataset was made with "
                                     "(generator changed since)")
     return scene
+
+
+def held_out_frames(num_frames: int, every: int) -> list[int]:
+    """The frames left out for novel-view evaluation: one in every ``every`` (the middle one
+    of each run of ``every``; 0: none). Recon, build and eval all follow this rule."""
+    if every < 0 or every == 1:
+        raise ValueError(f"holdout must be 0 (none) or ≥ 2 (every n-th frame left out), got {every}")
+    return [f for f in range(num_frames) if every and f % every == every // 2]

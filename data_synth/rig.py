@@ -281,15 +281,23 @@ def drive_path(x_start: float, x_end: float, y_centre: float, frames: int, lane_
     return poses, which
 
 
-def save_poses(path: os.PathLike | str, world_from_rig: np.ndarray, passes: np.ndarray) -> Path:
-    """Write ``poses.json``: one ``world_from_rig`` (4, 4) float64 per frame."""
-    frames = [{"index": i, "name": f"{i:06d}", "pass": int(p), "world_from_rig": T.tolist()}
-              for i, (T, p) in enumerate(zip(world_from_rig, passes))]
+def save_poses(path: os.PathLike | str, world_from_rig: np.ndarray, passes: np.ndarray,
+               names: list[str] | None = None) -> Path:
+    """Write ``poses.json``: one ``world_from_rig`` (4, 4) float64 per frame, named
+    ``names`` (default: the frame index, six digits). A frame whose matrix has a NaN has
+    no known pose (a photo folder's, before SfM): it is written as ``null``."""
+    names = [f"{i:06d}" for i in range(len(world_from_rig))] if names is None else list(names)
+    frames = [{"index": i, "name": name, "pass": int(p),
+               "world_from_rig": T.tolist() if np.all(np.isfinite(T)) else None}
+              for i, (T, p, name) in enumerate(zip(world_from_rig, passes, names))]
     return write_json(path, {"format": POSES_FORMAT, "version": FORMAT_VERSION, "frames": frames})
 
 
 def load_poses(path: os.PathLike | str) -> tuple[np.ndarray, list[str]]:
-    """Read and validate ``poses.json`` → world_from_rig (n, 4, 4) float64 and frame names."""
+    """Read and validate ``poses.json`` → world_from_rig (n, 4, 4) float64 and frame names.
+
+    A frame's ``"world_from_rig": null`` means its pose is unknown: its matrix is all NaN
+    (``bbcity recon --poses sfm`` computes it)."""
     path = Path(path)
     data = read_json(path)
     if not isinstance(data, dict) or data.get("format") != POSES_FORMAT:
@@ -305,8 +313,11 @@ def load_poses(path: os.PathLike | str) -> tuple[np.ndarray, list[str]]:
             raise DataFormatError(path, f"frames[{i}] needs \"name\" and \"world_from_rig\"")
         if not fr["name"] or any(c in fr["name"] for c in "/\\\0") or fr["name"] in (".", ".."):
             raise DataFormatError(path, f"frames[{i}].name {fr['name']!r} is not a plain file stem")
-        T = as_matrix(fr["world_from_rig"], (4, 4), path, f"frames[{i}].world_from_rig")
-        poses.append(check_rigid(T, path, f"frames[{i}].world_from_rig"))
+        if fr["world_from_rig"] is None:
+            poses.append(np.full((4, 4), np.nan))
+        else:
+            T = as_matrix(fr["world_from_rig"], (4, 4), path, f"frames[{i}].world_from_rig")
+            poses.append(check_rigid(T, path, f"frames[{i}].world_from_rig"))
         names.append(fr["name"])
     if len(set(names)) != len(names):
         raise DataFormatError(path, "frame names are not unique")

@@ -20,7 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from data_synth import load_dataset, load_scene
+from data_synth.dataset import held_out_frames
 from data_synth.fileio import write_json
+from data_synth.rig import save_poses
 from data_synth.tasks import run_tasks
 
 from . import poses
@@ -49,7 +51,13 @@ class ReconConfig:
     pixel_stride: int = 1  # back-project every n-th pixel of each depth map
     evaluate: bool = True  # compare with ground truth when the dataset has it
     keep_spill: bool = False  # keep the voxel tiles under WORK/spill after the merge
+    holdout: int = 0  # leave every n-th frame out (held out for `bbcity eval`; 0: none), as `bbcity build --holdout`
     motion: MotionStereoConfig = field(default_factory=MotionStereoConfig)  # one-camera rigs: partner frames
+
+    def __post_init__(self):
+        held_out_frames(0, self.holdout)  # validates
+        if self.frame_stride < 1 or self.pixel_stride < 1:
+            raise ValueError("frame_stride and pixel_stride must be ≥ 1")
 
 
 @dataclass(frozen=True)
@@ -150,12 +158,24 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
         result = poses.poses_sfm(ds, work / "sfm", conf.sfm)
         report = {"source": "sfm", "registered_frames": result.num_registered,
                   "components": result.num_components, "points": result.num_points,
-                  "mean_reprojection_error_px": result.mean_reprojection_error,
-                  "baseline_ratio": result.baseline_ratio, "seconds": result.seconds,
-                  "models": [str(p) for p in result.model_dirs],
-                  # each component aligned on its own (SE(3), no scale): SfM's frame is arbitrary
-                  "trajectory_vs_dataset": poses.trajectory_rmse(result.world_from_rig, ds.world_from_rig,
-                                                                 groups=result.component)}
+                  # NaN (nothing registered; one camera: no baseline) is no JSON number
+                  "mean_reprojection_error_px": (result.mean_reprojection_error
+                                                 if np.isfinite(result.mean_reprojection_error) else None),
+                  "baseline_ratio": [r if np.isfinite(r) else None for r in result.baseline_ratio],
+                  "seconds": result.seconds,
+                  "models": [str(p) for p in result.model_dirs]}
+        if poses.poses_unknown(ds):
+            # nothing to align to: SfM's own (levelled, step-scaled) frame; its components are
+            # unrelated, so only the largest is kept
+            report["scale_applied"] = result.scale_applied
+            dropped = int(np.count_nonzero(result.component > 0))
+            if dropped:
+                logger.warning("%d frames registered in %d smaller SfM components are left out (no poses to "
+                               "place them)", dropped, result.num_components - 1)
+            return np.where((result.component == 0)[:, None, None], result.world_from_rig, np.nan), report
+        # each component aligned on its own (SE(3), no scale): SfM's frame is arbitrary
+        report["trajectory_vs_dataset"] = poses.trajectory_rmse(result.world_from_rig, ds.world_from_rig,
+                                                                groups=result.component)
         for per_frame in ("position_error_m", "rotation_error_deg"):  # arrays: the report keeps the summary
             report["trajectory_vs_dataset"].pop(per_frame)
         # The passes of a street see opposite sides and share no features, so SfM
@@ -163,6 +183,22 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
         # places each one, SfM keeps its own relative poses.
         return poses.align_components(result.world_from_rig, result.component, ds.world_from_rig), report
     raise ValueError(f"unknown pose source {conf.poses!r}; expected one of {POSE_SOURCES}")
+
+
+#: The poses a recon used when they are not the dataset's own, beside the cloud (``bbcity build
+#: WORK``, ``eval`` and ``render`` read them through the model's ``info["poses"]``).
+WORK_POSES = "poses.json"
+
+
+def write_work_poses(work: Path, ds, world_from_rig: np.ndarray, source: str) -> Path | None:
+    """Write ``work/poses.json`` (the dataset's format, frames without a pose ``null``) when
+    the poses came from another ``source`` than the dataset's own ("given"); returns its
+    path, else None (and an earlier run's file is removed: it would describe other poses)."""
+    path = work / WORK_POSES
+    if source == "given":
+        path.unlink(missing_ok=True)
+        return None
+    return save_poses(path, world_from_rig, poses.frame_passes(ds), names=list(ds.frame_names))
 
 
 def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLike | str,
@@ -180,8 +216,10 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     t0 = time.perf_counter()
     world_from_rig, pose_report = estimate_poses(conf, dataset_dir, work)
     stages["poses_s"] = time.perf_counter() - t0
+    poses_file = write_work_poses(work, ds, world_from_rig, conf.poses)
 
-    frames = list(range(0, ds.num_frames, conf.frame_stride))
+    held_out = held_out_frames(ds.num_frames, conf.holdout)
+    frames = [f for f in range(0, ds.num_frames, conf.frame_stride) if f not in set(held_out)]
     frames = [f for f in frames if np.all(np.isfinite(world_from_rig[f]))]
     if not frames:
         raise ValueError(f"{dataset_dir}: no frame has a pose (source {conf.poses!r}); nothing to reconstruct")
@@ -194,7 +232,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     tasks = [_FrameTask(str(dataset_dir), f, world_from_rig[f].tolist(), str(spill_root), origin.tolist(),
                         conf.trinocular, conf.fusion, conf.pixel_stride) for f in frames]
     if ds.rig.num_cameras == 1:  # one camera: each frame's stereo partners are neighbouring frames
-        tasks = _with_motion_partners(tasks, ds, world_from_rig, (), conf.motion)
+        tasks = _with_motion_partners(tasks, ds, world_from_rig, held_out, conf.motion)
 
     logger.info("stereo on %d frames × %d cameras, poses: %s", len(tasks), ds.rig.num_cameras, conf.poses)
     t1 = time.perf_counter()
@@ -218,8 +256,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
 
     report = {
         "dataset": str(dataset_dir), "config": json.loads(json.dumps(asdict(conf), default=str)),
-        "frames": len(frames), "points": num_points, "origin": origin.tolist(),
-        "poses": pose_report, "stages": stages,
+        "frames": len(frames), "held_out_frames": held_out, "points": num_points, "origin": origin.tolist(),
+        "poses": pose_report, "poses_file": None if poses_file is None else str(poses_file), "stages": stages,
         "seconds_per_frame": float(np.median([s["total_s"] for s in frame_stats])) if frame_stats else None,
         "stereo_seconds_per_frame": float(np.median([s["stereo_s"] for s in frame_stats])) if frame_stats else None,
         "peak_rss_mb": _peak_rss_mb(),

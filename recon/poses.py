@@ -47,6 +47,7 @@ from tqdm import tqdm
 # data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
 # pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
 from data_synth import DataFormatError, Dataset
+from data_synth.colmap_export import colmap_camera_model
 from data_synth.fileio import read_json
 
 import pycolmap  # noqa: E402  (after data_synth, see above)
@@ -56,7 +57,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "MissingFramesError", "SfmConfig", "SfmResult", "align_components", "align_trajectory",
     "colmap_log_to_logging", "frame_passes", "poses_from_colmap", "poses_from_reconstruction", "poses_given",
-    "poses_sfm", "rig_baseline_ratio", "trajectory_rmse",
+    "poses_sfm", "poses_unknown", "rig_baseline_ratio", "trajectory_rmse", "level_from_world", "up_direction",
 ]
 
 COLMAP_PIXEL_OFFSET = 0.5  # cx_colmap = cx_opencv + 0.5 (and the same for cy)
@@ -109,6 +110,64 @@ def _valid(T: np.ndarray) -> np.ndarray:
     return np.isfinite(T).all(axis=(1, 2))
 
 
+#: up_direction: the trajectory's main direction counts as level (its component along the
+#: estimated up is removed) when it lies within this many degrees of horizontal.
+LEVEL_TRAVEL_DEG = 30.0
+
+
+def up_direction(world_from_cam: np.ndarray, positions: np.ndarray | None = None) -> np.ndarray:
+    """(3,) float64 unit vector: the world's up, estimated from cameras held roughly level.
+
+    world_from_cam: (m, 4, 4) float64 camera poses (OpenCV axes; NaN poses are ignored).
+    positions: optional (k, 3) float64 rig positions along the capture.
+    Up is minus the mean of the cameras' image-down (y) axes. A camera pitched up or down
+    tilts that estimate about its own x axis; when the positions run along one main
+    direction within LEVEL_TRAVEL_DEG of that horizontal (a street is nearly level), the
+    estimate is made perpendicular to it, which removes the pitch of forward-looking
+    cameras (sideways-looking ones pitch about the travel direction and cannot be corrected).
+    """
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    T = T[_valid(T)]
+    if len(T) == 0:
+        raise ValueError("no camera pose to estimate the up direction from")
+    up = -T[:, :3, 1].mean(axis=0)
+    if np.linalg.norm(up) < 1e-6:
+        raise ValueError("the cameras' down axes cancel out: no up direction")
+    up /= np.linalg.norm(up)
+    if positions is not None:
+        P = np.asarray(positions, dtype=np.float64)
+        P = P[np.isfinite(P).all(axis=1)]
+        if len(P) >= 2:
+            _, sv, Vt = np.linalg.svd(P - P.mean(axis=0), full_matrices=False)
+            d = Vt[0]
+            if sv[0] > 1e-9 and abs(d @ up) < np.sin(np.radians(LEVEL_TRAVEL_DEG)):
+                up = up - (d @ up) * d
+                up /= np.linalg.norm(up)
+    return up
+
+
+def level_from_world(up: np.ndarray, heading: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """(4, 4) float64 rigid transform to a z-up world: ``up`` (3,) becomes +z, the horizontal
+    part of ``heading`` (3,) becomes +x (any horizontal direction when it is vertical) and
+    ``origin`` (3,) the origin. All in the old world's coordinates."""
+    z = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    x = np.asarray(heading, dtype=np.float64) - (np.asarray(heading) @ z) * z
+    if np.linalg.norm(x) < 1e-6:  # heading straight up or down: any horizontal axis will do
+        x = np.eye(3)[np.argmin(np.abs(z))]
+        x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])  # rows: the new axes in old coordinates
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ np.asarray(origin, dtype=np.float64)
+    return T
+
+
+def poses_unknown(dataset: Dataset) -> bool:
+    """Whether no frame of the dataset has a pose (``poses.json`` of a photo folder)."""
+    return not _valid(dataset.world_from_rig).any()
+
+
 # --------------------------------------------------------------------------- 1. given poses
 
 
@@ -116,7 +175,10 @@ def poses_given(dataset: Dataset) -> np.ndarray:
     """The dataset's own poses (``poses.json``; GPS/IMU in a real capture).
 
     Returns world_from_rig (n, 4, 4) float64, a copy, in ``dataset.frame_names`` order.
+    A dataset with no known pose (a photo folder) raises DataFormatError.
     """
+    if poses_unknown(dataset):
+        raise DataFormatError(dataset.root / "poses.json", "poses unknown: use --poses sfm")
     return np.array(dataset.world_from_rig, dtype=np.float64, copy=True)
 
 
@@ -424,16 +486,22 @@ def _write_model(rec: pycolmap.Reconstruction, out_dir: Path) -> Path:
     return out_dir
 
 
+def _raw_camera(dataset: Dataset, c: int) -> tuple[str, list[float]]:
+    """COLMAP model name and parameters of camera ``c``'s raw image files (what SIFT reads):
+    PINHOLE, or the raw K with the lens (OPENCV, FULL_OPENCV, OPENCV_FISHEYE). Undistorting
+    does not move a camera, so the poses COLMAP finds are those of the undistorted cameras."""
+    return colmap_camera_model(dataset.rig.raw_K(c), dataset.rig.distortion(c))
+
+
 def _rig_config(dataset: Dataset) -> pycolmap.RigConfig:
-    """Known rig for COLMAP: cam0 is the reference sensor, sensor_from_rig = cam_c_from_cam0, fixed PINHOLE."""
+    """Known rig for COLMAP: cam0 is the reference sensor, sensor_from_rig = cam_c_from_cam0, fixed
+    intrinsics of the raw images (:func:`_raw_camera`)."""
     rig = dataset.rig
     cam0_from_rig_inv = _rigid_inverse(rig.cam_from_rig[0])
     cameras = []
     for c in range(rig.num_cameras):
-        K, (w, h) = rig.intrinsics[c], rig.sizes[c]
-        camera = pycolmap.Camera(model="PINHOLE", width=w, height=h,
-                                 params=[K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET,
-                                         K[1, 2] + COLMAP_PIXEL_OFFSET])
+        (w, h), (model, params) = rig.sizes[c], _raw_camera(dataset, c)
+        camera = pycolmap.Camera(model=model, width=w, height=h, params=params)
         camera.has_prior_focal_length = True
         cameras.append(pycolmap.RigConfigCamera(
             ref_sensor=c == 0, image_prefix=f"cam{c}/", camera=camera,
@@ -442,12 +510,11 @@ def _rig_config(dataset: Dataset) -> pycolmap.RigConfig:
 
 
 def _extract(db: Path, dataset: Dataset, image_names: list[str], cfg: SfmConfig) -> None:
-    K = dataset.rig.intrinsics[0]
+    model, params = _raw_camera(dataset, 0)
     reader = pycolmap.ImageReaderOptions(
-        camera_model="PINHOLE",
+        camera_model=model,
         # replaced per camera by the rig config; given here so COLMAP marks the focal length as known
-        camera_params=",".join(repr(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET,
-                                                        K[1, 2] + COLMAP_PIXEL_OFFSET)))
+        camera_params=",".join(repr(float(v)) for v in params))
     sift = pycolmap.SiftExtractionOptions(max_num_features=cfg.max_num_features, first_octave=cfg.first_octave,
                                           peak_threshold=cfg.peak_threshold)
     extraction = pycolmap.FeatureExtractionOptions(
@@ -657,12 +724,45 @@ def _map_seeded(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig, bar: tqdm
     return models
 
 
+def step_length(dataset: Dataset) -> float:
+    """Metres between consecutive frames that a dataset without poses asks SfM to scale to:
+    ``dataset.json`` "source" "step_length" (the photos importer's ``--step-length``), else 1.0."""
+    path = dataset.root / "dataset.json"
+    source = read_json(path).get("source", {}) if path.is_file() else {}
+    value = source.get("step_length", 1.0) if isinstance(source, dict) else 1.0
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+        raise DataFormatError(path, f"source.step_length must be a positive number of metres, got {value!r}")
+    return float(value)
+
+
+def _level_and_scale(rec: pycolmap.Reconstruction, world_from_rig: np.ndarray, world_from_cam: np.ndarray,
+                     step: float) -> float:
+    """Move an SfM component of a dataset without poses into a z-up world whose origin and
+    heading (+x) are its first registered frame's rig, scaled so that the median distance
+    between consecutive registered frames is ``step`` metres. world_from_rig: (n, 4, 4),
+    world_from_cam: (n, c, 4, 4) float64 of ``rec`` (NaN = not registered). Transforms
+    ``rec`` in place; returns the scale applied."""
+    ok = np.flatnonzero(_valid(world_from_rig))
+    positions = world_from_rig[ok, :3, 3]
+    gaps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    adjacent = gaps[np.diff(ok) == 1]  # frames next to each other in the capture, where there are any
+    median = float(np.median(adjacent if adjacent.size else gaps)) if gaps.size else 0.0
+    scale = step / median if median > 1e-12 else 1.0
+    up = up_direction(world_from_cam.reshape(-1, 4, 4), positions)
+    L = level_from_world(up, world_from_rig[ok[0], :3, 0], positions[0])
+    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.ascontiguousarray(L[:3, :3])),
+                                 np.ascontiguousarray(scale * L[:3, 3])))
+    logger.info("SfM without known poses: world levelled (z up) and scaled by %.4g to %.3g m per frame",
+                scale, step)
+    return scale
+
+
 def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig | None = None,
               progress: bool | None = None) -> SfmResult:
     """Rig poses by structure from motion (pycolmap, CPU), metric through the known rig.
 
-    Steps: SIFT on every image (one PINHOLE camera per rig camera, calibrated
-    intrinsics); the rig applied as a known COLMAP rig (cam0 the reference
+    Steps: SIFT on every raw image (one camera per rig camera, calibrated
+    intrinsics: PINHOLE, or the raw K and lens of a distorted camera); the rig applied as a known COLMAP rig (cam0 the reference
     sensor, ``sensor_from_rig`` from ``cam_from_rig``; one frame per
     ``frame_names`` entry); sequential matching of each frame's images with
     each other and with all images of the next ``overlap`` frames (pairs
@@ -688,9 +788,16 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
     forwarded to logging; incremental mapping shows a tqdm bar of registered
     frames (``progress``: None = only on a terminal).
 
+    A dataset with no known poses (:func:`poses_unknown`, e.g. a photo folder) has no scale
+    and no up: each component is then moved to a z-up world (:func:`up_direction`, cameras
+    held roughly level; origin and heading from its first registered frame) and scaled so
+    that the median distance between consecutive frames is the dataset's step length
+    (``dataset.json`` "source" "step_length", metres; 1.0 when absent).
+
     Returns an :class:`SfmResult`; frames that do not register are NaN.
     """
     cfg = config or SfmConfig()
+    unknown = poses_unknown(dataset)
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     db = work / "database.db"
@@ -746,6 +853,9 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
         elif abs(ratio - 1.0) > 1e-6:
             logger.warning("SfM model %d: camera spacing is %.6g × the calibrated baseline with a fixed rig",
                            k, ratio)
+        if unknown:
+            scale = _level_and_scale(rec, poses, cams, step_length(dataset))
+            poses, cams = poses_from_reconstruction(rec, dataset, f"SfM model {k}")
         ratios.append(ratio)
         scales.append(scale)
         new = _valid(poses) & (component < 0)

@@ -177,15 +177,26 @@ def rectify_pair(rig, left: int, right: int) -> RectifiedPair:
                          map_right_x=mrx, map_right_y=mry)
 
 
-def rectify_rig(rig, pairs: tuple[tuple[int, int], ...] = RIG_PAIRS) -> dict[tuple[int, int], RectifiedPair]:
-    """Rectify the rig's pairs (default (0, 1), (1, 2), (0, 2)) once; key = (left, right).
+def rig_pairs(num_cameras: int) -> tuple[tuple[int, int], ...]:
+    """The stereo pairs of a rig of ``num_cameras`` ≥ 2 cameras: (0, 1) for two (binocular),
+    :data:`RIG_PAIRS` for three (trinocular), every pair for more."""
+    if num_cameras < 2:
+        raise ValueError(f"a stereo rig needs at least two cameras, got {num_cameras}")
+    if num_cameras == 3:
+        return RIG_PAIRS
+    return tuple((a, b) for a in range(num_cameras) for b in range(a + 1, num_cameras))
+
+
+def rectify_rig(rig, pairs: tuple[tuple[int, int], ...] | None = None) -> dict[tuple[int, int], RectifiedPair]:
+    """Rectify the rig's pairs (default :func:`rig_pairs`: (0, 1) for two cameras,
+    (0, 1), (1, 2), (0, 2) for three) once; key = (left, right).
 
     A pair whose second camera sits to the left of its first one is rectified
     swapped and stored under the swapped key, so that every stored pair has
     positive disparity (a general rig may number its cameras right to left).
     """
     out: dict[tuple[int, int], RectifiedPair] = {}
-    for a, b in pairs:
+    for a, b in rig_pairs(len(rig.sizes)) if pairs is None else pairs:
         T = _relative_pose(np.asarray(rig.cam_from_rig[a], np.float64), np.asarray(rig.cam_from_rig[b], np.float64))
         centre_b_in_a = -T[:3, :3].T @ T[:3, 3]
         if centre_b_in_a[0] < 0:

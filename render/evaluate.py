@@ -153,15 +153,20 @@ class EvalView:
     seen: np.ndarray
 
 
-def choose_frames(info: dict | None, num_frames: int, views: int | None) -> tuple[np.ndarray, list[int], bool]:
+def choose_frames(info: dict | None, num_frames: int, views: int | None,
+                  posed: np.ndarray | None = None) -> tuple[np.ndarray, list[int], bool]:
     """(frames, texture_frames, held_out): up to ``views`` frames (None: all) spread over the
     frames a model left out of its textures (``info["held_out_frames"]``), else over all
-    frames; the frames the textures came from; whether the viewpoints were held out."""
-    held = sorted({int(f) for f in (info or {}).get("held_out_frames", []) or [] if 0 <= int(f) < num_frames})
-    pool = np.asarray(held) if held else np.arange(num_frames)
+    frames; the frames the textures came from; whether the viewpoints were held out.
+    posed: (num_frames,) bool, the frames that have a pose (None: all); the others are
+    never chosen."""
+    posed = np.ones(num_frames, bool) if posed is None else np.asarray(posed, bool)
+    held = sorted({int(f) for f in (info or {}).get("held_out_frames", []) or []
+                   if 0 <= int(f) < num_frames and posed[int(f)]})
+    pool = np.asarray(held) if held else np.flatnonzero(posed)
     views = len(pool) if views is None else views
     frames = np.unique(pool[np.linspace(0, len(pool) - 1, max(1, views)).round().astype(int)])
-    texture_frames = [f for f in range(num_frames) if f not in set(held)]
+    texture_frames = [f for f in range(num_frames) if f not in set(held) and posed[f]]
     return frames, texture_frames, bool(held)
 
 
@@ -373,8 +378,9 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     ds = load_dataset(dataset_dir)
     info = model.info if isinstance(getattr(model, "info", None), dict) else {}
     real = not ds.has_ground_truth
+    posed = np.all(np.isfinite(ds.world_from_rig), axis=(1, 2))
     frames, texture_frames, held_out = choose_frames(info, ds.num_frames,
-                                                     config.views if config.views or real else 8)
+                                                     config.views if config.views or real else 8, posed)
     if real:
         if not held_out:
             logger.warning("%s is a real capture and the model was built from every frame: the scores are of "

@@ -2,4 +2,6 @@
 ``images/cam{c}/``) that every stage reads like a synthetic one.
 
 - :mod:`.kitti`: a KITTI odometry sequence (stereo, rectified, with poses).
+- :mod:`.colmap`: a COLMAP sparse model (a rig or one camera, any lens) and its images.
+- :mod:`.photos`: a folder of one camera's photos, poses unknown (``recon --poses sfm``).
 """
