@@ -48,7 +48,7 @@ kitti: $(INSTALL_STAMP)
 	$(BIN)/bbcity recon $(KITTI_OUT)/dataset --out $(KITTI_OUT)/work --min-depth 3 --max-depth 80 --holdout 4
 	$(BIN)/bbcity build $(KITTI_OUT)/work --out $(KITTI_OUT)/model
 	$(BIN)/bbcity eval $(KITTI_OUT)/model $(KITTI_OUT)/dataset --cloud $(KITTI_OUT)/work/cloud.ply \
-		--workprecision-depths --out $(KITTI_OUT)/eval
+		--workprecision-depths --panel-width 960 --out $(KITTI_OUT)/eval
 
 test: $(INSTALL_STAMP)
 	$(BIN)/python -m pytest -q

@@ -26,6 +26,7 @@ minimum (one z-buffer pixel of safety margin) for the occlusion test.
 from __future__ import annotations
 
 import logging
+import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,12 +61,20 @@ class SamplingConfig:
     reproject: bool = False         # texels via the surface point seen from the sampled direction (else the
                                     # quad projected into the camera, as the billboards paper)
     cache_views: int = 128          # images and z-buffers kept per process (about 1.5 MB each at 640×480)
+    transients: bool = True         # a layer block's texel that disagrees with its other directions (a passing
+                                    # car, a pedestrian) is refilled from them (see reject_transients)
+    transient_threshold: float = 40.0   # ... disagrees: off the median of its directions by this many grey
+                                        # levels (any channel) and by transient_mads robust deviations
+    transient_mads: float = 4.0
+    transient_min_views: int = 3        # ... among at least this many cameras that measured the texel
 
     def __post_init__(self):
         if self.tile < 1 or self.candidates < 1 or self.zbuffer_scale < 1:
             raise ValueError("tile, candidates and zbuffer_scale must be ≥ 1")
         if not (0 < self.max_angle_deg <= 180) or self.max_distance <= 0:
             raise ValueError("max_angle_deg must be in (0, 180] and max_distance > 0")
+        if self.transient_threshold < 0 or self.transient_mads < 0 or self.transient_min_views < 3:
+            raise ValueError("transient_threshold and transient_mads must be ≥ 0, transient_min_views ≥ 3")
 
 
 @dataclass(frozen=True, eq=False)
@@ -603,8 +612,13 @@ class ImageSampler:
         stats.update(views_loaded=self.cache.loads - loads_before, texels=int(status.size), visible=int((status == VISIBLE).sum()),
                      transparent=int((status == TRANSPARENT).sum()),
                      hidden=int((status == OCCLUDED).sum()), unseen=int((status == UNSEEN).sum()))
-        rgba = fill_directions(colour, status, dirs.count)
         layer = self.kind[ids] != BILLBOARD
+        if cfg.transients and layer.any():
+            before = int((status == VISIBLE).sum())
+            status[layer] = reject_transients(colour[layer], status[layer], candidates[layer, :, 0],
+                                              cfg.transient_threshold, cfg.transient_mads, cfg.transient_min_views)
+            stats["transient_texels"] = before - int((status == VISIBLE).sum())
+        rgba = fill_directions(colour, status, dirs.count)
         if layer.any():
             rgba[layer] = close_holes(rgba[layer])
         return SampledTextures(rgba, view_used, distance, elevation, stats)
@@ -631,6 +645,70 @@ def close_holes(rgba: np.ndarray) -> np.ndarray:
     alpha = out[..., 3]
     seen = (alpha > 0).any(axis=(-2, -1), keepdims=True)
     alpha[...] = np.where(seen, np.uint8(255), alpha)
+    return out
+
+
+def reject_transients(colour: np.ndarray, status: np.ndarray, views: np.ndarray | None = None,
+                      threshold: float = 40.0, mads: float = 4.0, min_views: int = 3) -> np.ndarray:
+    """Mark as hidden the samples of a surface's texels that disagree with what the other
+    cameras saw there: what a few cameras saw in front of the surface and the rest did not
+    (a passing car, a pedestrian) must not become part of its texture.
+
+    colour (B, d, t, t, 3) uint8, status (B, d, t, t) uint8, views (B, d) int64 the camera
+    that sampled each direction (−1: none; None: every direction its own camera) → a new
+    status. A texel's reference is the per-channel median of its VISIBLE samples, one per
+    camera (a camera that sampled several directions counts once, or it would outvote the
+    others), and its spread their median absolute deviation; a VISIBLE sample off the
+    reference by more than ``threshold`` grey levels and ``mads`` spreads (in some channel)
+    becomes OCCLUDED, when at least ``min_views`` cameras measured the texel. Smooth view
+    dependence (glass reflecting the sky) widens the spread and stays.
+    """
+    B, d = status.shape[:2]
+    views = np.broadcast_to(np.arange(d), (B, d)) if views is None else np.asarray(views)
+    # first direction of each camera per block: later directions of the same camera repeat it
+    order = np.argsort(views, axis=1, kind="stable")
+    ranked = np.take_along_axis(views, order, axis=1)
+    first_of_view = np.zeros((B, d), bool)
+    np.put_along_axis(first_of_view, order, np.c_[np.ones((B, 1), bool), ranked[:, 1:] != ranked[:, :-1]], axis=1)
+    visible = status == VISIBLE                                               # (B, d, t, t)
+    voter = visible & (first_of_view & (views >= 0))[:, :, None, None]
+    count = voter.sum(axis=1)                                                 # (B, t, t)
+    out = status.copy()
+    if not (count >= min_views).any():
+        return out
+    c = np.where(voter[..., None], colour.astype(np.float32), np.nan)        # (B, d, t, t, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)                       # texels no camera measured
+        median = np.nanmedian(c, axis=1, keepdims=True)
+        mad = np.nanmedian(np.abs(c - median), axis=1, keepdims=True)
+    off = (np.abs(colour.astype(np.float32) - median) > np.maximum(threshold, mads * mad)).any(axis=-1)
+    out[off & visible & (count >= min_views)[:, None]] = OCCLUDED
+    return out
+
+
+def reject_transients_reference(colour, status, views=None, threshold=40.0, mads=4.0, min_views=3):
+    """The slow, obvious twin of :func:`reject_transients`: one texel at a time."""
+    out = status.copy()
+    B, d, t = status.shape[:3]
+    views = np.broadcast_to(np.arange(d), (B, d)) if views is None else views
+    for b in range(B):
+        for r in range(t):
+            for q in range(t):
+                dirs = [j for j in range(d) if status[b, j, r, q] == VISIBLE]
+                voters, seen = [], set()
+                for j in range(d):
+                    if views[b, j] >= 0 and views[b, j] not in seen:
+                        seen.add(views[b, j])
+                        if status[b, j, r, q] == VISIBLE:
+                            voters.append(j)
+                if len(voters) < min_views:
+                    continue
+                samples = colour[b, voters, r, q].astype(np.float64)
+                median = np.median(samples, axis=0)
+                mad = np.median(np.abs(samples - median), axis=0)
+                for j in dirs:
+                    if np.any(np.abs(colour[b, j, r, q] - median) > np.maximum(threshold, mads * mad)):
+                        out[b, j, r, q] = OCCLUDED
     return out
 
 

@@ -478,7 +478,8 @@ def write_side_by_side(out_dir: Path, views: list[EvalView], images: dict, poiss
                        panel_width: int, truth_label: str = "ground truth") -> list[str]:
     """For each view ``view_NNNNNN_{on,off}_path.png``: ground truth (``truth_label``) |
     model | Poisson mesh (the panels that exist), each ``panel_width`` pixels wide,
-    labelled. Returns the names."""
+    labelled; side by side, or one above the other for images more than twice as wide
+    as high. Returns the names."""
     from data_synth.fileio import write_png
 
     names = []
@@ -490,7 +491,8 @@ def write_side_by_side(out_dir: Path, views: list[EvalView], images: dict, poiss
                 where = "below horizon" if truth_label == "real" else "seen"
                 panels.append(_panel(image, panel_width, f"{method} {psnr(image, view.truth, view.seen):.1f} dB {where}"))
         name = f"view_{view.frame:06d}_{view.where.replace(' ', '_')}.png"
-        write_png(out_dir / name, np.concatenate(panels, axis=1))
+        wide = view.size[0] > 2 * view.size[1]  # a wide camera (KITTI's 3.3:1) reads better stacked
+        write_png(out_dir / name, np.concatenate(panels, axis=0 if wide else 1))
         names.append(name)
     return names
 
