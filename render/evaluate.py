@@ -141,7 +141,8 @@ def off_path(world_from_cam: np.ndarray, sideways: float = 2.0, up: float = 1.0)
 @dataclass(eq=False)
 class EvalView:
     """One viewpoint with its ground truth: truth (h, w, 3) uint8; geometry (h, w) bool
-    (the ground truth hits a surface); seen (h, w) bool (a capture camera saw it)."""
+    (the ground truth hits a surface); seen (h, w) bool (a capture camera saw it); real:
+    the truth is a captured image (geometry and seen: the pixels below the horizon)."""
 
     frame: int
     where: str              # "on path" | "off path"
@@ -151,6 +152,7 @@ class EvalView:
     truth: np.ndarray
     geometry: np.ndarray
     seen: np.ndarray
+    real: bool = False
 
 
 def choose_frames(info: dict | None, num_frames: int, views: int | None,
@@ -218,13 +220,25 @@ def prepare_real_views(dataset, frames, config: EvalConfig = EvalConfig()) -> li
         if size != native:
             truth = cv2.resize(truth, size, interpolation=cv2.INTER_AREA)
         ground = below_horizon(K, pose, size)
-        views.append(EvalView(int(f), "on path", K, pose, size, truth, ground, ground))
+        views.append(EvalView(int(f), "on path", K, pose, size, truth, ground, ground, real=True))
     return views
 
 
-def score(image: np.ndarray, view: EvalView, covered: np.ndarray | None = None) -> dict:
+def exposure_matched(image: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``image`` (h, w, 3) uint8 times the per-channel gain that best fits ``truth`` over
+    ``mask`` (h, w) bool in the least-squares sense (clipped to uint8): a real held-out
+    frame has its own exposure and white balance, which no model can know."""
+    a = image[mask].astype(np.float64)
+    b = truth[mask].astype(np.float64)
+    denominator = (a * a).sum(axis=0)
+    gain = np.where(denominator > 0, (a * b).sum(axis=0) / np.maximum(denominator, 1e-12), 1.0)
+    return np.clip(np.rint(image * gain), 0, 255).astype(np.uint8)
+
+
+def score(image: np.ndarray, view: EvalView, covered: np.ndarray | None = None, real: bool = False) -> dict:
     """The metrics of ``image`` (h, w, 3) uint8 against the view's ground truth; with
-    ``covered`` (h, w) bool (the pixels the method draws) also over those."""
+    ``covered`` (h, w) bool (the pixels the method draws) also over those, and for a
+    ``real`` view also over those after :func:`exposure_matched` ("psnr_covered_exposure")."""
     out = {}
     masks = [("", None), ("_geometry", view.geometry), ("_seen", view.seen)]
     if covered is not None:
@@ -232,6 +246,9 @@ def score(image: np.ndarray, view: EvalView, covered: np.ndarray | None = None) 
     for suffix, mask in masks:
         out["psnr" + suffix] = psnr(image, view.truth, mask)
         out["ssim" + suffix] = ssim(image, view.truth, mask)
+    if real and covered is not None:
+        out["psnr_covered_exposure"] = (psnr(exposure_matched(image, view.truth, covered), view.truth, covered)
+                                        if covered.any() else float("nan"))
     return out
 
 
@@ -315,7 +332,8 @@ def evaluate_methods(methods: dict[str, Method], views: list[EvalView], images: 
             drawn = (method.covered(view.K, view.world_from_cam, view.size) if hasattr(method, "covered")
                      else np.any(image != 0, axis=-1))
             coverage = float(drawn[view.seen].mean()) if view.seen.any() else float("nan")
-            rows.append({"frame": view.frame, "view": view.where, "method": name, **score(image, view, drawn),
+            rows.append({"frame": view.frame, "view": view.where, "method": name,
+                         **score(image, view, drawn, real=view.real),
                          "seen_fraction": float(view.seen.mean()), "coverage_seen": coverage, "render_s": render_s})
             if images is not None and name in keep:
                 images[name, i] = image
@@ -340,7 +358,8 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
             if not sel:
                 continue
             summary[f"{method}, {where}"] = {k: _nanmean([r.get(k, float("nan")) for r in sel])
-                                             for k in (*METRICS, "seen_fraction", "coverage_seen")}
+                                             for k in (*METRICS, "psnr_covered_exposure", "seen_fraction",
+                                                       "coverage_seen")}
     return summary
 
 
@@ -561,13 +580,16 @@ def markdown_real(report: dict) -> str:
              "method draws. Coverage: the share of the pixels below the horizon (rays pointing down) drawn. "
              + ("The model is drawn over its sky; the baselines' background is black." if report.get("sky")
                 else "Backgrounds are black."), "",
-             "| method | PSNR covered (dB) | SSIM covered | coverage below horizon | PSNR below horizon (dB) | "
-             "PSNR image (dB) | SSIM image | bytes |",
-             "|---|---|---|---|---|---|---|---|"]
+             "Exposure matched: the render times the per-channel gain that best fits the real image over the "
+             "covered pixels (the held-out frame's own exposure and white balance).", "",
+             "| method | PSNR covered (dB) | exposure matched (dB) | SSIM covered | coverage below horizon | "
+             "PSNR below horizon (dB) | PSNR image (dB) | SSIM image | bytes |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name, m in report["summary"].items():
         method = name.rsplit(", ", 1)[0]
         b = report["bytes"].get(method)
-        lines.append(f"| {method} | {_f(m['psnr_covered'], '.2f')} | {_f(m['ssim_covered'], '.3f')} | "
+        lines.append(f"| {method} | {_f(m['psnr_covered'], '.2f')} | {_f(m.get('psnr_covered_exposure'), '.2f')} | "
+                     f"{_f(m['ssim_covered'], '.3f')} | "
                      f"{_f(m.get('coverage_seen'), '.1%')} | {_f(m['psnr_seen'], '.2f')} | {_f(m['psnr'], '.2f')} | "
                      f"{_f(m['ssim'], '.3f')} | {_f(b, ',')} |")
     if report.get("images"):

@@ -39,6 +39,20 @@ def test_held_out_frames_rule():
             held_out_frames(10, bad)
 
 
+def test_exposure_matching_undoes_a_gain():
+    from render.evaluate import exposure_matched, psnr
+
+    rng = np.random.default_rng(3)
+    truth = rng.integers(20, 200, (30, 40, 3)).astype(np.uint8)
+    darker = np.clip(np.rint(truth * np.array([0.7, 0.8, 0.9])), 0, 255).astype(np.uint8)
+    mask = np.ones((30, 40), bool)
+    assert psnr(darker, truth) < 25 and psnr(exposure_matched(darker, truth, mask), truth) > 40
+    mask[:, 20:] = False
+    half = exposure_matched(darker, truth, mask)                      # the gain fitted on the left half only
+    assert psnr(half, truth, ~mask) > 40
+    assert np.array_equal(exposure_matched(np.zeros_like(truth), truth, mask), np.zeros_like(truth))
+
+
 def test_below_horizon_of_a_level_and_a_pitched_camera():
     w, h = 40, 30
     K = np.array([[20.0, 0, (w - 1) / 2], [0, 20.0, (h - 1) / 2], [0, 0, 1]])
@@ -112,9 +126,10 @@ def test_eval_of_a_real_capture_scores_the_held_out_images(real_street, tmp_path
     methods = ("model", "photograph", "Poisson mesh", "point projection")
     assert set(report["summary"]) == {f"{m}, on path" for m in methods}  # no off-path views: nothing to compare
     exact = report["summary"]["photograph, on path"]
-    assert exact["psnr"] == 100 and exact["coverage_seen"] == 1
+    assert exact["psnr"] == 100 and exact["coverage_seen"] == 1 and exact["psnr_covered_exposure"] == 100
     m = report["summary"]["model, on path"]
     assert 12 < m["psnr_covered"] < 100 and 0.5 < m["coverage_seen"] <= 1
+    assert m["psnr_covered_exposure"] >= m["psnr_covered"] - 0.5  # a fitted gain can only help (up to rounding)
     assert 0 < m["seen_fraction"] < 1  # the pixels below the horizon (the camera is pitched up 10°)
     assert len(report["images"]) == len(held)
 
