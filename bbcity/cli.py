@@ -18,7 +18,7 @@ logger = logging.getLogger("bbcity")
 def _add_synth(sub) -> None:
     p = sub.add_parser(
         "synth", help="generate a synthetic dataset (street or town) with ground truth",
-        description="Generate a synthetic scene, drive the three-camera rig through it and write "
+        description="Generate a synthetic scene, drive the camera rig (three cameras by default) through it and write "
                     "images, rig.json, poses.json, a COLMAP model and ground truth (gt/).")
     p.add_argument("scene", choices=["street", "town"], help="scene to generate")
     p.add_argument("--out", type=Path, required=True, help="output dataset directory (new, or one to resume)")
@@ -85,7 +85,8 @@ def _add_import(sub) -> None:
     k.add_argument("--cameras", choices=("auto", "grey", "colour", "lr"), default="auto",
                    help="which stereo pair (default auto: colour, else grey, else image_l/r)")
     k.add_argument("--camera-height", type=float, default=1.65,
-                   help="height of the left camera above the road in metres (default 1.65, KITTI's car)")
+                   help="height of KITTI's cam0 (the left grey camera, whose poses poses.txt holds) above the road "
+                        "in metres (default 1.65, KITTI's car)")
     k.add_argument("--first", type=int, default=0, help="first frame (default 0)")
     k.add_argument("--count", type=int, default=None, help="frames to import (default: all)")
     k.add_argument("--step", type=int, default=1, help="every n-th frame (default 1)")
@@ -162,7 +163,8 @@ def _add_recon(sub) -> None:
     p.add_argument("--frame-stride", type=int, default=1, help="use every n-th frame (default 1)")
     p.add_argument("--wls", action="store_true", help="WLS-filter the disparities (smoother, slower)")
     p.add_argument("--min-agree", type=int, choices=(2, 3), default=3,
-                   help="pairs that must agree on a pixel's depth (default 3; 2 keeps more, with more errors)")
+                   help="three-camera rigs: pairs that must agree on a pixel's depth (default 3; 2 keeps more, "
+                        "with more errors); a two-camera rig has one pair, one camera its own rule")
     p.add_argument("--holdout", type=int, default=0,
                    help="leave every n-th frame out of the cloud, for `bbcity eval` on held-out views (default 0: "
                         "none; 4 uses 75 %% of the frames); `bbcity build` of this WORK leaves the same frames out")
@@ -343,8 +345,9 @@ def _work_holdout(work: Path) -> int:
     from data_synth.fileio import read_json
 
     report = read_json(work / "recon_report.json")
-    holdout = report.get("config", {}).get("holdout", 0) if isinstance(report, dict) else 0
-    return holdout if isinstance(holdout, int) else 0
+    config = report.get("config") if isinstance(report, dict) else None
+    holdout = config.get("holdout", 0) if isinstance(config, dict) else 0
+    return holdout if isinstance(holdout, int) and not isinstance(holdout, bool) else 0
 
 
 def _add_texture_sweep(sub) -> None:
@@ -632,7 +635,7 @@ def _run_view(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="bbcity", description="Street captures from a three-camera rig to a compact billboard city model.")
+        prog="bbcity", description="Street captures from a camera rig to a compact billboard city model.")
     parser.add_argument("--version", action="version", version=f"bbcity {__version__}")
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument("-v", "--verbose", action="store_true", help="debug logging")

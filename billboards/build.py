@@ -476,7 +476,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                     "cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir),
                     "held_out_frames": held_out}
             if poses is not None and dataset_dir is not None:
-                info["poses"] = str(poses)
+                info["poses"] = str(Path(poses).resolve())
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,
                           yaw_offsets=conf.sampling.directions.yaw_offsets, pitches=conf.sampling.directions.pitches,
                           pitched_quads=conf.sampling.directions.pitched_quads, info=info, block_size=block_size,

@@ -170,14 +170,20 @@ def base_yaw_seen(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray
     R, C = world_from_cam[:, :3, :3], world_from_cam[:, :3, 3]
     w, h = np.asarray(sizes, np.float64)[:, 0], np.asarray(sizes, np.float64)[:, 1]
     for s in range(0, len(centres), chunk):
-        to_cam = C[None, :, :] - centres[s:s + chunk, None, :]                 # (m, v, 3)
-        cam = np.einsum("mvk,vkj->mvj", -to_cam, R)
+        c = centres[s:s + chunk]
+        # only cameras near this chunk: memory stays bounded by the chunk, not the capture
+        near = np.flatnonzero(np.all((C >= c.min(axis=0) - max_distance) & (C <= c.max(axis=0) + max_distance), axis=1))
+        if len(near) == 0:
+            continue
+        to_cam = C[None, near, :] - c[:, None, :]                               # (m, v, 3)
+        cam = np.einsum("mvk,vkj->mvj", -to_cam, R[near])
         z = cam[..., 2]
+        Kn, w_n, h_n = K[near], w[near], h[near]
         with np.errstate(divide="ignore", invalid="ignore"):
-            u = K[None, :, 0, 0] * cam[..., 0] / z + K[None, :, 0, 2]
-            v = K[None, :, 1, 1] * cam[..., 1] / z + K[None, :, 1, 2]
+            u = Kn[None, :, 0, 0] * cam[..., 0] / z + Kn[None, :, 0, 2]
+            v = Kn[None, :, 1, 1] * cam[..., 1] / z + Kn[None, :, 1, 2]
         flat = np.linalg.norm(to_cam[..., :2], axis=-1)
-        seen = (z > 0.3) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1) & (flat > 1e-6) \
+        seen = (z > 0.3) & (u >= 0) & (u <= w_n - 1) & (v >= 0) & (v <= h_n - 1) & (flat > 1e-6) \
             & (np.linalg.norm(to_cam, axis=-1) < max_distance)
         unit = np.where(seen[..., None], to_cam[..., :2] / np.maximum(flat, 1e-12)[..., None], 0.0).sum(axis=1)
         any_seen = seen.any(axis=1) & (np.linalg.norm(unit, axis=-1) > 1e-9)

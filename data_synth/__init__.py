@@ -1,5 +1,5 @@
 """Synthetic street scenes with ground truth: geometry, procedural textures,
-the three-camera rig, a CPU ray-cast renderer and the dataset format."""
+the camera rig (three cameras by default; lenses), a CPU ray-cast renderer and the dataset format."""
 
 from .dataset import Dataset, SynthConfig, build_scene, load_dataset, load_scene, write_dataset
 from .fileio import DataFormatError

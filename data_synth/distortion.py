@@ -79,6 +79,8 @@ class Distortion:
                 raise ValueError(f"{self.model} coefficient {name} must be a finite number, got {c!r}")
         object.__setattr__(self, "coeffs", tuple(float(c) for c in coeffs))
         object.__setattr__(self, "_limit", _valid_limit(self.model, self.coeffs))
+        if self._limit < 0.1:  # folds back right at the centre: no usable image
+            raise ValueError(f"the {self.model} lens is not monotonic even near the image centre (no usable image)")
 
     @classmethod
     def preset(cls, name: str) -> "Distortion":
@@ -130,10 +132,10 @@ class Distortion:
             if isinstance(c, bool) or not isinstance(c, (int, float)) or not math.isfinite(c):
                 raise DataFormatError(path, f"{where}.{k} must be a finite number, got {c!r}")
             coeffs.append(float(c))
-        distortion = cls(model, tuple(coeffs))
-        if distortion.valid_radius < 0.1:  # folds back right at the centre: no usable image
-            raise DataFormatError(path, f"{where}: the {model} lens is not monotonic even near the image centre")
-        return distortion
+        try:
+            return cls(model, tuple(coeffs))
+        except ValueError as e:
+            raise DataFormatError(path, f"{where}: {e}") from None
 
 
 def _radial_derivative(model: str, c: tuple[float, ...], s: np.ndarray) -> np.ndarray:

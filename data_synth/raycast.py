@@ -33,6 +33,21 @@ class RenderResult:
     ids: np.ndarray
 
 
+def _checked_view(K, world_from_cam, size, spp: int) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """K (3, 3) and world_from_cam (4, 4) as finite float64 arrays and size as (w, h) ints;
+    ValueError when any is malformed."""
+    K = np.asarray(K, dtype=np.float64)
+    world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
+    w, h = (int(s) for s in size)
+    if K.shape != (3, 3) or world_from_cam.shape != (4, 4):
+        raise ValueError(f"K must be (3, 3) and world_from_cam (4, 4), got {K.shape}, {world_from_cam.shape}")
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(world_from_cam))):
+        raise ValueError("K and world_from_cam must be finite")
+    if w < 1 or h < 1 or spp < 1:
+        raise ValueError(f"size must be positive and spp ≥ 1, got {size}, spp={spp}")
+    return K, world_from_cam, (w, h)
+
+
 class Renderer:
     """Holds the scene's ray-casting acceleration structure; renders any pinhole camera,
     with or without lens distortion."""
@@ -79,15 +94,7 @@ class Renderer:
         """
         if distortion is not None:
             return self._render_distorted(K, world_from_cam, size, spp, distortion)
-        K = np.asarray(K, dtype=np.float64)
-        world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
-        w, h = (int(s) for s in size)
-        if K.shape != (3, 3) or world_from_cam.shape != (4, 4):
-            raise ValueError(f"K must be (3, 3) and world_from_cam (4, 4), got {K.shape}, {world_from_cam.shape}")
-        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(world_from_cam))):
-            raise ValueError("K and world_from_cam must be finite")
-        if w < 1 or h < 1 or spp < 1:
-            raise ValueError(f"size must be positive and spp ≥ 1, got {size}, spp={spp}")
+        K, world_from_cam, (w, h) = _checked_view(K, world_from_cam, size, spp)
         R = world_from_cam[:3, :3]
         origin = world_from_cam[:3, 3]
         K_inv = np.linalg.inv(K)
@@ -143,15 +150,7 @@ class Renderer:
 
     def _render_distorted(self, K, world_from_cam, size, spp, distortion) -> RenderResult:
         """:meth:`render` of a raw, distorted image (same chunking, same shading)."""
-        K = np.asarray(K, dtype=np.float64)
-        world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
-        w, h = (int(s) for s in size)
-        if K.shape != (3, 3) or world_from_cam.shape != (4, 4):
-            raise ValueError(f"K must be (3, 3) and world_from_cam (4, 4), got {K.shape}, {world_from_cam.shape}")
-        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(world_from_cam))):
-            raise ValueError("K and world_from_cam must be finite")
-        if w < 1 or h < 1 or spp < 1:
-            raise ValueError(f"size must be positive and spp ≥ 1, got {size}, spp={spp}")
+        K, world_from_cam, (w, h) = _checked_view(K, world_from_cam, size, spp)
         grid = self._undistorted_grid(K, (w, h), spp, distortion)
         R = world_from_cam[:3, :3]
         origin = world_from_cam[:3, 3]

@@ -1,4 +1,4 @@
-"""The three-camera rig and the capture trajectory.
+"""The camera rig (by default three cameras in a row) and the capture trajectory.
 
 Rig frame: x forward (driving direction), y left, z up, origin on the road
 below the rig. The cameras sit in a row on the roof, optical axes parallel,

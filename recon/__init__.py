@@ -1,7 +1,8 @@
-"""Three-camera stereo → fused coloured point cloud.
+"""Stereo (a rig of three, two or one camera) → fused coloured point cloud.
 
 Public API: :func:`recon.stereo.disparity` (any rectified RGB pair),
 :func:`recon.rectify.rectify_rig`, :func:`recon.trinocular.frame_depth`,
-:func:`recon.pipeline.main` (the stage's entry point) and the pose sources in
-:mod:`recon.poses`.
+:func:`recon.motion_stereo.motion_depth` (one camera, neighbouring frames),
+:func:`recon.pipeline.main` (the stage's entry point), the pose sources in
+:mod:`recon.poses` and the importers of real captures in :mod:`recon.importers`.
 """

@@ -134,6 +134,10 @@ def _with_motion_partners(tasks: list, ds, world_from_rig: np.ndarray, excluded,
             logger.warning("frame %d has no stereo partner (baselines %.2f–%.2f m, see MotionStereoConfig)",
                            t.frame, config.min_baseline, config.max_baseline)
         out.append(replace(t, motion=config, partners=chosen))
+    if out and not any(t.partners for t in out):
+        raise ValueError(f"{ds.root}: no frame of this one-camera capture has a stereo partner (neighbouring frames "
+                         f"{config.min_baseline:g}–{config.max_baseline:g} m apart, moving sideways to the view; "
+                         "walking toward what is photographed gives none)")
     return out
 
 
@@ -257,7 +261,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     report = {
         "dataset": str(dataset_dir), "config": json.loads(json.dumps(asdict(conf), default=str)),
         "frames": len(frames), "held_out_frames": held_out, "points": num_points, "origin": origin.tolist(),
-        "poses": pose_report, "poses_file": None if poses_file is None else str(poses_file), "stages": stages,
+        "poses": pose_report, "poses_file": None if poses_file is None else str(poses_file.resolve()), "stages": stages,
         "seconds_per_frame": float(np.median([s["total_s"] for s in frame_stats])) if frame_stats else None,
         "stereo_seconds_per_frame": float(np.median([s["stereo_s"] for s in frame_stats])) if frame_stats else None,
         "peak_rss_mb": _peak_rss_mb(),

@@ -172,6 +172,17 @@ def choose_frames(info: dict | None, num_frames: int, views: int | None,
     return frames, texture_frames, bool(held)
 
 
+def view_camera(rig, size: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int], tuple[int, int]]:
+    """Camera 0 of ``rig`` rendered at ``size`` (w, h; None: its own): K (3, 3) float64
+    scaled to that size, the size, and the camera's own size."""
+    K = rig.intrinsics[0]
+    native = tuple(int(s) for s in rig.sizes[0])
+    size = native if size is None else tuple(int(s) for s in size)
+    if size != native:
+        K = np.diag([size[0] / native[0], size[1] / native[1], 1.0]) @ K
+    return K, size, native
+
+
 def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config: EvalConfig = EvalConfig(),
                   progress: Callable[[str], None] | None = None) -> list[EvalView]:
     """Ground truth, geometry and seen masks of each frame's camera-0 viewpoint, on and off path."""
@@ -179,11 +190,7 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
     if not ds.has_ground_truth:
         raise ValueError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
     scene = load_scene(dataset_dir)
-    K = ds.rig.intrinsics[0]
-    native = tuple(int(s) for s in ds.rig.sizes[0])
-    size = native if config.size is None else tuple(int(s) for s in config.size)
-    if size != native:
-        K = np.diag([size[0] / native[0], size[1] / native[1], 1.0]) @ K
+    K, size, _ = view_camera(ds.rig, config.size)
     views = []
     for f in frames:
         capture = ds.world_from_cam(int(f), 0)
@@ -208,11 +215,7 @@ def below_horizon(K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, in
 def prepare_real_views(dataset, frames, config: EvalConfig = EvalConfig()) -> list[EvalView]:
     """The camera-0 images of ``frames`` of a real capture as views (on path; geometry and
     seen pixels: those below the horizon)."""
-    K = dataset.rig.intrinsics[0]
-    native = tuple(int(s) for s in dataset.rig.sizes[0])
-    size = native if config.size is None else tuple(int(s) for s in config.size)
-    if size != native:
-        K = np.diag([size[0] / native[0], size[1] / native[1], 1.0]) @ K
+    K, size, native = view_camera(dataset.rig, config.size)
     views = []
     for f in frames:
         pose = dataset.world_from_cam(int(f), 0)

@@ -324,3 +324,15 @@ def test_base_yaw_seen_faces_the_seeing_cameras_else_the_nearest():
     assert yaw[0] == pytest.approx(np.pi)
     nearest = np.arctan2(poses[[0, 0], 1, 3] - items[1:, 1], poses[[0, 0], 0, 3] - items[1:, 0])
     np.testing.assert_allclose(yaw[1:], nearest)
+
+
+def test_the_shader_draws_ground_blocks_with_the_overlap_culling_assumes():
+    import re
+    from pathlib import Path
+
+    import render
+    from billboards.geometry import GROUND_OVERLAP
+
+    glsl = (Path(render.__file__).parent / "shaders" / "billboard_quad.glsl").read_text()
+    value = re.search(r"const float GROUND_OVERLAP = ([0-9.]+);", glsl)
+    assert value is not None and float(value.group(1)) == GROUND_OVERLAP

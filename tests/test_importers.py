@@ -387,6 +387,31 @@ def test_kitti_import_of_a_fake_sequence(tmp_path):
     assert ds.image(0, 0).shape == (16, 48, 3)
 
 
+def test_kitti_colour_pair_on_a_turning_drive_keeps_cam0s_poses(tmp_path):
+    """poses.txt holds cam0's poses whichever pair is imported: the colour cameras (P2, P3,
+    offset from cam0) must sit where cam0's pose and P2's translation put them, also in a turn."""
+    seq = _fake_kitti(tmp_path / "seq")
+    yaw = np.radians([0.0, 30.0, 60.0, 90.0])  # turning about cam0's y (down) axis while driving
+    poses = []
+    for i, a in enumerate(yaw):
+        R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        poses.append(np.hstack([R, [[2.0 * i], [0.0], [3.0 * i]]]))
+    (seq / "poses.txt").write_text("".join(" ".join(f"{v:.9e}" for v in T.ravel()) + "\n" for T in poses))
+    for left, right in (("image_0", "image_2"), ("image_1", "image_3")):
+        (seq / left).rename(seq / right)
+    ds = load_dataset(import_kitti(seq, tmp_path / "ds"))  # auto: the colour pair
+    assert ds.rig.num_cameras == 2
+    # cam2 sits 0.06 m to the right of cam0 (P2 = K [I | (−0.06, 0, 0)]); cam0 of frame 0 is the world's reference
+    from recon.importers.kitti import rig_from_cam0
+
+    to_rig = rig_from_cam0(1.65)
+    for f, T in enumerate(poses):
+        world_from_cam0 = to_rig @ np.vstack([T, [0, 0, 0, 1]])
+        expected = world_from_cam0 @ np.array([0.06, 0.0, 0.0, 1.0])
+        np.testing.assert_allclose(ds.world_from_cam(f, 0)[:3, 3], expected[:3], atol=1e-6)
+        np.testing.assert_allclose(ds.world_from_cam(f, 0)[:3, :3], world_from_cam0[:3, :3], atol=1e-6)
+
+
 def test_kitti_calib_with_the_wrong_line_count_is_one_clear_error(tmp_path):
     seq = _fake_kitti(tmp_path / "seq")
     lines = (seq / "calib.txt").read_text().splitlines()
@@ -451,9 +476,6 @@ def test_sfm_of_photos_with_unknown_poses_is_level_and_step_scaled(one_camera_st
     np.testing.assert_allclose(res.world_from_rig[0, :3, 3], 0.0, atol=1e-9)
     assert abs(res.world_from_rig[0, 1, 0]) < 1e-9 and res.world_from_rig[0, 0, 0] > 0.99
     aligned, T, s = align_trajectory(cams, truth, with_scale=True)
-    print(f"one camera's SfM, levelled and step-scaled: scale {s:.4f} of the truth, position error "
-          f"{np.abs(aligned[:, :3, 3] - truth[:, :3, 3]).max() * 100:.1f} cm, "
-          f"up {np.degrees(np.arccos(np.clip(T[:3, 2] @ [0, 0, 1] / s, -1, 1))):.2f} deg off")
     assert s == pytest.approx(1.0, abs=0.01)  # frames really are 1.4 m apart
     assert np.abs(aligned[:, :3, 3] - truth[:, :3, 3]).max() < 0.05
     assert np.degrees(np.arccos(np.clip(T[:3, 2] @ [0, 0, 1] / s, -1, 1))) < 1.0  # the world's z is up

@@ -145,3 +145,14 @@ def test_eval_cli_of_a_real_capture_writes_its_table(real_street, tmp_path):
     assert "real capture" in text and "PSNR covered" in text and "coverage below horizon" in text
     report = json.loads((out / "eval.json").read_text())
     assert report["views"] == 1 and list(report["summary"]) == ["model, on path"]
+
+
+def test_one_camera_without_stereo_partners_is_one_clear_error(tmp_path):
+    """Frames 15 m apart: no neighbour is a stereo partner, and recon says so instead of
+    writing an empty cloud."""
+    from recon.pipeline import main as recon_main
+
+    dataset = write_dataset(tiny_config(rig=RigConfig(**SMALL_RIG, baselines=(0.0,)), frames=3, return_pass=False),
+                            tmp_path / "street", progress=False)
+    with pytest.raises(ValueError, match="no frame of this one-camera capture has a stereo partner"):
+        recon_main(TINY, dataset, tmp_path / "work", progress=False)

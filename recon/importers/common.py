@@ -13,12 +13,11 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
+from data_synth.dataset import DATASET_FORMAT, FORMAT_VERSION
 from data_synth.fileio import DataFormatError, write_bytes, write_json
 from data_synth.rig import Rig, save_poses
 
 logger = logging.getLogger(__name__)
-
-DATASET_FORMAT = "bbcity-dataset"
 
 #: (4, 4) float64: an OpenCV camera frame (x right, y down, z forward) → the
 #: project's rig frame (x forward, y left, z up). Applied to a world that is a
@@ -125,7 +124,7 @@ def write_imported_dataset(out_dir: os.PathLike | str, rig: Rig, world_from_rig:
                 progress(f + 1, n)
         rig.save(tmp / "rig.json")
         save_poses(tmp / "poses.json", world_from_rig, np.zeros(n, dtype=np.int32), names=names)
-        write_json(tmp / "dataset.json", {"format": DATASET_FORMAT, "version": 1, "frames": n, "cameras": c,
+        write_json(tmp / "dataset.json", {"format": DATASET_FORMAT, "version": FORMAT_VERSION, "frames": n, "cameras": c,
                                           "image_size": list(rig.sizes[0]), "ground_truth": False,
                                           "source": source})
         tmp.rename(out)

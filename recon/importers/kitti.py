@@ -124,15 +124,21 @@ def choose_cameras(root: Path, cameras: str) -> str:
     raise DataFormatError(root, "no stereo image folders (image_0/image_1, image_2/image_3 or image_l/image_r)")
 
 
+def rig_from_cam0(camera_height: float) -> np.ndarray:
+    """(4, 4) float64: KITTI's cam0 (whose poses poses.txt holds, whichever pair is
+    imported) in the rig frame: the project's axes, origin ``camera_height`` below it."""
+    T = ZUP_FROM_CAMERA.copy()
+    T[2, 3] = camera_height
+    return T
+
+
 def kitti_rig(calib: dict[int, np.ndarray], cams: tuple[int, int], size: tuple[int, int], camera_height: float,
               calib_path: Path) -> Rig:
     """The two-camera rig of projection matrices ``cams`` (rig frame: see the module doc)."""
     missing = [c for c in cams if c not in calib]
     if missing:
         raise DataFormatError(calib_path, f"lacks P{missing[0]}, needed for the chosen cameras")
-    rig_from_cam0 = ZUP_FROM_CAMERA.copy()
-    rig_from_cam0[2, 3] = camera_height
-    cam0_from_rig = np.linalg.inv(rig_from_cam0)
+    cam0_from_rig = np.linalg.inv(rig_from_cam0(camera_height))
     Ks, Ts = [], []
     for c in cams:
         K = calib[c][:, :3].copy()
@@ -169,10 +175,10 @@ def import_kitti(sequence_dir: os.PathLike | str, out_dir: os.PathLike | str,
         raise DataFormatError(files[0][keep[0]], "image could not be read")
     size = (first.shape[1], first.shape[0])
     rig = kitti_rig(calib, cams, size, config.camera_height, root / "calib.txt")
-    rig_from_cam0 = np.linalg.inv(rig.cam_from_rig[0])
+    to_rig = rig_from_cam0(config.camera_height)
     # world = the rig frame of the first imported frame
-    world_from_rig = np.array([rig_from_cam0 @ np.linalg.inv(world_from_cam0[keep[0]]) @ world_from_cam0[f]
-                               @ rig.cam_from_rig[0] for f in keep])
+    world_from_rig = np.array([to_rig @ np.linalg.inv(world_from_cam0[keep[0]]) @ world_from_cam0[f]
+                               @ np.linalg.inv(to_rig) for f in keep])
     images = [[files[0][f], files[1][f]] for f in keep]
     names = [files[0][f].stem for f in keep]
     source = {"kind": "kitti", "path": str(root.resolve()), "cameras": which, "frames": keep,

@@ -112,7 +112,10 @@ def read_intrinsics(path: Path) -> tuple[np.ndarray, Distortion | None]:
         raise DataFormatError(path, "K must have positive focal lengths, no skew and last row 0 0 1")
     if not coeffs or not any(coeffs):
         return K, None
-    return K, Distortion("radtan", tuple(coeffs) + (0.0,) * (5 - len(coeffs)))
+    try:
+        return K, Distortion("radtan", tuple(coeffs) + (0.0,) * (5 - len(coeffs)))
+    except ValueError as e:
+        raise DataFormatError(path, str(e)) from None
 
 
 def _exif_value(exif, tag: int):
