@@ -206,7 +206,7 @@ def rectify_rig(rig, pairs: tuple[tuple[int, int], ...] | None = None) -> dict[t
 
 
 @dataclass(frozen=True, eq=False)
-class Views:
+class PosedViews:
     """Views of one moving camera (or any cameras) posed in a common frame, shaped like
     ``data_synth.Rig`` so that :func:`rectify_pair` / :func:`rectify_rig` take it.
 
@@ -234,7 +234,7 @@ def rectify_views(intrinsics: np.ndarray, cam_from_ref: np.ndarray, size: tuple[
     T = np.asarray(cam_from_ref, dtype=np.float64)
     if K.ndim != 3 or K.shape[1:] != (3, 3) or T.shape != (len(K), 4, 4):
         raise ValueError(f"need intrinsics (c, 3, 3) and cam_from_ref (c, 4, 4), got {K.shape} and {T.shape}")
-    views = Views(K, ((int(size[0]), int(size[1])),) * len(K), T)
+    views = PosedViews(K, ((int(size[0]), int(size[1])),) * len(K), T)
     return rectify_rig(views, pairs)
 
 
