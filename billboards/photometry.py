@@ -69,12 +69,14 @@ class PhotometryConfig:
     abs_tolerance: float = 0.05       # depth slack of the visibility test (m) ...
     rel_tolerance: float = 0.01       # ... plus this fraction of the depth
     cell: float = 2.0                 # grid cell (m) grouping the cloud for per-image frustum culling
+    zbuffer_points: int = 4_000_000   # the visibility z-buffers splat at most this many cloud points (every n-th):
+                                      # splatting is the cost, and a 2 cm cloud is denser than the z-buffer
     solver: str = "fast"              # "fast" (reduced system, PCG) or "reference" (dense lstsq, small problems)
     seed: int = 0                     # tie-point subsample
 
     def __post_init__(self):
-        if self.samples < 1 or self.iterations < 1 or self.zbuffer_scale < 1:
-            raise ValueError("PhotometryConfig: samples, iterations and zbuffer_scale must be ≥ 1")
+        if self.samples < 1 or self.iterations < 1 or self.zbuffer_scale < 1 or self.zbuffer_points < 1:
+            raise ValueError("PhotometryConfig: samples, iterations, zbuffer_scale and zbuffer_points must be ≥ 1")
         if self.min_observations < 2:
             raise ValueError(f"PhotometryConfig.min_observations must be ≥ 2 (a point seen once ties nothing), "
                              f"got {self.min_observations}")
@@ -222,7 +224,8 @@ def collect_observations(views, points: np.ndarray, config: PhotometryConfig = P
         return Observations(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), len(views), 0)
     rng = np.random.default_rng(config.seed)
     ties = points[np.sort(rng.choice(len(points), min(config.samples, len(points)), replace=False))]
-    cells = _cloud_cells(points, config.cell)
+    stride = -(-len(points) // config.zbuffer_points)
+    cells = _cloud_cells(points[::stride], config.cell)
     images, ids, colours = [], [], []
     if getattr(views, "gains", None) is not None:
         views = replace(views, gains=None)  # the gains are estimated on the images as captured
