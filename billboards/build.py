@@ -367,6 +367,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         raise ValueError("source 'images' needs the dataset's images and poses (--images DATASET)")
 
     photometry_report: dict = {"enabled": False}
+    exposure = None
     if (conf.photometry is not None and conf.photometry.enabled and views is not None and conf.source == "images"
             and len(views) and len(points)):
         # Exposure and white balance divided out of every image before anything reads its colours
@@ -376,6 +377,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         views = replace(views, gains=photometry.gains)
         stages["photometry_s"] = time.perf_counter() - t1
         photometry_report = photometry.report()
+        # which (frame, camera) each gain belongs to, in the order of views_from_dataset
+        exposure = {"views": [[f, c] for f in frames for c in range(cameras)], "gains": photometry.gains.tolist()}
 
     layer = None
     layer_report: dict = {"enabled": False}
@@ -475,6 +478,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,
                     "cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir),
                     "held_out_frames": held_out}
+            if exposure is not None:
+                info["exposure"] = exposure  # eval gives a held-out frame the exposure of its neighbours
             if poses is not None and dataset_dir is not None:
                 info["poses"] = str(Path(poses).resolve())
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,

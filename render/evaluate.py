@@ -260,10 +260,14 @@ def score(image: np.ndarray, view: EvalView, covered: np.ndarray | None = None, 
 class ModelMethod:
     """A billboard model as a method (GPU decode, offscreen), over ``sky`` when given.
 
-    visible: None (every quad) or the indices drawn; nbytes: the model's bytes (+ the sky's)."""
+    visible: None (every quad) or the indices drawn; nbytes: the model's bytes (+ the sky's);
+    gains: frame → (3,) float64 exposure gain that :func:`evaluate_methods` applies to the
+    view of that frame (see :func:`neighbour_gains`)."""
 
-    def __init__(self, model, sky=None, visible=None, nbytes: int | None = None, decode: str = "gpu"):
+    def __init__(self, model, sky=None, visible=None, nbytes: int | None = None, decode: str = "gpu",
+                 gains: dict[int, np.ndarray] | None = None):
         self.model, self.sky, self.visible, self.decode = model, sky, visible, decode
+        self.gains = gains or {}
         self.nbytes = int(model.nbytes()["total"] + (sky.colours.nbytes if sky is not None else 0)
                           if nbytes is None else nbytes)
 
@@ -280,6 +284,29 @@ class ModelMethod:
         image = render_view(self.model, K, world_from_cam, size, decode=self.decode, visible=self.visible,
                             background=_UNUSED_COLOUR)
         return np.any(image != np.round(np.asarray(_UNUSED_COLOUR) * 255).astype(np.uint8), axis=-1)
+
+
+def neighbour_gains(exposure: dict | None, frames, camera: int = 0) -> dict[int, np.ndarray]:
+    """Frame → (3,) float64 gain of ``camera`` at each of ``frames``, from the gains that
+    photometry found for the frames the textures came from (``exposure``: a model's
+    ``info["exposure"]``, {"views": [[frame, camera], ...], "gains": [[r, g, b], ...]}):
+    geometric interpolation between the nearest frames before and after (the nearest one
+    at the ends). A camera's exposure drifts slowly along a drive; the held-out frame's
+    own pixels are not used. Empty without ``exposure``."""
+    if not exposure:
+        return {}
+    views = np.asarray(exposure.get("views", []), dtype=np.int64).reshape(-1, 2)
+    gains = np.asarray(exposure.get("gains", []), dtype=np.float64).reshape(-1, 3)
+    mine = (views[:, 1] == camera) & np.all(gains > 0, axis=1) if len(views) == len(gains) else np.zeros(0, bool)
+    if not mine.any():
+        return {}
+    known = views[mine, 0]
+    order = np.argsort(known)
+    known, logs = known[order], np.log(gains[mine][order])
+    out = {}
+    for f in frames:
+        out[int(f)] = np.exp([np.interp(f, known, logs[:, k]) for k in range(3)])
+    return out
 
 
 class LazyPoisson:
@@ -330,6 +357,9 @@ def evaluate_methods(methods: dict[str, Method], views: list[EvalView], images: 
         for i, view in enumerate(views):
             t1 = time.perf_counter()
             image = method(view.K, view.world_from_cam, view.size)
+            gain = getattr(method, "gains", {}).get(view.frame)
+            if gain is not None:  # the model's one exposure → the frame's own (a real capture's held-out frame)
+                image = np.clip(np.rint(image * gain), 0, 255).astype(np.uint8)
             render_s = time.perf_counter() - t1
             # Coverage: the share of seen pixels the method draws (baselines draw black elsewhere).
             drawn = (method.covered(view.K, view.world_from_cam, view.size) if hasattr(method, "covered")
@@ -412,6 +442,11 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         eval_views = prepare_views(dataset_dir, frames, texture_frames, config, progress=logger.info)
 
     methods: dict[str, Method] = {"model": ModelMethod(model, sky)}
+    gains = neighbour_gains(info.get("exposure"), frames) if real else {}
+    if gains:
+        # the model holds one exposure for the whole capture (photometry); a held-out frame had
+        # its own: drawn as is, and with the exposure its neighbouring frames had
+        methods["model, neighbours' exposure"] = ModelMethod(model, sky, gains=gains)
     if billboards_only is not None:
         m, s = billboards_only if isinstance(billboards_only, tuple) else (billboards_only, None)
         methods["billboards only"] = ModelMethod(m, s if config.model_sky else None)

@@ -53,6 +53,18 @@ def test_exposure_matching_undoes_a_gain():
     assert np.array_equal(exposure_matched(np.zeros_like(truth), truth, mask), np.zeros_like(truth))
 
 
+def test_neighbour_gains_interpolate_the_texture_frames_exposure():
+    from render.evaluate import neighbour_gains
+
+    exposure = {"views": [[0, 0], [0, 1], [2, 0], [2, 1], [6, 0]],
+                "gains": [[1.0, 1.0, 1.0], [9.0, 9.0, 9.0], [4.0, 2.0, 1.0], [9.0, 9.0, 9.0], [1.0, 1.0, 4.0]]}
+    gains = neighbour_gains(exposure, [1, 4, 8])
+    np.testing.assert_allclose(gains[1], [2.0, np.sqrt(2.0), 1.0])          # halfway between frames 0 and 2 (log)
+    np.testing.assert_allclose(gains[4], [2.0, np.sqrt(2.0), 2.0])          # halfway between 2 and 6
+    np.testing.assert_allclose(gains[8], [1.0, 1.0, 4.0])                   # beyond the last: the last
+    assert neighbour_gains(None, [1]) == {} and neighbour_gains({"views": [], "gains": []}, [1]) == {}
+
+
 def test_below_horizon_of_a_level_and_a_pitched_camera():
     w, h = 40, 30
     K = np.array([[20.0, 0, (w - 1) / 2], [0, 20.0, (h - 1) / 2], [0, 0, 1]])
@@ -123,7 +135,7 @@ def test_eval_of_a_real_capture_scores_the_held_out_images(real_street, tmp_path
     report = evaluate_views(model, real, cloud, config=EvalConfig(workprecision_depths=(), poisson_depth=7),
                             extra_methods={"photograph": photograph}, out_dir=tmp_path)
     assert report["real"] and report["held_out"] and report["frames"] == held  # every held-out frame
-    methods = ("model", "photograph", "Poisson mesh", "point projection")
+    methods = ("model", "model, neighbours' exposure", "photograph", "Poisson mesh", "point projection")
     assert set(report["summary"]) == {f"{m}, on path" for m in methods}  # no off-path views: nothing to compare
     exact = report["summary"]["photograph, on path"]
     assert exact["psnr"] == 100 and exact["coverage_seen"] == 1 and exact["psnr_covered_exposure"] == 100
@@ -144,7 +156,8 @@ def test_eval_cli_of_a_real_capture_writes_its_table(real_street, tmp_path):
     text = (out / "eval.md").read_text()
     assert "real capture" in text and "PSNR covered" in text and "coverage below horizon" in text
     report = json.loads((out / "eval.json").read_text())
-    assert report["views"] == 1 and list(report["summary"]) == ["model, on path"]
+    assert report["views"] == 1
+    assert list(report["summary"]) == ["model, on path", "model, neighbours' exposure, on path"]
 
 
 def test_one_camera_without_stereo_partners_is_one_clear_error(tmp_path):
