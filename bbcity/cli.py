@@ -505,15 +505,13 @@ def _run_render(args) -> int:
 def _eval_dataset(model, dataset_dir: Path):
     """The dataset to evaluate ``model`` on: with the poses the model was built with (its
     info "poses": a recon's WORK/poses.json, e.g. from SfM) instead of the dataset's own."""
-    import numpy as np
-
     from data_synth import load_dataset
 
     info = model.info if isinstance(model.info, dict) else {}
     poses = info.get("poses")
     if not isinstance(poses, str):
         ds = load_dataset(dataset_dir)
-        if not np.isfinite(ds.world_from_rig).all(axis=(1, 2)).any():
+        if not ds.posed.any():
             raise ValueError(f"{dataset_dir}: no frame has a pose, and the model records no poses file (build it "
                              "from the WORK of `bbcity recon --poses sfm`)")
         return dataset_dir

@@ -151,7 +151,6 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     source = np.concatenate([board_leaves, np.arange(len(block_leaves))])  # leaf (billboard) or block index
     order = np.lexsort((np.arange(len(item_leaf)), item_kind, item_leaf))
     item_leaf, item_kind, source = item_leaf[order], item_kind[order], source[order]
-    n = len(item_leaf)
     is_board = item_kind == BILLBOARD
     # Each point's billboard: unexplained points of a billboard leaf, and points on a block.
     item_of_board_leaf = np.full(n_leaves, -1, np.int64)
@@ -353,7 +352,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     cameras = 0
     if dataset_dir is not None:
         dataset = load_dataset(dataset_dir, poses=poses)
-        posed = np.isfinite(dataset.world_from_rig).all(axis=(1, 2))
+        posed = dataset.posed
         if not posed.any():
             where = poses if poses is not None else Path(dataset_dir) / "poses.json"
             raise ValueError(f"{where}: no frame has a pose (a photo folder: `bbcity recon DATASET --poses sfm`, "

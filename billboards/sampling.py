@@ -119,8 +119,9 @@ def views_from_dataset(dataset, frames=None) -> Views:
     frames without a pose (NaN ``world_from_rig``: not registered by SfM) are left out.
     ``Views.image`` returns what ``dataset.image`` does (undistorted where a camera has a lens)."""
     K, poses, sizes, paths, cams = [], [], [], [], []
+    posed = dataset.posed
     for f in (range(dataset.num_frames) if frames is None else frames):
-        if not np.all(np.isfinite(dataset.world_from_rig[f])):
+        if not posed[f]:
             continue
         for c in range(dataset.rig.num_cameras):
             K.append(dataset.rig.intrinsics[c])

@@ -291,6 +291,11 @@ class Dataset:
         return len(self.frame_names)
 
     @property
+    def posed(self) -> np.ndarray:
+        """(n,) bool: the frames that have a pose (a photo folder's are unknown until SfM)."""
+        return np.isfinite(self.world_from_rig).all(axis=(1, 2))
+
+    @property
     def has_ground_truth(self) -> bool:
         return (self.root / "gt" / "scene.json").is_file()
 

@@ -430,7 +430,7 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     ds = load_dataset(dataset_dir)
     info = model.info if isinstance(getattr(model, "info", None), dict) else {}
     real = not ds.has_ground_truth
-    posed = np.all(np.isfinite(ds.world_from_rig), axis=(1, 2))
+    posed = ds.posed
     frames, texture_frames, held_out = choose_frames(info, ds.num_frames,
                                                      config.views if config.views or real else 8, posed)
     if real:

@@ -61,7 +61,7 @@ def file_poses(path: os.PathLike | str) -> np.ndarray:
         from data_synth import load_dataset
 
         ds = load_dataset(path)
-        posed = [f for f in range(ds.num_frames) if np.isfinite(ds.world_from_rig[f]).all()]
+        posed = np.flatnonzero(ds.posed).tolist()
         if not posed:
             raise DataFormatError(path / "poses.json", "no frame has a pose (--path capture follows the poses "
                                                        "the model was built with)")
