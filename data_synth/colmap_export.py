@@ -45,6 +45,7 @@ import numpy as np
 import pycolmap
 
 from .distortion import Distortion
+from .rigid import nearest_rotation, rigid_inverse
 
 logger = logging.getLogger(__name__)
 
@@ -164,26 +165,10 @@ def _validate(
 # --------------------------------------------------------------------------- building
 
 
-def _rigid_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms T (..., 4, 4) float64, exact up to rounding."""
-    R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(R, -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def _to_rigid3d(T: np.ndarray) -> pycolmap.Rigid3d:
-    """(4, 4) float64 rigid transform → pycolmap.Rigid3d (rotation re-orthonormalised by SVD)."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:  # cannot happen after validation; guard anyway
-        U[:, -1] *= -1
-        R = U @ Vt
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(np.ascontiguousarray(R)), np.ascontiguousarray(T[:3, 3]))
+def to_rigid3d(T: np.ndarray) -> pycolmap.Rigid3d:
+    """A (4, 4) float64 rigid transform as pycolmap's Rigid3d (rotation re-orthonormalised)."""
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(np.ascontiguousarray(nearest_rotation(T[:3, :3]))),
+                            np.ascontiguousarray(T[:3, 3]))
 
 
 def colmap_camera_model(K: np.ndarray, distortion: Distortion | None) -> tuple[str, list[float]]:
@@ -223,19 +208,19 @@ def _build_reconstruction(
     rig_id = 1
     rig = pycolmap.Rig(rig_id=rig_id)
     rig.add_ref_sensor(sensor(0))
-    cam0_from_rig_inv = _rigid_inverse(cam_from_rig[0])
+    cam0_from_rig_inv = rigid_inverse(cam_from_rig[0])
     for i in range(1, c):
         cam_i_from_cam0 = cam_from_rig[i] @ cam0_from_rig_inv
-        rig.add_sensor(sensor(i), _to_rigid3d(cam_i_from_cam0))
+        rig.add_sensor(sensor(i), to_rigid3d(cam_i_from_cam0))
     rec.add_rig(rig)
 
-    rig_from_world = cam_from_rig[0] @ _rigid_inverse(world_from_rig)  # (n, 4, 4): cam0_from_world
+    rig_from_world = cam_from_rig[0] @ rigid_inverse(world_from_rig)  # (n, 4, 4): cam0_from_world
     for k in range(n):
         frame_id = k + 1
         frame = pycolmap.Frame(frame_id=frame_id, rig_id=rig_id)
         for i in range(c):
             frame.add_data_id(pycolmap.data_t(sensor(i), k * c + i + 1))
-        frame.rig_from_world = _to_rigid3d(rig_from_world[k])
+        frame.rig_from_world = to_rigid3d(rig_from_world[k])
         rec.add_frame(frame)
         for i in range(c):
             image = pycolmap.Image(name=image_names[k][i], camera_id=i + 1, image_id=k * c + i + 1)

@@ -47,7 +47,8 @@ from tqdm import tqdm
 # data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
 # pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
 from data_synth import DataFormatError, Dataset
-from data_synth.colmap_export import colmap_camera_model
+from data_synth.colmap_export import colmap_camera_model, to_rigid3d
+from data_synth.rigid import rigid_inverse
 from data_synth.fileio import read_json
 
 import pycolmap  # noqa: E402  (after data_synth, see above)
@@ -80,29 +81,11 @@ def _nan_poses(n: int) -> np.ndarray:
     return np.full((n, 4, 4), np.nan)
 
 
-def _rigid_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms T (..., 4, 4) float64 (exact transpose of the rotation)."""
-    R = T[..., :3, :3]
-    Rt = np.swapaxes(R, -1, -2)
-    out = np.zeros_like(T)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def _to_4x4(rigid: pycolmap.Rigid3d) -> np.ndarray:
     """pycolmap.Rigid3d → (4, 4) float64."""
     T = np.eye(4)
     T[:3, :4] = rigid.matrix()
     return T
-
-
-def _rigid3d(T: np.ndarray) -> pycolmap.Rigid3d:
-    """(4, 4) float64 rigid transform → pycolmap.Rigid3d (rotation re-orthonormalised by SVD)."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(np.ascontiguousarray(R)), np.ascontiguousarray(T[:3, 3]))
 
 
 def _valid(T: np.ndarray) -> np.ndarray:
@@ -218,7 +201,7 @@ def rig_baseline_ratio(world_from_cam: np.ndarray, cam_from_rig: np.ndarray) -> 
     A metric reconstruction gives 1.
     """
     centres = world_from_cam[:, :, :3, 3]  # (n, c, 3)
-    calib = _rigid_inverse(cam_from_rig)[:, :3, 3]  # (c, 3) camera centres in the rig
+    calib = rigid_inverse(cam_from_rig)[:, :3, 3]  # (c, 3) camera centres in the rig
     c = cam_from_rig.shape[0]
     ratios = []
     for i in range(c):
@@ -263,7 +246,7 @@ def poses_from_reconstruction(rec: pycolmap.Reconstruction, dataset: Dataset,
         if not image.has_pose:
             continue
         f, cam = where
-        world_from_cam[f, cam] = _rigid_inverse(_to_4x4(image.cam_from_world()))
+        world_from_cam[f, cam] = rigid_inverse(_to_4x4(image.cam_from_world()))
         frame = rec.frames[image.frame_id]
         is_ref[f, cam] = rigs[frame.rig_id].ref_sensor_id == image.data_id.sensor_id
     if ignored:
@@ -497,7 +480,7 @@ def _rig_config(dataset: Dataset) -> pycolmap.RigConfig:
     """Known rig for COLMAP: cam0 is the reference sensor, sensor_from_rig = cam_c_from_cam0, fixed
     intrinsics of the raw images (:func:`_raw_camera`)."""
     rig = dataset.rig
-    cam0_from_rig_inv = _rigid_inverse(rig.cam_from_rig[0])
+    cam0_from_rig_inv = rigid_inverse(rig.cam_from_rig[0])
     cameras = []
     for c in range(rig.num_cameras):
         (w, h), (model, params) = rig.sizes[c], _raw_camera(dataset, c)
@@ -505,7 +488,7 @@ def _rig_config(dataset: Dataset) -> pycolmap.RigConfig:
         camera.has_prior_focal_length = True
         cameras.append(pycolmap.RigConfigCamera(
             ref_sensor=c == 0, image_prefix=f"cam{c}/", camera=camera,
-            cam_from_rig=None if c == 0 else _rigid3d(rig.cam_from_rig[c] @ cam0_from_rig_inv)))
+            cam_from_rig=None if c == 0 else to_rigid3d(rig.cam_from_rig[c] @ cam0_from_rig_inv)))
     return pycolmap.RigConfig(cameras=cameras)
 
 

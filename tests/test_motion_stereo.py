@@ -131,7 +131,6 @@ def test_rectification_from_relative_pose_makes_rows_epipolar_lines():
     p = pairs[(1, 0)]
     assert p.baseline == pytest.approx(np.linalg.norm(T[:3, 3]), rel=1e-9)
     rng = np.random.default_rng(0)
-    ref_from_world = np.linalg.inv(a)
     for _ in range(20):
         # a point in front of the reference camera, 3–12 m away, inside both images
         u, v, z = rng.uniform(30, W - 30), rng.uniform(20, H - 20), rng.uniform(3.0, 12.0)

@@ -44,10 +44,11 @@ from PIL import Image as PILImage
 from data_synth.distortion import Distortion
 from data_synth.fileio import DataFormatError, write_bytes
 from data_synth.rig import Rig
+from data_synth.rigid import nearest_rotation, rigid_inverse
 
 # recon.poses loads data_synth (open3d, OpenCV) before pycolmap: see the note there
-from ..poses import _read_reconstruction, _rigid_inverse, _to_4x4, level_from_world, up_direction
-from .common import nearest_rotation, write_imported_dataset
+from ..poses import _read_reconstruction, _to_4x4, level_from_world, up_direction
+from .common import write_imported_dataset
 
 import pycolmap  # noqa: E402  (after data_synth, see above)
 
@@ -267,7 +268,7 @@ def rig_from_poses(cam_from_world: np.ndarray, path: Path) -> np.ndarray:
     cam_from_world: (n, c, 4, 4) float64. The mean relative pose of each camera (rotation
     projected back onto SO(3)); an error naming ``path`` when a camera moves relative to
     camera 0 by more than the RIG_*_TOLERANCE (the cameras are not a rig)."""
-    rel = cam_from_world @ _rigid_inverse(cam_from_world[:, :1])  # (n, c, 4, 4): cam_from_cam0
+    rel = cam_from_world @ rigid_inverse(cam_from_world[:, :1])  # (n, c, 4, 4): cam_from_cam0
     out = np.tile(np.eye(4), (rel.shape[1], 1, 1))
     reach = max(float(np.linalg.norm(rel[:, :, :3, 3], axis=2).max()), 1e-9)
     for c in range(1, rel.shape[1]):
@@ -342,13 +343,13 @@ def level_layout(cam_from_ref: np.ndarray, ref_from_world: np.ndarray) -> tuple[
     Returns cam_from_rig (c, 4, 4), world_from_rig (n, 4, 4) and level_from_colmap (4, 4)
     float64 (the new world from COLMAP's). See the module doc for the axes.
     """
-    world_from_cam = _rigid_inverse(cam_from_ref[None] @ ref_from_world[:, None])  # (n, c, 4, 4)
-    world_from_ref = _rigid_inverse(ref_from_world)
+    world_from_cam = rigid_inverse(cam_from_ref[None] @ ref_from_world[:, None])  # (n, c, 4, 4)
+    world_from_ref = rigid_inverse(ref_from_world)
     up = up_direction(world_from_cam.reshape(-1, 4, 4), world_from_ref[:, :3, 3])
     # up and the reference camera's view in the rig (the camera is camera 0, the rig frame its own)
     up_ref = ref_from_world[:, :3, :3] @ up
     up_ref = up_ref.mean(axis=0) / np.linalg.norm(up_ref.mean(axis=0))
-    ref_from_rig = _rigid_inverse(level_from_world(up_ref, _rigid_inverse(cam_from_ref[0])[:3, 2], np.zeros(3)))
+    ref_from_rig = rigid_inverse(level_from_world(up_ref, rigid_inverse(cam_from_ref[0])[:3, 2], np.zeros(3)))
     cam_from_rig = cam_from_ref @ ref_from_rig
     colmap_from_rig = world_from_ref @ ref_from_rig
     level = level_from_world(up, colmap_from_rig[0, :3, 0], colmap_from_rig[0, :3, 3])

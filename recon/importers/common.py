@@ -16,6 +16,7 @@ import numpy as np
 from data_synth.dataset import DATASET_FORMAT, FORMAT_VERSION
 from data_synth.fileio import DataFormatError, write_bytes, write_json
 from data_synth.rig import Rig, save_poses
+from data_synth.rigid import nearest_rotation
 
 logger = logging.getLogger(__name__)
 
@@ -30,13 +31,6 @@ ZUP_FROM_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
 #: Largest deviation from orthonormality of a stored rotation that is taken for
 #: rounding (files print 7 significant digits) and cleaned; more is an error.
 ROTATION_TOLERANCE = 1e-3
-
-
-def nearest_rotation(R: np.ndarray) -> np.ndarray:
-    """(3, 3) float64: the rotation closest to ``R`` in the Frobenius norm (SVD)."""
-    U, _, Vt = np.linalg.svd(R)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 def clean_rigid(T: np.ndarray, path: Path, what: str) -> np.ndarray:
