@@ -15,7 +15,7 @@ from PIL.TiffImagePlugin import IFDRational
 from data_synth import DataFormatError, RigConfig, StreetConfig, load_dataset, write_dataset
 from data_synth.colmap_export import write_colmap_text
 from data_synth.rig import load_poses, save_poses
-from recon.importers.colmap import camera_from_colmap, import_colmap, undistort_maps
+from recon.importers.colmap import camera_from_colmap, import_colmap, colmap_pinhole_maps
 from recon.importers.kitti import KittiConfig, import_kitti
 from recon.importers.photos import PhotosConfig, exif_focal_px, import_photos, read_intrinsics
 from recon.poses import align_trajectory, level_from_world, up_direction
@@ -166,7 +166,7 @@ def test_colmap_lenses_beyond_ours_are_undistorted_to_pinhole(model, params):
     raw = pycolmap.Camera(camera_id=3, model=model, width=100, height=80, params=params)
     cam = camera_from_colmap(raw, Path("cameras.txt"))
     assert cam.distortion is None and cam.pinhole.model.name == "PINHOLE" and cam.raw is raw
-    map_x, map_y = undistort_maps(cam.raw, cam.pinhole)
+    map_x, map_y = colmap_pinhole_maps(cam.raw, cam.pinhole)
     assert map_x.shape == (cam.size[1], cam.size[0]) and map_x.dtype == np.float32
     # each pinhole pixel samples the raw pixel that sees the same ray
     v, u = 17, 23
@@ -179,7 +179,7 @@ def test_undistort_maps_agree_with_opencv():
     d = np.array([-0.1, 0.02, 1e-3, -2e-3, 0.0])
     raw = pycolmap.Camera(model="OPENCV", width=100, height=80, params=[90, 95, 50, 40, *d[:4]])
     pinhole = pycolmap.Camera(model="PINHOLE", width=100, height=80, params=[90, 95, 50, 40])
-    map_x, map_y = undistort_maps(raw, pinhole)
+    map_x, map_y = colmap_pinhole_maps(raw, pinhole)
     cv_x, cv_y = cv2.initUndistortRectifyMap(K, d, None, K, (100, 80), cv2.CV_32FC1)
     assert np.abs(map_x - cv_x).max() < 1e-3 and np.abs(map_y - cv_y).max() < 1e-3
 

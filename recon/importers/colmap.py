@@ -175,7 +175,7 @@ def camera_from_colmap(camera: pycolmap.Camera, where: Path) -> _Camera:
     return _Camera(K, (int(pinhole.width), int(pinhole.height)), None, camera, pinhole)
 
 
-def undistort_maps(raw: pycolmap.Camera, pinhole: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
+def colmap_pinhole_maps(raw: pycolmap.Camera, pinhole: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
     """cv2.remap tables (h, w) float32 x and y: for each pixel of the ``pinhole`` image, where
     it lies in the ``raw`` image (OpenCV pixel centres); outside the raw lens: −1."""
     w, h = int(pinhole.width), int(pinhole.height)
@@ -422,7 +422,7 @@ def import_colmap(model_dir: os.PathLike | str, image_dir: os.PathLike | str, ou
             logger.info("undistorting the images of %s to pinhole cameras",
                         ", ".join(f"cam{c} ({cams[c].raw.model.name})" for c in undistorted))
             for c in undistorted:
-                maps = undistort_maps(cams[c].raw, cams[c].pinhole)
+                maps = colmap_pinhole_maps(cams[c].raw, cams[c].pinhole)
                 for f, row in enumerate(sources):
                     row[c] = _undistorted(row[c], Path(tmp) / f"cam{c}" / f"{f:06d}.png", maps)
         logger.info("COLMAP model %s: %d frames × %d cameras (%s)", model_dir, len(layout.names), len(cams),
