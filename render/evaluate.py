@@ -262,27 +262,35 @@ class ModelMethod:
 
     visible: None (every quad) or the indices drawn; nbytes: the model's bytes (+ the sky's);
     gains: frame → (3,) float64 exposure gain that :func:`evaluate_methods` applies to the
-    view of that frame (see :func:`neighbour_gains`)."""
+    view of that frame (see :func:`neighbour_gains`); renders: a dict shared by methods of the
+    same model and settings, so that each view is drawn once (None: no caching)."""
 
     def __init__(self, model, sky=None, visible=None, nbytes: int | None = None, decode: str = "gpu",
-                 gains: dict[int, np.ndarray] | None = None):
+                 gains: dict[int, np.ndarray] | None = None, renders: dict | None = None):
         self.model, self.sky, self.visible, self.decode = model, sky, visible, decode
         self.gains = gains or {}
+        self.renders = renders
         self.nbytes = int(model.nbytes()["total"] + (sky.colours.nbytes if sky is not None else 0)
                           if nbytes is None else nbytes)
 
-    def __call__(self, K, world_from_cam, size) -> np.ndarray:
+    def _draw(self, K, world_from_cam, size, sky, background) -> np.ndarray:
         from .offscreen import render_view
 
-        return render_view(self.model, K, world_from_cam, size, decode=self.decode, visible=self.visible,
-                           sky=self.sky, background=BACKGROUND)
+        key = (np.asarray(K).tobytes(), np.asarray(world_from_cam).tobytes(), tuple(size), background)
+        if self.renders is not None and key in self.renders:
+            return self.renders[key]
+        image = render_view(self.model, K, world_from_cam, size, decode=self.decode, visible=self.visible,
+                            sky=sky, background=background)
+        if self.renders is not None:
+            self.renders[key] = image
+        return image
+
+    def __call__(self, K, world_from_cam, size) -> np.ndarray:
+        return self._draw(K, world_from_cam, size, self.sky, BACKGROUND)
 
     def covered(self, K, world_from_cam, size) -> np.ndarray:
         """(h, w) bool: the pixels the model draws (rendered once more over a colour no texel has)."""
-        from .offscreen import render_view
-
-        image = render_view(self.model, K, world_from_cam, size, decode=self.decode, visible=self.visible,
-                            background=_UNUSED_COLOUR)
+        image = self._draw(K, world_from_cam, size, None, _UNUSED_COLOUR)
         return np.any(image != np.round(np.asarray(_UNUSED_COLOUR) * 255).astype(np.uint8), axis=-1)
 
 
@@ -441,12 +449,13 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     else:
         eval_views = prepare_views(dataset_dir, frames, texture_frames, config, progress=logger.info)
 
-    methods: dict[str, Method] = {"model": ModelMethod(model, sky)}
     gains = neighbour_gains(info.get("exposure"), frames) if real else {}
+    renders: dict | None = {} if gains else None
+    methods: dict[str, Method] = {"model": ModelMethod(model, sky, renders=renders)}
     if gains:
         # the model holds one exposure for the whole capture (photometry); a held-out frame had
-        # its own: drawn as is, and with the exposure its neighbouring frames had
-        methods["model, neighbours' exposure"] = ModelMethod(model, sky, gains=gains)
+        # its own: drawn as is, and with the exposure its neighbouring frames had (the same renders)
+        methods["model, neighbours' exposure"] = ModelMethod(model, sky, gains=gains, renders=renders)
     if billboards_only is not None:
         m, s = billboards_only if isinstance(billboards_only, tuple) else (billboards_only, None)
         methods["billboards only"] = ModelMethod(m, s if config.model_sky else None)
