@@ -2,6 +2,8 @@
 
 Readers check a file's header against its size (and ASCII data line by line) before
 anything is allocated or Open3D parses it; PLY is read with numpy, PCD through Open3D.
+The data must be exactly what the header declares: a body holding more points (or any
+bytes after them) than the header's count is refused, not read in part.
 """
 
 from __future__ import annotations
@@ -143,6 +145,7 @@ class _PlyLayout:
     dtype: np.dtype   # one vertex (binary formats: with their byte order)
     count: int        # vertices the header promises
     types: dict       # property name → PLY type word
+    more: bool = False  # later elements (faces) follow the vertices: the body may hold more
 
 
 def _header_lines(path: Path, end: bytes) -> tuple[list[str], int]:
@@ -179,10 +182,11 @@ def _ply_layout(path: Path) -> _PlyLayout:
     if not words or words[0][0] != "format" or len(words[0]) != 3 or words[0][1] not in _PLY_FORMATS:
         raise DataFormatError(path, f"PLY format line must be 'format <{'|'.join(_PLY_FORMATS)}> 1.0'")
     fmt = words[0][1]
-    fields, types, count = [], {}, None
+    fields, types, count, more = [], {}, None, False
     for w in words[1:]:
         if w[0] == "element":
             if count is not None:
+                more = True
                 break  # later elements (faces) are not read
             if len(w) != 3 or w[1] != "vertex" or not w[2].isdigit():
                 raise DataFormatError(path, f"expected 'element vertex <count>' first, got {' '.join(w)!r}")
@@ -209,17 +213,23 @@ def _ply_layout(path: Path) -> _PlyLayout:
     if body < least:
         raise DataFormatError(path, f"truncated: the header promises {count} points ({least} bytes of "
                                     f"{'ASCII ' if fmt == 'ascii' else ''}data at least), the file holds {body}")
-    return _PlyLayout(fmt, offset, dtype, count, types)
+    if fmt != "ascii" and body > least and not more:
+        # a vertex count too small (or bytes appended) would otherwise drop the rest silently
+        raise DataFormatError(path, f"the header promises {count} points ({least} bytes of data), the file holds "
+                                    f"{body} bytes ({body / dtype.itemsize:.6g} points): wrong vertex count or "
+                                    "trailing data")
+    return _PlyLayout(fmt, offset, dtype, count, types, more)
 
 
-def _ascii_rows(path: Path, offset: int, count: int, width: int) -> np.ndarray:
-    """(count, width) float64 values of the first ``count`` non-empty lines after ``offset``."""
+def _ascii_rows(path: Path, offset: int, count: int, width: int, exact: bool = True) -> np.ndarray:
+    """(count, width) float64 values of the first ``count`` non-empty lines after ``offset``;
+    with ``exact`` nothing but blank lines may follow them."""
     with open(path, "rb") as f:
         f.seek(offset)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # blank lines are not rows
-                text = io.TextIOWrapper(f, encoding="ascii", errors="replace")  # junk after the rows is ignored
+                text = io.TextIOWrapper(f, encoding="ascii", errors="replace")  # what follows is checked below
                 rows = np.loadtxt(text, dtype=np.float64, max_rows=count, ndmin=2, comments=None)
         except (ValueError, UnicodeDecodeError) as e:
             raise DataFormatError(path, f"malformed ASCII point data ({e})") from None
@@ -227,13 +237,39 @@ def _ascii_rows(path: Path, offset: int, count: int, width: int) -> np.ndarray:
         raise DataFormatError(path, f"truncated: the header promises {count} points, the file holds {len(rows)}")
     if rows.shape[1] != width:
         raise DataFormatError(path, f"points have {rows.shape[1]} values each, the header declares {width}")
+    if exact:
+        lines = _data_lines(path, offset)
+        if lines != count:
+            raise DataFormatError(path, f"the header promises {count} points, the file holds {lines} lines of "
+                                        "data: wrong point count or trailing data")
     return rows
+
+
+_BLANK = np.frombuffer(b" \t\r\n\v\f", np.uint8)
+
+
+def _data_lines(path: Path, offset: int, chunk: int = 1 << 22) -> int:
+    """Lines after ``offset`` holding anything but blanks (an ASCII body's rows), counted in
+    ``chunk``-byte pieces so that memory stays bounded whatever the file's size."""
+    lines, open_line = 0, False  # open_line: the line running into the next piece is counted already
+    with open(path, "rb") as f:
+        f.seek(offset)
+        while piece := f.read(chunk):
+            a = np.frombuffer(piece, np.uint8)
+            newline = a == 10
+            line = np.cumsum(newline, dtype=np.int64) - newline  # line of each byte within the piece
+            filled = line[~np.isin(a, _BLANK)]                   # (sorted) lines of its non-blank bytes
+            ends = int(newline.sum())
+            if filled.size:
+                lines += int(np.count_nonzero(np.diff(filled))) + 1 - int(open_line and filled[0] == 0)
+            open_line = (open_line or filled.size > 0) if ends == 0 else bool(filled.size and filled[-1] == ends)
+    return lines
 
 
 def _ply_columns(path: Path, layout: _PlyLayout) -> dict[str, np.ndarray]:
     """Vertex property name → (count,) values: float64 for ASCII, memory-mapped for binary."""
     if layout.format == "ascii":
-        rows = _ascii_rows(path, layout.offset, layout.count, len(layout.types))
+        rows = _ascii_rows(path, layout.offset, layout.count, len(layout.types), exact=not layout.more)
         return {name: rows[:, i] for i, name in enumerate(layout.dtype.names)}
     rows = np.memmap(path, dtype=layout.dtype, mode="r", offset=layout.offset, shape=(layout.count,))
     return {name: rows[name] for name in layout.dtype.names}
@@ -312,6 +348,9 @@ def _check_pcd(path: Path) -> None:
     if body < need:
         raise DataFormatError(path, f"truncated: the header promises {points} points ({need} bytes of data), "
                                     f"the file holds {body}")
+    if body > need:  # Open3D would read the promised points and drop the rest silently
+        raise DataFormatError(path, f"the header promises {points} points ({need} bytes of data), the file holds "
+                                    f"{body} bytes: wrong point count or trailing data")
 
 
 def read_cloud_arrays(path: os.PathLike | str, require_colours: bool = True

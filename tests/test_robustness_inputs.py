@@ -1,0 +1,79 @@
+"""Robustness against inputs that are well formed but wrong: a cloud file holding more
+points than its header says, a cloud no camera sees, a rig whose focal length puts
+the stereo search beyond the image, booleans given as image sizes, a screenshot name
+whose suffix is not PNG, a dataset run that failed midway, and the mode of the
+directories the model writer creates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from data_synth.fileio import DataFormatError
+from recon.cloud_io import read_cloud, read_cloud_arrays
+
+from .test_robustness_readers import _cloud, ply_bytes
+
+READERS = [read_cloud, read_cloud_arrays]
+
+
+# ----------------------------------------------------------------------------------------------
+# cloud files: the body is exactly what the header declares
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+@pytest.mark.parametrize("reader", READERS)
+def test_ply_header_claiming_fewer_points_than_the_file_holds(tmp_path, fmt, reader):
+    points, colours, _ = _cloud(5)
+    path = tmp_path / "c.ply"
+    path.write_bytes(ply_bytes(fmt, points, colours, count=3))
+    with pytest.raises(DataFormatError, match="promises 3 points") as info:
+        reader(path)
+    assert info.value.path == path and str(path) in str(info.value)
+    found = "5 lines" if fmt == "ascii" else f"{5 * 27} bytes"  # 3 doubles + 3 uchars a point
+    assert found in str(info.value)
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+@pytest.mark.parametrize("tail, ok", [(b"", True), (b"\n \n", None), (b"\x00", False), (b"7 7 7 1 2 3\n", False)])
+def test_ply_bytes_after_the_points(tmp_path, fmt, tail, ok):
+    """Blank lines may end an ASCII body; anything else after the points is refused."""
+    points, colours, _ = _cloud(4)
+    path = tmp_path / "c.ply"
+    path.write_bytes(ply_bytes(fmt, points, colours) + tail)
+    if ok is None:
+        ok = fmt == "ascii"
+    if ok:
+        np.testing.assert_array_equal(read_cloud_arrays(path)[0], points)
+    else:
+        with pytest.raises(DataFormatError, match="promises 4 points"):
+            read_cloud_arrays(path)
+
+
+def test_ply_with_faces_after_the_vertices_still_reads(tmp_path):
+    """A mesh: the faces after the vertices are not read, and not counted as vertices."""
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.eye(3)), o3d.utility.Vector3iVector([[0, 1, 2]]))
+    mesh.vertex_colors = o3d.utility.Vector3dVector(np.full((3, 3), 0.5))
+    for ascii in (False, True):
+        path = tmp_path / f"mesh{int(ascii)}.ply"
+        o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=ascii)
+        np.testing.assert_allclose(read_cloud_arrays(path)[0], np.eye(3))
+
+
+@pytest.mark.parametrize("ascii, compressed", [(True, False), (False, False), (False, True)])
+def test_pcd_header_claiming_fewer_points_than_the_file_holds(tmp_path, ascii, compressed):
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.arange(15.0).reshape(5, 3)))
+    pcd.colors = o3d.utility.Vector3dVector(np.full((5, 3), 0.5))
+    path = tmp_path / "c.pcd"
+    o3d.io.write_point_cloud(str(path), pcd, write_ascii=ascii, compressed=compressed)
+    data = path.read_bytes()
+    head, body = data.split(b"DATA", 1)
+    if compressed:  # the body's own size fields say what it holds: bytes appended instead
+        path.write_bytes(data + b"\x00" * 16)
+    else:
+        path.write_bytes(head.replace(b"WIDTH 5", b"WIDTH 3").replace(b"POINTS 5", b"POINTS 3") + b"DATA" + body)
+    with pytest.raises(DataFormatError, match="promises") as info:
+        read_cloud_arrays(path)
+    assert info.value.path == path
