@@ -296,12 +296,13 @@ def bench_billboards(cfg: BenchConfig, report: Report, out: Path, work: Path, bu
     from billboards.build import BuildConfig, main as build_main
     from billboards.evaluate import compare_sampling
     from data_synth import load_dataset
+    from recon.pipeline import dataset_of_work
 
     from .executor import executor_scope
     from .sweeps import texture_sweep
 
     work = Path(work)
-    dataset = Path(json.loads((work / "recon_report.json").read_text())["dataset"])
+    dataset = dataset_of_work(work)
     conf = BuildConfig()
     if build:
         with executor_scope(cfg.workers) as ex, measure() as m:
@@ -369,6 +370,8 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
     (:mod:`bbcity.bench_pipeline`), then measure stereo, textures, rendering and novel
     views on the 1× run (the billboard sections on ``cfg.work`` instead when given).
     """
+    from recon.pipeline import dataset_of_work
+
     from .bench_pipeline import bench_pipeline
     from .bench_render import bench_decode_and_cull, bench_novel_views, bench_town
 
@@ -396,7 +399,7 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
         if cfg.work is None:
             _build_rows(report, json.loads((run.model / "build_report.json").read_text()))
         model = out / "model" if cfg.work is not None else run.model
-        dataset = Path(json.loads((work / "recon_report.json").read_text())["dataset"])
+        dataset = dataset_of_work(work)
         length = json.loads((dataset / "dataset.json").read_text())["synth"]["street"]["length"]
         section("rendering", bench_decode_and_cull, cfg, report, model, float(length))
         section("novel views", bench_novel_views, cfg, report, run.dataset, run.work, run.model, out, 4)

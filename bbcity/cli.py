@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import signal
@@ -314,12 +315,9 @@ def _run_build(args) -> int:
 
 def _work_dataset(work: Path) -> Path:
     """The dataset a recon WORK directory was built from (its recon_report.json says)."""
-    from data_synth.fileio import read_json
+    from recon.pipeline import dataset_of_work
 
-    report = read_json(work / "recon_report.json")
-    if not isinstance(report, dict) or not isinstance(report.get("dataset"), str):
-        raise ValueError(f"{work / 'recon_report.json'}: does not name the dataset; pass --images")
-    return Path(report["dataset"])
+    return dataset_of_work(work)
 
 
 def _work_poses(work: Path) -> Path | None:
@@ -659,17 +657,34 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     from data_synth import DataFormatError
+    from data_synth.workdir import owned_output
 
     from .executor import tune_allocator
 
     tune_allocator()
-    # SIGTERM unwinds like Ctrl-C: atomic writers clean up and pool workers are joined
+    # SIGTERM unwinds like Ctrl-C: atomic writers clean up and pool workers are killed
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     try:
-        return args.func(args)
-    except (DataFormatError, FileExistsError, ValueError) as e:
+        # every writing command names its output --out: one live run at a time writes it
+        with owned_output(args.out) if getattr(args, "out", None) is not None else contextlib.nullcontext():
+            return args.func(args)
+    except (DataFormatError, ValueError) as e:
         logger.error("%s", e)
         return 2
+    except OSError as e:  # a file-system error: read-only, full, a name too long, a file where a directory goes
+        logger.error("%s", os_error_line(e))
+        return 2
+    except KeyboardInterrupt:
+        logger.error("interrupted")
+        return 130
+
+
+def os_error_line(error: OSError) -> str:
+    """One line naming the path(s) and the problem of a file-system error."""
+    if error.strerror is None:
+        return str(error)
+    paths = [str(p) for p in (error.filename, error.filename2) if p is not None]
+    return f"{' → '.join(paths)}: {error.strerror}" if paths else error.strerror
 
 
 if __name__ == "__main__":

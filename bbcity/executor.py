@@ -11,6 +11,8 @@ import ctypes
 import ctypes.util
 import multiprocessing
 import os
+import pickle
+import signal
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from typing import Iterator
@@ -18,6 +20,7 @@ from typing import Iterator
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
+_PR_SET_PDEATHSIG = 1
 
 
 def tune_allocator(threshold: int = 256 << 20) -> bool:
@@ -38,6 +41,68 @@ def tune_allocator(threshold: int = 256 << 20) -> bool:
     if mallopt is None:
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, threshold)) and bool(mallopt(_M_TRIM_THRESHOLD, 2 * threshold))
+
+
+def die_with_parent(parent_pid: int) -> bool:
+    """Have the kernel kill this process when its parent dies (Linux; False elsewhere).
+
+    A pool worker must not outlive a run killed by SIGKILL or the OOM killer: it
+    would hold its memory and keep writing. If the parent is already gone, exit now.
+    """
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        armed = libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+    except (OSError, AttributeError, TypeError):
+        armed = False
+    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+        os._exit(1)
+    return armed
+
+
+def _init_worker(parent_pid: int) -> None:
+    die_with_parent(parent_pid)
+    # Ctrl-C reaches the whole process group; the parent alone handles it (and stops the workers)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    tune_allocator()
+
+
+class WorkerError(RuntimeError):
+    """An exception raised in a pool worker that cannot cross back to the parent as itself."""
+
+
+def _call_in_worker(fn, args, kwargs):
+    """Run one task; an exception that would not survive pickling comes back as a WorkerError
+    with its type and message (an unpicklable one would break the whole pool)."""
+    try:
+        return fn(*args, **kwargs)
+    except Exception as e:
+        try:
+            pickle.loads(pickle.dumps(e))
+        except Exception:
+            raise WorkerError(f"{type(e).__name__}: {e}") from None
+        raise
+
+
+class WorkerPool(ProcessPoolExecutor):
+    """A process pool whose workers die with the parent, ignore Ctrl-C and return every
+    exception intact; :meth:`stop` ends them at once."""
+
+    def __init__(self, workers: int):
+        super().__init__(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                         initializer=_init_worker, initargs=(os.getpid(),))
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        return super().submit(_call_in_worker, fn, args, kwargs)
+
+    def stop(self) -> None:
+        """Cancel queued tasks and kill the workers without waiting for running ones."""
+        processes = list((self._processes or {}).values())
+        self.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            if process.is_alive():
+                process.kill()
+        for process in processes:
+            process.join()
 
 
 class SerialExecutor(Executor):
@@ -75,21 +140,24 @@ def make_executor(workers: int | None = None) -> Executor:
     # nested thread pools oversubscribe them. Spawned workers inherit this.
     for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(name, "1")
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=tune_allocator)
+    return WorkerPool(workers)
 
 
 @contextmanager
 def executor_scope(workers: int | None = None) -> Iterator[Executor]:
     """:func:`make_executor` for a ``with`` block that cleans up after failures too.
 
-    On an exception (an error, Ctrl-C, or SIGTERM turned into SystemExit by the
-    CLI) queued tasks are cancelled and the workers are joined, so no pool
-    process outlives the command.
+    On an error queued tasks are cancelled and the running ones finish; on Ctrl-C
+    or SIGTERM (turned into SystemExit by the CLI) the workers are killed at once.
+    Either way no pool process outlives the command.
     """
     executor = make_executor(workers)
     try:
         yield executor
+    except (KeyboardInterrupt, SystemExit):
+        if isinstance(executor, WorkerPool):
+            executor.stop()
+        raise
     except BaseException:
         executor.shutdown(wait=True, cancel_futures=True)
         raise

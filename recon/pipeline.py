@@ -21,7 +21,7 @@ import numpy as np
 
 from data_synth import load_dataset, load_scene
 from data_synth.dataset import held_out_frames
-from data_synth.fileio import write_json
+from data_synth.fileio import DataFormatError, read_json, write_json
 from data_synth.rig import save_poses
 from data_synth.tasks import run_tasks
 
@@ -205,6 +205,32 @@ def write_work_poses(work: Path, ds, world_from_rig: np.ndarray, source: str) ->
     return save_poses(path, world_from_rig, poses.frame_passes(ds), names=list(ds.frame_names))
 
 
+def dataset_of_work(work: os.PathLike | str) -> Path:
+    """The dataset a recon WORK directory was built from, the same from any current directory.
+
+    Its recon_report.json names it by absolute path and relative to WORK; the absolute
+    one wins while it exists, the relative one finds it after both were moved together.
+    """
+    work = Path(work)
+    path = work / "recon_report.json"
+    report = read_json(path)
+    named = report.get("dataset") if isinstance(report, dict) else None
+    if not isinstance(named, str):
+        raise DataFormatError(path, "does not name the dataset; pass --images")
+    relative = report.get("dataset_from_work")
+    candidates = [Path(named)] if Path(named).is_absolute() else []
+    if isinstance(relative, str):
+        candidates.append(work / relative)
+    for candidate in candidates:
+        if candidate.is_dir():
+            return candidate
+    if not candidates:  # written before reports named it absolutely: relative to an unknown directory
+        raise DataFormatError(path, f"names the dataset {named!r} relative to the directory recon ran in; "
+                                    "pass --images")
+    raise DataFormatError(path, f"its dataset {named} is gone (nor is it at {relative} from the work directory); "
+                                "pass --images")
+
+
 def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLike | str,
          executor: Executor | None = None, progress: bool | None = None) -> Path:
     """Reconstruct ``dataset_dir`` into ``work_dir/cloud.ply``; write ``recon_report.json``.
@@ -259,7 +285,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         spill.cleanup()
 
     report = {
-        "dataset": str(dataset_dir), "config": json.loads(json.dumps(asdict(conf), default=str)),
+        "dataset": str(dataset_dir.resolve()), "dataset_from_work": os.path.relpath(dataset_dir.resolve(), work.resolve()),
+        "config": json.loads(json.dumps(asdict(conf), default=str)),
         "frames": len(frames), "held_out_frames": held_out, "points": num_points, "origin": origin.tolist(),
         "poses": pose_report, "poses_file": None if poses_file is None else str(poses_file.resolve()), "stages": stages,
         "seconds_per_frame": float(np.median([s["total_s"] for s in frame_stats])) if frame_stats else None,
