@@ -35,6 +35,11 @@ POSES_FORMAT = "bbcity-poses"
 FORMAT_VERSION = 1
 
 
+def _is_int(value) -> bool:
+    """An integer (Python or numpy), not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
 @dataclass(frozen=True)
 class RigConfig:
     width: int = 416  # image width, pixels (along the row: the stereo baseline)
@@ -46,6 +51,9 @@ class RigConfig:
     distortion: str = "none"  # lens of the raw images: "none" (pinhole), or the preset "radtan" or "fisheye"
 
     def __post_init__(self):
+        for name in ("width", "height"):
+            if not _is_int(getattr(self, name)):  # True is an int to Python, never an image size
+                raise ValueError(f"{name} must be an integer, got {getattr(self, name)!r}")
         if self.distortion != "none" and self.distortion not in DISTORTION_PRESETS:
             raise ValueError(f"distortion must be \"none\" or one of {', '.join(DISTORTION_PRESETS)}, "
                              f"got {self.distortion!r}")
@@ -160,7 +168,7 @@ class Rig:
         data = read_json(path)
         if not isinstance(data, dict) or data.get("format") != RIG_FORMAT:
             raise DataFormatError(path, f"not a rig file (expected \"format\": \"{RIG_FORMAT}\")")
-        if data.get("version") != FORMAT_VERSION:
+        if not _is_int(data.get("version")) or data["version"] != FORMAT_VERSION:  # true == 1 in Python
             raise DataFormatError(path, f"unsupported version {data.get('version')!r}")
         cams = data.get("cameras")
         if not isinstance(cams, list) or not cams:
@@ -174,9 +182,12 @@ class Rig:
             if missing:
                 raise DataFormatError(path, f"{where} lacks {', '.join(missing)}")
             distortions.append(Distortion.from_json(cam.get("distortion", "none"), path, f"{where}.distortion"))
+            for name in ("width", "height"):
+                v = cam[name]
+                if not (_is_int(v) and 0 < v <= 65536):  # JSON true would pass as 1
+                    raise DataFormatError(path, f"{where}.{name} must be a positive integer ≤ 65536 "
+                                                f"(image width/height in pixels), got {v!r}")
             w, h = cam["width"], cam["height"]
-            if not (isinstance(w, int) and isinstance(h, int) and 0 < w <= 65536 and 0 < h <= 65536):
-                raise DataFormatError(path, f"{where} width/height must be positive integers, got {w!r}x{h!r}")
             f = as_matrix([cam["fx"], cam["fy"], cam["cx"], cam["cy"]], (4,), path, f"{where} intrinsics")
             if f[0] <= 0 or f[1] <= 0:
                 raise DataFormatError(path, f"{where} focal lengths must be positive")
@@ -302,7 +313,7 @@ def load_poses(path: os.PathLike | str) -> tuple[np.ndarray, list[str]]:
     data = read_json(path)
     if not isinstance(data, dict) or data.get("format") != POSES_FORMAT:
         raise DataFormatError(path, f"not a poses file (expected \"format\": \"{POSES_FORMAT}\")")
-    if data.get("version") != FORMAT_VERSION:
+    if not _is_int(data.get("version")) or data["version"] != FORMAT_VERSION:
         raise DataFormatError(path, f"unsupported version {data.get('version')!r}")
     frames = data.get("frames")
     if not isinstance(frames, list):

@@ -7,6 +7,9 @@ directories the model writer creates.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -77,3 +80,34 @@ def test_pcd_header_claiming_fewer_points_than_the_file_holds(tmp_path, ascii, c
     with pytest.raises(DataFormatError, match="promises") as info:
         read_cloud_arrays(path)
     assert info.value.path == path
+
+
+# ----------------------------------------------------------------------------------------------
+# rig: booleans are not image sizes
+
+
+@pytest.mark.parametrize("field", ["width", "height"])
+def test_rig_json_boolean_image_size_is_refused(tiny_dataset, tmp_path, field):
+    from data_synth.rig import Rig
+
+    data = json.loads((Path(tiny_dataset) / "rig.json").read_text())
+    data["cameras"][1][field] = True
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(DataFormatError, match=rf"cameras\[1\]\.{field} must be a positive integer") as info:
+        Rig.load(path)
+    assert info.value.path == path and str(path) in str(info.value)
+    data["cameras"][1][field] = 160
+    data["version"] = True  # == 1 to Python
+    path.write_text(json.dumps(data))
+    with pytest.raises(DataFormatError, match="version"):
+        Rig.load(path)
+
+
+@pytest.mark.parametrize("field", ["width", "height"])
+def test_rig_config_boolean_image_size_is_refused(field):
+    from data_synth import RigConfig
+
+    with pytest.raises(ValueError, match=f"{field} must be an integer"):
+        RigConfig(**{field: True})
+    assert RigConfig(**{field: np.int64(200)}).vfov_deg > 0
