@@ -15,7 +15,6 @@ import logging
 import os
 import resource
 import shutil
-import tempfile
 import time
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field, replace
@@ -32,7 +31,7 @@ from recon.epi import EpiConfig, epi_points
 
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
 from .layer import Layer, LayerConfig, build_layer, facade_depth_report
-from .model import ModelWriter
+from .model import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
 from .pca import TOL, PcaConfig, eigen_textures
 from .photometry import PhotometryConfig, estimate_gains
@@ -418,8 +417,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     conf = replace(conf, sampling=sampling)
 
     t2 = time.perf_counter()
-    model_dir.parent.mkdir(parents=True, exist_ok=True)
-    state = Path(tempfile.mkdtemp(prefix=f".{model_dir.name}.build-", dir=model_dir.parent))
+    state = temp_dir(model_dir.parent, f".{model_dir.name}.build-")
     try:
         if placed is None:
             placed = place_billboards(points, octree, views.centres if views is not None else None)

@@ -627,9 +627,28 @@ def _check_replaceable(path: Path) -> None:
         raise FileExistsError(f"{path} exists and is not a billboard model (no {MANIFEST}); not replacing it")
 
 
+def new_dir_mode() -> int:
+    """The mode ``os.mkdir`` gives a new directory: 0o777 less the process umask."""
+    try:  # Linux reports the umask without changing it (os.umask would, for every thread)
+        with open("/proc/self/status") as f:
+            mask = next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return 0o777 & ~mask
+
+
+def temp_dir(parent: Path, prefix: str) -> Path:
+    """A new, uniquely named directory in ``parent`` with the mode of ``os.mkdir``, not the
+    0o700 of ``tempfile.mkdtemp``: it is renamed into place as the output (others may read it)."""
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    os.chmod(tmp, new_dir_mode())
+    return tmp
+
+
 def _temp_dir(path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    return temp_dir(path.parent, f".{path.name}.tmp-")
 
 
 def _install(tmp: Path, path: Path) -> None:

@@ -8,6 +8,7 @@ directories the model writer creates.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -111,3 +112,33 @@ def test_rig_config_boolean_image_size_is_refused(field):
     with pytest.raises(ValueError, match=f"{field} must be an integer"):
         RigConfig(**{field: True})
     assert RigConfig(**{field: np.int64(200)}).vfov_deg > 0
+
+
+# ----------------------------------------------------------------------------------------------
+# model directories: the mode of os.mkdir, not mkdtemp's 0o700
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o027, 0o002])
+def test_model_directory_has_the_mode_of_a_new_directory(tmp_path, umask):
+    import stat
+
+    from billboards import build as build_mod
+    from billboards.model import load, save, temp_dir
+
+    from .test_atlas_model import _write_streamed, make_model
+
+    old = os.umask(umask)
+    try:
+        os.mkdir(tmp_path / "plain")
+        expected = stat.S_IMODE((tmp_path / "plain").stat().st_mode)
+        model, raw = make_model()
+        saved = save(model, tmp_path / "saved")
+        streamed = _write_streamed(tmp_path / "streamed", raw, "u8", "f32")
+        replaced = save(load(saved), tmp_path / "streamed")  # over an existing model
+        state = temp_dir(tmp_path, ".x.build-")  # the build's state directory
+    finally:
+        os.umask(old)
+    assert expected == 0o777 & ~umask
+    for path in (saved, streamed, replaced, state):
+        assert stat.S_IMODE(path.stat().st_mode) == expected, path
+    assert build_mod.temp_dir is temp_dir
