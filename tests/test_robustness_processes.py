@@ -1,0 +1,304 @@
+"""Runs under real process trouble: an error inside a worker, Ctrl-C, a killed run, two runs
+into one output, a work directory used from another directory.
+
+Each test drives the real ``bbcity`` command in a subprocess (its own session, so that a
+signal reaches its whole process group as a terminal's would) with two pool workers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from bbcity.executor import WorkerError, WorkerPool, executor_scope
+from data_synth import DataFormatError, write_dataset
+from data_synth.workdir import exclusive_output, lock_path, owned_output, pid_alive, sweep_output
+from recon.pipeline import dataset_of_work
+from recon.poses import MissingFramesError
+
+from .conftest import tiny_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def bbcity(*args, cwd=None, timeout=300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "bbcity.cli", *map(str, args)], cwd=cwd or ROOT, text=True,
+                          capture_output=True, timeout=timeout, env=_env())
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+class Run:
+    """A ``bbcity`` command running in its own session; its stderr is collected as it comes."""
+
+    def __init__(self, *args, cwd=None):
+        self.proc = subprocess.Popen([sys.executable, "-m", "bbcity.cli", *map(str, args)], cwd=cwd or ROOT,
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                     start_new_session=True, env=_env())
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=lambda: self.lines.extend(self.proc.stderr), daemon=True)
+        self._reader.start()
+
+    @property
+    def stderr(self) -> str:
+        return "".join(self.lines)
+
+    def wait_for(self, text: str, timeout: float = 120.0) -> None:
+        end = time.monotonic() + timeout
+        while text not in self.stderr:
+            assert self.proc.poll() is None, f"ended before {text!r}:\n{self.stderr}"
+            assert time.monotonic() < end, f"no {text!r} in {timeout} s:\n{self.stderr}"
+            time.sleep(0.05)
+
+    def workers(self, count: int, timeout: float = 60.0) -> list[int]:
+        """Wait until the run has ``count`` pool workers; their pids."""
+        end = time.monotonic() + timeout
+        while True:
+            pids = [p for p in children(self.proc.pid) if b"multiprocessing" in cmdline(p)]
+            if len(pids) >= count:
+                return pids
+            assert self.proc.poll() is None and time.monotonic() < end, f"no {count} workers:\n{self.stderr}"
+            time.sleep(0.05)
+
+    def finish(self, timeout: float = 300.0) -> int:
+        code = self.proc.wait(timeout)
+        self._reader.join(10)
+        return code
+
+
+def children(pid: int) -> list[int]:
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return found
+
+
+def cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+def gone(pid: int) -> bool:
+    """Dead or a zombie (whoever adopted it may not reap at once)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return not pid_alive(pid)
+    return "\nState:\tZ" in status
+
+
+def wait_gone(pids: list[int], timeout: float = 30.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if all(gone(p) for p in pids):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def hidden_temporaries(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob(".*") if not p.name.endswith(".lock"))
+
+
+def one_error_line(stderr: str, *needles: str) -> None:
+    assert "Traceback" not in stderr and "BrokenProcessPool" not in stderr, stderr
+    errors = [line for line in stderr.splitlines() if " ERROR " in line]
+    assert len(errors) == 1, stderr
+    for needle in needles:
+        assert needle in errors[0], stderr
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory):
+    """A 12-frame tiny street (recon takes a few seconds with two workers)."""
+    return write_dataset(tiny_config(frames=6), tmp_path_factory.mktemp("proc") / "street", progress=False)
+
+
+@pytest.fixture(scope="module")
+def work(street):
+    """The street's recon, run with relative paths from the street's parent directory."""
+    result = bbcity("recon", street.name, "--out", "work", "--workers", "2", "--no-eval", cwd=street.parent)
+    assert result.returncode == 0, result.stderr
+    return street.parent / "work"
+
+
+def damaged_copy(street: Path, dest: Path) -> tuple[Path, Path]:
+    """A copy of the dataset with one PNG cut in half; returns (dataset, the damaged file)."""
+    shutil.copytree(street, dest)
+    png = sorted((dest / "images" / "cam1").glob("*.png"))[3]
+    png.write_bytes(png.read_bytes()[: png.stat().st_size // 2])
+    return dest, png
+
+
+# ----------------------------------------------------------------------------------------------
+# errors inside workers
+
+
+def test_data_format_errors_survive_pickling():
+    error = DataFormatError("a/b.png", "truncated")
+    back = pickle.loads(pickle.dumps(error))
+    assert type(back) is DataFormatError and str(back) == str(error)
+    assert (back.path, back.problem) == (error.path, error.problem)
+    missing = MissingFramesError("poses.json", ["f1", "f2"], 5, " (hint)")
+    back = pickle.loads(pickle.dumps(missing))
+    assert type(back) is MissingFramesError and str(back) == str(missing) and back.missing == ["f1", "f2"]
+
+
+class _Unpicklable(Exception):
+    def __init__(self, what: str, lock: object):
+        super().__init__(what)
+        self.lock = lock
+
+
+def _raise_unpicklable(what: str):
+    raise _Unpicklable(what, threading.Lock())
+
+
+def _raise_data_error(path: str):
+    raise DataFormatError(path, "broken on purpose")
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def test_worker_pool_returns_every_error_and_survives_it():
+    with executor_scope(2) as pool:
+        assert isinstance(pool, WorkerPool)
+        with pytest.raises(DataFormatError, match="x.png: broken on purpose") as caught:
+            pool.submit(_raise_data_error, "x.png").result()
+        assert caught.value.path == Path("x.png")
+        with pytest.raises(WorkerError, match="_Unpicklable: no pickle for a lock"):
+            pool.submit(_raise_unpicklable, "no pickle for a lock").result()
+        assert [f.result() for f in [pool.submit(_square, i) for i in range(4)]] == [0, 1, 4, 9]
+
+
+@pytest.mark.parametrize("stage", ["recon", "build"])
+def test_damaged_image_in_a_worker_is_one_line(stage, street, work, tmp_path):
+    dataset, png = damaged_copy(street, tmp_path / "damaged")
+    if stage == "recon":
+        result = bbcity("recon", dataset, "--out", tmp_path / "w", "--workers", "2", "--no-eval")
+    else:
+        result = bbcity("build", work, "--images", dataset, "--out", tmp_path / "model", "--workers", "2",
+                        "--layer", "none", "--photometry", "off")
+    assert result.returncode == 2, result.stderr
+    one_error_line(result.stderr, str(png.relative_to(tmp_path)), "truncated")
+    assert not (tmp_path / "model").exists()
+
+
+# ----------------------------------------------------------------------------------------------
+# Ctrl-C, SIGKILL, concurrent runs
+
+
+def test_ctrl_c_is_one_line_and_exit_130(street, tmp_path):
+    run = Run("recon", street, "--out", tmp_path / "w", "--workers", "2", "--no-eval")
+    workers = run.workers(2)
+    run.wait_for("stereo on")
+    os.killpg(run.proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
+    assert run.finish(60) == 130, run.stderr
+    one_error_line(run.stderr, "interrupted")
+    assert wait_gone(workers, 10), "pool workers outlived the run"
+    assert not (tmp_path / "w" / "cloud.ply").exists() and hidden_temporaries(tmp_path / "w") == []
+
+
+def test_killed_run_takes_its_workers_along_and_the_next_run_sweeps_its_leftovers(street, work, tmp_path):
+    out = tmp_path / "w"
+    first = Run("recon", street, "--out", out, "--workers", "2", "--no-eval")
+    workers = first.workers(2)
+    # a second run into the same work directory is refused while the first lives
+    second = bbcity("recon", street, "--out", out, "--workers", "2", "--no-eval")
+    assert second.returncode == 2, second.stderr
+    one_error_line(second.stderr, str(out), f"pid {first.proc.pid}", "another bbcity run")
+
+    first.proc.kill()  # SIGKILL: no handler runs (the OOM killer is no gentler)
+    first.finish(30)
+    assert wait_gone(workers), "pool workers outlived their killed parent"
+    # what killed runs leave: a PLY body and an atomic temporary of dead pids, a SfM folder
+    dead = max(workers) + 100000
+    assert not pid_alive(dead)
+    leftovers = [out / f".cloud.ply.body-{dead}", out / f".cloud.ply.tmp-{dead}.ply", out / f".sparse.tmp-{'ab' * 16}"]
+    for p in leftovers[:2]:
+        p.write_bytes(b"x" * 1000)
+    leftovers[2].mkdir()
+    third = bbcity("recon", street, "--out", out, "--workers", "2", "--no-eval")
+    assert third.returncode == 0, third.stderr
+    assert hidden_temporaries(out) == []
+    # the same cloud as an undisturbed run
+    points = [json.loads((w / "recon_report.json").read_text())["points"] for w in (work, out)]
+    assert points[0] == points[1] > 0
+
+
+def test_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):
+    out = tmp_path / "model"
+    with exclusive_output(out):
+        assert lock_path(out).read_text().strip() == str(os.getpid())
+        with pytest.raises(BlockingIOError, match="another bbcity run") as caught:
+            with exclusive_output(out):
+                pass
+        assert caught.value.filename == str(out)
+    with exclusive_output(out):  # free again
+        pass
+
+
+def test_sweep_removes_dead_runs_leftovers_and_restores_a_set_aside_model(tmp_path):
+    out = tmp_path / "model"
+    build_state = tmp_path / ".model.build-abc12345"
+    half_model = tmp_path / ".model.tmp-k9j8h7g6"
+    aside = tmp_path / ".model.old-q1w2e3r4"
+    other = tmp_path / ".other.build-abc12345"  # another output's: not ours to touch
+    mine = tmp_path / f".model.tmp-{os.getpid()}.json"  # a live process's (this one)
+    for d in (build_state, half_model, other, aside / "model"):
+        d.mkdir(parents=True)
+    (aside / "model" / "manifest.json").write_text("{}")
+    mine.write_text("{}")
+    with owned_output(out):  # the previous model was set aside and the new one never renamed in
+        assert (out / "manifest.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [".model.lock", "model", other.name, mine.name])
+    assert sweep_output(out) == []
+
+
+# ----------------------------------------------------------------------------------------------
+# a work directory means the same thing from anywhere
+
+
+def test_work_names_its_dataset_from_any_directory(street, work, tmp_path, monkeypatch):
+    report = json.loads((work / "recon_report.json").read_text())
+    assert Path(report["dataset"]).is_absolute()
+    decoy = tmp_path / street.name  # a directory of the same relative name elsewhere
+    decoy.mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert dataset_of_work(work) == street.resolve()
+
+    # moved together: found relative to the work directory
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    shutil.copytree(street, moved / "data" / street.name)
+    shutil.copytree(work, moved / "data" / "work")
+    doc = dict(report, dataset=str(tmp_path / "nowhere"))
+    (moved / "data" / "work" / "recon_report.json").write_text(json.dumps(doc))
+    assert dataset_of_work(moved / "data" / "work") == moved / "data" / "work" / report["dataset_from_work"]
+
+    # an old report's relative path is not guessed at
+    legacy = tmp_path / "legacy"
+    legacy.mkdir()
+    (legacy / "recon_report.json").write_text(json.dumps({"dataset": street.name}))
+    with pytest.raises(DataFormatError, match="relative to the directory recon ran in"):
+        dataset_of_work(legacy)
