@@ -361,6 +361,10 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         frames = [f for f in range(dataset.num_frames) if f not in set(held_out) and posed[f]]
         views = views_from_dataset(dataset, frames)
         cameras = dataset.rig.num_cameras
+        if conf.source == "images" and len(views) and not sees_any(views, points, conf.sampling.max_distance):
+            # every texel would stay transparent: an empty-looking model that builds without complaint
+            raise ValueError(f"no camera of {dataset_dir} sees any point of {cloud_path}: wrong dataset or "
+                             f"poses? (cloud within {_box(points)}, cameras within {_box(views.centres)})")
     elif conf.source == "images":
         raise ValueError("source 'images' needs the dataset's images and poses (--images DATASET)")
 
@@ -501,6 +505,33 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                 model.num_billboards, model.num_slots, report["bytes"]["model"] / 1e6,
                 report["compression_ratio"], _db(report["psnr"]["decoded_rgb_opaque_db"]), model_dir)
     return BuildResult(model_dir, report)
+
+
+def sees_any(views: Views, points: np.ndarray, max_distance: float, sample: int = 50_000,
+             batch: int = 64) -> bool:
+    """Whether any view sees any of (every n-th of) ``points`` (m, 3) float64 world: in front of
+    it, inside its image and nearer than ``max_distance`` (m, beyond which the sampler uses no
+    camera). A cheap test (a sample, projected into ``batch`` views at a time), not occlusion."""
+    pts = points[::max(1, -(-len(points) // sample))]
+    for b in range(0, len(views), batch):
+        T, K = views.world_from_cam[b:b + batch], views.K[b:b + batch]
+        rel = pts[None, :, :] - T[:, None, :3, 3]                          # (v, n, 3)
+        cam = np.matmul(rel, T[:, :3, :3])                                  # R^T (p − C)
+        z = cam[..., 2]
+        front = (z > 1e-3) & (np.einsum("vnk,vnk->vn", rel, rel) < max_distance ** 2)
+        z = np.where(front, z, 1.0)
+        u = K[:, None, 0, 0] * cam[..., 0] / z + K[:, None, 0, 2]
+        v = K[:, None, 1, 1] * cam[..., 1] / z + K[:, None, 1, 2]
+        w, h = views.sizes[b:b + batch, 0, None], views.sizes[b:b + batch, 1, None]
+        if np.any(front & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)):
+            return True
+    return False
+
+
+def _box(xyz: np.ndarray) -> str:
+    """'[x0, y0, z0] … [x1, y1, z1]' of (n, 3) positions, metres."""
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    return f"[{', '.join(f'{x:.1f}' for x in lo)}] … [{', '.join(f'{x:.1f}' for x in hi)}] m"
 
 
 def _node_table(octree: Octree, node_range: np.ndarray) -> dict:

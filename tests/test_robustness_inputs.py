@@ -142,3 +142,41 @@ def test_model_directory_has_the_mode_of_a_new_directory(tmp_path, umask):
     for path in (saved, streamed, replaced, state):
         assert stat.S_IMODE(path.stat().st_mode) == expected, path
     assert build_mod.temp_dir is temp_dir
+
+
+# ----------------------------------------------------------------------------------------------
+# build: a cloud that no camera sees
+
+
+def _shifted_cloud(src, dst, shift=(0.0, 0.0, 0.0), keep=None):
+    """The cloud at ``src`` moved by ``shift`` (m), optionally only the points where ``keep(points)``."""
+    from recon.cloud_io import PlyStreamWriter
+
+    points, colours = read_cloud_arrays(src)
+    mask = np.ones(len(points), bool) if keep is None else keep(points)
+    with PlyStreamWriter(dst, normals=False) as writer:
+        writer.append(points[mask] + shift, colours[mask])
+    return dst
+
+
+@pytest.fixture(scope="module")
+def gt_cloud(tiny_dataset, tmp_path_factory):
+    from .conftest import write_ground_truth_cloud
+
+    return write_ground_truth_cloud(tiny_dataset, tmp_path_factory.mktemp("cloud") / "cloud.ply")
+
+
+def test_build_refuses_a_cloud_no_camera_sees(tiny_dataset, gt_cloud, tmp_path):
+    from billboards.build import main as build_main
+
+    from .test_build import small_config
+
+    far = _shifted_cloud(gt_cloud, tmp_path / "far.ply", shift=(0.0, 0.0, 500.0))  # 500 m overhead
+    with pytest.raises(ValueError, match=f"no camera of {tiny_dataset} sees any point of {far}: wrong dataset"):
+        build_main(small_config(), far, tiny_dataset, tmp_path / "model")
+    assert not (tmp_path / "model").exists() and list(tmp_path.iterdir()) == [far]
+    # a cloud only the first frames see (the street's first 4 m) still builds
+    start = float(read_cloud_arrays(gt_cloud)[0][:, 0].min())
+    part = _shifted_cloud(gt_cloud, tmp_path / "part.ply", keep=lambda p: p[:, 0] < start + 4.0)
+    result = build_main(small_config(), part, tiny_dataset, tmp_path / "model")
+    assert result.report["voxels"] > 0
