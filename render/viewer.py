@@ -326,12 +326,10 @@ class ViewerApp(_WindowConfig):
         return np.frombuffer(data, np.uint8).reshape(h, w, 3)[::-1].copy()
 
     def screenshot(self, path: Path | None = None) -> Path:
-        from data_synth.fileio import write_png
-
         if path is None:
             self.screenshot_dir.mkdir(parents=True, exist_ok=True)
             path = self.screenshot_dir / time.strftime(f"bbcity-%Y%m%d-%H%M%S-{len(self.shots):03d}.png")
-        out = write_png(path, self.read_image())
+        out = save_image(path, self.read_image())
         self.shots.append(Path(out))
         logger.info("screenshot %s", out)
         return Path(out)
@@ -413,6 +411,38 @@ class _Modifiers:
 _NO_MODIFIERS = _Modifiers()
 
 
+#: Screenshot suffixes → the Pillow format written (the suffix says what the file holds).
+IMAGE_FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".bmp": "BMP", ".tif": "TIFF", ".tiff": "TIFF",
+                 ".webp": "WEBP"}
+
+
+def image_format(path: Path | str) -> str:
+    """The Pillow format ``path``'s suffix names; ValueError for any other suffix."""
+    from PIL import Image
+
+    suffix = Path(path).suffix.lower()
+    fmt = IMAGE_FORMATS.get(suffix)
+    Image.init()
+    if fmt is None or fmt not in Image.SAVE:
+        raise ValueError(f"{path}: cannot write an image as {suffix or 'a file without a suffix'!r}; "
+                         f"use one of {', '.join(s for s, f in IMAGE_FORMATS.items() if f in Image.SAVE)}")
+    return fmt
+
+
+def save_image(path: Path | str, rgb: np.ndarray) -> Path:
+    """Atomically write (h, w, 3) uint8 RGB in the format of ``path``'s suffix (PNG, JPEG, …)."""
+    import io
+
+    from PIL import Image
+
+    from data_synth.fileio import write_bytes
+
+    fmt = image_format(path)
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(rgb)).save(buf, format=fmt, **({"quality": 95} if fmt == "JPEG" else {}))
+    return write_bytes(path, buf.getvalue())
+
+
 def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "frustum", window: str = "auto",
                screenshot_dir: Path = Path("."), script_frames: int = 0, screenshot: Path | None = None,
                script_dt: float = 1 / 30, mode: str = "drive", script_keys=(), sky=None) -> Path | None:
@@ -420,10 +450,12 @@ def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "fru
     background). With ``script_frames`` > 0: render that many frames along the
     drive path with a fixed ``script_dt``, pressing the moderngl-window key names in
     ``script_keys`` (e.g. "C", "I") one per frame from the first, through the window's
-    key-event handler; save the last frame to ``screenshot`` (or the screenshot dir)
-    and return its path. Otherwise run until the window closes."""
+    key-event handler; save the last frame to ``screenshot`` (in the format its suffix
+    names, see :data:`IMAGE_FORMATS`; or as PNG in the screenshot dir) and return its path. Otherwise run until the window closes."""
     from moderngl_window.timers.clock import Timer
 
+    if screenshot is not None:
+        image_format(screenshot)  # a bad suffix is refused before a window opens
     wnd = _make_window(window, size, "bbcity")
     logger.info("window %s, %s", type(wnd).__module__, wnd.ctx.info["GL_RENDERER"])
     timer = Timer()

@@ -180,3 +180,37 @@ def test_build_refuses_a_cloud_no_camera_sees(tiny_dataset, gt_cloud, tmp_path):
     part = _shifted_cloud(gt_cloud, tmp_path / "part.ply", keep=lambda p: p[:, 0] < start + 4.0)
     result = build_main(small_config(), part, tiny_dataset, tmp_path / "model")
     assert result.report["voxels"] > 0
+
+
+# ----------------------------------------------------------------------------------------------
+# viewer: a screenshot holds the format its suffix names
+
+
+def test_screenshot_is_written_in_the_format_of_its_suffix(tmp_path):
+    from PIL import Image
+
+    from render.viewer import save_image
+
+    rgb = np.random.default_rng(0).integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    for name, fmt in (("a.png", "PNG"), ("b.jpg", "JPEG"), ("c.JPEG", "JPEG"), ("d.bmp", "BMP")):
+        out = save_image(tmp_path / name, rgb)
+        with Image.open(out) as image:
+            assert image.format == fmt and image.size == (32, 24)
+            if fmt != "JPEG":
+                np.testing.assert_array_equal(np.asarray(image.convert("RGB")), rgb)
+    for name in ("e.xyz", "f", "g.png.txt"):
+        with pytest.raises(ValueError, match="cannot write an image as"):
+            save_image(tmp_path / name, rgb)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.jpg", "c.JPEG", "d.bmp"]
+
+
+def test_viewer_refuses_a_screenshot_suffix_before_opening_a_window(tmp_path, monkeypatch):
+    pytest.importorskip("moderngl_window")
+    from render import viewer
+
+    def no_window(*args, **kwargs):
+        raise AssertionError("a window was opened")
+
+    monkeypatch.setattr(viewer, "_make_window", no_window)
+    with pytest.raises(ValueError, match=r"shot\.jpx.*\.jpg"):
+        viewer.run_viewer(None, script_frames=1, screenshot=tmp_path / "shot.jpx")
