@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import errno
 import logging
 import signal
 import sys
@@ -666,25 +667,42 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     try:
         # every writing command names its output --out: one live run at a time writes it
-        with owned_output(args.out) if getattr(args, "out", None) is not None else contextlib.nullcontext():
+        out = getattr(args, "out", None)
+        if out is not None:
+            _check_output(args.command, out)
+        with owned_output(out) if out is not None else contextlib.nullcontext():
             return args.func(args)
     except (DataFormatError, ValueError) as e:
         logger.error("%s", e)
         return 2
     except OSError as e:  # a file-system error: read-only, full, a name too long, a file where a directory goes
-        logger.error("%s", os_error_line(e))
+        logger.error("%s", os_error_line(e, getattr(args, "out", None)))
         return 2
     except KeyboardInterrupt:
         logger.error("interrupted")
         return 130
 
 
-def os_error_line(error: OSError) -> str:
-    """One line naming the path(s) and the problem of a file-system error."""
+def _check_output(command: str, out: Path) -> None:
+    """Refuse a file where a command writes a directory (all but ``render`` of a video) before any work."""
+    if command == "render":
+        from render.fly_through import VIDEO_SUFFIXES
+
+        if out.suffix.lower() in VIDEO_SUFFIXES:
+            return
+    if (out.exists() or out.is_symlink()) and not out.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "exists and is not a directory; not writing over it", str(out))
+
+
+def os_error_line(error: OSError, out: Path | None = None) -> str:
+    """One line naming the path(s) and the problem of a file-system error; one that names no
+    file (a write through a file object) names the command's output ``out``."""
     if error.strerror is None:
         return str(error)
     paths = [str(p) for p in (error.filename, error.filename2) if p is not None]
-    return f"{' → '.join(paths)}: {error.strerror}" if paths else error.strerror
+    if paths:
+        return f"{' → '.join(paths)}: {error.strerror}"
+    return f"{out}: {error.strerror} (while writing it)" if out is not None else error.strerror
 
 
 if __name__ == "__main__":

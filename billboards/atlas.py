@@ -36,6 +36,21 @@ TILE_DTYPES = (np.dtype(np.uint8), np.dtype(np.float16))
 ROW_DTYPES = (np.dtype(np.float32), np.dtype(np.float16), np.dtype(np.uint8))
 
 
+def reserved_memmap(path: Path, dtype: np.dtype, shape: tuple[int, ...]) -> np.memmap:
+    """A new ``.npy`` file mapped for writing, its blocks reserved on disk first.
+
+    A mapped file is sparse: a write into it on a full disk kills the process with
+    SIGBUS. Reserving the blocks turns that into an OSError (ENOSPC) naming ``path``.
+    """
+    array = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape)
+    try:
+        with open(path, "r+b") as f:
+            os.posix_fallocate(f.fileno(), 0, os.fstat(f.fileno()).st_size)
+    except OSError as e:
+        raise type(e)(e.errno, e.strerror, str(path)) from e
+    return array
+
+
 @dataclass(frozen=True)
 class AtlasLayout:
     """Where ``num_tiles`` cells of ``cell_height × cell_width`` texels go in pages of at most ``page_size``²."""
@@ -52,6 +67,8 @@ class AtlasLayout:
 
 
 def _positive_int(value, what: str) -> int:
+    if isinstance(value, bool):  # operator.index takes True for 1
+        raise TypeError(f"{what} must be an integer, got {value!r}")
     try:
         value = operator.index(value)
     except TypeError:
@@ -264,7 +281,7 @@ class _PageWriter:
         shape = (lay.rows_per_page * lay.cell_height, lay.tiles_per_row * lay.cell_width) + self._channels
         path = self._temp_path(p)
         self._temps.append(path)
-        self._current = np.lib.format.open_memmap(path, mode="w+", dtype=self.dtype, shape=shape)
+        self._current = reserved_memmap(path, self.dtype, shape)
 
     def _flush_current(self) -> None:
         if self._current is not None:
@@ -291,8 +308,7 @@ class _PageWriter:
                 if full.shape[0] != h:
                     cropped_path = self._temp_path(len(self._temps) - 1, "crop")
                     self._temps.append(cropped_path)  # so that an error removes it too
-                    cropped = np.lib.format.open_memmap(cropped_path, mode="w+", dtype=self.dtype,
-                                                        shape=(h, w) + self._channels)
+                    cropped = reserved_memmap(cropped_path, self.dtype, (h, w) + self._channels)
                     cropped[:] = full[:h]
                     cropped.flush()
                     del cropped, full

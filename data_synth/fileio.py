@@ -9,6 +9,7 @@ The other stages (recon, billboards) read datasets through these functions too.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import math
@@ -61,9 +62,24 @@ def atomic_path(path: os.PathLike | str) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as e:
+        if e.filename is None:  # a write through a file object names no file
+            raise _naming(e, path) from e
+        raise
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+
+
+def _naming(error: OSError, path: Path) -> OSError:
+    """``error`` with ``path`` as its file; numpy's short writes ("N requested and M written",
+    no errno) become ENOSPC when the disk is indeed full."""
+    code, text = error.errno, error.strerror or str(error)
+    if code is None:
+        with contextlib.suppress(OSError):
+            if os.statvfs(path.parent).f_bavail == 0:
+                code, text = errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({error})"
+    return type(error)(code, text, str(path))
 
 
 def write_bytes(path: os.PathLike | str, data: bytes) -> Path:

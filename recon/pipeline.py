@@ -264,25 +264,27 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     if ds.rig.num_cameras == 1:  # one camera: each frame's stereo partners are neighbouring frames
         tasks = _with_motion_partners(tasks, ds, world_from_rig, held_out, conf.motion)
 
-    logger.info("stereo on %d frames × %d cameras, poses: %s", len(tasks), ds.rig.num_cameras, conf.poses)
-    t1 = time.perf_counter()
-    frame_stats = run_tasks(_process_frame, tasks, executor, desc="stereo", progress=progress)
-    stages["frames_s"] = time.perf_counter() - t1
+    try:
+        logger.info("stereo on %d frames × %d cameras, poses: %s", len(tasks), ds.rig.num_cameras, conf.poses)
+        t1 = time.perf_counter()
+        frame_stats = run_tasks(_process_frame, tasks, executor, desc="stereo", progress=progress)
+        stages["frames_s"] = time.perf_counter() - t1
 
-    logger.info("merging %d frames (%.1f s of stereo)", len(frame_stats), stages["frames_s"])
-    t2 = time.perf_counter()
-    spill = TileSpill(spill_root, origin, conf.fusion)
-    centres = np.array([(world_from_rig[f] @ np.linalg.inv(ds.rig.cam_from_rig[0]))[:3, 3] for f in frames])
-    cloud_path = work / "cloud.ply"
-    with PlyStreamWriter(cloud_path, normals=conf.fusion.normals) as writer:
-        num_points = merge_tiles(spill, centres, writer.append, executor)
-        # the report, written last, marks a finished run: an earlier run's must not describe the new cloud
-        (work / "recon_report.json").unlink(missing_ok=True)
-    if num_points == 0:
-        logger.warning("no points reconstructed (nothing textured in view?); %s holds an empty cloud", cloud_path)
-    stages["merge_s"] = time.perf_counter() - t2
-    if not conf.keep_spill:
-        spill.cleanup()
+        logger.info("merging %d frames (%.1f s of stereo)", len(frame_stats), stages["frames_s"])
+        t2 = time.perf_counter()
+        spill = TileSpill(spill_root, origin, conf.fusion)
+        centres = np.array([(world_from_rig[f] @ np.linalg.inv(ds.rig.cam_from_rig[0]))[:3, 3] for f in frames])
+        cloud_path = work / "cloud.ply"
+        with PlyStreamWriter(cloud_path, normals=conf.fusion.normals) as writer:
+            num_points = merge_tiles(spill, centres, writer.append, executor)
+            # the report, written last, marks a finished run: an earlier run's must not describe the new cloud
+            (work / "recon_report.json").unlink(missing_ok=True)
+        if num_points == 0:
+            logger.warning("no points reconstructed (nothing textured in view?); %s holds an empty cloud", cloud_path)
+        stages["merge_s"] = time.perf_counter() - t2
+    finally:  # the voxel tiles are temporaries, also when the run fails (a full disk)
+        if not conf.keep_spill:
+            TileSpill(spill_root, origin, conf.fusion).cleanup()
 
     report = {
         "dataset": str(dataset_dir.resolve()), "dataset_from_work": os.path.relpath(dataset_dir.resolve(), work.resolve()),

@@ -1,0 +1,168 @@
+"""File-system errors end in one line naming the path, exit 2, and nothing half-written:
+a read-only directory, a full disk (a real tiny tmpfs where this machine may mount one,
+else an injected ENOSPC), ``--out`` naming an existing file, a name too long.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from bbcity.cli import main
+from data_synth import fileio
+
+from .conftest import tiny_config, write_ground_truth_cloud
+
+
+def can_mount() -> bool:
+    probe = Path("/proc/self/status").read_text()
+    return os.geteuid() == 0 and "CapEff:\t0000000000000000" not in probe
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """mount(name, kilobytes, read_only) → a fresh tmpfs of that size under tmp_path."""
+    mounted: list[Path] = []
+
+    def mount(name: str, kilobytes: int = 1024, read_only: bool = False) -> Path:
+        point = tmp_path / name
+        point.mkdir()
+        options = f"size={kilobytes}k" + (",ro" if read_only else "")
+        result = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(point)], capture_output=True)
+        if result.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {result.stderr.decode().strip()}")
+        mounted.append(point)
+        return point
+
+    if not can_mount():
+        pytest.skip("mounting a tmpfs needs root")
+    yield mount
+    for point in reversed(mounted):
+        subprocess.run(["umount", "-l", str(point)], capture_output=True)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory, tiny_dataset):
+    """A dataset, a cloud of it and a built model, for the commands that read them."""
+    from billboards.build import BuildConfig, main as build_main
+    from billboards.octree import OctreeConfig
+
+    root = tmp_path_factory.mktemp("fs")
+    cloud = write_ground_truth_cloud(tiny_dataset, root / "cloud.ply", stride=4)
+    model = build_main(BuildConfig(octree=OctreeConfig(voxel_size=1.0), layer=None, photometry=None), cloud,
+                       tiny_dataset, root / "model").model
+    work = root / "work"
+    work.mkdir()
+    (work / "cloud.ply").write_bytes(cloud.read_bytes())
+    (work / "recon_report.json").write_text(f'{{"dataset": "{tiny_dataset}"}}')
+    return {"dataset": tiny_dataset, "cloud": cloud, "model": model, "work": work}
+
+
+def commands(inputs: dict, out: Path) -> dict[str, list[str]]:
+    """Every writing command, its output ``out``, inputs small enough to fail fast."""
+    d, m, w = str(inputs["dataset"]), str(inputs["model"]), str(inputs["work"])
+    o = str(out)
+    return {
+        "synth": ["synth", "street", "--out", o, "--frames", "2", "--length", "20", "--width", "64", "--height", "48"],
+        "import": ["import", "kitti", d, "--out", o],
+        "recon": ["recon", d, "--out", o, "--workers", "1", "--no-eval"],
+        "build": ["build", w, "--out", o, "--workers", "1", "--layer", "none", "--photometry", "off"],
+        "render": ["render", m, "--out", o, "--frames", "2", "--size", "64", "48"],
+        "eval": ["eval", m, d, "--out", o, "--views", "1", "--size", "64", "48"],
+        "texture-sweep": ["texture-sweep", w, "--out", o, "--count", "4", "--tiles", "8"],
+        "sampling-eval": ["sampling-eval", w, "--out", o, "--count", "2"],
+        "stereo-sweep": ["stereo-sweep", d, "--out", o, "--frames", "1"],
+        "bench": ["bench", "--out", o, "--quick"],
+    }
+
+
+def run_cli(argv: list[str], caplog) -> tuple[int, list[str]]:
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        code = main(argv)
+    return code, [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+WRITING = ["synth", "import", "recon", "build", "render", "eval", "texture-sweep", "sampling-eval", "stereo-sweep",
+           "bench"]
+
+
+@pytest.mark.parametrize("command", WRITING)
+def test_read_only_directory(command, inputs, tmpfs, caplog):
+    read_only = tmpfs("ro", read_only=True)
+    out = read_only / "out"
+    code, errors = run_cli(commands(inputs, out)[command], caplog)
+    assert code == 2 and len(errors) == 1, errors
+    assert str(read_only) in errors[0] and "Read-only file system" in errors[0]
+    assert list(read_only.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", WRITING)
+def test_out_is_an_existing_file(command, inputs, tmp_path, caplog):
+    out = tmp_path / ("x.mp4" if command == "render" else "x")
+    out.write_bytes(b"precious")
+    code, errors = run_cli(commands(inputs, out)[command], caplog)
+    if command == "render":  # a video is a file: replaced whole
+        assert code == 0 and out.read_bytes()[4:8] == b"ftyp"
+        return
+    assert code == 2 and len(errors) == 1, errors
+    assert str(out) in errors[0]
+    assert out.read_bytes() == b"precious"
+
+
+@pytest.mark.parametrize("command", WRITING)
+def test_name_too_long(command, inputs, tmp_path, caplog):
+    out = tmp_path / ("n" * 300)
+    code, errors = run_cli(commands(inputs, out)[command], caplog)
+    assert code == 2 and len(errors) == 1, errors
+    assert "File name too long" in errors[0] and "n" * 300 in errors[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def hidden(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob(".*") if not p.name.endswith(".lock"))
+
+
+@pytest.mark.parametrize("command, kilobytes", [("synth", 64), ("recon", 256), ("build", 256), ("eval", 64),
+                                                ("render", 16)])
+def test_full_disk(command, kilobytes, inputs, tmpfs, caplog):
+    disk = tmpfs("full", kilobytes)
+    out = disk / "out"
+    argv = commands(inputs, out)[command]
+    if command in ("synth", "render"):
+        argv[argv.index("--frames") + 1] = "4" if command == "synth" else "40"
+    code, errors = run_cli(argv, caplog)
+    assert code == 2 and len(errors) == 1, errors
+    assert "No space left on device" in errors[0] and str(disk) in errors[0], errors
+    assert hidden(disk) == [], "temporaries left behind"
+    if command == "recon":
+        assert not (out / "cloud.ply").exists() and not (out / "spill").exists()
+    if command == "build":
+        assert not out.exists()
+
+
+def test_injected_enospc_leaves_nothing_half_written(tmp_path, monkeypatch, caplog):
+    """Where no tmpfs can be mounted: the disk fills while a PNG is renamed into place."""
+    from data_synth import write_dataset
+
+    calls = {"n": 0}
+    real_replace = os.replace
+
+    def replace(src, dst):
+        calls["n"] += 1
+        if calls["n"] == 7:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(fileio.os, "replace", replace)
+    out = tmp_path / "street"
+    with pytest.raises(OSError, match="No space left"):
+        write_dataset(tiny_config(), out, progress=False)
+    assert hidden(out) == []
+    monkeypatch.setattr(fileio.os, "replace", real_replace)
+    write_dataset(tiny_config(), out, progress=False)  # the next run completes it
