@@ -152,16 +152,50 @@ def _search(config: StereoConfig, focal_px: float | None, baseline_m: float | No
     return lo, num, focal_px * baseline_m / config.max_depth, focal_px * baseline_m / config.min_depth
 
 
-def _matcher_range(d_lo: float, d_hi: float, config: StereoConfig) -> tuple[int, int]:
+class DisparityRangeError(ValueError):
+    """The depth range asks for disparities wider than the images: nothing can be matched."""
+
+
+_CLAMPED: set = set()  # (width, d_hi) searches already reported as clamped (log once)
+
+
+def _bounded(d_lo: float, d_hi: float, width: int, config: StereoConfig, focal_px: float | None,
+             baseline_m: float | None) -> float:
+    """The largest disparity to search (pixels, full resolution): d_hi, but at most width − 1
+    (x_left − x_right of two pixels of a ``width``-px image; a wider search finds nothing and
+    costs memory in proportion). Raises :class:`DisparityRangeError` when even d_lo (the
+    farthest depth's disparity) lies beyond the image: the range cannot be matched at all."""
+    if config.num_disparities is not None:
+        source = f"StereoConfig.min_disparity {config.min_disparity}, num_disparities {config.num_disparities}"
+    else:
+        source = (f"depths {config.min_depth:g}–{config.max_depth:g} m at focal length {focal_px:.6g} px, "
+                  f"baseline {baseline_m:.4g} m")
+    if not d_lo < width - 1:
+        raise DisparityRangeError(f"the stereo search needs disparities of {d_lo:.6g}–{d_hi:.6g} px ({source}), "
+                                  f"but a {width}-px wide image holds at most {width - 1}: check the rig's focal "
+                                  "length (rig.json fx, fy), or raise max_depth")
+    if d_hi <= width - 1:
+        return d_hi
+    if (width, d_hi) not in _CLAMPED:
+        _CLAMPED.add((width, d_hi))
+        logger.warning("the stereo search for %s reaches %.6g px, beyond the %d-px wide image: searching up to "
+                       "%d px only (nearer points are not matched)", source, d_hi, width, width - 1)
+    return float(width - 1)
+
+
+def _matcher_range(d_lo: float, d_hi: float, config: StereoConfig, width: int | None = None) -> tuple[int, int]:
     """(minDisparity, numDisparities) that SGBM searches to keep [d_lo, d_hi] (pixels at the
     matching scale): with config.extend_search, from 0 and search_margin beyond d_hi, so that a
-    point outside the range finds its true (rejected) disparity instead of a false one inside."""
+    point outside the range finds its true (rejected) disparity instead of a false one inside;
+    never beyond ``width`` (the matched images' width), which bounds SGBM's buffers."""
     if config.extend_search:
         lo = 0
         hi = math.ceil(d_hi * (1.0 + config.search_margin)) + 1
     else:
         lo = max(0, math.floor(d_lo) - 1)
         hi = math.ceil(d_hi) + 1
+    if width is not None:
+        lo, hi = min(lo, width - 1), min(hi, width)
     return lo, 16 * math.ceil((hi - lo + 1) / 16)
 
 
@@ -217,6 +251,7 @@ def disparity(left: np.ndarray, right: np.ndarray, config: StereoConfig = Stereo
     _check_pair(left, right)
     h, w = left.shape[:2]
     _lo, _num, d_lo, d_hi = _search(config, focal_px, baseline_m)
+    d_search = _bounded(d_lo, d_hi, w, config, focal_px, baseline_m)
     s = float(config.image_scale)
     if s < 1.0:
         ws, hs = max(2, round(w * s)), max(2, round(h * s))
@@ -226,7 +261,7 @@ def disparity(left: np.ndarray, right: np.ndarray, config: StereoConfig = Stereo
     else:
         sx = 1.0
         left_m, right_m = left, right
-    lo, num = _matcher_range(d_lo * sx, d_hi * sx, config)
+    lo, num = _matcher_range(d_lo * sx, d_search * sx, config, left_m.shape[1])
     bs = config.block_size
     channels = 3
     matcher = cv2.StereoSGBM_create(
@@ -345,6 +380,8 @@ def disparity_reference(left: np.ndarray, right: np.ndarray, config: StereoConfi
     _check_pair(left, right)
     h, w = left.shape[:2]
     lo, num, d_lo, d_hi = _search(config, focal_px, baseline_m)
+    _bounded(d_lo, d_hi, w, config, focal_px, baseline_m)
+    num = min(num, max(0, w - lo))  # disparities of w or more match nothing
     r = config.block_size // 2
     gl = left.astype(np.float64).mean(axis=2)
     gr = right.astype(np.float64).mean(axis=2)

@@ -36,7 +36,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .rectify import RectifiedPair, splat_depth
-from .stereo import PRESETS, StereoConfig, depth_from_disparity, disparity
+from .stereo import PRESETS, DisparityRangeError, StereoConfig, depth_from_disparity, disparity
 
 logger = logging.getLogger(__name__)
 
@@ -189,7 +189,11 @@ def pair_depth_in_reference(images: Sequence[np.ndarray], pair: RectifiedPair, r
     images: per camera (h, w, 3) uint8. Returns (h_ref, w_ref) float32 z-depth, NaN = none.
     """
     left, right = pair.rectify(images[pair.left], images[pair.right])
-    d = disparity(left, right, stereo, pair.focal, pair.baseline)
+    try:
+        d = disparity(left, right, stereo, pair.focal, pair.baseline)
+    except DisparityRangeError as e:  # say which pair and settings, once for the whole run
+        preset = next((f", stereo preset {name!r}" for name, p in PRESETS.items() if p == stereo), "")
+        raise DisparityRangeError(f"stereo pair cam{pair.left}–cam{pair.right}{preset}: {e}") from None
     z_rect = depth_from_disparity(d, pair.focal, pair.baseline)
     return splat_depth(pair.backproject(z_rect), ref_K, ref_cam_from_rig, ref_size)
 

@@ -214,3 +214,57 @@ def test_viewer_refuses_a_screenshot_suffix_before_opening_a_window(tmp_path, mo
     monkeypatch.setattr(viewer, "_make_window", no_window)
     with pytest.raises(ValueError, match=r"shot\.jpx.*\.jpg"):
         viewer.run_viewer(None, script_frames=1, screenshot=tmp_path / "shot.jpx")
+
+
+# ----------------------------------------------------------------------------------------------
+# stereo: a focal length that puts the disparity range beyond the image
+
+
+def test_disparity_search_is_bounded_by_the_image_width(caplog):
+    from recon.stereo import DisparityRangeError, StereoConfig, _matcher_range, disparity, disparity_reference
+
+    rng = np.random.default_rng(0)
+    left = rng.integers(0, 256, (40, 64, 3), dtype=np.uint8)
+    right = np.roll(left, -5, axis=1)
+    with pytest.raises(DisparityRangeError, match=r"disparities of 66666\.7.*64-px wide image.*focal length"):
+        disparity(left, right, StereoConfig(), focal_px=1e7, baseline_m=0.4)
+    with pytest.raises(DisparityRangeError, match="64-px wide"):
+        disparity_reference(left, right, StereoConfig(), focal_px=1e7, baseline_m=0.4)
+    with pytest.raises(DisparityRangeError, match="min_disparity 96"):
+        disparity(left, right, StereoConfig(min_disparity=96, num_disparities=16))
+    # near depths beyond the image: searched up to its width, reported once
+    for _ in range(2):
+        d = disparity(left, right, StereoConfig(), focal_px=200.0, baseline_m=1.0)
+    assert np.nanmedian(d[:, 20:]) == pytest.approx(5, abs=0.5)
+    assert sum("searching up to 63 px" in r.message for r in caplog.records) == 1
+    for extend in (True, False):
+        lo, num = _matcher_range(1.0, 1e9, StereoConfig(extend_search=extend), 64)
+        assert 0 <= lo and lo + num <= 64 + 16
+
+
+def test_recon_of_a_rig_with_a_huge_focal_length_fails_clearly_and_cheaply(tiny_dataset, tmp_path):
+    """fx = 1e7 once asked SGBM for 31 GB; run in a child whose address space is limited to 6 GB."""
+    import resource
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    dataset = tmp_path / "street"
+    shutil.copytree(tiny_dataset, dataset)
+    rig = json.loads((dataset / "rig.json").read_text())
+    for cam in rig["cameras"]:
+        cam["fx"] = cam["fy"] = 1e7
+    (dataset / "rig.json").write_text(json.dumps(rig))
+    code = ("import sys\nfrom recon.pipeline import ReconConfig, main\n"
+            "main(ReconConfig(evaluate=False), sys.argv[1], sys.argv[2], progress=False)\n")
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (6 << 30, 6 << 30))
+
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-c", code, str(dataset), str(tmp_path / "work")], capture_output=True,
+                         text=True, timeout=120, preexec_fn=limit, cwd=Path(__file__).resolve().parents[1])
+    assert res.returncode != 0 and time.perf_counter() - t0 < 60
+    assert "DisparityRangeError: stereo pair cam0–cam1" in res.stderr, res.stderr[-2000:]
+    assert "rig.json fx, fy" in res.stderr and "Insufficient memory" not in res.stderr
