@@ -302,3 +302,24 @@ def test_work_names_its_dataset_from_any_directory(street, work, tmp_path, monke
     (legacy / "recon_report.json").write_text(json.dumps({"dataset": street.name}))
     with pytest.raises(DataFormatError, match="relative to the directory recon ran in"):
         dataset_of_work(legacy)
+
+
+def test_killed_synth_stops_writing_and_the_next_run_completes_it(tmp_path):
+    out = tmp_path / "street"
+    argv = ("synth", "street", "--out", out, "--frames", "10", "--length", "30", "--width", "320", "--height", "240",
+            "--no-gt-depth", "--workers", "2")
+    first = Run(*argv)
+    workers = first.workers(2)
+    end = time.monotonic() + 120
+    while not list(out.glob("images/cam*/*.png")):
+        assert first.proc.poll() is None and time.monotonic() < end, first.stderr
+        time.sleep(0.05)
+    first.proc.kill()
+    first.finish(30)
+    assert wait_gone(workers), "synth workers outlived their killed parent"
+    written = sorted(out.rglob("*"))
+    time.sleep(1.0)
+    assert sorted(out.rglob("*")) == written, "something still writes into the dataset"
+    second = bbcity(*argv)
+    assert second.returncode == 0, second.stderr
+    assert len(list(out.glob("images/cam*/*.png"))) == 20 * 3 and hidden_temporaries(out) == []
