@@ -48,6 +48,8 @@ def die_with_parent(parent_pid: int) -> bool:
 
     A pool worker must not outlive a run killed by SIGKILL or the OOM killer: it
     would hold its memory and keep writing. If the parent is already gone, exit now.
+    (The kernel watches the thread that started the worker: pools are used from the
+    main thread, whose end is the process's.)
     """
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
