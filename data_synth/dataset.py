@@ -189,24 +189,42 @@ def _remove_temporaries(root: Path) -> None:
                 p.unlink(missing_ok=True)
 
 
+def _differences(a, b, prefix: str = "") -> list[str]:
+    """Dotted keys at which two JSON values differ ("frames", "rig.width"); [prefix or
+    "settings"] when they differ otherwise."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [d for k in sorted(set(a) | set(b), key=str) if a.get(k) != b.get(k)
+                for d in _differences(a.get(k), b.get(k), f"{prefix}{k}.")]
+    return [] if a == b else [prefix.rstrip(".") or "settings"]
+
+
 def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Executor | None = None,
                   progress: bool | None = None) -> Path:
     """Generate the scene, render every frame and write the dataset to ``out_dir``.
 
     executor: runs frames in parallel (any ``concurrent.futures.Executor``); None
-    renders in this process. An interrupted run is resumed: frames whose files
-    all exist are kept (every file is written atomically), the temporaries of a
-    killed run are removed. A directory holding
-    a dataset with a different configuration is refused, never mixed.
+    renders in this process. An interrupted or failed run is resumed: run again
+    with the same configuration, frames whose files all exist are kept (every file
+    is written atomically), the temporaries of a killed run are removed. A directory
+    holding a dataset (complete or not) with a different configuration is refused,
+    never mixed: FileExistsError naming the settings that differ and how to proceed.
     Returns ``out_dir``.
     """
     root = Path(out_dir)
     cfg_dict = _config_json(cfg)
     existing = root / "gt" / "scene.json"
     if existing.exists():
-        stored = read_json(existing).get("synth")
+        data = read_json(existing)
+        stored = data.get("synth") if isinstance(data, dict) else None
         if stored != cfg_dict:
-            raise FileExistsError(f"{root} holds a dataset made with other settings; choose a new --out")
+            differ = ", ".join(_differences(stored, cfg_dict)[:6])
+            if (root / "dataset.json").exists():
+                raise FileExistsError(f"{root} holds a dataset made with other settings ({differ}); choose a new "
+                                      f"--out, or remove it (rm -r {root}) to write this one there")
+            # a run that failed or was stopped: its settings finish it, any others need a clean directory
+            raise FileExistsError(f"{root} holds an unfinished dataset (a run that failed or was stopped) made with "
+                                  f"other settings ({differ}): run it again with those settings to finish it, or "
+                                  f"remove it (rm -r {root}) to start this one there")
         logger.info("resuming the dataset in %s", root)
     elif root.exists() and any(p.is_file() and not _is_temporary(p.relative_to(root)) for p in root.rglob("*")):
         raise FileExistsError(f"{root} exists and is not an empty directory or a bbcity dataset")

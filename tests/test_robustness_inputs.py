@@ -268,3 +268,41 @@ def test_recon_of_a_rig_with_a_huge_focal_length_fails_clearly_and_cheaply(tiny_
     assert res.returncode != 0 and time.perf_counter() - t0 < 60
     assert "DisparityRangeError: stereo pair cam0–cam1" in res.stderr, res.stderr[-2000:]
     assert "rig.json fx, fy" in res.stderr and "Insufficient memory" not in res.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# synth: a run that failed midway is finished by the same command
+
+
+@pytest.mark.parametrize("writer, nth", [("write_png", 4), ("save_npy", 2), ("street_coverage", 1)])
+def test_failed_synth_resumes_and_other_settings_are_refused_clearly(tiny_dataset, tmp_path, monkeypatch,
+                                                                      writer, nth):
+    import data_synth.dataset as ds_mod
+    from data_synth import load_dataset, write_dataset
+
+    from .conftest import tiny_config
+    from .test_dataset_io import digest_tree
+
+    original, calls = getattr(ds_mod, writer), []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == nth:
+            raise OSError("No space left on device")
+        return original(*args, **kwargs)
+
+    out = tmp_path / "street"
+    monkeypatch.setattr(ds_mod, writer, failing)
+    with pytest.raises(OSError, match="No space"):
+        write_dataset(tiny_config(), out, progress=False)
+    monkeypatch.setattr(ds_mod, writer, original)
+    assert not (out / "dataset.json").exists()
+    with pytest.raises(FileExistsError, match=r"unfinished dataset .* other settings \(frames, street\.seed\): run "
+                                              r"it again with those settings to finish it, or remove it"):
+        write_dataset(tiny_config(seed=3, frames=2), out, progress=False)
+    write_dataset(tiny_config(), out, progress=False)  # the same command again: finished
+    assert digest_tree(out) == digest_tree(tiny_dataset)
+    assert load_dataset(out).num_frames == 6
+    with pytest.raises(FileExistsError, match=r"holds a dataset made with other settings \(rig\.width\); choose"):
+        write_dataset(tiny_config(rig=ds_mod.RigConfig(width=200, height=120, hfov_deg=75.0, pitch_deg=10.0)),
+                      out, progress=False)
