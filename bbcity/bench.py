@@ -44,7 +44,7 @@ class BenchConfig:
     def __post_init__(self):
         if self.scene not in SCENES:
             raise ValueError(f"scene must be one of {SCENES}, got {self.scene!r}")
-        if not (self.street_length > 0 and self.scales and all(int(s) >= 1 for s in self.scales)
+        if not (0 < self.street_length < float("inf") and self.scales and all(int(s) >= 1 for s in self.scales)
                 and self.repeats >= 1 and self.workers >= 1):
             raise ValueError(f"invalid BenchConfig: {self}")
 

@@ -53,7 +53,7 @@ class OctreeConfig:
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"OctreeConfig: voxel_size must be a finite number > 0, got {self.voxel_size!r}")
         if self.depth is not None:
-            if int(self.depth) != self.depth or not 0 <= self.depth <= MAX_DEPTH:
+            if isinstance(self.depth, bool) or int(self.depth) != self.depth or not 0 <= self.depth <= MAX_DEPTH:
                 raise ValueError(f"OctreeConfig: depth must be an integer in [0, {MAX_DEPTH}] "
                                  f"(2**{MAX_DEPTH} cells per axis fit a uint64 Morton code), got {self.depth!r}")
         if int(self.min_points) != self.min_points or self.min_points < 1:

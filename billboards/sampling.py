@@ -69,6 +69,8 @@ class SamplingConfig:
     transient_min_views: int = 3        # ... among at least this many cameras that measured the texel
 
     def __post_init__(self):
+        if isinstance(self.tile, bool):
+            raise ValueError(f"tile must be an integer, got {self.tile!r}")
         if self.tile < 1 or self.candidates < 1 or self.zbuffer_scale < 1:
             raise ValueError("tile, candidates and zbuffer_scale must be ≥ 1")
         if not (0 < self.max_angle_deg <= 180) or self.max_distance <= 0:

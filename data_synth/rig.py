@@ -59,6 +59,8 @@ class RigConfig:
                              f"got {self.distortion!r}")
         if not (0 < self.hfov_deg < 170):
             raise ValueError(f"hfov_deg must be in (0, 170), got {self.hfov_deg}")
+        if isinstance(self.width, bool) or isinstance(self.height, bool):
+            raise ValueError(f"image size must be two integers, got {self.width!r}x{self.height!r}")
         if self.width < 8 or self.height < 8:
             raise ValueError(f"image size {self.width}x{self.height} is too small")
         if not -90.0 <= self.pitch_deg <= 90.0:

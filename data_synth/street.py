@@ -33,6 +33,12 @@ class StreetConfig:
     pole_spacing: float = 12.0  # street-light poles along each kerb, metres apart
     pillar_probability: float = 0.15  # chance of a free-standing pillar in front of a building
 
+    def __post_init__(self):
+        if not (np.isfinite(self.length) and self.length > 0):
+            raise ValueError(f"StreetConfig.length must be a finite number of metres > 0, got {self.length!r}")
+        if isinstance(self.seed, bool) or int(self.seed) != self.seed or self.seed < 0:
+            raise ValueError(f"StreetConfig.seed must be an integer ≥ 0, got {self.seed!r}")
+
 
 def _layout_side(rng: np.random.Generator, cfg: StreetConfig):
     """Building frontages along one side: (b, 2) x-extents, (b,) setbacks, heights, depths."""

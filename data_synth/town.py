@@ -27,6 +27,10 @@ class TownConfig:
     roof_height: tuple[float, float] = (1.2, 2.8)  # min/max ridge height above the walls, metres
     path_street: int = -1  # index of the street the capture path follows (-1: the middle one)
 
+    def __post_init__(self):
+        if isinstance(self.seed, bool) or int(self.seed) != self.seed or self.seed < 0:
+            raise ValueError(f"TownConfig.seed must be an integer ≥ 0, got {self.seed!r}")
+
 
 def street_centres(cfg: TownConfig) -> np.ndarray:
     """Centre lines of the streets running along x (their y coordinates), (s,) float64."""

@@ -40,6 +40,16 @@ class FusionConfig:
     min_observations: int = 1  # drop voxels with fewer raw points (trinocular agreement already vetted each)
     normals: bool = True  # estimate normals (oriented towards the capture path)
 
+    def __post_init__(self):
+        if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
+            raise ValueError(f"FusionConfig.voxel_size must be a finite number > 0, got {self.voxel_size!r}")
+        if not (np.isfinite(self.tile_size) and self.tile_size > 0):
+            raise ValueError(f"FusionConfig.tile_size must be a finite number > 0, got {self.tile_size!r}")
+        if not (np.isfinite(self.outlier_std_ratio) and self.outlier_std_ratio > 0):
+            raise ValueError(f"FusionConfig.outlier_std_ratio must be finite and > 0, got {self.outlier_std_ratio!r}")
+        if self.outlier_neighbours < 0 or self.radius_min_points < 0 or self.min_observations < 1:
+            raise ValueError("FusionConfig: outlier_neighbours, radius_min_points ≥ 0 and min_observations ≥ 1 required")
+
 
 def pack_keys(index: np.ndarray) -> np.ndarray:
     """Voxel indices (n, 3) int64, each in [−2^20, 2^20) → packed keys (n,) int64."""

@@ -80,6 +80,8 @@ class EvalConfig:
     def __post_init__(self):
         if self.views is not None and self.views < 1:
             raise ValueError(f"views must be ≥ 1, got {self.views}")
+        if isinstance(self.views, bool) or (self.size is not None and any(isinstance(s, bool) for s in self.size)):
+            raise ValueError(f"views and size must be integers, got {self.views!r}, {self.size!r}")
         if self.size is not None and (len(self.size) != 2 or min(int(s) for s in self.size) < 1):
             raise ValueError(f"size must be two positive integers (w, h), got {self.size}")
         if not all(1 <= int(d) <= 16 for d in (self.poisson_depth, *self.workprecision_depths)):
