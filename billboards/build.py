@@ -477,7 +477,9 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             t4 = time.perf_counter()
             nodes = _node_table(octree, node_range)
             info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,
-                    "cloud": str(cloud_path), "dataset": None if dataset_dir is None else str(dataset_dir),
+                    # absolute: the model means the same from any directory (the viewer finds the poses)
+                    "cloud": str(Path(cloud_path).resolve()),
+                    "dataset": None if dataset_dir is None else str(Path(dataset_dir).resolve()),
                     "held_out_frames": held_out}
             if exposure is not None:
                 info["exposure"] = exposure  # eval gives a held-out frame the exposure of its neighbours
