@@ -13,6 +13,10 @@ import time
 from pathlib import Path
 
 from . import __version__
+from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH, MAX_SPP,
+                      MAX_TILE, RENDER_BYTES_PER_PIXEL, CommandParser, build_bytes, check_memory, dimension,
+                      float_range, holdout, int_range, nonnegative_float, nonnegative_int, positive_float,
+                      positive_int, size_action, synth_bytes, worker_count)
 
 logger = logging.getLogger("bbcity")
 
@@ -24,14 +28,18 @@ def _add_synth(sub) -> None:
                     "images, rig.json, poses.json, a COLMAP model and ground truth (gt/).")
     p.add_argument("scene", choices=["street", "town"], help="scene to generate")
     p.add_argument("--out", type=Path, required=True, help="output dataset directory (new, or one to resume)")
-    p.add_argument("--frames", type=int, default=100, help="frames per pass (default 100); a return pass doubles it")
-    p.add_argument("--length", type=float, default=300.0,
+    p.add_argument("--frames", type=int_range(1, MAX_FRAMES), default=100,
+                   help="frames per pass (default 100); a return pass doubles it")
+    p.add_argument("--length", type=float_range(0.0, MAX_LENGTH), default=300.0,
                    help="street length, or the town drive's length, in metres (default 300)")
-    p.add_argument("--width", type=int, default=None, help="image width in pixels (default 416)")
-    p.add_argument("--height", type=int, default=None, help="image height in pixels (default 736, portrait)")
-    p.add_argument("--seed", type=int, default=0, help="scene seed; same seed, same bytes (default 0)")
-    p.add_argument("--hfov", type=float, default=None, help="horizontal field of view in degrees (default 115)")
-    p.add_argument("--pitch", type=float, default=None,
+    p.add_argument("--width", type=int_range(8, GL_MAX_SIZE, "the OpenGL texture limit"), default=None,
+                   help="image width in pixels (default 416)")
+    p.add_argument("--height", type=int_range(8, GL_MAX_SIZE, "the OpenGL texture limit"), default=None,
+                   help="image height in pixels (default 736, portrait)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="scene seed; same seed, same bytes (default 0)")
+    p.add_argument("--hfov", type=float_range(0.0, 170.0, hi_open=True), default=None,
+                   help="horizontal field of view in degrees (default 115)")
+    p.add_argument("--pitch", type=float_range(-90.0, 90.0, lo_open=False), default=None,
                    help="upward tilt of the cameras in degrees (default 8; negative looks down)")
     p.add_argument("--cameras", type=int, choices=(1, 2, 3), default=None,
                    help="cameras in the rig's row: 1 (one camera: recon matches neighbouring frames), 2 (0.8 m "
@@ -39,21 +47,24 @@ def _add_synth(sub) -> None:
     p.add_argument("--distortion", choices=["none", "radtan", "fisheye"], default="none",
                    help="lens of the raw images: none (pinhole, default), or a radial-tangential or fisheye "
                         "preset; images are stored distorted and read back undistorted")
-    p.add_argument("--spp", type=int, default=2, help="anti-aliasing: spp×spp rays per pixel (default 2)")
+    p.add_argument("--spp", type=int_range(1, MAX_SPP), default=2,
+                   help="anti-aliasing: spp×spp rays per pixel (default 2)")
     p.add_argument("--no-return", action="store_true", help="drive one pass only (one side of the street)")
     p.add_argument("--no-gt-depth", action="store_true", help="skip per-image ground-truth depth and ids")
-    p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
-    p.set_defaults(func=_run_synth)
+    p.add_argument("--workers", type=worker_count, default=None, help="parallel processes (default: one per core)")
+    p.set_defaults(func=_run_synth, check_options=_synth_config)
 
 
 #: `synth --cameras N`: each camera's offset along the row, metres.
 _CAMERA_BASELINES = {1: (0.0,), 2: (0.0, 0.8), 3: (0.0, 0.4, 0.8)}
 
 
-def _run_synth(args) -> int:
-    from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig, write_dataset
+def _synth_config(args):
+    """The SynthConfig the ``synth`` options describe; ValueError when the images its
+    workers render at once would not fit in the available memory."""
+    from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig
 
-    from .executor import executor_scope
+    from .executor import default_workers
 
     cfg = SynthConfig(
         scene=args.scene,
@@ -65,6 +76,19 @@ def _run_synth(args) -> int:
                                            ("baselines", _CAMERA_BASELINES.get(args.cameras))) if v is not None}),
         frames=args.frames, return_pass=not args.no_return, town_path_length=args.length,
         spp=args.spp, ground_truth_depth=not args.no_gt_depth)
+    rig, frames = cfg.rig, cfg.frames * (2 if cfg.return_pass else 1)
+    concurrent = min(args.workers or default_workers(), frames)  # each worker renders one frame at a time
+    check_memory(synth_bytes(rig.width, rig.height, cfg.spp, rig.distortion != "none", concurrent),
+                 f"synth --width {rig.width} --height {rig.height} --spp {cfg.spp} with {concurrent} workers")
+    return cfg
+
+
+def _run_synth(args) -> int:
+    from data_synth import write_dataset
+
+    from .executor import executor_scope
+
+    cfg = _synth_config(args)
     start = time.perf_counter()
     with executor_scope(args.workers) as executor:
         out = write_dataset(cfg, args.out, executor=executor)
@@ -86,13 +110,13 @@ def _add_import(sub) -> None:
     k.add_argument("--out", type=Path, required=True, help="new dataset directory")
     k.add_argument("--cameras", choices=("auto", "grey", "colour", "lr"), default="auto",
                    help="which stereo pair (default auto: colour, else grey, else image_l/r)")
-    k.add_argument("--camera-height", type=float, default=1.65,
+    k.add_argument("--camera-height", type=nonnegative_float, default=1.65,
                    help="height of KITTI's cam0 (the left grey camera, whose poses poses.txt holds) above the road "
                         "in metres (default 1.65, KITTI's car)")
-    k.add_argument("--first", type=int, default=0, help="first frame (default 0)")
-    k.add_argument("--count", type=int, default=None, help="frames to import (default: all)")
-    k.add_argument("--step", type=int, default=1, help="every n-th frame (default 1)")
-    k.set_defaults(func=_run_import_kitti)
+    k.add_argument("--first", type=nonnegative_int, default=0, help="first frame (default 0)")
+    k.add_argument("--count", type=positive_int, default=None, help="frames to import (default: all)")
+    k.add_argument("--step", type=positive_int, default=1, help="every n-th frame (default 1)")
+    k.set_defaults(func=_run_import_kitti, check_options=_kitti_config)
     c = kinds.add_parser("colmap", help="a COLMAP sparse model (text or binary) and its image folder",
                          description="Import a COLMAP model: its cameras (pinhole, radtan and fisheye models kept, "
                                      "other lenses undistorted here), a rig of several cameras or one camera, and "
@@ -113,11 +137,11 @@ def _add_import(sub) -> None:
     f.add_argument("--intrinsics", type=Path, default=None,
                    help="K file: 3 lines of a 3×3 matrix or one line \"fx fy cx cy\" (OpenCV pixel centres), "
                         "optionally followed by \"k1 k2 p1 p2 [k3]\" (default: EXIF)")
-    f.add_argument("--sensor-width", type=float, default=None,
+    f.add_argument("--sensor-width", type=positive_float, default=None,
                    help="sensor width in mm, with EXIF FocalLength when the photos lack a 35 mm equivalent")
-    f.add_argument("--step-length", type=float, default=1.0,
+    f.add_argument("--step-length", type=positive_float, default=1.0,
                    help="metres between consecutive photos; SfM's scale (default 1.0)")
-    f.set_defaults(func=_run_import_photos)
+    f.set_defaults(func=_run_import_photos, check_options=_photos_config)
 
 
 def _run_import_colmap(args) -> int:
@@ -128,21 +152,31 @@ def _run_import_colmap(args) -> int:
     return 0
 
 
-def _run_import_photos(args) -> int:
-    from recon.importers.photos import PhotosConfig, import_photos
+def _photos_config(args):
+    from recon.importers.photos import PhotosConfig
 
-    conf = PhotosConfig(intrinsics=args.intrinsics, sensor_width_mm=args.sensor_width, step_length=args.step_length)
-    out = import_photos(args.folder, args.out, conf)
+    return PhotosConfig(intrinsics=args.intrinsics, sensor_width_mm=args.sensor_width, step_length=args.step_length)
+
+
+def _run_import_photos(args) -> int:
+    from recon.importers.photos import import_photos
+
+    out = import_photos(args.folder, args.out, _photos_config(args))
     logger.info("wrote %s; its poses are unknown: bbcity recon %s --poses sfm", out, out)
     return 0
 
 
-def _run_import_kitti(args) -> int:
-    from recon.importers.kitti import KittiConfig, import_kitti
+def _kitti_config(args):
+    from recon.importers.kitti import KittiConfig
 
-    conf = KittiConfig(cameras=args.cameras, camera_height=args.camera_height, first=args.first, count=args.count,
+    return KittiConfig(cameras=args.cameras, camera_height=args.camera_height, first=args.first, count=args.count,
                        step=args.step)
-    out = import_kitti(args.sequence, args.out, conf)
+
+
+def _run_import_kitti(args) -> int:
+    from recon.importers.kitti import import_kitti
+
+    out = import_kitti(args.sequence, args.out, _kitti_config(args))
     logger.info("wrote %s", out)
     return 0
 
@@ -159,25 +193,28 @@ def _add_recon(sub) -> None:
     p.add_argument("--poses", nargs="+", default=["given"], metavar="SOURCE",
                    help="given (poses.json), colmap DIR (import a COLMAP model) or sfm (pycolmap)")
     p.add_argument("--preset", default="accurate", help="stereo preset: fast, default or accurate (default: accurate)")
-    p.add_argument("--voxel-size", type=float, default=0.02, help="fused cloud resolution in metres (default 0.02)")
-    p.add_argument("--min-depth", type=float, default=None, help="nearest depth to match, metres")
-    p.add_argument("--max-depth", type=float, default=None, help="farthest depth to match, metres")
-    p.add_argument("--frame-stride", type=int, default=1, help="use every n-th frame (default 1)")
+    p.add_argument("--voxel-size", type=positive_float, default=0.02,
+                   help="fused cloud resolution in metres (default 0.02)")
+    p.add_argument("--min-depth", type=positive_float, default=None, help="nearest depth to match, metres")
+    p.add_argument("--max-depth", type=float_range(0.0, allow_inf=True), default=None,
+                   help="farthest depth to match, metres (inf: no limit)")
+    p.add_argument("--frame-stride", type=positive_int, default=1, help="use every n-th frame (default 1)")
     p.add_argument("--wls", action="store_true", help="WLS-filter the disparities (smoother, slower)")
     p.add_argument("--min-agree", type=int, choices=(2, 3), default=3,
                    help="three-camera rigs: pairs that must agree on a pixel's depth (default 3; 2 keeps more, "
                         "with more errors); a two-camera rig has one pair, one camera its own rule")
-    p.add_argument("--holdout", type=int, default=0,
+    p.add_argument("--holdout", type=holdout, default=0,
                    help="leave every n-th frame out of the cloud, for `bbcity eval` on held-out views (default 0: "
                         "none; 4 uses 75 %% of the frames); `bbcity build` of this WORK leaves the same frames out")
     p.add_argument("--no-eval", action="store_true", help="skip the ground-truth evaluation")
-    p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
-    p.set_defaults(func=_run_recon)
+    p.add_argument("--workers", type=worker_count, default=None, help="parallel processes (default: one per core)")
+    p.set_defaults(func=_run_recon, check_options=_recon_config)
 
 
-def _run_recon(args) -> int:
+def _recon_config(args):
+    """The ReconConfig the ``recon`` options describe (ValueError for a bad combination)."""
     from recon.fusion import FusionConfig
-    from recon.pipeline import POSE_SOURCES, ReconConfig, main as recon_main
+    from recon.pipeline import POSE_SOURCES, ReconConfig
     from recon.stereo import PRESETS
     from recon.trinocular import TrinocularConfig
 
@@ -194,8 +231,15 @@ def _run_recon(args) -> int:
     conf = ReconConfig(trinocular=TrinocularConfig(stereo=stereo, min_agree=args.min_agree), fusion=FusionConfig(voxel_size=args.voxel_size),
                        poses=source, colmap_model=rest[0] if rest else None, frame_stride=args.frame_stride,
                        evaluate=not args.no_eval, holdout=args.holdout)
+    return conf
+
+
+def _run_recon(args) -> int:
+    from recon.pipeline import main as recon_main
+
     from .executor import executor_scope
 
+    conf = _recon_config(args)
     with executor_scope(args.workers) as executor:
         cloud = recon_main(conf, args.dataset, args.out, executor=executor)
     logger.info("wrote %s and %s", cloud, cloud.with_name("recon_report.json"))
@@ -203,6 +247,8 @@ def _run_recon(args) -> int:
 
 
 def _add_build(sub) -> None:
+    from billboards.octree import MAX_DEPTH
+
     p = sub.add_parser(
         "build", help="cloud + images → billboard model (octree, angular sampling, PCA, atlases)",
         description="Voxelise the fused cloud with an octree, give each voxel a view-facing billboard, "
@@ -221,36 +267,46 @@ def _add_build(sub) -> None:
                         "computed its poses, e.g. --poses sfm on a photo folder: the cloud is in their frame)")
     p.add_argument("--texture-source", choices=("images", "points"), default="images",
                    help="sample textures from the images (default) or splat the cloud's own points")
-    p.add_argument("--voxel-size", type=float, default=0.5, help="billboard/voxel edge in metres (default 0.5)")
-    p.add_argument("--depth", type=int, default=None, help="octree depth instead of --voxel-size")
-    p.add_argument("--min-points", type=int, default=10, help="points a voxel needs to get a billboard (default 10)")
-    p.add_argument("--directions", type=int, default=32, help="yaw directions per billboard (default 32)")
-    p.add_argument("--spacing", type=float, default=6.0, help="degrees between directions (default 6)")
-    p.add_argument("--pitches", type=float, nargs="+", default=[0.0], help="pitch rows in degrees (default 0)")
+    p.add_argument("--voxel-size", type=positive_float, default=0.5,
+                   help="billboard/voxel edge in metres (default 0.5)")
+    p.add_argument("--depth", type=int_range(0, MAX_DEPTH, "a Morton code's bits"), default=None,
+                   help="octree depth instead of --voxel-size")
+    p.add_argument("--min-points", type=positive_int, default=10,
+                   help="points a voxel needs to get a billboard (default 10)")
+    p.add_argument("--directions", type=positive_int, default=32, help="yaw directions per billboard (default 32)")
+    p.add_argument("--spacing", type=float_range(0.0, 360.0), default=6.0,
+                   help="degrees between directions (default 6)")
+    p.add_argument("--pitches", type=float_range(-90.0, 90.0, hi_open=True), nargs="+", default=[0.0],
+                   help="pitch rows in degrees (default 0)")
     p.add_argument("--pitched-quads", action="store_true", help="quads also tilt toward the viewer's elevation")
-    p.add_argument("--tile", type=int, default=8, help="texels per billboard side (default 8)")
+    p.add_argument("--tile", type=int_range(1, MAX_TILE), default=8,
+                   help=f"texels per billboard side, at most --page-size and {MAX_TILE} (default 8)")
     p.add_argument("--naive", action="store_true", help="nearest-frame sampling without the occlusion test")
-    p.add_argument("--ratio", type=float, default=None, help="PCA cumulative contribution ratio (default: the PcaConfig's)")
-    p.add_argument("--max-error", type=float, default=None,
+    p.add_argument("--ratio", type=float_range(0.0, 1.0), default=None,
+                   help="PCA cumulative contribution ratio (default: the PcaConfig's)")
+    p.add_argument("--max-error", type=nonnegative_float, default=None,
                    help="PCA RMS error bound in 8-bit units (default: the PcaConfig's; 0 turns the rule off)")
-    p.add_argument("--rank", type=int, default=None, help="fixed rank for every billboard (overrides the rules)")
-    p.add_argument("--max-rank", type=int, default=None, help="largest rank (default: the PcaConfig's)")
+    p.add_argument("--rank", type=nonnegative_int, default=None,
+                   help="fixed rank for every billboard (overrides the rules)")
+    p.add_argument("--max-rank", type=nonnegative_int, default=None, help="largest rank (default: the PcaConfig's)")
     p.add_argument("--tile-mode", choices=("u8", "f16"), default="u8", help="eigen image precision (default u8)")
-    p.add_argument("--coef-mode", choices=("f32", "f16", "u8"), default="f16", help="coefficient precision (default f16)")
-    p.add_argument("--page-size", type=int, default=8192, help="atlas page edge in texels (default 8192)")
-    p.add_argument("--holdout", type=int, default=None,
+    p.add_argument("--coef-mode", choices=("f32", "f16", "u8"), default="f16",
+                   help="coefficient precision (default f16)")
+    p.add_argument("--page-size", type=dimension, default=8192,
+                   help=f"atlas page edge in texels, at most {GL_MAX_SIZE} (default 8192)")
+    p.add_argument("--holdout", type=holdout, default=None,
                    help="leave every n-th frame's images out of the textures (for `bbcity eval`; default: the "
                         "recon's --holdout, else 0: none)")
     p.add_argument("--layer", choices=("facades+ground", "facades", "ground", "none"), default="facades+ground",
                    help="the facade layer under the billboards: slits on the facades found in the EPIs and/or "
                         "blocks on flat ground (default both; none: billboards only)")
-    p.add_argument("--block-size", type=float, default=None,
+    p.add_argument("--block-size", type=positive_float, default=None,
                    help="edge of the layer's blocks in metres (default: the voxel size)")
     p.add_argument("--photometry", choices=("on", "off"), default="on",
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
                         "out before sampling textures (default on)")
-    p.add_argument("--workers", type=int, default=None, help="parallel processes (default: one per core)")
-    p.set_defaults(func=_run_build)
+    p.add_argument("--workers", type=worker_count, default=None, help="parallel processes (default: one per core)")
+    p.set_defaults(func=_run_build, check_options=_check_build)
 
 
 def build_config_from_args(args):
@@ -285,6 +341,24 @@ def build_config_from_args(args):
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,
                        photometry=PhotometryConfig() if args.photometry == "on" else None)
+
+
+def _check_build(args) -> None:
+    """ValueError when the ``build`` options contradict each other or the atlas pages, or
+    when the workers' sampled textures would not fit in the available memory."""
+    from .executor import default_workers
+
+    if args.tile > args.page_size:
+        raise ValueError(f"--tile {args.tile} is larger than the atlas page (--page-size {args.page_size})")
+    d = args.directions * len(args.pitches)
+    if d > args.page_size:  # a billboard's coefficient row (d texels) fills one atlas page row at most
+        raise ValueError(f"--directions × --pitches = {d} directions do not fit an atlas page row "
+                         f"(--page-size {args.page_size})")
+    # every config validates its values; the work directory's --holdout is not read yet
+    conf = build_config_from_args(argparse.Namespace(**{**vars(args), "holdout": args.holdout or 0}))
+    n = args.workers or default_workers()
+    check_memory(build_bytes(args.tile, d, conf.chunk, n),
+                 f"build --tile {args.tile} with {d} directions and {n} workers")
 
 
 def _run_build(args) -> int:
@@ -357,8 +431,9 @@ def _add_texture_sweep(sub) -> None:
     p.add_argument("work", type=Path, help="recon work directory (cloud.ply, recon_report.json)")
     p.add_argument("--out", type=Path, required=True, help="report directory")
     p.add_argument("--images", type=Path, default=None, help="dataset directory (default: WORK's)")
-    p.add_argument("--count", type=int, default=1024, help="billboards to sample (default 1024)")
-    p.add_argument("--tiles", type=int, nargs="+", default=[8, 16, 32], help="texel sizes (default 8 16 32)")
+    p.add_argument("--count", type=positive_int, default=1024, help="billboards to sample (default 1024)")
+    p.add_argument("--tiles", type=int_range(1, MAX_TILE), nargs="+", default=[8, 16, 32],
+                   help="texel sizes (default 8 16 32)")
     p.set_defaults(func=_run_texture_sweep)
 
 
@@ -380,8 +455,9 @@ def _add_sampling_eval(sub) -> None:
     p.add_argument("work", type=Path, help="recon work directory (cloud.ply, recon_report.json)")
     p.add_argument("--out", type=Path, required=True, help="report directory")
     p.add_argument("--images", type=Path, default=None, help="dataset directory with gt/ (default: WORK's)")
-    p.add_argument("--count", type=int, default=200, help="billboards per set (default 200)")
-    p.add_argument("--voxel-size", type=float, default=0.5, help="billboard/voxel edge in metres (default 0.5)")
+    p.add_argument("--count", type=positive_int, default=200, help="billboards per set (default 200)")
+    p.add_argument("--voxel-size", type=positive_float, default=0.5,
+                   help="billboard/voxel edge in metres (default 0.5)")
     p.set_defaults(func=_run_sampling_eval)
 
 
@@ -405,7 +481,8 @@ def _add_stereo_sweep(sub) -> None:
                                    "several SGBM settings; write a table, JSON and a work-precision plot.")
     p.add_argument("dataset", type=Path, help="dataset directory with gt/")
     p.add_argument("--out", type=Path, required=True, help="report directory")
-    p.add_argument("--frames", type=int, default=4, help="frames to evaluate, spread along the path (default 4)")
+    p.add_argument("--frames", type=positive_int, default=4,
+                   help="frames to evaluate, spread along the path (default 4)")
     p.set_defaults(func=_run_stereo_sweep)
 
 
@@ -448,8 +525,9 @@ def _add_bench(sub) -> None:
     p.add_argument("--scene", choices=("all", "street", "town"), default="all",
                    help="street: the pipeline and everything measured on its model; town: culling on the town")
     p.add_argument("--quick", action="store_true", help="small inputs, for a smoke run (under 3 minutes)")
-    p.add_argument("--repeats", type=int, default=None, help="timings are the median of this many runs (3; quick 1)")
-    p.add_argument("--street-length", type=float, default=None,
+    p.add_argument("--repeats", type=positive_int, default=None,
+                   help="timings are the median of this many runs (3; quick 1)")
+    p.add_argument("--street-length", type=float_range(0.0, MAX_LENGTH), default=None,
                    help="metres of the 1× street of the pipeline runs (30; quick 9)")
     p.add_argument("--work", type=Path, default=None,
                    help="a recon work directory (e.g. of the default street): the billboard build, texture and "
@@ -477,9 +555,11 @@ def _add_render(sub) -> None:
     p.add_argument("model", type=Path, help="billboard model directory")
     p.add_argument("--path", default="capture", help="capture, orbit or a FILE (default capture)")
     p.add_argument("--out", type=Path, required=True, help="frames directory, or a video file (.mp4, .mkv, ...)")
-    p.add_argument("--size", type=int, nargs=2, default=(1280, 720), metavar=("W", "H"), help="default 1280 720")
-    p.add_argument("--frames", type=int, default=300, help="frames along capture/orbit paths (default 300)")
-    p.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
+    p.add_argument("--size", type=dimension, nargs=2, default=(1280, 720), metavar=("W", "H"),
+                   action=size_action(RENDER_BYTES_PER_PIXEL), help="default 1280 720")
+    p.add_argument("--frames", type=int_range(1, MAX_FRAMES), default=300,
+                   help="frames along capture/orbit paths (default 300)")
+    p.add_argument("--fps", type=float_range(0.0, MAX_FPS), default=30.0, help="video frame rate (default 30)")
     p.add_argument("--decode", choices=("gpu", "cpu"), default="gpu", help="texture decode (default gpu)")
     p.add_argument("--cull", choices=("none", "frustum", "occlusion", "auto"), default="frustum",
                    help="culling (default frustum)")
@@ -491,8 +571,6 @@ def _run_render(args) -> int:
     from billboards.sky import read_sky
     from render.fly_through import camera_path, render_path
 
-    if args.frames < 1 or min(args.size) < 1:
-        raise ValueError("--frames and --size must be positive")
     model = load(args.model)
     poses = camera_path(model, args.path, args.frames)
     render_path(model, poses, args.out, tuple(args.size), decode=args.decode, cull=args.cull, fps=args.fps,
@@ -540,27 +618,35 @@ def _add_eval(sub) -> None:
                    help="a model of the same cloud built with --layer none, scored as 'billboards only'")
     p.add_argument("--models", type=Path, nargs="+", default=[], metavar="MODEL",
                    help="more model directories (other build settings): more points of the work-precision diagram")
-    p.add_argument("--views", type=int, default=None,
+    p.add_argument("--views", type=positive_int, default=None,
                    help="viewpoints (default: 8, each also off path; a real capture: every held-out frame)")
-    p.add_argument("--size", type=int, nargs=2, default=None, metavar=("W", "H"), help="default: the camera's")
-    p.add_argument("--poisson-depth", type=int, default=10, help="octree depth of the Poisson-mesh baseline (10)")
-    p.add_argument("--workprecision-depths", type=int, nargs="*", default=[8, 9, 10, 11], metavar="D",
+    p.add_argument("--size", type=dimension, nargs=2, default=None, metavar=("W", "H"),
+                   action=size_action(EVAL_BYTES_PER_PIXEL), help="default: the camera's")
+    p.add_argument("--poisson-depth", type=int_range(1, 16), default=10,
+                   help="octree depth of the Poisson-mesh baseline (10)")
+    p.add_argument("--workprecision-depths", type=int_range(1, 16), nargs="*", default=[8, 9, 10, 11], metavar="D",
                    help="Poisson depths of the work-precision diagram (default 8 9 10 11; none: only --poisson-depth)")
-    p.add_argument("--panel-width", type=int, default=320,
+    p.add_argument("--panel-width", type=int_range(0, MAX_PANEL_WIDTH), default=320,
                    help="width of each panel of the side-by-side images (default 320; 0: no images)")
     p.add_argument("--no-sky", action="store_true",
                    help="draw the model(s) on black like the baselines, not over their sky")
-    p.set_defaults(func=_run_eval)
+    p.set_defaults(func=_run_eval, check_options=_eval_config)
+
+
+def _eval_config(args):
+    from render.evaluate import EvalConfig
+
+    return EvalConfig(views=args.views, size=None if args.size is None else tuple(args.size),
+                      poisson_depth=args.poisson_depth, workprecision_depths=tuple(args.workprecision_depths),
+                      panel_width=args.panel_width, model_sky=not args.no_sky)
 
 
 def _run_eval(args) -> int:
     from billboards.model import load
     from billboards.sky import read_sky
-    from render.evaluate import EvalConfig, evaluate_views, write_report
+    from render.evaluate import evaluate_views, write_report
 
-    config = EvalConfig(views=args.views, size=None if args.size is None else tuple(args.size),
-                        poisson_depth=args.poisson_depth, workprecision_depths=tuple(args.workprecision_depths),
-                        panel_width=args.panel_width, model_sky=not args.no_sky)
+    config = _eval_config(args)
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]
     extra = {label: (load(m), read_sky(m)) for label, m in zip(labels, args.models)}
     only = None if args.billboards_only is None else (load(args.billboards_only), read_sky(args.billboards_only))
@@ -598,7 +684,8 @@ def _add_view(sub) -> None:
                     "frames along the drive path, saves a screenshot and exits (runs under xvfb-run).",
         epilog=KEYS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model", type=Path, help="billboard model directory")
-    p.add_argument("--size", type=int, nargs=2, default=(1280, 720), metavar=("W", "H"), help="window size")
+    p.add_argument("--size", type=dimension, nargs=2, default=(1280, 720), metavar=("W", "H"),
+                   action=size_action(RENDER_BYTES_PER_PIXEL), help="window size")
     p.add_argument("--decode", choices=("gpu", "cpu"), default="gpu", help="texture decode at start")
     p.add_argument("--cull", choices=("none", "frustum", "occlusion", "auto"), default="frustum",
                    help="culling mode at start")
@@ -606,7 +693,7 @@ def _add_view(sub) -> None:
     p.add_argument("--window", default="auto",
                    help="moderngl-window backend: auto (pyglet, else headless), pyglet, glfw, headless, ...")
     p.add_argument("--screenshot-dir", type=Path, default=Path("."), help="where F12/P screenshots go")
-    p.add_argument("--script-frames", type=int, default=0,
+    p.add_argument("--script-frames", type=int_range(0, MAX_FRAMES), default=0,
                    help="render this many frames along the drive path (no input), save a screenshot, exit")
     p.add_argument("--screenshot", type=Path, default=None, help="PNG path for the --script-frames screenshot")
     p.add_argument("--script-keys", default="",
@@ -637,7 +724,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     verbosity.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=CommandParser)
     _add_synth(sub)
     _add_import(sub)
     _add_recon(sub)

@@ -1,0 +1,206 @@
+"""What the command line accepts: argparse ``type=`` functions for its numbers, the size
+bounds the commands share, and the memory a command's sizes will need.
+
+Each option is checked as argparse parses it, so a bad value ends the command with one
+usage line naming the option (exit 2) before anything is read, written or allocated.
+Numbers are finite (no nan or inf) unless an option says otherwise; a size is also
+refused when the machine's available memory cannot hold what the command allocates for it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+
+#: Largest texture and renderbuffer edge the renderers rely on (pixels, texels): the
+#: GL_MAX_TEXTURE_SIZE / GL_MAX_RENDERBUFFER_SIZE of current desktop GPUs.
+GL_MAX_SIZE = 16384
+
+#: Largest billboard tile edge (texels); a tile of the default 32 directions at 256²
+#: already holds 8 M texels per billboard.
+MAX_TILE = 256
+
+#: Largest anti-aliasing factor of ``synth --spp`` (spp² rays per pixel).
+MAX_SPP = 16
+
+#: Longest synthetic street or town drive, metres.
+MAX_LENGTH = 100_000.0
+
+#: Most frames of a synthetic pass or a rendered path.
+MAX_FRAMES = 100_000
+
+#: Widest panel of eval's side-by-side images, pixels.
+MAX_PANEL_WIDTH = 4096
+
+#: Highest frame rate of a rendered video, frames per second.
+MAX_FPS = 1000.0
+
+#: Bytes per pixel of an offscreen render: RGBA8 colour and 32-bit depth renderbuffers,
+#: the RGB read back and its flipped copy (14), rounded up.
+RENDER_BYTES_PER_PIXEL = 16
+
+#: Bytes per pixel of an eval view: the render, and about twenty float64 values per pixel
+#: of ground truth, masks and the PSNR/SSIM work arrays.
+EVAL_BYTES_PER_PIXEL = RENDER_BYTES_PER_PIXEL + 20 * 8
+
+#: Bytes per sampled texel and direction in a build worker: the float32 stack, its
+#: eigen images and decoded copy, and PCA's work arrays.
+BUILD_BYTES_PER_TEXEL = 32
+
+
+def _fail(message: str):
+    raise argparse.ArgumentTypeError(message)
+
+
+def _parse_int(text: str) -> int:
+    try:
+        return int(text)
+    except (TypeError, ValueError):
+        _fail(f"expected an integer, got {text!r}")
+
+
+def _parse_float(text: str, allow_inf: bool = False) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        _fail(f"expected a number, got {text!r}")
+    if math.isnan(value) or (math.isinf(value) and not allow_inf):
+        _fail(f"expected a finite number, got {text!r}")
+    return value
+
+
+def int_range(lo: int, hi: int | None = None, why: str = ""):
+    """An argparse type: an integer in [lo, hi] (hi None: no upper bound); ``why`` says
+    where hi comes from in the message."""
+    def parse(text: str) -> int:
+        value = _parse_int(text)
+        if value < lo:
+            _fail(f"must be at least {lo}, got {value}")
+        if hi is not None and value > hi:
+            _fail(f"must be at most {hi}{f' ({why})' if why else ''}, got {value}")
+        return value
+    parse.__name__ = f"int_range({lo}, {hi})"
+    return parse
+
+
+def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = True,
+                hi_open: bool = False, allow_inf: bool = False):
+    """An argparse type: a finite number in the interval from lo to hi, each end open or
+    closed (None: unbounded); allow_inf also takes +inf/-inf where the interval holds them."""
+    def parse(text: str) -> float:
+        value = _parse_float(text, allow_inf)
+        below = lo is not None and (value <= lo if lo_open else value < lo)
+        above = hi is not None and (value >= hi if hi_open else value > hi)
+        if below or above:
+            left = "(-inf" if lo is None else f"{'(' if lo_open else '['}{lo:g}"
+            right = "inf)" if hi is None else f"{hi:g}{')' if hi_open else ']'}"
+            _fail(f"must lie in {left}, {right}, got {text!r}")
+        return value
+    parse.__name__ = "float_range"
+    return parse
+
+
+#: An integer ≥ 1.
+positive_int = int_range(1)
+#: An integer ≥ 0.
+nonnegative_int = int_range(0)
+#: A finite number > 0.
+positive_float = float_range(0.0)
+#: A finite number ≥ 0.
+nonnegative_float = float_range(0.0, lo_open=False)
+#: A finite number.
+finite_float = float_range()
+#: A size edge in pixels or texels: an integer in [1, GL_MAX_SIZE].
+dimension = int_range(1, GL_MAX_SIZE, "the OpenGL texture and renderbuffer limit")
+
+
+def holdout(text: str) -> int:
+    """An argparse type: every n-th frame held out, 0 (none) or ≥ 2."""
+    value = _parse_int(text)
+    if value < 0 or value == 1:
+        _fail(f"must be 0 (none) or at least 2 (every n-th frame), got {value}")
+    return value
+
+
+def max_workers() -> int:
+    """The most parallel processes a command may start: 4 × the usable cores."""
+    from .executor import default_workers
+
+    return 4 * default_workers()
+
+
+def worker_count(text: str) -> int:
+    """An argparse type: parallel processes, an integer in [1, :func:`max_workers`]."""
+    return int_range(1, max_workers(), "4 × the usable cores")(text)
+
+
+def available_memory() -> int | None:
+    """Bytes a new allocation can get: MemAvailable of /proc/meminfo, else the free
+    physical pages (os.sysconf); None where neither is known."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def check_memory(nbytes: float, what: str) -> None:
+    """ValueError naming ``what`` when ``nbytes`` exceeds the available memory (nothing
+    when that is unknown)."""
+    available = available_memory()
+    if available is not None and nbytes > available:
+        raise ValueError(f"{what} needs about {nbytes / 2**30:.1f} GiB of memory, more than the "
+                         f"{available / 2**30:.1f} GiB available")
+
+
+def size_action(bytes_per_pixel: int):
+    """An argparse action for ``--size W H`` (parsed with ``type=dimension``): refuses a size
+    whose W·H·bytes_per_pixel exceeds the available memory."""
+    class SizeAction(argparse.Action):
+        def __call__(self, parser, namespace, values, option_string=None):
+            w, h = values
+            try:
+                check_memory(w * h * bytes_per_pixel, f"{w}x{h}")
+            except ValueError as e:
+                raise argparse.ArgumentError(self, str(e)) from None
+            setattr(namespace, self.dest, tuple(values))
+    return SizeAction
+
+
+def synth_bytes(width: int, height: int, spp: int, distorted: bool, workers: int) -> int:
+    """Bytes ``synth`` holds at once: per worker one image's uint8 RGB, float32 depth and
+    int32 ids and its PNG encoding (about 14 B/pixel), a lens's (1 + spp²) float64
+    undistorted ray coordinates per pixel, and a row chunk of rays (about 100 B per ray)."""
+    pixels = width * height
+    per_image = pixels * 14 + (pixels * (1 + spp * spp) * 16 if distorted else 0) + width * spp * spp * 100
+    return workers * per_image
+
+
+def build_bytes(tile: int, directions: int, chunk: int, workers: int) -> int:
+    """Bytes the build's workers hold at once: each a chunk of billboards' sampled textures
+    (directions × tile² × 4 channels) at BUILD_BYTES_PER_TEXEL."""
+    return workers * chunk * directions * tile * tile * 4 * BUILD_BYTES_PER_TEXEL
+
+
+class CommandParser(argparse.ArgumentParser):
+    """A subcommand's parser that also runs its ``check_options`` default on the parsed options:
+    a function of the namespace raising ValueError for a combination of values (a tile
+    larger than the atlas page, a size the memory cannot hold), reported like any other
+    bad option (a usage line, exit 2) before the command starts."""
+
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, extras = super().parse_known_args(args, namespace)
+        check = getattr(namespace, "check_options", None)
+        if check is not None:
+            try:
+                check(namespace)
+            except ValueError as e:
+                self.error(str(e))
+        return namespace, extras
