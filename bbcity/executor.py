@@ -94,17 +94,22 @@ class WorkerPool(ProcessPoolExecutor):
                          initializer=_init_worker, initargs=(os.getpid(),))
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
-        return super().submit(_call_in_worker, fn, args, kwargs)
+        # Workers are started here, and start with Ctrl-C blocked (a signal mask survives exec):
+        # one pressed while a worker still imports would print its traceback. The parent gets it
+        # once unblocked.
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            return super().submit(_call_in_worker, fn, args, kwargs)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
 
     def stop(self) -> None:
         """Cancel queued tasks and kill the workers without waiting for running ones."""
-        processes = list((self._processes or {}).values())
-        self.shutdown(wait=False, cancel_futures=True)
-        for process in processes:
-            if process.is_alive():
-                process.kill()
-        for process in processes:
-            process.join()
+        # killed first: the pool then sees itself broken and shuts down without handing the
+        # workers a last message (a worker that answers one can be replaced by a fresh one)
+        for process in list((self._processes or {}).values()):
+            process.kill()
+        self.shutdown(wait=True, cancel_futures=True)
 
 
 class SerialExecutor(Executor):
