@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -68,6 +69,20 @@ class SynthConfig:
     town_path_length: float = 300.0  # town: length of the drive along its middle street, metres
     spp: int = 2  # supersampling per pixel axis (spp² colour rays per pixel)
     ground_truth_depth: bool = True  # write gt/depth and gt/ids for every image
+
+    def __post_init__(self):
+        if self.scene not in SCENES:
+            raise ValueError(f"unknown scene {self.scene!r}; expected one of {SCENES}")
+        for name in ("frames", "spp"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"SynthConfig.{name} must be an integer ≥ 1, got {value!r}")
+        for name in ("lane_offset", "town_path_length"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"SynthConfig.{name} must be a finite number, got {value!r}")
+        if self.town_path_length <= 0:
+            raise ValueError(f"SynthConfig.town_path_length must be positive, got {self.town_path_length}")
 
 
 def _from_dict(cls, data: dict):

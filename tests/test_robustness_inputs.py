@@ -15,6 +15,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from data_synth import SynthConfig
 from data_synth.fileio import DataFormatError
 from recon.cloud_io import read_cloud, read_cloud_arrays
 
@@ -306,3 +307,11 @@ def test_failed_synth_resumes_and_other_settings_are_refused_clearly(tiny_datase
     with pytest.raises(FileExistsError, match=r"holds a dataset made with other settings \(rig\.width\); choose"):
         write_dataset(tiny_config(rig=ds_mod.RigConfig(width=200, height=120, hfov_deg=75.0, pitch_deg=10.0)),
                       out, progress=False)
+
+
+@pytest.mark.parametrize("field, value", [("frames", 0), ("frames", True), ("spp", 0), ("spp", 1.5),
+                                          ("town_path_length", float("nan")), ("town_path_length", -1.0),
+                                          ("lane_offset", float("inf")), ("scene", "city")])
+def test_synth_config_refuses_what_cannot_be_rendered(field, value):
+    with pytest.raises(ValueError, match=field if field != "scene" else "unknown scene"):
+        SynthConfig(**{field: value})
