@@ -239,8 +239,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     Returns the cloud's path.
     """
     dataset_dir, work = Path(dataset_dir), Path(work_dir)
-    work.mkdir(parents=True, exist_ok=True)
     ds = load_dataset(dataset_dir)
+    work.mkdir(parents=True, exist_ok=True)
     stages: dict[str, float] = {}
 
     t0 = time.perf_counter()

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import math
 import random
-import time
 
 import numpy as np
 import pytest
@@ -72,9 +71,7 @@ def _in(tmp_path, argv: list[str]) -> list[str]:
 
 @pytest.mark.parametrize("argv, option", FINDINGS)
 def test_finding_is_refused_at_parse_time(tmp_path, capsys, argv, option):
-    start = time.perf_counter()
     assert run_cli(_in(tmp_path, argv)) == 2
-    assert time.perf_counter() - start < 5
     line = usage_error(capsys)
     assert line.startswith(f"bbcity {argv[0]}: error:") and option in line, line
     assert list(tmp_path.iterdir()) == []  # nothing written, not even the output's lock
@@ -233,23 +230,23 @@ def test_every_subcommand_refuses_bad_numbers(tmp_path, capsys, caplog):
 
     rng = random.Random(0)
     np_rng = np.random.default_rng(0)
-    slowest = 0.0
+    before = list(tmp_path.iterdir())
     for base, opts in commands.items():
         runs = [list(base)] + [[*base, option, *values] for option, nargs in opts.items()
                                for values in _bad_values(rng, np_rng, nargs)]
         for argv in runs:
-            start = time.perf_counter()
             try:
                 code = run_cli(argv)
             except BaseException as e:  # noqa: BLE001 - any escape is the failure reported
                 pytest.fail(f"bbcity {' '.join(argv)} raised {e!r}")
-            slowest = max(slowest, time.perf_counter() - start)
             captured = capsys.readouterr()
             assert code in (0, 2), (argv, code, captured.err)
             text = captured.out + captured.err + caplog.text
             assert "Traceback" not in text, (argv, text)
             caplog.clear()
-    assert slowest < 30  # no value that passes starts real work: the missing input ends it
+    # no value that passes starts real work: the missing input ends it, before anything is written
+    after = [p for p in tmp_path.iterdir() if not p.name.endswith(".lock")]  # outputs' locks stay, empty of meaning
+    assert sorted(after) == sorted(before)
 
 
 def _bad_values(rng: random.Random, np_rng: np.random.Generator, nargs) -> list[list[str]]:
