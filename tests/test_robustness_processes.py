@@ -323,3 +323,23 @@ def test_killed_synth_stops_writing_and_the_next_run_completes_it(tmp_path):
     second = bbcity(*argv)
     assert second.returncode == 0, second.stderr
     assert len(list(out.glob("images/cam*/*.png"))) == 20 * 3 and hidden_temporaries(out) == []
+
+
+def test_killed_build_takes_its_workers_along_and_the_next_build_sweeps_its_state(street, work, tmp_path):
+    model = tmp_path / "model"
+    argv = ("build", work, "--out", model, "--workers", "2", "--layer", "none", "--photometry", "off",
+            "--voxel-size", "0.25")
+    first = Run(*argv)
+    workers = first.workers(2)
+    end = time.monotonic() + 120
+    while not list(tmp_path.glob(".model.build-*")):  # the build's state directory: sampling has begun
+        assert first.proc.poll() is None and time.monotonic() < end, first.stderr
+        time.sleep(0.05)
+    first.proc.kill()
+    first.finish(30)
+    assert wait_gone(workers), "build workers outlived their killed parent"
+    assert list(tmp_path.glob(".model.build-*")) and not model.exists()
+    second = bbcity(*argv)
+    assert second.returncode == 0, second.stderr
+    assert (model / "manifest.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".model.lock", "model"]
