@@ -1,4 +1,4 @@
-"""Interrupted runs (issue 6): a stage killed mid-write leaves no file that looks complete,
+"""Interrupted runs: a stage killed mid-write leaves no file that looks complete,
 the previous complete output (if any) intact, and the next run resumes or starts clean.
 
 Stages: the dataset writer (a real SIGKILL while a PNG is half written), recon's cloud and

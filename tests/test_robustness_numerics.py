@@ -1,4 +1,4 @@
-"""Stiff and extreme numerics, collected in one place (issue 6).
+"""Stiff and extreme numerics, collected in one place.
 
 Each case runs the stage's real code on a small degenerate input and checks a correct
 result or a clear error, and never NaN/inf in an output:

@@ -1,4 +1,4 @@
-"""Robustness of the readers not fuzzed elsewhere (issue 6): point clouds (PLY in every
+"""Robustness of the readers not fuzzed elsewhere: point clouds (PLY in every
 encoding, PCD), .npy headers and contents, PNG chunks, render pose files.
 
 Each input gives a correct result or one DataFormatError naming the file; nothing
