@@ -306,7 +306,7 @@ def bench_billboards(cfg: BenchConfig, report: Report, out: Path, work: Path, bu
     conf = BuildConfig()
     if build:
         with executor_scope(cfg.workers) as ex, measure() as m:
-            build_main(conf, work / "cloud.ply", dataset, out / "model", executor=ex, workers=cfg.workers)
+            build_main(conf, work / "cloud.ply", dataset, out / "model", executor=ex)
         _build_rows(report, json.loads((out / "model" / "build_report.json").read_text()), m)
     sweep = texture_sweep(work / "cloud.ply", dataset, out, count=32 if cfg.quick else 512,
                           tiles=(conf.sampling.tile,) if cfg.quick else (8, 16, 32))

@@ -111,7 +111,7 @@ def _build(work: Path, dataset: Path, model: Path, workers: int, holdout: int):
     from .executor import executor_scope
 
     with executor_scope(workers) as ex:
-        build_main(BuildConfig(holdout=holdout), work / "cloud.ply", dataset, model, executor=ex, workers=workers)
+        build_main(BuildConfig(holdout=holdout), work / "cloud.ply", dataset, model, executor=ex)
 
 
 _STAGES = {"synthesis": _synthesis, "reconstruction": _reconstruction, "build": _build,

@@ -105,7 +105,7 @@ def bench_novel_views(cfg: BenchConfig, report: Report, dataset: Path, work: Pat
     full = BuildConfig(holdout=holdout, pca=PcaConfig(ratio=1.0, max_error=0.0, max_rank=64), tile_mode="f16",
                        coef_mode="f32")
     with executor_scope(cfg.workers) as ex:
-        build_main(full, work / "cloud.ply", dataset, full_dir, executor=ex, workers=cfg.workers)
+        build_main(full, work / "cloud.ply", dataset, full_dir, executor=ex)
     config = EvalConfig(views=3 if cfg.quick else 8, workprecision_depths=(8, 10) if cfg.quick else (8, 9, 10, 11),
                         panel_width=0)
     res = evaluate_views(model, dataset, work / "cloud.ply", sky=read_sky(model_dir),

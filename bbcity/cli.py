@@ -364,7 +364,7 @@ def _check_build(args) -> None:
 def _run_build(args) -> int:
     from billboards.build import main as build_main
 
-    from .executor import default_workers, executor_scope
+    from .executor import executor_scope
 
     if args.work is None and args.cloud is None:
         raise ValueError("give a recon WORK directory or --cloud")
@@ -378,9 +378,8 @@ def _run_build(args) -> int:
     if poses is None and args.work is not None and args.cloud is None and dataset is not None:
         poses = _work_poses(args.work)  # WORK's cloud lies in the frame of the poses its recon used
     conf = build_config_from_args(args)
-    workers = args.workers or default_workers()
     with executor_scope(args.workers) as executor:
-        result = build_main(conf, cloud, dataset, args.out, executor=executor, workers=workers, poses=poses)
+        result = build_main(conf, cloud, dataset, args.out, executor=executor, poses=poses)
     r = result.report
     psnr = r["psnr"]["decoded_rgb_opaque_db"]  # None: no opaque texel measured
     logger.info("%d billboards, compression %.1f× at %s dB (decoded RGB), %.1f s → %s", r["billboards"],

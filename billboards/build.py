@@ -25,7 +25,7 @@ import numpy as np
 from data_synth import load_dataset, load_scene
 from data_synth.dataset import held_out_frames
 from data_synth.fileio import write_json
-from data_synth.tasks import ordered_results
+from data_synth.tasks import executor_workers, ordered_results
 from recon.cloud_io import read_cloud_arrays
 from recon.epi import EpiConfig, epi_points
 
@@ -331,11 +331,11 @@ class BuildResult:
 
 def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathLike | str | None,
          model_dir: os.PathLike | str, executor: Executor | None = None, progress: bool | None = None,
-         workers: int = 1, poses: os.PathLike | str | None = None) -> BuildResult:
+         poses: os.PathLike | str | None = None) -> BuildResult:
     """Build ``model_dir`` from a cloud and (for ``source="images"``) a dataset's images and poses.
 
-    Writes ``model_dir/build_report.json`` too. ``workers`` only sizes the number of
-    tasks kept in flight; ``executor`` runs them (None: this process). ``poses``: a
+    Writes ``model_dir/build_report.json`` too. ``executor`` runs the texture tasks (None:
+    this process), twice its worker count kept in flight so none idles. ``poses``: a
     ``poses.json`` used instead of the dataset's own (``WORK/poses.json`` of a recon whose
     poses came from SfM or a COLMAP model), recorded in the model's info so that eval and
     render use it too; frames without a pose are left out.
@@ -464,7 +464,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         with ModelWriter(model_dir, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
                          coef_mode=conf.coef_mode, num_directions=d) as writer:
             done = 0
-            for chunks in ordered_results(_run_task, tasks, executor, window=2 * max(1, workers),
+            for chunks in ordered_results(_run_task, tasks, executor, window=2 * executor_workers(executor),
                                           desc="billboards", progress=progress):
                 for arrays, stats in chunks:
                     b = len(arrays["rank"])

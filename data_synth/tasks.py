@@ -17,6 +17,14 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
+def executor_workers(executor: Executor | None) -> int:
+    """Tasks ``executor`` runs at once, for sizing how many to keep in flight: a process or
+    thread pool's ``max_workers``; 1 for None (this process), a serial executor, or one that
+    does not say (the ``concurrent.futures`` interface has no public way to ask)."""
+    n = getattr(executor, "_max_workers", None)
+    return n if isinstance(n, int) and not isinstance(n, bool) and n >= 1 else 1
+
+
 def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: Executor | None = None,
               desc: str = "", progress: bool | None = None) -> list[R]:
     """Apply ``fn`` to every task; results in completion order.

@@ -8,7 +8,7 @@ import time
 import pytest
 
 from bbcity.executor import SerialExecutor, executor_scope, make_executor
-from data_synth.tasks import run_tasks
+from data_synth.tasks import executor_workers, run_tasks
 
 
 def _square(x: int) -> int:
@@ -45,3 +45,12 @@ def test_a_failure_cancels_queued_tasks_and_joins_the_workers():
 def test_workers_must_be_positive():
     with pytest.raises(ValueError, match="at least 1"):
         make_executor(0)
+
+
+def test_executor_workers_counts_what_runs_at_once():
+    from concurrent.futures import ThreadPoolExecutor
+
+    assert executor_workers(None) == 1
+    assert executor_workers(SerialExecutor()) == 1
+    with make_executor(3) as pool, ThreadPoolExecutor(2) as threads:
+        assert (executor_workers(pool), executor_workers(threads)) == (3, 2)
