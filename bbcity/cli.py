@@ -14,18 +14,48 @@ from pathlib import Path
 
 from . import __version__
 from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH, MAX_SPP,
-                      MAX_TILE, RENDER_BYTES_PER_PIXEL, CommandParser, build_bytes, check_memory, dimension,
-                      float_range, holdout, int_range, nonnegative_float, nonnegative_int, positive_float,
-                      positive_int, size_action, synth_bytes, worker_count)
+                      MAX_TILE, RENDER_BYTES_PER_PIXEL, CommandParser, UsageError, build_bytes, check_memory,
+                      dimension, float_range, holdout, int_range, nonnegative_float, nonnegative_int,
+                      positive_float, positive_int, size_action, synth_bytes, worker_count)
 
 logger = logging.getLogger("bbcity")
+
+
+# Options several subcommands share, as argparse parent parsers (``parents=[...]``): one
+# definition each, so the commands cannot drift apart in type, check or help.
+
+def _workers_parent() -> argparse.ArgumentParser:
+    """``--workers`` of the commands that run a process pool (synth, recon, build)."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--workers", type=worker_count, default=None, help="parallel processes (default: one per core)")
+    return p
+
+
+def _size_parent(default: tuple[int, int] | None, bytes_per_pixel: int, help: str) -> argparse.ArgumentParser:
+    """``--size W H`` of the commands that render (render, view, eval, fps): each edge within
+    the OpenGL limit, W·H·``bytes_per_pixel`` within the available memory."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--size", type=dimension, nargs=2, default=default, metavar=("W", "H"),
+                   action=size_action(bytes_per_pixel), help=help)
+    return p
+
+
+def _draw_modes_parent() -> argparse.ArgumentParser:
+    """``--decode`` and ``--cull`` of the commands that draw a billboard model (render, view)."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--decode", choices=("gpu", "cpu"), default="gpu",
+                   help="texture decode: in the shader (gpu) or on the CPU (default gpu)")
+    p.add_argument("--cull", choices=("none", "frustum", "occlusion", "auto"), default="frustum",
+                   help="culling (default frustum)")
+    return p
 
 
 def _add_synth(sub) -> None:
     p = sub.add_parser(
         "synth", help="generate a synthetic dataset (street or town) with ground truth",
         description="Generate a synthetic scene, drive the camera rig (three cameras by default) through it and write "
-                    "images, rig.json, poses.json, a COLMAP model and ground truth (gt/).")
+                    "images, rig.json, poses.json, a COLMAP model and ground truth (gt/).",
+        parents=[_workers_parent()])
     p.add_argument("scene", choices=["street", "town"], help="scene to generate")
     p.add_argument("--out", type=Path, required=True, help="output dataset directory (new, or one to resume)")
     p.add_argument("--frames", type=int_range(1, MAX_FRAMES), default=100,
@@ -51,7 +81,6 @@ def _add_synth(sub) -> None:
                    help="anti-aliasing: spp×spp rays per pixel (default 2)")
     p.add_argument("--no-return", action="store_true", help="drive one pass only (one side of the street)")
     p.add_argument("--no-gt-depth", action="store_true", help="skip per-image ground-truth depth and ids")
-    p.add_argument("--workers", type=worker_count, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_synth, check_options=_synth_config)
 
 
@@ -60,7 +89,7 @@ _CAMERA_BASELINES = {1: (0.0,), 2: (0.0, 0.8), 3: (0.0, 0.4, 0.8)}
 
 
 def _synth_config(args):
-    """The SynthConfig the ``synth`` options describe; ValueError when the images its
+    """The SynthConfig the ``synth`` options describe; UsageError when the images its
     workers render at once would not fit in the available memory."""
     from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig
 
@@ -187,7 +216,8 @@ def _add_recon(sub) -> None:
         description="Rectify each camera pair, match by SGBM with a left-right check, fuse the pairs per frame "
                     "(three cameras: three pairs that must agree; two: one pair; one: neighbouring frames), merge all frames by voxel hashing, remove outliers and write "
                     "WORK/cloud.ply and WORK/recon_report.json (with accuracy and completeness when "
-                    "the dataset has ground truth).")
+                    "the dataset has ground truth).",
+        parents=[_workers_parent()])
     p.add_argument("dataset", type=Path, help="dataset directory (rig.json, poses.json, images/)")
     p.add_argument("--out", type=Path, required=True, help="work directory")
     p.add_argument("--poses", nargs="+", default=["given"], metavar="SOURCE",
@@ -207,12 +237,11 @@ def _add_recon(sub) -> None:
                    help="leave every n-th frame out of the cloud, for `bbcity eval` on held-out views (default 0: "
                         "none; 4 uses 75 %% of the frames); `bbcity build` of this WORK leaves the same frames out")
     p.add_argument("--no-eval", action="store_true", help="skip the ground-truth evaluation")
-    p.add_argument("--workers", type=worker_count, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_recon, check_options=_recon_config)
 
 
 def _recon_config(args):
-    """The ReconConfig the ``recon`` options describe (ValueError for a bad combination)."""
+    """The ReconConfig the ``recon`` options describe (UsageError for a bad combination)."""
     from recon.fusion import FusionConfig
     from recon.pipeline import POSE_SOURCES, ReconConfig
     from recon.stereo import PRESETS
@@ -220,9 +249,9 @@ def _recon_config(args):
 
     source, *rest = args.poses
     if source not in POSE_SOURCES or (source == "colmap") != (len(rest) == 1) or len(rest) > 1:
-        raise ValueError(f"--poses takes given, sfm or colmap DIR; got {' '.join(args.poses)}")
+        raise UsageError(f"--poses takes given, sfm or colmap DIR; got {' '.join(args.poses)}")
     if args.preset not in PRESETS:
-        raise ValueError(f"unknown --preset {args.preset!r}; choose from {', '.join(PRESETS)}")
+        raise UsageError(f"unknown --preset {args.preset!r}; choose from {', '.join(PRESETS)}")
     stereo = PRESETS[args.preset]
     overrides = {k: v for k, v in (("min_depth", args.min_depth), ("max_depth", args.max_depth)) if v is not None}
     if args.wls:
@@ -255,7 +284,8 @@ def _add_build(sub) -> None:
                     "sample its texture in d directions from the captured images (occlusion-aware), "
                     "compress each billboard's stack by PCA into eigen-textures and pack them into atlas "
                     "pages. Writes MODEL/ (manifest.json, .npy arrays, atlas pages) and "
-                    "MODEL/build_report.json.")
+                    "MODEL/build_report.json.",
+        parents=[_workers_parent()])
     p.add_argument("work", type=Path, nargs="?", default=None,
                    help="recon work directory (cloud.ply; recon_report.json names the dataset)")
     p.add_argument("--out", type=Path, required=True, help="model directory (replaced atomically)")
@@ -305,7 +335,6 @@ def _add_build(sub) -> None:
     p.add_argument("--photometry", choices=("on", "off"), default="on",
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
                         "out before sampling textures (default on)")
-    p.add_argument("--workers", type=worker_count, default=None, help="parallel processes (default: one per core)")
     p.set_defaults(func=_run_build, check_options=_check_build)
 
 
@@ -344,15 +373,15 @@ def build_config_from_args(args):
 
 
 def _check_build(args) -> None:
-    """ValueError when the ``build`` options contradict each other or the atlas pages, or
+    """UsageError when the ``build`` options contradict each other or the atlas pages, or
     when the workers' sampled textures would not fit in the available memory."""
     from .executor import default_workers
 
     if args.tile > args.page_size:
-        raise ValueError(f"--tile {args.tile} is larger than the atlas page (--page-size {args.page_size})")
+        raise UsageError(f"--tile {args.tile} is larger than the atlas page (--page-size {args.page_size})")
     d = args.directions * len(args.pitches)
     if d > args.page_size:  # a billboard's coefficient row (d texels) fills one atlas page row at most
-        raise ValueError(f"--directions × --pitches = {d} directions do not fit an atlas page row "
+        raise UsageError(f"--directions × --pitches = {d} directions do not fit an atlas page row "
                          f"(--page-size {args.page_size})")
     # every config validates its values; the work directory's --holdout is not read yet
     conf = build_config_from_args(argparse.Namespace(**{**vars(args), "holdout": args.holdout or 0}))
@@ -367,11 +396,9 @@ def _run_build(args) -> int:
     from .executor import executor_scope
 
     if args.work is None and args.cloud is None:
-        raise ValueError("give a recon WORK directory or --cloud")
+        raise UsageError("give a recon WORK directory or --cloud")
     cloud = args.cloud or args.work / "cloud.ply"
-    dataset = args.images
-    if dataset is None and args.work is not None and args.texture_source == "images":
-        dataset = _work_dataset(args.work)
+    dataset = _work_dataset(args) if args.work is not None and args.texture_source == "images" else args.images
     if args.holdout is None:
         args.holdout = _work_holdout(args.work) if args.work is not None and args.cloud is None else 0
     poses = args.poses
@@ -387,11 +414,12 @@ def _run_build(args) -> int:
     return 0
 
 
-def _work_dataset(work: Path) -> Path:
-    """The dataset a recon WORK directory was built from (its recon_report.json says)."""
+def _work_dataset(args) -> Path:
+    """The dataset of a command on a recon WORK directory (build, texture-sweep, sampling-eval):
+    its ``--images``, else the one WORK was built from (its recon_report.json says)."""
     from recon.pipeline import dataset_of_work
 
-    return dataset_of_work(work)
+    return args.images or dataset_of_work(args.work)
 
 
 def _work_poses(work: Path) -> Path | None:
@@ -439,7 +467,7 @@ def _add_texture_sweep(sub) -> None:
 def _run_texture_sweep(args) -> int:
     from .sweeps import texture_sweep
 
-    dataset = args.images or _work_dataset(args.work)
+    dataset = _work_dataset(args)
     texture_sweep(args.work / "cloud.ply", dataset, args.out, count=args.count, tiles=tuple(args.tiles))
     logger.info("wrote %s", args.out / "texture_sweep.md")
     return 0
@@ -465,7 +493,7 @@ def _run_sampling_eval(args) -> int:
     from billboards.octree import OctreeConfig
     from data_synth.fileio import write_bytes, write_json
 
-    dataset = args.images or _work_dataset(args.work)
+    dataset = _work_dataset(args)
     report = compare_sampling(dataset, args.work / "cloud.ply", OctreeConfig(voxel_size=args.voxel_size),
                               count=args.count)
     write_json(args.out / "sampling_eval.json", report)
@@ -546,22 +574,86 @@ def _run_bench(args) -> int:
     return 0
 
 
+def _add_fps(sub) -> None:
+    p = sub.add_parser(
+        "fps", help="frame rate of GPU vs CPU texture decode (and of the culling modes) on a model or the town",
+        description="Render MODEL offscreen from capture-like viewpoints of a street along +x (2 m up, facing "
+                    "either facade and along the street), stepping 5 cm sideways every frame, and print the "
+                    "frames per second of GPU and CPU texture decode and their ratio, measured in the same run; "
+                    "with --cull also each culling mode's frame rate and drawn billboards (GPU decode); with "
+                    "--town the culling modes on the town scene's meshes along its capture path.",
+        parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "default 1280 720")])
+    p.add_argument("model", type=Path, nargs="?", default=None,
+                   help="billboard model directory (optional with --town)")
+    p.add_argument("--gpu-frames", type=positive_int, default=10, metavar="N",
+                   help="timed frames per view with GPU decode, and per culling mode (default 10)")
+    p.add_argument("--cpu-frames", type=positive_int, default=3, metavar="N",
+                   help="timed frames per view with CPU decode (default 3)")
+    p.add_argument("--cull", action="store_true", help="also compare the culling modes (GPU decode)")
+    p.add_argument("--town", action="store_true",
+                   help="culling on the town scene's meshes along its capture path (default TownConfig)")
+    p.set_defaults(func=_run_fps, check_options=_check_fps)
+
+
+def _check_fps(args) -> None:
+    if args.model is None and not args.town:
+        raise UsageError("give a model directory, --town, or both")
+
+
+def _run_fps(args) -> int:
+    from billboards.model import load
+    from render.benchmark import cull_fps, decode_fps, street_views, town_cull_fps, town_views
+    from render.context import create_context, describe
+
+    model = None if args.model is None else load(args.model)  # a bad model fails before any GL work
+    size = tuple(args.size)
+    ctx = create_context()
+    try:
+        print(describe(ctx))
+        if args.town:
+            from data_synth import TownConfig, build_town
+            from data_synth.dataset import SynthConfig, capture_path
+
+            scene = build_town(TownConfig())
+            poses, _ = capture_path(SynthConfig(scene="town", frames=300))
+            for r in town_cull_fps(ctx, scene, town_views(poses[100:160]), size, group_cells=(30.0, 60.0)):
+                print(f"town cull {r['cull']:>9} (groups of {r['group_cell']} m): {r['fps']:6.2f} fps, "
+                      f"{r['after_frustum']:.0f} of {r['objects']} objects after frustum, {r['drawn']:.0f} drawn, "
+                      f"{r['queries']:.0f} queries")
+        if model is None:
+            return 0
+        print(f"{model.num_billboards} billboards, {model.num_slots} slots, {len(model.pages)} atlas pages, "
+              f"{size[0]}×{size[1]}")
+        rows = decode_fps(ctx, model, street_views(), size, {"gpu": args.gpu_frames, "cpu": args.cpu_frames})
+        for r in rows:
+            print(f"{r['decode']} {r['view']:>10}: {r['fps']:6.2f} fps ({r['ms']:.0f} ms/frame, {r['instances']} "
+                  f"billboards, {r['draw_calls']} draw call, CPU decode {r['decode_ms']:.0f} ms)")
+        for view in dict.fromkeys(r["view"] for r in rows):
+            fps = {r["decode"]: r["fps"] for r in rows if r["view"] == view}
+            if "gpu" in fps and "cpu" in fps:
+                print(f"GPU/CPU decode fps ratio, {view}: {fps['gpu'] / fps['cpu']:.1f}×")
+        if args.cull:
+            for r in cull_fps(ctx, model, street_views(), size, args.gpu_frames):
+                print(f"cull {r['cull']:>9} {r['view']:>10}: {r['fps']:6.2f} fps, {r['after_frustum']} billboards "
+                      f"after frustum, {r['drawn']} drawn, {r['queries']} queries, {r['draw_calls']} draw calls")
+        return 0
+    finally:
+        ctx.release()
+
+
 def _add_render(sub) -> None:
     p = sub.add_parser("render", help="render a billboard model along a camera path into frames or a video",
                        description="Render MODEL offscreen (EGL) along --path: capture (the capture drive), orbit "
                                    "(a circle above the model) or FILE (a dataset directory, or a JSON list of 4×4 "
-                                   "world_from_cam matrices) into PNG frames (--out DIR) or a video (--out X.mp4).")
+                                   "world_from_cam matrices) into PNG frames (--out DIR) or a video (--out X.mp4).",
+                       parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "default 1280 720"),
+                                _draw_modes_parent()])
     p.add_argument("model", type=Path, help="billboard model directory")
     p.add_argument("--path", default="capture", help="capture, orbit or a FILE (default capture)")
     p.add_argument("--out", type=Path, required=True, help="frames directory, or a video file (.mp4, .mkv, ...)")
-    p.add_argument("--size", type=dimension, nargs=2, default=(1280, 720), metavar=("W", "H"),
-                   action=size_action(RENDER_BYTES_PER_PIXEL), help="default 1280 720")
     p.add_argument("--frames", type=int_range(1, MAX_FRAMES), default=300,
                    help="frames along capture/orbit paths (default 300)")
     p.add_argument("--fps", type=float_range(0.0, MAX_FPS), default=30.0, help="video frame rate (default 30)")
-    p.add_argument("--decode", choices=("gpu", "cpu"), default="gpu", help="texture decode (default gpu)")
-    p.add_argument("--cull", choices=("none", "frustum", "occlusion", "auto"), default="frustum",
-                   help="culling (default frustum)")
     p.set_defaults(func=_run_render)
 
 
@@ -607,7 +699,8 @@ def _add_eval(sub) -> None:
                                    "--cloud, the fused cloud is the baseline twice: meshed by Open3D's screened "
                                    "Poisson reconstruction (ray cast, vertex colours) and projected point by point. "
                                    "Writes eval.json, eval.md, workprecision.png (bytes against seen-pixel PSNR: "
-                                   "Poisson depths, the model(s), the points) and one side-by-side PNG per view.")
+                                   "Poisson depths, the model(s), the points) and one side-by-side PNG per view.",
+                       parents=[_size_parent(None, EVAL_BYTES_PER_PIXEL, "default: the camera's")])
     p.add_argument("model", type=Path, help="billboard model directory")
     p.add_argument("dataset", type=Path,
                    help="the dataset: synthetic with gt/, or a real capture (scored against its held-out images)")
@@ -619,8 +712,6 @@ def _add_eval(sub) -> None:
                    help="more model directories (other build settings): more points of the work-precision diagram")
     p.add_argument("--views", type=positive_int, default=None,
                    help="viewpoints (default: 8, each also off path; a real capture: every held-out frame)")
-    p.add_argument("--size", type=dimension, nargs=2, default=None, metavar=("W", "H"),
-                   action=size_action(EVAL_BYTES_PER_PIXEL), help="default: the camera's")
     p.add_argument("--poisson-depth", type=int_range(1, 16), default=10,
                    help="octree depth of the Poisson-mesh baseline (10)")
     p.add_argument("--workprecision-depths", type=int_range(1, 16), nargs="*", default=[8, 9, 10, 11], metavar="D",
@@ -681,13 +772,10 @@ def _add_view(sub) -> None:
                     "mode along the capture path, GPU/CPU decode, culling and view-interpolation toggles; a HUD "
                     "and the title bar show fps, drawn/culled billboards, decode and cull mode. With --script-frames it renders that many "
                     "frames along the drive path, saves a screenshot and exits (runs under xvfb-run).",
-        epilog=KEYS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=KEYS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
+        parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "window size (default 1280 720)"),
+                 _draw_modes_parent()])
     p.add_argument("model", type=Path, help="billboard model directory")
-    p.add_argument("--size", type=dimension, nargs=2, default=(1280, 720), metavar=("W", "H"),
-                   action=size_action(RENDER_BYTES_PER_PIXEL), help="window size")
-    p.add_argument("--decode", choices=("gpu", "cpu"), default="gpu", help="texture decode at start")
-    p.add_argument("--cull", choices=("none", "frustum", "occlusion", "auto"), default="frustum",
-                   help="culling mode at start")
     p.add_argument("--mode", choices=("drive", "fly"), default="drive", help="camera mode at start")
     p.add_argument("--window", default="auto",
                    help="moderngl-window backend: auto (pyglet, else headless), pyglet, glfw, headless, ...")
@@ -733,6 +821,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_stereo_sweep(sub)
     _add_check(sub)
     _add_bench(sub)
+    _add_fps(sub)
     _add_view(sub)
     _add_render(sub)
     _add_eval(sub)
@@ -758,11 +847,12 @@ def main(argv: list[str] | None = None) -> int:
             _check_output(args.command, out)
         with owned_output(out) if out is not None else contextlib.nullcontext():
             return args.func(args)
-    except (DataFormatError, ValueError) as e:
-        logger.error("%s", e)
+    # one line for the user; -v adds the traceback (a ValueError may be a bug as well as bad input)
+    except (DataFormatError, ValueError) as e:  # UsageError included
+        logger.error("%s", e, exc_info=args.verbose)
         return 2
     except OSError as e:  # a file-system error: read-only, full, a name too long, a file where a directory goes
-        logger.error("%s", os_error_line(e, getattr(args, "out", None)))
+        logger.error("%s", os_error_line(e, getattr(args, "out", None)), exc_info=args.verbose)
         return 2
     except KeyboardInterrupt:
         logger.error("interrupted")

@@ -49,6 +49,12 @@ EVAL_BYTES_PER_PIXEL = RENDER_BYTES_PER_PIXEL + 20 * 8
 BUILD_BYTES_PER_TEXEL = 32
 
 
+class UsageError(ValueError):
+    """Bad command-line input: options that contradict each other, a value no option takes,
+    a size the memory cannot hold. Before the command starts it becomes argparse's usage
+    line; raised later, ``main`` reports it in one line like any bad input (exit 2)."""
+
+
 def _fail(message: str):
     raise argparse.ArgumentTypeError(message)
 
@@ -152,11 +158,11 @@ def available_memory() -> int | None:
 
 
 def check_memory(nbytes: float, what: str) -> None:
-    """ValueError naming ``what`` when ``nbytes`` exceeds the available memory (nothing
+    """UsageError naming ``what`` when ``nbytes`` exceeds the available memory (nothing
     when that is unknown)."""
     available = available_memory()
     if available is not None and nbytes > available:
-        raise ValueError(f"{what} needs about {nbytes / 2**30:.1f} GiB of memory, more than the "
+        raise UsageError(f"{what} needs about {nbytes / 2**30:.1f} GiB of memory, more than the "
                          f"{available / 2**30:.1f} GiB available")
 
 

@@ -1,4 +1,4 @@
-"""Frame rate of the GPU and CPU decode paths on a model (``python -m render.benchmark MODEL``).
+"""Frame rate of the GPU and CPU decode paths on a model (``bbcity fps MODEL``).
 
 Renders from capture-like viewpoints (camera 2 m above the street axis y = 0, looking
 at the facades on either side and along the street; the street runs along +x in
@@ -6,20 +6,18 @@ world coordinates) at 1280×720, stepping 5 cm sideways every frame, and reports
 :meth:`~render.renderer.BillboardRenderer.render` (draw plus read-back, which waits
 for the frame to finish) for each decode mode, and the ratio GPU/CPU measured in the
 same run; with ``--cull``, the frame rate and drawn billboards of each culling mode
-(:func:`cull_fps`). ``bbcity bench`` can call both.
+(:func:`cull_fps`). ``bbcity fps`` and ``bbcity bench`` call them.
 """
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
 
-from billboards.model import BillboardModel, load
+from billboards.model import BillboardModel
 
 from .camera import look_at
-from .context import create_context, describe
 from .renderer import BillboardRenderer
 
 
@@ -134,52 +132,3 @@ def town_cull_fps(ctx, scene, views: list[np.ndarray], size=(1280, 720), K=None,
                          "triangles": mean("triangles_drawn")})
     return rows
 
-
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("model", nargs="?", help="billboard model directory (optional with --town)")
-    parser.add_argument("--size", type=int, nargs=2, default=(1280, 720), metavar=("W", "H"))
-    parser.add_argument("--gpu-frames", type=int, default=10)
-    parser.add_argument("--cpu-frames", type=int, default=3)
-    parser.add_argument("--cull", action="store_true", help="also compare the culling modes (GPU decode)")
-    parser.add_argument("--town", action="store_true",
-                        help="culling on the town scene's meshes along its capture path (default TownConfig)")
-    args = parser.parse_args(argv)
-    if args.model is None and not args.town:
-        parser.error("give a model directory, --town, or both")
-    ctx = create_context()
-    print(describe(ctx))
-    if args.town:
-        from data_synth import TownConfig, build_town
-        from data_synth.dataset import SynthConfig, capture_path
-
-        scene = build_town(TownConfig())
-        poses, _ = capture_path(SynthConfig(scene="town", frames=300))
-        for r in town_cull_fps(ctx, scene, town_views(poses[100:160]), tuple(args.size), group_cells=(30.0, 60.0)):
-            print(f"town cull {r['cull']:>9} (groups of {r['group_cell']} m): {r['fps']:6.2f} fps, "
-                  f"{r['after_frustum']:.0f} of {r['objects']} objects after frustum, {r['drawn']:.0f} drawn, "
-                  f"{r['queries']:.0f} queries")
-    if args.model is None:
-        ctx.release()
-        return
-    model = load(args.model)
-    print(f"{model.num_billboards} billboards, {model.num_slots} slots, {len(model.pages)} atlas pages, "
-          f"{args.size[0]}×{args.size[1]}")
-    rows = decode_fps(ctx, model, street_views(), tuple(args.size),
-                      {"gpu": args.gpu_frames, "cpu": args.cpu_frames})
-    for r in rows:
-        print(f"{r['decode']} {r['view']:>10}: {r['fps']:6.2f} fps ({r['ms']:.0f} ms/frame, {r['instances']} "
-              f"billboards, {r['draw_calls']} draw call, CPU decode {r['decode_ms']:.0f} ms)")
-    for view in dict.fromkeys(r["view"] for r in rows):
-        fps = {r["decode"]: r["fps"] for r in rows if r["view"] == view}
-        if "gpu" in fps and "cpu" in fps:
-            print(f"GPU/CPU decode fps ratio, {view}: {fps['gpu'] / fps['cpu']:.1f}×")
-    if args.cull:
-        for r in cull_fps(ctx, model, street_views(), tuple(args.size), args.gpu_frames):
-            print(f"cull {r['cull']:>9} {r['view']:>10}: {r['fps']:6.2f} fps, {r['after_frustum']} billboards after "
-                  f"frustum, {r['drawn']} drawn, {r['queries']} queries, {r['draw_calls']} draw calls")
-    ctx.release()
-
-
-if __name__ == "__main__":
-    main()

@@ -103,6 +103,32 @@ def test_sizes_beyond_the_available_memory_are_refused(monkeypatch, tmp_path, ca
     build_parser().parse_args(argv)
 
 
+def test_shared_options_are_defined_once():
+    subs = build_parser()._subparsers._group_actions[0].choices
+
+    def option(command, name):
+        return next(a for a in subs[command]._actions if name in a.option_strings)
+
+    for name, commands in (("--workers", ("synth", "recon", "build")), ("--decode", ("render", "view")),
+                           ("--cull", ("render", "view")), ("--size", ("render", "view", "eval", "fps"))):
+        actions = [option(c, name) for c in commands]
+        assert len({(a.type, a.nargs, str(a.choices)) for a in actions}) == 1, name
+    assert [option(c, "--size").default for c in ("render", "view", "eval", "fps")] == [(1280, 720), (1280, 720),
+                                                                                     None, (1280, 720)]
+
+
+def test_usage_errors_after_parsing_are_one_line_and_verbose_adds_the_traceback(tmp_path, capsys, caplog):
+    assert run_cli(["fps"]) == 2  # neither a model nor --town: refused as the options are parsed
+    assert "give a model directory, --town, or both" in usage_error(capsys)
+    argv = ["build", "--out", str(tmp_path / "model")]  # neither WORK nor --cloud: refused by the command
+    assert run_cli(argv) == 2
+    assert "give a recon WORK directory or --cloud" in caplog.text and "Traceback" not in caplog.text
+    caplog.clear()
+    assert run_cli(["-v", *argv]) == 2
+    assert "Traceback" in caplog.text and "UsageError: give a recon WORK directory or --cloud" in caplog.text
+    assert issubclass(options.UsageError, ValueError)
+
+
 def test_memory_estimates():
     assert options.available_memory() > 0
     # a render target of 16384² holds RGBA8 colour and float depth: at least 8 bytes a pixel
@@ -209,6 +235,7 @@ def _commands(tmp):
         ("render", nx, "--out", out): {"--size": 2, "--frames": 1, "--fps": 1},
         ("eval", nx, nx, "--out", out): {"--views": 1, "--size": 2, "--poisson-depth": 1,
                                          "--workprecision-depths": "+", "--panel-width": 1},
+        ("fps", nx): {"--size": 2, "--gpu-frames": 1, "--cpu-frames": 1},
     }
 
 

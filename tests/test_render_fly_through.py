@@ -56,3 +56,12 @@ def test_bad_pose_file_is_named(model_dir, tmp_path):
     bad.write_text(json.dumps([look_at([0, 0, 0.0], [1, 0, 0.0]).tolist(), [[1, 2], [3, 4]]]))
     assert cli_main(["-q", "render", str(model_dir), "--path", str(bad), "--out", str(tmp_path / "f")]) == 2
     assert not (tmp_path / "f").exists()
+
+
+def test_fps_prints_each_decode_and_culling_mode(model_dir, capsys):
+    assert cli_main(["-q", "fps", str(model_dir), "--size", "96", "64", "--gpu-frames", "1", "--cpu-frames", "1",
+                     "--cull"]) == 0
+    out = capsys.readouterr().out
+    assert "200 billboards" in out and "GPU/CPU decode fps ratio, facade -y:" in out
+    for mode in ("none", "frustum", "occlusion", "auto"):
+        assert f"cull {mode:>9}" in out
