@@ -132,7 +132,7 @@ class Report:
         logger.info("%s: %s", section, row)
 
     def write(self, out: Path) -> None:
-        from data_synth.fileio import write_bytes, write_json
+        from core.fileio import write_bytes, write_json
 
         import cv2
         import open3d

@@ -204,7 +204,7 @@ def run_pipeline(cfg: BenchConfig, length: float, out: Path, holdout: int = 0) -
 
 def model_load(model_dir: Path) -> tuple[float, float]:
     """Seconds to load a model (memory-mapped) and to upload it to the GPU (NaN without EGL)."""
-    from billboards.model import load
+    from billboards.model_reader import load
 
     t0 = time.perf_counter()
     model = load(model_dir)
@@ -275,7 +275,7 @@ def _scaling_plot(runs: list[PipelineRun], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from data_synth.fileio import write_bytes
+    from core.fileio import write_bytes
 
     lengths = [r.length for r in runs]
     fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10, 4))

@@ -24,8 +24,9 @@ SIZE = (1280, 720)
 
 
 def bench_decode_and_cull(cfg: BenchConfig, report: Report, model_dir: Path, street_length: float) -> None:
-    from billboards.model import load
-    from render.benchmark import cull_fps, decode_fps, street_views
+    from billboards.model_reader import load
+    from render.benchmark import cull_fps, decode_fps
+    from render.paths import street_views
     from render.context import create_context, describe
 
     model = load(model_dir)
@@ -58,7 +59,8 @@ def bench_decode_and_cull(cfg: BenchConfig, report: Report, model_dir: Path, str
 def bench_town(cfg: BenchConfig, report: Report) -> None:
     from data_synth import TownConfig, build_town
     from data_synth.dataset import SynthConfig, capture_path
-    from render.benchmark import town_cull_fps, town_views
+    from render.benchmark import town_cull_fps
+    from render.paths import town_views
     from render.context import create_context
 
     town_cfg = TownConfig(size=600.0) if cfg.quick else TownConfig()
@@ -93,7 +95,7 @@ def bench_novel_views(cfg: BenchConfig, report: Report, dataset: Path, work: Pat
     the Open3D point projection, on and off path, over seen pixels and whole images; the
     work-precision diagram ``novel_views_workprecision.png`` (:func:`render.evaluate.work_precision_plot`)."""
     from billboards.build import BuildConfig, main as build_main
-    from billboards.model import load
+    from billboards.model_reader import load
     from billboards.pca import PcaConfig
     from billboards.sky import read_sky
     from render.evaluate import EvalConfig, evaluate_views, work_precision_plot

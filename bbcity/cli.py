@@ -425,7 +425,7 @@ def _work_dataset(args) -> Path:
 def _work_poses(work: Path) -> Path | None:
     """The poses.json a recon WORK directory wrote (its recon_report.json "poses_file": the
     poses were not the dataset's own), else None (the dataset's poses.json)."""
-    from data_synth.fileio import read_json
+    from core.fileio import read_json
 
     report = read_json(work / "recon_report.json")
     name = report.get("poses_file") if isinstance(report, dict) else None
@@ -442,7 +442,7 @@ def _work_poses(work: Path) -> Path | None:
 
 def _work_holdout(work: Path) -> int:
     """The ``--holdout`` a recon WORK directory was made with (0 when its report predates it)."""
-    from data_synth.fileio import read_json
+    from core.fileio import read_json
 
     report = read_json(work / "recon_report.json")
     config = report.get("config") if isinstance(report, dict) else None
@@ -491,7 +491,7 @@ def _add_sampling_eval(sub) -> None:
 def _run_sampling_eval(args) -> int:
     from billboards.evaluate import compare_sampling, markdown
     from billboards.octree import OctreeConfig
-    from data_synth.fileio import write_bytes, write_json
+    from core.fileio import write_bytes, write_json
 
     dataset = _work_dataset(args)
     report = compare_sampling(dataset, args.work / "cloud.ply", OctreeConfig(voxel_size=args.voxel_size),
@@ -601,8 +601,9 @@ def _check_fps(args) -> None:
 
 
 def _run_fps(args) -> int:
-    from billboards.model import load
-    from render.benchmark import cull_fps, decode_fps, street_views, town_cull_fps, town_views
+    from billboards.model_reader import load
+    from render.benchmark import cull_fps, decode_fps, town_cull_fps
+    from render.paths import street_views, town_views
     from render.context import create_context, describe
 
     model = None if args.model is None else load(args.model)  # a bad model fails before any GL work
@@ -658,9 +659,10 @@ def _add_render(sub) -> None:
 
 
 def _run_render(args) -> int:
-    from billboards.model import load
+    from billboards.model_reader import load
     from billboards.sky import read_sky
-    from render.fly_through import camera_path, render_path
+    from render.fly_through import render_path
+    from render.paths import camera_path
 
     model = load(args.model)
     poses = camera_path(model, args.path, args.frames)
@@ -732,7 +734,7 @@ def _eval_config(args):
 
 
 def _run_eval(args) -> int:
-    from billboards.model import load
+    from billboards.model_reader import load
     from billboards.sky import read_sky
     from render.evaluate import evaluate_views, write_report
 
@@ -790,7 +792,7 @@ def _add_view(sub) -> None:
 
 
 def _run_view(args) -> int:
-    from billboards.model import load
+    from billboards.model_reader import load
     from billboards.sky import read_sky
     from render.viewer import run_viewer
 
@@ -832,8 +834,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
-    from data_synth import DataFormatError
-    from data_synth.workdir import owned_output
+    from core import DataFormatError
+    from core.workdir import owned_output
 
     from .executor import tune_allocator
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.fileio import atomic_path, write_bytes, write_json
 from data_synth import load_dataset
-from data_synth.fileio import atomic_path, write_bytes, write_json
 
 logger = logging.getLogger(__name__)
 

@@ -22,18 +22,19 @@ from pathlib import Path
 
 import numpy as np
 
+from core.fileio import write_json
+from core.metrics import psnr_from_mse
+from core.tasks import executor_workers, ordered_results
 from data_synth import load_dataset, load_scene
 from data_synth.dataset import held_out_frames
-from data_synth.fileio import write_json
-from data_synth.tasks import executor_workers, ordered_results
 from recon.cloud_io import read_cloud_arrays
 from recon.epi import EpiConfig, epi_points
 
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
 from .layer import Layer, LayerConfig, build_layer, facade_depth_report
-from .model import ModelWriter, temp_dir
+from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
-from .pca import TOL, PcaConfig, eigen_textures
+from .pca import PcaConfig, eigen_textures
 from .photometry import PhotometryConfig, estimate_gains
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
@@ -494,7 +495,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         shutil.rmtree(state, ignore_errors=True)
 
     write_sky(model_dir, sky)
-    from .model import load
+    from .model_reader import load
     model = load(model_dir)
     report = totals.report(model, conf, octree, len(views) if views is not None else 0)
     report["layer"] = layer_report
@@ -556,10 +557,7 @@ def _layer_report(layer: Layer, passes, points: np.ndarray, dataset, config: Lay
 def _psnr_db(sq_err: float, count: int) -> float | None:
     """PSNR (dB, peak 1) of a sum of squared errors over ``count`` values, capped at
     TOL.psnr_max_db for an exact decode; None when nothing was measured (valid JSON either way)."""
-    if count == 0:
-        return None
-    mse = sq_err / count
-    return float(10 * np.log10(1.0 / max(mse, 10.0 ** (-TOL.psnr_max_db / 10.0))))
+    return None if count == 0 else psnr_from_mse(sq_err / count)
 
 
 def _db(value: float | None) -> str:

@@ -1,4 +1,4 @@
-"""The on-disk billboard model: arrays, atlas pages and a manifest; CPU decode.
+"""The billboard model format: arrays, atlas pages and a manifest; :class:`BillboardModel`.
 
 Layout of a model directory::
 
@@ -30,35 +30,30 @@ and a row of d coefficients (the mean's row is zero). q is ``data / 255`` for ui
 data and ``data`` for float data. View direction j = p·d_yaw + y looks from world yaw
 ``base_yaw + yaw_offsets[y]`` and pitch ``pitches[p]``.
 
-Every array is a plain ``.npy`` (never pickled). :func:`save` and :class:`ModelWriter`
-write into a temporary directory beside the target and rename it into place, so a
-model directory is either complete or absent. :func:`load` validates everything and
-raises :class:`~data_synth.fileio.DataFormatError` naming the offending file.
+Every array is a plain ``.npy`` (never pickled). This module defines the format: the
+manifest's constants and schema (:func:`_manifest_doc` writes it, :func:`_parse_manifest`
+checks it) and the consistency of the tables (:meth:`BillboardModel.check`).
+:mod:`billboards.model_reader` loads and validates a model directory,
+:mod:`billboards.model_writer` writes one atomically, :mod:`billboards.decode` is the
+CPU reference decode.
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import math
 import operator
-import os
 import re
-import shutil
-import tempfile
-import tokenize
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from data_synth.fileio import DataFormatError, load_npy, save_npy, write_json
+from core.fileio import DataFormatError
 
 from .geometry import KINDS
-from .atlas import AtlasLayout, AtlasWriter, RowWriter, atlas_layout, read_rows, read_tiles, row_layout
-
-logger = logging.getLogger(__name__)
+from .atlas import AtlasLayout, atlas_layout, row_layout
 
 FORMAT = "bbcity-billboards"
 VERSION = 2
@@ -87,14 +82,14 @@ ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
 _BILLBOARD_ARRAYS = ("centres", "base_yaw", "kind", "rank")
 _SLOT_ARRAYS = ("slot_scale", "slot_offset", "coef_scale", "coef_offset")
 
-_MAX_MANIFEST_BYTES = 64 << 20
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,200}\.npy")
 _MAX_PAGE_SIZE = 1 << 16
 
 
 @dataclass(eq=False)
 class BillboardModel:
-    """A billboard model in memory (pages memory-mapped read-only after :func:`load`)."""
+    """A billboard model in memory (pages memory-mapped read-only after
+    :func:`billboards.model_reader.load`)."""
 
     origin: np.ndarray  # (3,) float64 world position that all float32 positions are relative to
     voxel_size: float  # billboard edge (m)
@@ -166,7 +161,8 @@ class BillboardModel:
         return out
 
     def check(self) -> None:
-        """Raise ValueError if the model is inconsistent (what :func:`load` would reject)."""
+        """Raise ValueError if the model is inconsistent (what :func:`billboards.model_reader.load`
+        would reject)."""
         try:
             doc = _manifest_doc(self)
         except (TypeError, ValueError, OverflowError) as e:
@@ -422,14 +418,6 @@ def _parse_manifest(doc: Any, path: Path) -> _Meta:
                  n, m, k, d, pages, coef_pages, files, info)
 
 
-def _check_page_entries(r: _Doc, entries: list[tuple[str, int, int]], layout: AtlasLayout, what: str) -> None:
-    if len(entries) != layout.num_pages:
-        raise r.fail(f"{what} lists {len(entries)} pages; {layout.num_tiles} slots need {layout.num_pages}")
-    for i, ((_, h, w), shape) in enumerate(zip(entries, layout.page_shapes)):
-        if (h, w) != shape:
-            raise r.fail(f"{what}[{i}] is {h}×{w} (height×width), the layout needs {shape[0]}×{shape[1]}")
-
-
 def _checked(fn):
     """Run ``fn``; a DataFormatError becomes a ValueError (for in-memory models)."""
     try:
@@ -453,57 +441,6 @@ def _array_problem(dtype: np.dtype, shape: tuple, want_dtype: np.dtype, want_sha
     if tuple(shape) != tuple(want_shape):
         return f"shape {tuple(shape)}, expected {tuple(want_shape)}"
     return None
-
-
-def _npy_header(path: Path) -> tuple[tuple, bool, np.dtype, int]:
-    """(shape, fortran_order, dtype, data offset) from a .npy header, without reading the data."""
-    if not path.is_file():
-        raise DataFormatError(path, "file is missing")
-    try:
-        with open(path, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            if version == (1, 0):
-                header = np.lib.format.read_array_header_1_0(f, max_header_size=10000)
-            elif version == (2, 0):
-                header = np.lib.format.read_array_header_2_0(f, max_header_size=10000)
-            else:
-                raise DataFormatError(path, f"unsupported .npy format version {version}")
-            offset = f.tell()
-    except DataFormatError:
-        raise
-    # numpy parses the header with Python's tokenizer: garbage surfaces as SyntaxError/TokenError
-    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, RecursionError, MemoryError) as e:
-        raise DataFormatError(path, f"not a valid .npy array ({e})") from None
-    shape, fortran, dtype = header
-    return tuple(shape), bool(fortran), dtype, offset
-
-
-def _load_array(path: Path, dtype: np.dtype, shape: tuple, mmap: bool, hint: str = "") -> np.ndarray:
-    """Check the header of ``path`` against ``dtype``/``shape`` and the file's size, then load it.
-
-    Nothing is allocated before the header has been checked, so a header claiming terabytes
-    fails with a DataFormatError. ``mmap``: map read-only (finiteness is then not checked).
-    """
-    file_shape, fortran, file_dtype, offset = _npy_header(path)
-    if file_dtype.hasobject:
-        raise DataFormatError(path, "holds Python objects (pickles are not loaded)")
-    problem = _array_problem(file_dtype, file_shape, dtype, shape)
-    if problem:
-        raise DataFormatError(path, problem + hint)
-    if fortran and len(shape) > 1:
-        raise DataFormatError(path, "is stored in Fortran order, expected C order")
-    nbytes = math.prod(shape) * dtype.itemsize
-    size = path.stat().st_size - offset
-    if size < nbytes:
-        raise DataFormatError(path, f"is truncated: the header claims {nbytes} bytes of data, the file holds {size}")
-    if size > nbytes:
-        raise DataFormatError(path, f"has {size - nbytes} bytes after the array data")
-    if mmap and nbytes > 0:
-        try:
-            return np.load(path, mmap_mode="r", allow_pickle=False)
-        except (ValueError, TypeError, OSError) as e:
-            raise DataFormatError(path, f"cannot be memory-mapped ({e})") from None
-    return load_npy(path, dtype=dtype, shape=shape, finite=True, max_bytes=nbytes)
 
 
 def _table_problem(a: dict[str, np.ndarray], d: int) -> tuple[str, str] | None:
@@ -560,402 +497,3 @@ def _table_problem(a: dict[str, np.ndarray], d: int) -> tuple[str, str] | None:
         i = int(bad[0])
         return "node_bounds", f"node {i} has min {bounds[i, 0].tolist()} above max {bounds[i, 1].tolist()}"
     return None
-
-
-# ----------------------------------------------------------------------------------------------
-# load
-
-
-def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
-    """Read and validate the model in directory ``path``.
-
-    mmap: memory-map the atlas and coefficient pages read-only (their headers, shapes,
-    dtypes and file sizes are checked; with ``mmap=False`` they are read and checked
-    finite too). Every other array is read and checked in full. Any problem raises
-    DataFormatError naming manifest.json or the offending ``.npy``.
-    """
-    path = Path(path)
-    mpath = path / MANIFEST
-    if not mpath.is_file():
-        raise DataFormatError(mpath, "file is missing" + ("" if path.is_dir() else f" (no model directory {path})"))
-    if mpath.stat().st_size > _MAX_MANIFEST_BYTES:
-        raise DataFormatError(mpath, f"is larger than {_MAX_MANIFEST_BYTES} bytes")
-    try:
-        doc = json.loads(mpath.read_bytes(), parse_constant=_reject_constant)
-    except (ValueError, UnicodeDecodeError, RecursionError) as e:
-        raise DataFormatError(mpath, f"not valid JSON ({e})") from None
-    meta = _parse_manifest(doc, mpath)
-    r = _Doc(mpath)
-
-    arrays = {}
-    for name, (dtype, _) in ARRAYS.items():
-        counted = {"n": "billboards", "m": "slots", "k": "nodes"}[ARRAYS[name][1][0]]
-        arrays[name] = _load_array(path / meta.arrays[name], dtype, _shape(name, meta), mmap=False,
-                                   hint=f" (counts.{counted} in {mpath})")
-    problem = _table_problem(arrays, meta.d)
-    if problem:
-        raise DataFormatError(path / meta.arrays[problem[0]], problem[1])
-
-    tiles = atlas_layout(meta.m, meta.tile, meta.page_size)
-    rows = row_layout(meta.m, meta.d, meta.page_size)
-    _check_page_entries(r, meta.pages, tiles, "pages")
-    _check_page_entries(r, meta.coef_pages, rows, "coefficient_pages")
-    pages = [_load_array(path / f, TILE_MODES[meta.tile_mode], (h, w, 4), mmap) for f, h, w in meta.pages]
-    coef_pages = [_load_array(path / f, COEF_MODES[meta.coef_mode], (h, w), mmap) for f, h, w in meta.coef_pages]
-
-    return BillboardModel(
-        origin=meta.origin, voxel_size=meta.voxel_size, block_size=meta.block_size, tile=meta.tile,
-        page_size=meta.page_size,
-        yaw_offsets=meta.yaw_offsets, pitches=meta.pitches, pitched_quads=meta.pitched_quads,
-        tile_mode=meta.tile_mode, coef_mode=meta.coef_mode, pages=pages, coef_pages=coef_pages,
-        info=meta.info, **arrays)
-
-
-def _reject_constant(name: str) -> None:
-    raise ValueError(f"{name} is not allowed")
-
-
-# ----------------------------------------------------------------------------------------------
-# save
-
-
-def _check_replaceable(path: Path) -> None:
-    """Refuse to replace anything at ``path`` that is not a model directory (or an empty one)."""
-    if path.is_symlink() or (path.exists() and not path.is_dir()):
-        raise FileExistsError(f"{path} exists and is not a model directory; not replacing it")
-    if path.is_dir() and not (path / MANIFEST).is_file() and any(path.iterdir()):
-        raise FileExistsError(f"{path} exists and is not a billboard model (no {MANIFEST}); not replacing it")
-
-
-def new_dir_mode() -> int:
-    """The mode ``os.mkdir`` gives a new directory: 0o777 less the process umask."""
-    try:  # Linux reports the umask without changing it (os.umask would, for every thread)
-        with open("/proc/self/status") as f:
-            mask = next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
-    except (OSError, StopIteration, ValueError, IndexError):
-        mask = os.umask(0o022)
-        os.umask(mask)
-    return 0o777 & ~mask
-
-
-def temp_dir(parent: Path, prefix: str) -> Path:
-    """A new, uniquely named directory in ``parent`` with the mode of ``os.mkdir``, not the
-    0o700 of ``tempfile.mkdtemp``: it is renamed into place as the output (others may read it)."""
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
-    os.chmod(tmp, new_dir_mode())
-    return tmp
-
-
-def _temp_dir(path: Path) -> Path:
-    return temp_dir(path.parent, f".{path.name}.tmp-")
-
-
-def _install(tmp: Path, path: Path) -> None:
-    """Rename the finished directory ``tmp`` to ``path``, replacing a model there only now."""
-    _check_replaceable(path)
-    if not path.exists():
-        os.rename(tmp, path)
-        return
-    old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
-    os.rename(path, old / "model")  # old aside (a rename within one directory tree)
-    try:
-        os.rename(tmp, path)
-    except BaseException:
-        os.rename(old / "model", path)
-        shutil.rmtree(old, ignore_errors=True)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def _write_tables(model: BillboardModel, directory: Path) -> None:
-    for name in ARRAYS:
-        save_npy(directory / f"{name}.npy", getattr(model, name))
-
-
-def save(model: BillboardModel, path: os.PathLike | str) -> Path:
-    """Write ``model`` to the directory ``path`` atomically; returns ``path``.
-
-    The model is checked first (ValueError if inconsistent). Everything is written into
-    a temporary directory beside ``path``, the manifest last, then renamed into place; an
-    existing model at ``path`` is replaced only once the new one is complete. On any
-    failure nothing at ``path`` changes. A non-model file or directory at ``path`` is
-    never replaced (FileExistsError).
-    """
-    path = Path(path)
-    model.check()
-    doc = _manifest_doc(model)
-    _check_replaceable(path)
-    tmp = _temp_dir(path)
-    try:
-        _write_tables(model, tmp)
-        for entries, pages in ((doc["pages"], model.pages), (doc["coefficient_pages"], model.coef_pages)):
-            for entry, page in zip(entries, pages):
-                save_npy(tmp / entry["file"], page)
-        write_json(tmp / MANIFEST, doc)
-        _install(tmp, path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    logger.info("saved billboard model to %s (%d billboards, %d slots)", path, model.num_billboards,
-                model.num_slots)
-    return path
-
-
-class ModelWriter:
-    """Streaming model build: append billboards chunk by chunk, then :meth:`finish`.
-
-    Tiles and coefficient rows go straight into page files in a temporary directory
-    beside ``path``; per-billboard and per-slot tables are kept in memory (tens of
-    bytes per slot). Use it as a context manager: an exception inside the block, or
-    leaving it without :meth:`finish`, removes the temporary directory and leaves
-    ``path`` untouched.
-    """
-
-    def __init__(self, path: os.PathLike | str, *, tile: int, page_size: int, tile_mode: str,
-                 coef_mode: str, num_directions: int):
-        self.path = Path(path)
-        if tile_mode not in TILE_MODES:
-            raise ValueError(f"tile_mode must be one of {sorted(TILE_MODES)}, got {tile_mode!r}")
-        if coef_mode not in COEF_MODES:
-            raise ValueError(f"coef_mode must be one of {sorted(COEF_MODES)}, got {coef_mode!r}")
-        atlas_layout(0, tile, page_size)
-        row_layout(0, num_directions, page_size)
-        _check_replaceable(self.path)
-        self.tile, self.page_size = int(tile), int(page_size)
-        self.tile_mode, self.coef_mode = tile_mode, coef_mode
-        self.num_directions = int(num_directions)
-        self._tmp = _temp_dir(self.path)
-        self._tiles = AtlasWriter(self._tmp, self.tile, self.page_size, TILE_MODES[tile_mode], prefix="atlas")
-        self._coefs = RowWriter(self._tmp, self.num_directions, self.page_size, COEF_MODES[coef_mode],
-                                prefix="coef")
-        self._parts: dict[str, list[np.ndarray]] = {name: [] for name in (*_BILLBOARD_ARRAYS, *_SLOT_ARRAYS)}
-        self.num_billboards = 0
-        self.num_slots = 0
-        self._state = "open"
-
-    def append(self, *, centres, base_yaw, rank, tiles, slot_scale, slot_offset, coef_rows, coef_scale,
-               coef_offset, kind=None) -> None:
-        """Append b billboards with their m = Σ(1 + rank) slots.
-
-        centres (b, 3) float32 relative to origin; base_yaw (b,) radians; rank (b,) ≤ d;
-        kind (b,) uint8 (None: all BILLBOARD);
-        tiles (m, t, t, 4) uint8 ("u8") or float ("f16"), per billboard [mean, eigen_1 … eigen_r];
-        slot_scale, slot_offset (m, 4); coef_rows (m, d) in the coefficient dtype (any float
-        for "f32"/"f16", uint8 for "u8"); coef_scale, coef_offset (m,).
-        """
-        if self._state != "open":
-            raise RuntimeError(f"ModelWriter is {self._state}")
-        d, t = self.num_directions, self.tile
-        rank = np.asarray(rank)
-        if rank.ndim != 1 or (rank.size and rank.dtype.kind not in "iu"):
-            raise ValueError(f"rank must be (b,) integers, got {rank.shape} {rank.dtype}")
-        b = len(rank)
-        if b and (rank.min() < 0 or rank.max() > min(d, 255)):
-            raise ValueError(f"rank must lie in [0, {min(d, 255)}], got {rank.min()}…{rank.max()}")
-        m = b + int(rank.sum())
-        arrays = {
-            "centres": _as(centres, np.float32, (b, 3), "centres"),
-            "base_yaw": _as(base_yaw, np.float32, (b,), "base_yaw"),
-            "kind": _as(np.zeros(b, np.uint8) if kind is None else kind, np.uint8, (b,), "kind"),
-            "rank": rank.astype(np.uint8),
-            "slot_scale": _as(slot_scale, np.float32, (m, 4), "slot_scale"),
-            "slot_offset": _as(slot_offset, np.float32, (m, 4), "slot_offset"),
-            "coef_scale": _as(coef_scale, np.float32, (m,), "coef_scale"),
-            "coef_offset": _as(coef_offset, np.float32, (m,), "coef_offset"),
-        }
-        tiles = np.asarray(tiles)
-        coef_rows = np.asarray(coef_rows)
-        if tiles.shape != (m, t, t, 4):
-            raise ValueError(f"tiles must be ({m}, {t}, {t}, 4) for ranks summing to {m - b}, got {tiles.shape}")
-        if coef_rows.shape != (m, d):
-            raise ValueError(f"coef_rows must be ({m}, {d}), got {coef_rows.shape}")
-        if tiles.dtype.kind == "f" and not np.all(np.isfinite(tiles.astype(TILE_MODES[self.tile_mode]))):
-            raise ValueError("tiles contain NaN or inf (after conversion to float16)")
-        if coef_rows.dtype.kind == "f" and not np.all(np.isfinite(coef_rows.astype(COEF_MODES[self.coef_mode]))):
-            raise ValueError(f"coef_rows contain NaN or inf (after conversion to {COEF_MODES[self.coef_mode]})")
-        if self.num_slots + m >= 2**31:
-            raise ValueError("more than 2³¹ slots")
-        self._tiles.append(tiles)
-        self._coefs.append(coef_rows)
-        for name, array in arrays.items():
-            self._parts[name].append(array)
-        self.num_billboards += b
-        self.num_slots += m
-
-    def finish(self, *, origin, voxel_size, yaw_offsets, pitches, pitched_quads, node_level, node_bounds,
-               node_children, node_range, info, block_size=None) -> Path:
-        """Write the tables, coefficient pages and (last) the manifest, then rename into ``path``."""
-        if self._state != "open":
-            raise RuntimeError(f"ModelWriter is {self._state}")
-        try:
-            yaw = np.asarray(yaw_offsets, dtype=np.float64)
-            pitch = np.asarray(pitches, dtype=np.float64)
-            if yaw.size * pitch.size != self.num_directions:
-                raise ValueError(f"{yaw.size} yaw offsets × {pitch.size} pitches ≠ num_directions "
-                                 f"{self.num_directions}")
-            pages = self._tiles.close()
-            coef_pages = self._coefs.close()
-            parts = {name: np.concatenate(p) if p else np.zeros((0,) + ARRAYS[name][1][1:], ARRAYS[name][0])
-                     for name, p in self._parts.items()}
-            rank = parts["rank"].astype(np.int64)
-            first = np.zeros(len(rank), dtype=np.int64)
-            np.cumsum(1 + rank[:-1], out=first[1:])
-            model = BillboardModel(
-                origin=np.asarray(origin, dtype=np.float64), voxel_size=voxel_size, block_size=block_size,
-                tile=self.tile,
-                page_size=self.page_size, yaw_offsets=yaw, pitches=pitch, pitched_quads=pitched_quads,
-                tile_mode=self.tile_mode, coef_mode=self.coef_mode, first_slot=first.astype(np.int32),
-                pages=[np.load(self._tmp / e["file"], mmap_mode="r") for e in pages],
-                coef_pages=[np.load(self._tmp / e["file"], mmap_mode="r") for e in coef_pages],
-                node_level=np.asarray(node_level), node_bounds=np.asarray(node_bounds),
-                node_children=np.asarray(node_children), node_range=np.asarray(node_range),
-                info=info, **parts)
-            model.check()
-            doc = _manifest_doc(model, pages, coef_pages)
-            _write_tables(model, self._tmp)
-            del model  # drop the page mappings before renaming
-            write_json(self._tmp / MANIFEST, doc)
-            _install(self._tmp, self.path)
-        except BaseException:
-            self.abort()
-            raise
-        self._state = "finished"
-        logger.info("wrote billboard model to %s (%d billboards, %d slots)", self.path, self.num_billboards,
-                    self.num_slots)
-        return self.path
-
-    def abort(self) -> None:
-        """Discard everything written so far (idempotent); ``path`` is untouched."""
-        if self._state == "finished":
-            return
-        self._tiles.abort()
-        self._coefs.abort()
-        shutil.rmtree(self._tmp, ignore_errors=True)
-        self._state = "aborted"
-
-    def __enter__(self) -> ModelWriter:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if self._state == "open" and exc_type is None:
-            logger.warning("ModelWriter for %s left without finish(): discarding it", self.path)
-        self.abort()
-
-
-def _as(value, dtype, shape: tuple, what: str) -> np.ndarray:
-    array = np.asarray(value)
-    if array.shape != shape:
-        raise ValueError(f"{what} must have shape {shape}, got {array.shape}")
-    if array.size and array.dtype.kind not in "fiu":
-        raise ValueError(f"{what} must be numeric, got {array.dtype}")
-    array = array.astype(dtype)
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{what} contains NaN or inf")
-    return array
-
-
-# ----------------------------------------------------------------------------------------------
-# decode
-
-
-def _bracket(index: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Neighbouring sample indices (i0, i1) and weight of i1 for fractional ``index``, clamped."""
-    x = np.clip(index, 0, count - 1)
-    i0 = np.minimum(np.floor(x).astype(np.int64), max(count - 2, 0))
-    i1 = np.minimum(i0 + 1, count - 1)
-    return i0, i1, (x - i0).astype(np.float32)
-
-
-def _dequant_tiles(model: BillboardModel, slots: np.ndarray) -> np.ndarray:
-    """(len(slots), t, t, 4) float32 tile values offset + scale·q."""
-    q = read_tiles(model.pages, slots, model.tile, model.page_size).astype(np.float32)
-    if model.tile_mode == "u8":
-        q /= np.float32(255)
-    return model.slot_offset[slots][:, None, None, :] + model.slot_scale[slots][:, None, None, :] * q
-
-
-def _dequant_coefs(model: BillboardModel, slots: np.ndarray) -> np.ndarray:
-    """(len(slots), d) float32 coefficients offset + scale·q."""
-    q = read_rows(model.coef_pages, slots, model.num_directions, model.page_size).astype(np.float32)
-    if model.coef_mode == "u8":
-        q /= np.float32(255)
-    return model.coef_offset[slots][:, None] + model.coef_scale[slots][:, None] * q
-
-
-def _billboards(model: BillboardModel, billboards) -> np.ndarray:
-    b = np.asarray(billboards)
-    if b.size and b.dtype.kind not in "iu":
-        raise TypeError(f"billboard indices must be integers, got {b.dtype}")
-    b = b.astype(np.int64).reshape(-1)
-    if b.size and (b.min() < 0 or b.max() >= model.num_billboards):
-        raise IndexError(f"billboard index out of range [0, {model.num_billboards})")
-    return b
-
-
-def decode(model: BillboardModel, billboards, yaw_index, pitch_index=None) -> np.ndarray:
-    """Textures of billboards seen from fractional direction indices (CPU reference decode).
-
-    billboards (B,) int; yaw_index (B,) float in [0, d_yaw − 1], pitch_index (B,) float in
-    [0, d_pitch − 1] or None (= 0); scalars broadcast. Indices beyond the table are
-    clamped; between samples the coefficients are interpolated bilinearly over yaw ×
-    pitch. Returns (B, t, t, 4) float32 = clip(mean + Σ_k w_k·V_k, 0, 1).
-    """
-    b = _billboards(model, billboards)
-    B = b.size
-    yi = np.broadcast_to(np.asarray(yaw_index, dtype=np.float64), (B,))
-    pi = np.zeros(B) if pitch_index is None else np.broadcast_to(np.asarray(pitch_index, dtype=np.float64), (B,))
-    if not (np.all(np.isfinite(yi)) and np.all(np.isfinite(pi))):
-        raise ValueError("direction indices must be finite")
-    dy = len(model.yaw_offsets)
-    y0, y1, fy = _bracket(yi, dy)
-    p0, p1, fp = _bracket(pi, len(model.pitches))
-    corners = np.stack([p0 * dy + y0, p0 * dy + y1, p1 * dy + y0, p1 * dy + y1], axis=1)  # (B, 4)
-    weights = np.stack([(1 - fy) * (1 - fp), fy * (1 - fp), (1 - fy) * fp, fy * fp], axis=1)
-    first = model.first_slot[b].astype(np.int64)
-    rank = model.rank[b].astype(np.int64)
-    out = _dequant_tiles(model, first)
-    for k in range(int(rank.max()) if B else 0):
-        sel = np.flatnonzero(rank > k)
-        slots = first[sel] + 1 + k
-        coef = _dequant_coefs(model, slots)
-        w = np.sum(weights[sel] * np.take_along_axis(coef, corners[sel], axis=1), axis=1)
-        out[sel] += w[:, None, None, None] * _dequant_tiles(model, slots)
-    return np.clip(out, 0, 1, out=out)
-
-
-def decode_directions(model: BillboardModel, billboards) -> np.ndarray:
-    """Textures of billboards at every sampled direction: (B,) int → (B, d, t, t, 4) float32 in [0, 1]."""
-    b = _billboards(model, billboards)
-    first = model.first_slot[b].astype(np.int64)
-    rank = model.rank[b].astype(np.int64)
-    mean = _dequant_tiles(model, first)
-    out = np.repeat(mean[:, None], model.num_directions, axis=1)
-    for k in range(int(rank.max()) if b.size else 0):
-        sel = np.flatnonzero(rank > k)
-        slots = first[sel] + 1 + k
-        coef = _dequant_coefs(model, slots)
-        out[sel] += coef[:, :, None, None, None] * _dequant_tiles(model, slots)[:, None]
-    return np.clip(out, 0, 1, out=out)
-
-
-def direction_index(model: BillboardModel, billboards, view_dirs) -> tuple[np.ndarray, np.ndarray]:
-    """Fractional direction indices for viewers in directions ``view_dirs``.
-
-    billboards (B,) int; view_dirs (B, 3) float64 vectors from the billboard toward the
-    viewer (normalised here). Yaw atan2(y, x) − base_yaw is wrapped to (−π, π] and
-    pitch atan2(z, |xy|) (= asin z for unit vectors); both map linearly between sample
-    angles to fractional indices, clamped to the table. Returns (yaw_index (B,),
-    pitch_index (B,)) float64.
-    """
-    b = _billboards(model, billboards)
-    v = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
-    if len(v) != b.size:
-        raise ValueError(f"{b.size} billboards but {len(v)} view directions")
-    yaw = np.arctan2(v[:, 1], v[:, 0]) - model.base_yaw[b].astype(np.float64)
-    yaw = np.pi - np.mod(np.pi - yaw, 2 * np.pi)
-    pitch = np.arctan2(v[:, 2], np.hypot(v[:, 0], v[:, 1]))
-    yi = np.interp(yaw, model.yaw_offsets, np.arange(len(model.yaw_offsets), dtype=np.float64))
-    pi = np.interp(pitch, model.pitches, np.arange(len(model.pitches), dtype=np.float64))
-    return yi, pi
-

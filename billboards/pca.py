@@ -37,6 +37,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from tqdm import tqdm
 
+from core.metrics import PSNR_MAX_DB
+
 logger = logging.getLogger(__name__)
 
 PRECISIONS = ("float64", "float32")
@@ -50,7 +52,7 @@ class PcaTolerances:
     rank_rtol64: float = 1e-10  # eigenvalues ≤ this × λ_max are round-off (float64 Gram: errors ~1e-14 λ_max)
     rank_rtol32: float = 1e-5  # the same for a float32 Gram (entries off by ~√n·6e-8 ≈ 4e-6 relative)
     max_abs_value: float = 1e6  # inputs beyond this magnitude are rejected (textures are in [0, 1])
-    psnr_max_db: float = 100.0  # psnr of identical images (finite, so that reports stay valid JSON)
+    psnr_max_db: float = PSNR_MAX_DB  # psnr of identical images (finite, so that reports stay valid JSON)
 
 
 #: The tolerances used by this module.
@@ -229,30 +231,6 @@ def eigen_textures_reference(samples: np.ndarray, config: PcaConfig = PcaConfig(
         coeff_out[b, :, :r] = coeffs[b]
     return EigenTextures(np.array(means, np.float32).reshape(count, n), basis_out, coeff_out,
                          np.array(ranks, np.int32))
-
-
-def psnr(a: np.ndarray, b: np.ndarray, peak: float = 1.0, mask: np.ndarray | None = None) -> float:
-    """Peak signal-to-noise ratio in dB of ``a`` against ``b`` (same shapes).
-
-    Values where ``mask`` is False, or either side is NaN, are left out; NaN
-    when no value is left. ``mask`` is bool over the leading axes of ``a`` (an
-    (h, w) mask for (h, w, 3) images) or broadcastable to ``a``. Identical inputs give
-    TOL.psnr_max_db (100 dB) rather than inf, so reports stay valid JSON; the
-    result is capped there in general.
-    """
-    diff = np.asarray(a, np.float64) - np.asarray(b, np.float64)
-    valid = ~np.isnan(diff)
-    if mask is not None:
-        mask = np.asarray(mask, bool)
-        mask = mask.reshape(mask.shape + (1,) * (diff.ndim - mask.ndim))
-        valid &= np.broadcast_to(mask, diff.shape)
-    if not valid.any():
-        return float("nan")
-    mse = float(np.mean(np.square(diff[valid])))
-    if not math.isfinite(mse):
-        return float("-inf") if mse == math.inf else float("nan")
-    floor = peak * peak * 10.0 ** (-TOL.psnr_max_db / 10.0)
-    return float(10.0 * math.log10(peak * peak / max(mse, floor)))
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -34,7 +34,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from data_synth.fileio import read_png
+
+from core.fileio import read_png
 
 from .geometry import BILLBOARD, GROUND, DirectionConfig, direction_angles, kind_frames, texel_offsets, unit_vectors
 

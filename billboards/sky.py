@@ -38,7 +38,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from data_synth.fileio import DataFormatError, load_npy, read_json, save_npy, write_json
+from core.fileio import DataFormatError, load_npy, read_json, save_npy, write_json
 
 logger = logging.getLogger(__name__)
 

@@ -44,15 +44,17 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import pycolmap
 
+from core.fileio import replace_dir
+from core.rigid import nearest_rotation, rigid_inverse
+
 from .distortion import Distortion
-from .rigid import nearest_rotation, rigid_inverse
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["write_colmap_text", "colmap_camera_model", "OPENCV_TO_COLMAP_PIXEL_OFFSET"]
+__all__ = ["write_colmap_text", "colmap_camera_model", "COLMAP_PIXEL_OFFSET"]
 
 #: Added to an OpenCV principal point (cx, cy) to get COLMAP's.
-OPENCV_TO_COLMAP_PIXEL_OFFSET = 0.5
+COLMAP_PIXEL_OFFSET = 0.5
 
 _ROT_TOL = 1e-6  # max |R^T R - I| and |det R - 1| accepted as a rotation
 
@@ -173,7 +175,7 @@ def to_rigid3d(T: np.ndarray) -> pycolmap.Rigid3d:
 
 def colmap_camera_model(K: np.ndarray, distortion: Distortion | None) -> tuple[str, list[float]]:
     """COLMAP model name and parameters of an OpenCV camera K (3, 3) float64 with a lens (or None)."""
-    params = [K[0, 0], K[1, 1], K[0, 2] + OPENCV_TO_COLMAP_PIXEL_OFFSET, K[1, 2] + OPENCV_TO_COLMAP_PIXEL_OFFSET]
+    params = [K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET, K[1, 2] + COLMAP_PIXEL_OFFSET]
     if distortion is None:
         return "PINHOLE", [float(p) for p in params]
     if distortion.model == "fisheye":
@@ -233,23 +235,6 @@ def _build_reconstruction(
 # --------------------------------------------------------------------------- writing
 
 
-def _replace_dir(tmp_dir: Path, out_dir: Path) -> None:
-    """Move the finished tmp_dir to out_dir, replacing an existing directory safely."""
-    if not out_dir.exists() and not out_dir.is_symlink():
-        tmp_dir.rename(out_dir)
-        return
-    if not out_dir.is_dir() or out_dir.is_symlink():
-        raise NotADirectoryError(f"{out_dir} exists and is not a directory; refusing to replace it")
-    old_dir = out_dir.with_name(f".{out_dir.name}.old-{uuid.uuid4().hex}")
-    out_dir.rename(old_dir)
-    try:
-        tmp_dir.rename(out_dir)
-    except BaseException:
-        old_dir.rename(out_dir)  # put the previous model back
-        raise
-    shutil.rmtree(old_dir, ignore_errors=True)
-
-
 def write_colmap_text(
     out_dir: Path,
     intrinsics: np.ndarray,
@@ -298,7 +283,7 @@ def write_colmap_text(
     tmp_dir.mkdir()
     try:
         rec.write_text(str(tmp_dir))
-        _replace_dir(tmp_dir, out_dir)
+        replace_dir(tmp_dir, out_dir)
     except BaseException:
         shutil.rmtree(tmp_dir, ignore_errors=True)
         raise

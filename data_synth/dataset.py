@@ -39,13 +39,14 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from core.fileio import DataFormatError, atomic_path, load_npy, read_json, read_png, save_npy, write_json, write_png
+from core.tasks import run_tasks
+
 from .colmap_export import write_colmap_text
 from .coverage import street_coverage
-from .fileio import DataFormatError, atomic_path, load_npy, read_json, read_png, save_npy, write_json, write_png
 from .raycast import Renderer
 from .rig import Rig, RigConfig, drive_path, load_poses, make_rig, save_poses
 from .scene import Scene
-from .tasks import run_tasks
 from .street import StreetConfig, build_street
 from .town import TownConfig, build_town, street_centres
 

@@ -35,7 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .fileio import DataFormatError
+from core.fileio import DataFormatError
 
 MODELS = ("radtan", "fisheye")
 #: Coefficient names of each model, in OpenCV's order (also their rig.json keys).

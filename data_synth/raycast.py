@@ -288,7 +288,7 @@ _LOCAL_FRAME_BEYOND = 1000.0
 _LAST_RENDERER: Renderer | None = None
 
 
-def render_view(scene: Scene, K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int],
+def truth_view(scene: Scene, K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int],
                 spp: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Render ``scene`` from any pinhole camera (public API used by evaluation).
 

@@ -26,9 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
+from core.fileio import DataFormatError, as_matrix, check_rigid, read_json, write_json
+
 from .distortion import PRESETS as DISTORTION_PRESETS
 from .distortion import Distortion, UndistortTables, cached_tables, pinhole_for
-from .fileio import DataFormatError, as_matrix, check_rigid, read_json, write_json
 
 RIG_FORMAT = "bbcity-rig"
 POSES_FORMAT = "bbcity-poses"

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from data_synth.fileio import DataFormatError, atomic_path
+from core.fileio import DataFormatError, atomic_path
 
 CLOUD_SUFFIXES = (".ply", ".pcd")
 

@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
-from data_synth.fileio import load_npy, save_npy
+from core.fileio import load_npy, save_npy
 
 logger = logging.getLogger(__name__)
 

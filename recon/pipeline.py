@@ -19,20 +19,22 @@ from pathlib import Path
 
 import numpy as np
 
+from core.fileio import DataFormatError, read_json, write_json
+from core.tasks import run_tasks
 from data_synth import load_dataset, load_scene
 from data_synth.dataset import held_out_frames
-from data_synth.fileio import DataFormatError, read_json, write_json
 from data_synth.rig import save_poses
-from data_synth.tasks import run_tasks
 
-from . import poses
 from .cloud_io import PlyStreamWriter, read_cloud
+from .colmap_poses import poses_from_colmap
 from .evaluate import evaluate_cloud
 from .fusion import FusionConfig, TileSpill, merge_tiles
 from .motion_stereo import MotionStereoConfig, motion_depth, select_partners
 from .points import depth_to_points
-from .poses import SfmConfig
+from .poses import frame_passes, poses_given, poses_unknown
 from .rectify import rectify_rig
+from .sfm import SfmConfig, poses_sfm
+from .trajectory import align_components, trajectory_rmse
 from .trinocular import TrinocularConfig, frame_depth
 
 logger = logging.getLogger(__name__)
@@ -152,14 +154,14 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
     """world_from_rig (n, 4, 4) float64 from the configured source, and a report."""
     ds = load_dataset(dataset_dir)
     if conf.poses == "given":
-        return poses.poses_given(ds), {"source": "given"}
+        return poses_given(ds), {"source": "given"}
     if conf.poses == "colmap":
         if not conf.colmap_model:
             raise ValueError("--poses colmap needs a COLMAP model directory")
-        return poses.poses_from_colmap(Path(conf.colmap_model), ds), {"source": "colmap",
-                                                                       "model": str(conf.colmap_model)}
+        return poses_from_colmap(Path(conf.colmap_model), ds), {"source": "colmap",
+                                                                 "model": str(conf.colmap_model)}
     if conf.poses == "sfm":
-        result = poses.poses_sfm(ds, work / "sfm", conf.sfm)
+        result = poses_sfm(ds, work / "sfm", conf.sfm)
         report = {"source": "sfm", "registered_frames": result.num_registered,
                   "components": result.num_components, "points": result.num_points,
                   # NaN (nothing registered; one camera: no baseline) is no JSON number
@@ -168,7 +170,7 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
                   "baseline_ratio": [r if np.isfinite(r) else None for r in result.baseline_ratio],
                   "seconds": result.seconds,
                   "models": [str(p) for p in result.model_dirs]}
-        if poses.poses_unknown(ds):
+        if poses_unknown(ds):
             # nothing to align to: SfM's own (levelled, step-scaled) frame; its components are
             # unrelated, so only the largest is kept
             report["scale_applied"] = result.scale_applied
@@ -178,14 +180,14 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
                                "place them)", dropped, result.num_components - 1)
             return np.where((result.component == 0)[:, None, None], result.world_from_rig, np.nan), report
         # each component aligned on its own (SE(3), no scale): SfM's frame is arbitrary
-        report["trajectory_vs_dataset"] = poses.trajectory_rmse(result.world_from_rig, ds.world_from_rig,
-                                                                groups=result.component)
+        report["trajectory_vs_dataset"] = trajectory_rmse(result.world_from_rig, ds.world_from_rig,
+                                                          groups=result.component)
         for per_frame in ("position_error_m", "rotation_error_deg"):  # arrays: the report keeps the summary
             report["trajectory_vs_dataset"].pop(per_frame)
         # The passes of a street see opposite sides and share no features, so SfM
         # returns unrelated components; poses.json (GPS/IMU in a real capture)
         # places each one, SfM keeps its own relative poses.
-        return poses.align_components(result.world_from_rig, result.component, ds.world_from_rig), report
+        return align_components(result.world_from_rig, result.component, ds.world_from_rig), report
     raise ValueError(f"unknown pose source {conf.poses!r}; expected one of {POSE_SOURCES}")
 
 
@@ -202,7 +204,7 @@ def write_work_poses(work: Path, ds, world_from_rig: np.ndarray, source: str) ->
     if source == "given":
         path.unlink(missing_ok=True)
         return None
-    return save_poses(path, world_from_rig, poses.frame_passes(ds), names=list(ds.frame_names))
+    return save_poses(path, world_from_rig, frame_passes(ds), names=list(ds.frame_names))
 
 
 def dataset_of_work(work: os.PathLike | str) -> Path:
@@ -287,7 +289,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
             TileSpill(spill_root, origin, conf.fusion).cleanup()
 
     report = {
-        "dataset": str(dataset_dir.resolve()), "dataset_from_work": os.path.relpath(dataset_dir.resolve(), work.resolve()),
+        "dataset": str(dataset_dir.resolve()),
+        "dataset_from_work": os.path.relpath(dataset_dir.resolve(), work.resolve()),
         "config": json.loads(json.dumps(asdict(conf), default=str)),
         "frames": len(frames), "held_out_frames": held_out, "points": num_points, "origin": origin.tolist(),
         "poses": pose_report, "poses_file": None if poses_file is None else str(poses_file.resolve()), "stages": stages,

@@ -17,44 +17,9 @@ import numpy as np
 
 from billboards.model import BillboardModel
 
-from .camera import look_at
+from .camera import default_intrinsics
+from .paths import walk
 from .renderer import BillboardRenderer
-
-
-def street_views(length: float = 300.0, height: float = 2.0, lane: float = 2.0) -> dict[str, np.ndarray]:
-    """Capture-like world_from_cam poses (world coordinates) for a street along +x."""
-    mid = length / 2
-    return {"facade -y": look_at([mid, lane, height], [mid, -10.0, height]),
-            "facade +y": look_at([mid, -lane, height], [mid, 10.0, height]),
-            "along +x": look_at([0.1 * length, 0.0, height], [0.1 * length + 40.0, 0.0, height])}
-
-
-def town_views(world_from_rig: np.ndarray, height: float = 1.0) -> list[np.ndarray]:
-    """Street-level world_from_cam poses along a capture path: the rig's position
-    ``height`` m higher, looking along its direction of travel (the long view down a
-    town street, where almost everything in the frustum hides behind the first houses)."""
-    views = []
-    for pose in np.asarray(world_from_rig, np.float64).reshape(-1, 4, 4):
-        eye = pose[:3, 3] + [0.0, 0.0, height]
-        views.append(look_at(eye, eye + 10.0 * pose[:3, 0]))
-    return views
-
-
-def walk(world_from_cam: np.ndarray, count: int, step: float = 0.05) -> list[np.ndarray]:
-    """``count`` poses stepping ``step`` metres along the camera's x axis from ``world_from_cam``,
-    so that every timed frame has a new eye (nothing view-dependent can be reused)."""
-    poses = []
-    for i in range(count):
-        pose = np.array(world_from_cam, dtype=np.float64)
-        pose[:3, 3] += step * (i + 1) * pose[:3, 0]
-        poses.append(pose)
-    return poses
-
-
-def default_intrinsics(width: int, height: int, hfov_deg: float = 75.0) -> np.ndarray:
-    """Pinhole K (3, 3) float64 with the given horizontal field of view and a centred principal point."""
-    f = width / 2 / np.tan(np.deg2rad(hfov_deg) / 2)
-    return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
 
 
 def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720),

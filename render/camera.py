@@ -182,3 +182,9 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     T = np.eye(4)
     T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
     return T
+
+
+def default_intrinsics(width: int, height: int, hfov_deg: float = 75.0) -> np.ndarray:
+    """Pinhole K (3, 3) float64 with the given horizontal field of view and a centred principal point."""
+    f = width / 2 / np.tan(np.deg2rad(hfov_deg) / 2)
+    return np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])

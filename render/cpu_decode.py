@@ -1,9 +1,9 @@
 """CPU decode path (the paper's baseline): decode in numpy every frame, upload, draw.
 
 For the billboards drawn this frame: direction indices from the eye position
-(:func:`billboards.model.direction_index`; the view vector formed in float32 as on
+(:func:`billboards.decode.direction_index`; the view vector formed in float32 as on
 the GPU, the angles in float64), textures from
-:func:`billboards.model.decode` (mean + Σ_k w_k·V_k, clipped to [0, 1]) in chunks of
+:func:`billboards.decode.decode` (mean + Σ_k w_k·V_k, clipped to [0, 1]) in chunks of
 billboards, quantised to RGBA8, packed one tile per billboard into a per-frame atlas
 (texture array, pages of ``page_size``² texels) and drawn with ``billboard_cpu.glsl``:
 the same instanced quads as the GPU path (both include ``billboard_quad.glsl``).
@@ -18,7 +18,8 @@ import moderngl
 import numpy as np
 
 from billboards.atlas import atlas_layout, tile_location
-from billboards.model import BillboardModel, decode, direction_index
+from billboards.decode import decode, direction_index
+from billboards.model import BillboardModel
 
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size

@@ -3,7 +3,7 @@
 Viewpoints: capture viewpoints (camera 0 of frames spread along the path; the frames
 the model was built without, ``bbcity build --holdout N``, when it has them: "on path")
 and the same cameras moved 2 m sideways, away from the facade they look at, and 1 m up
-("off path"). The ground truth of each is :func:`data_synth.render_view`.
+("off path"). The ground truth of each is :func:`data_synth.truth_view`.
 
 Methods are a dict name → callable ``(K (3, 3), world_from_cam (4, 4), size (w, h)) →
 (h, w, 3) uint8``; a callable's ``nbytes`` attribute (when it has one) is its size.
@@ -46,7 +46,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from data_synth import load_dataset, load_scene, render_view as truth_view
+from core.metrics import psnr
+from data_synth import load_dataset, load_scene, truth_view
 
 from .baselines import PointProjector, PoissonMesh  # noqa: F401  (PointProjector: public here as before)
 from .seen import SeenConfig, seen_in_dataset
@@ -93,18 +94,6 @@ class EvalConfig:
 
 
 # --------------------------------------------------------------------------- metrics
-
-def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """PSNR (dB) of uint8 images (h, w, 3) over ``mask`` (h, w) bool (all pixels if None);
-    NaN without pixels, 100 for identical ones."""
-    diff = a.astype(np.float64) - b.astype(np.float64)
-    if mask is not None:
-        diff = diff[mask]
-    if diff.size == 0:
-        return float("nan")
-    mse = float(np.mean(diff ** 2))
-    return 100.0 if mse == 0 else float(10 * np.log10(255.0 ** 2 / mse))
-
 
 def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Mean SSIM (Wang et al. 2004: 11×11 Gaussian window, σ 1.5, K1 0.01, K2 0.03) of the
@@ -548,7 +537,7 @@ def write_side_by_side(out_dir: Path, views: list[EvalView], images: dict, poiss
     model | Poisson mesh (the panels that exist), each ``panel_width`` pixels wide,
     labelled; side by side, or one above the other for images more than twice as wide
     as high. Returns the names."""
-    from data_synth.fileio import write_png
+    from core.fileio import write_png
 
     names = []
     for i, view in enumerate(views):
@@ -577,7 +566,7 @@ def work_precision_plot(report: dict, path: os.PathLike | str, title: str = "Nov
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    from data_synth.fileio import write_bytes
+    from core.fileio import write_bytes
 
     points = [p for p in report.get("work_precision", []) if p.get("bytes")]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
@@ -684,7 +673,7 @@ def markdown(report: dict) -> str:
 
 def write_report(report: dict, out_dir: os.PathLike | str) -> Path:
     """Write ``eval.json``, ``eval.md`` and ``workprecision.png`` into ``out_dir``; returns eval.md's path."""
-    from data_synth.fileio import write_bytes, write_json
+    from core.fileio import write_bytes, write_json
 
     out = Path(out_dir)
     write_json(out / "eval.json", report)

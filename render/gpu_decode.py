@@ -23,11 +23,11 @@ import numpy as np
 
 from .camera import GLCamera, gl_bytes
 from .program import load_program
-from .resources import (INSTANCE_ATTRIBUTES, INSTANCE_DTYPE, INSTANCE_FORMAT, InstanceStream, ModelResources,
-                        check_billboards, release_all, set_uniform, vertex_binding)
+from .resources import (INSTANCE_ATTRIBUTES, INSTANCE_DTYPE, INSTANCE_FORMAT, GpuOwner, InstanceStream, ModelResources,
+                        check_billboards, set_uniform, vertex_binding)
 
 
-class GpuDecoder:
+class GpuDecoder(GpuOwner):
     """Draws a model's billboards with the decode in the shader; :meth:`release` is idempotent.
 
     ``resources`` is borrowed (not released here). ``spherical``: quads pitch toward
@@ -66,10 +66,6 @@ class GpuDecoder:
         except BaseException:
             self.release()
             raise
-
-    def _keep(self, obj):
-        self._objects.append(obj)
-        return obj
 
     def _instanced_vao(self, buffer: moderngl.Buffer) -> moderngl.VertexArray:
         return self._keep(self.ctx.vertex_array(
@@ -118,7 +114,7 @@ class GpuDecoder:
 
         visible: None (all billboards), (B,) int indices or an (n,) bool mask.
         """
-        if self._objects is None:
+        if self.released:
             raise RuntimeError("GpuDecoder used after release()")
         n = self.resources.model.num_billboards
         visible = check_billboards(visible, n)
@@ -149,5 +145,4 @@ class GpuDecoder:
 
     def release(self) -> None:
         """Free the programs, vertex arrays, instance stream and weight textures (idempotent)."""
-        release_all(self._objects)
-        self._objects = None
+        super().release()

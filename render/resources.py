@@ -155,7 +155,27 @@ def release_all(objects) -> None:
     for obj in reversed(objects or ()):
         obj.release()
 
-class ModelResources:
+
+class GpuOwner:
+    """Owns the GPU objects it creates through :meth:`_keep` (``self._objects = []`` in the
+    constructor); :meth:`release` frees them in reverse order of creation (idempotent)."""
+
+    _objects: list | None
+
+    def _keep(self, obj):
+        self._objects.append(obj)
+        return obj
+
+    @property
+    def released(self) -> bool:
+        return self._objects is None
+
+    def release(self) -> None:
+        """Free every GPU object (idempotent)."""
+        release_all(self._objects)
+        self._objects = None
+
+class ModelResources(GpuOwner):
     """Every GPU object of one model; :meth:`release` frees them (idempotent).
 
     ``tiles``, ``coefs``: TextureArray; ``slot_table``, ``directions``: Texture;
@@ -173,10 +193,6 @@ class ModelResources:
         except BaseException:
             self.release()
             raise
-
-    def _keep(self, obj):
-        self._objects.append(obj)
-        return obj
 
     def _upload(self, ctx: moderngl.Context, model: BillboardModel) -> None:
         tiles = model.tile_layout()
@@ -221,10 +237,6 @@ class ModelResources:
                        "instances": records.nbytes}
         logger.debug("uploaded model: %s", self.nbytes)
 
-    @property
-    def released(self) -> bool:
-        return self._objects is None
-
     def instance_data(self, billboards=None) -> np.ndarray:
         """(B,) :data:`INSTANCE_DTYPE` records of ``billboards`` (all when None)."""
         return instance_records(self.model, billboards)
@@ -244,8 +256,7 @@ class ModelResources:
 
     def release(self) -> None:
         """Free every GPU object (idempotent)."""
-        release_all(self._objects)
-        self._objects = None
+        super().release()
         self.tiles = self.coefs = self.slot_table = self.directions = self.instance_table = self.instances = None
 
 

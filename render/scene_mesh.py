@@ -26,7 +26,7 @@ from .camera import ClipPlanes, GLCamera, gl_bytes, gl_camera
 from .culling import boxes_outside, frustum_planes, indices_to_ranges, merge_ranges, ranges_to_indices
 from .occlusion import OcclusionConfig, OcclusionCuller
 from .program import load_program
-from .resources import release_all
+from .resources import GpuOwner, release_all
 from .target import OffscreenTargets, background_rgb
 
 CULL_MODES = ("none", "frustum", "occlusion", "auto")
@@ -88,7 +88,7 @@ def mesh_vertices(scene: Scene, origin, object_order=None) -> tuple[np.ndarray, 
     return out.reshape(-1), first.astype(np.int64)
 
 
-class SceneMeshRenderer:
+class SceneMeshRenderer(GpuOwner):
     """Renders a scene's meshes from OpenCV cameras into (h, w, 3) uint8 images.
 
     origin: model origin (3,) float64 (default: the centre of the scene's bounds);
@@ -133,10 +133,6 @@ class SceneMeshRenderer:
         except BaseException:
             self.release()
             raise
-
-    def _keep(self, obj):
-        self._objects.append(obj)
-        return obj
 
     def camera(self, K, world_from_cam, size) -> GLCamera:
         return gl_camera(K, world_from_cam, size, self.origin, self.clip)
@@ -220,8 +216,7 @@ class SceneMeshRenderer:
         self.targets.release()
         release_all(list(self._cullers.values()))
         self._cullers = {}
-        release_all(self._objects)
-        self._objects = []
+        super().release()
 
     def __enter__(self) -> SceneMeshRenderer:
         return self

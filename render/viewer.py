@@ -5,8 +5,8 @@ decode, cycle the culling modes, view interpolation, wireframe; a HUD over the
 frame (and the title bar) shows fps, drawn/culled billboard counts, decode and cull
 mode. F12 or P saves a screenshot.
 
-:class:`FlyCamera` and :class:`DrivePath` are pure numpy (world coordinates, z up,
-float64) so they can be tested without a window. ``run_viewer(..., script_frames=N)``
+:class:`FlyCamera` is pure numpy (world coordinates, z up, float64) so it can be tested
+without a window; the drive path is :class:`render.paths.DrivePath`. ``run_viewer(..., script_frames=N)``
 renders N frames along the drive path with a fixed time step, saves the last one and
 exits (for tests and automation; works under ``xvfb-run``); ``script_keys`` presses
 keys through the window's key-event handler, one per frame, on the way.
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .benchmark import default_intrinsics
-from .camera import look_at
+from .camera import default_intrinsics, look_at
 from .hud import HudOverlay
+from .paths import drive_path_for
 from .renderer import CULL_MODES, DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
 
@@ -50,7 +50,7 @@ MAX_PITCH = np.deg2rad(89.0)
 
 
 # ----------------------------------------------------------------------------------------------
-# pure-numpy camera models
+# pure-numpy camera model
 
 
 @dataclass
@@ -105,86 +105,6 @@ class FlyCamera:
         z = T[:3, 2]
         self.yaw = float(np.arctan2(z[1], z[0]))
         self.pitch = float(np.clip(np.arcsin(np.clip(z[2], -1, 1)), -MAX_PITCH, MAX_PITCH))
-
-
-class DrivePath:
-    """A looping polyline of camera positions (world, float64) parametrised by arc length."""
-
-    def __init__(self, points, speed: float = 8.0, lookahead: float = 5.0):
-        pts = np.asarray(points, np.float64).reshape(-1, 3)
-        if len(pts) == 0:
-            raise ValueError("a drive path needs at least one point")
-        keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-9])
-        pts = pts[keep]
-        if len(pts) == 1:
-            pts = np.stack([pts[0], pts[0] + [1.0, 0.0, 0.0]])
-        self.points = pts
-        self.cumlen = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-        self.speed = float(speed)
-        self.lookahead = float(lookahead)
-        self.s = 0.0
-
-    @property
-    def length(self) -> float:
-        return float(self.cumlen[-1])
-
-    def position(self, s: float) -> np.ndarray:
-        """Point at arc length ``s`` (wraps around: the path loops)."""
-        s = float(s) % self.length
-        i = int(np.clip(np.searchsorted(self.cumlen, s, side="right") - 1, 0, len(self.points) - 2))
-        seg = self.cumlen[i + 1] - self.cumlen[i]
-        a = (s - self.cumlen[i]) / seg if seg > 0 else 0.0
-        return self.points[i] * (1 - a) + self.points[i + 1] * a
-
-    def heading(self, s: float) -> np.ndarray:
-        """Unit viewing direction at ``s``: toward the point ``lookahead`` metres ahead (smooth at corners)."""
-        d = self.position(s + self.lookahead) - self.position(s)
-        if np.linalg.norm(d[:2]) < 1e-6:  # wrapped onto itself: use the local segment
-            d = self.position(s + 1e-3) - self.position(s)
-        if np.linalg.norm(d[:2]) < 1e-9:
-            d = np.array([1.0, 0.0, 0.0])
-        return d / np.linalg.norm(d)
-
-    def pose(self, s: float | None = None) -> np.ndarray:
-        s = self.s if s is None else s
-        p = self.position(s)
-        return look_at(p, p + self.heading(s))
-
-    def step(self, dt: float) -> np.ndarray:
-        self.s = (self.s + self.speed * dt) % self.length
-        return self.pose()
-
-
-def drive_path_for(model, height: float = 2.0) -> DrivePath:
-    """The capture path from the poses the model was built with (``model.info["poses"]``, a
-    recon's WORK/poses.json, else ``model.info["dataset"]``'s poses.json; frames without a
-    pose skipped), at ``height`` above the rig, else a straight line at ``height`` along the
-    model's x extent."""
-    info = model.info if isinstance(model.info, dict) else {}
-    dataset = info.get("dataset")
-    if dataset:
-        try:
-            from data_synth.rig import load_poses
-
-            poses = info.get("poses") or Path(dataset) / "poses.json"
-            world_from_rig, _ = load_poses(poses)
-            pts = world_from_rig[:, :3, 3] + [0.0, 0.0, height]
-            pts = pts[np.isfinite(pts).all(axis=1)]
-            if len(pts) < 2:
-                raise ValueError(f"{poses}: fewer than two frames have a pose")
-            return DrivePath(pts)
-        except Exception as e:  # missing or moved dataset: fall back to the model's extent
-            logger.info("no capture path from %s (%s); driving along the model", dataset, e)
-    origin = np.asarray(model.origin, np.float64)
-    c = np.asarray(model.centres, np.float64)
-    if len(c) == 0:
-        return DrivePath([origin + [0, 0, height], origin + [10.0, 0, height]])
-    lo, hi = c.min(0), c.max(0)
-    y = float(np.median(c[:, 1]))
-    z = float(lo[2]) + height
-    start = origin + [lo[0] - 10.0, y, z]
-    end = origin + [hi[0] + 10.0, y, z]
-    return DrivePath([start, end])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -435,7 +355,7 @@ def save_image(path: Path | str, rgb: np.ndarray) -> Path:
 
     from PIL import Image
 
-    from data_synth.fileio import write_bytes
+    from core.fileio import write_bytes
 
     fmt = image_format(path)
     buf = io.BytesIO()

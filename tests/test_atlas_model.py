@@ -15,13 +15,18 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from core.fileio import DataFormatError
+
 from . import fuzzing
 
 from billboards import model as bm
+from billboards import model_reader, model_writer
 from billboards.atlas import (AtlasWriter, RowWriter, atlas_layout, pack_rows, pack_tiles, read_rows, read_tiles,
                               row_layout, row_location, tile_location)
-from billboards.model import BillboardModel, ModelWriter, decode, decode_directions, direction_index, load, save
-from data_synth.fileio import DataFormatError
+from billboards.decode import decode, decode_directions, direction_index
+from billboards.model import BillboardModel
+from billboards.model_reader import load
+from billboards.model_writer import ModelWriter, save
 
 TILE, PAGE, D_YAW, D_PITCH = 4, 18, 5, 2  # page_size not a multiple of the tile; d = 10 ≤ page
 
@@ -346,17 +351,17 @@ def test_replace_semantics(tmp_path):
             raise RuntimeError("crash")
     assert_models_equal(first, load(path))
     # a save that fails half-way (here: writing the manifest) changes nothing
-    original = bm.write_json
+    original = model_writer.write_json
 
     def failing(*args, **kwargs):
         raise OSError("disk full")
 
-    bm.write_json = failing
+    model_writer.write_json = failing
     try:
         with pytest.raises(OSError, match="disk full"):
             save(second, path)
     finally:
-        bm.write_json = original
+        model_writer.write_json = original
     assert_models_equal(first, load(path))
     # an invalid model is refused before anything is written
     bad, _ = make_model(seed=3)
@@ -648,7 +653,7 @@ def test_huge_claimed_array_is_refused_without_allocating(tmp_path):
     try:
         for mmap in (True, False):
             with pytest.raises(DataFormatError, match="truncated") as info:
-                bm._load_array(tmp_path / "a.npy", np.dtype(np.uint8), (1000000, 1000000, 4), mmap=mmap)
+                model_reader._load_array(tmp_path / "a.npy", np.dtype(np.uint8), (1000000, 1000000, 4), mmap=mmap)
             assert info.value.path == tmp_path / "a.npy"
         assert tracemalloc.get_traced_memory()[1] < 1 << 20
     finally:

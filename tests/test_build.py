@@ -7,14 +7,15 @@ import json
 import numpy as np
 import pytest
 
+from core import DataFormatError
 from bbcity.cli import main as cli_main
-from billboards import model as billboard_model
+import billboards as billboard_model
 from billboards.build import BuildConfig, main as build_main
 from billboards.geometry import DirectionConfig
 from billboards.octree import OctreeConfig
 from billboards.pca import PcaConfig
 from billboards.sampling import SamplingConfig
-from data_synth import DataFormatError, load_dataset
+from data_synth import load_dataset
 from recon.cloud_io import PlyStreamWriter
 
 from .conftest import write_ground_truth_cloud
@@ -211,7 +212,8 @@ def test_city_coordinates_give_the_same_model(tiny_dataset, tiny_cloud, tiny_mod
 
 
 def test_metrics_on_known_images():
-    from render.evaluate import off_path, psnr, ssim
+    from core.metrics import psnr
+    from render.evaluate import off_path, ssim
 
     a = np.full((20, 30, 3), 100, np.uint8)
     b = a.copy()

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from billboards import model as billboard_model
+import billboards as billboard_model
 from billboards.build import main as build_main
 from billboards.sampling import views_from_dataset
 from data_synth import RigConfig, load_dataset, write_dataset
@@ -103,7 +103,7 @@ def test_sfm_features_of_a_distorted_rig_use_the_raw_lens(fisheye_dataset, tiny_
     not the undistorted pinholes; a pinhole rig keeps PINHOLE with its K."""
     import pycolmap
 
-    from recon.poses import SfmConfig, _extract
+    from recon.sfm import SfmConfig, _extract
 
     for name, path in (("fisheye", fisheye_dataset), ("pinhole", tiny_dataset)):
         ds = load_dataset(path)
@@ -133,7 +133,9 @@ def test_sfm_on_a_fisheye_rig_finds_the_camera_poses(tmp_path):
     """End to end: SfM from the raw fisheye images of one pass gives the dataset's (undistorted
     cameras') poses, metric through the fixed rig."""
     from data_synth import StreetConfig
-    from recon.poses import SfmConfig, poses_given, poses_sfm, trajectory_rmse
+    from recon.poses import poses_given
+    from recon.sfm import SfmConfig, poses_sfm
+    from recon.trajectory import trajectory_rmse
 
     cfg = tiny_config(frames=8, return_pass=False, street=StreetConfig(length=21.0, seed=0), ground_truth_depth=False,
                       spp=1, rig=RigConfig(width=320, height=240, hfov_deg=75.0, pitch_deg=10.0, distortion="fisheye"))
@@ -209,7 +211,7 @@ def photo_models(tiny_dataset, pinhole_cloud, tmp_path_factory):
 
 
 def test_a_photo_dataset_builds_with_the_poses_of_its_recon(photo_models):
-    from render.viewer import drive_path_for
+    from render.paths import drive_path_for
 
     datasets, works, models = photo_models
     assert np.isnan(load_dataset(datasets["photos"]).world_from_rig).all()
@@ -248,7 +250,7 @@ def test_eval_of_a_photo_dataset_uses_the_models_poses(photo_models, tmp_path):
 
 
 def test_replacement_poses_must_name_the_datasets_frames(photo_models, tmp_path):
-    from data_synth import DataFormatError
+    from core import DataFormatError
     from data_synth.rig import save_poses
 
     datasets, works, _ = photo_models

@@ -9,8 +9,10 @@ import shutil
 import numpy as np
 import pytest
 
-from data_synth import DataFormatError, load_dataset, write_dataset
-from data_synth.fileio import atomic_path, load_npy, read_png, save_npy, write_png
+
+from core import DataFormatError
+from core.fileio import atomic_path, load_npy, read_png, save_npy, write_png
+from data_synth import load_dataset, write_dataset
 
 from .conftest import tiny_config
 

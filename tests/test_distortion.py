@@ -9,10 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
-from data_synth import DataFormatError, Rig, RigConfig, load_dataset, load_scene, make_rig, write_dataset
+
+from core import DataFormatError
+from core.fileio import read_png
+from data_synth import Rig, RigConfig, load_dataset, load_scene, make_rig, write_dataset
 from data_synth.distortion import (PRESETS, Distortion, cached_tables, distort, distort_reference, pinhole_for,
                                    undistort, undistort_maps, undistort_maps_reference)
-from data_synth.fileio import read_png
 from data_synth.raycast import Renderer
 
 from .conftest import SMALL_RIG, tiny_config

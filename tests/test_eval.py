@@ -136,7 +136,7 @@ def street(tmp_path_factory):
 
 
 def test_seen_pixels_of_held_out_views(street):
-    from data_synth import load_dataset, load_scene, render_view
+    from data_synth import load_dataset, load_scene, truth_view
     from render.evaluate import off_path
     from render.seen import SeenConfig, seen_in_dataset
 
@@ -144,23 +144,23 @@ def test_seen_pixels_of_held_out_views(street):
     ds, scene = load_dataset(dataset), load_scene(dataset)
     K, size = ds.rig.intrinsics[0], tuple(ds.rig.sizes[0])
     pose = ds.world_from_cam(4, 0)
-    _, depth = render_view(scene, K, pose, size)
+    _, depth = truth_view(scene, K, pose, size)
     own = seen_in_dataset(depth, K, pose, ds, [4])
     assert np.array_equal(own, np.isfinite(depth))  # a capture camera sees all it shows (NaN sky: unseen)
     neighbours = seen_in_dataset(depth, K, pose, ds, [3, 5])
     assert 0.3 < neighbours.mean() < np.isfinite(depth).mean()
     assert not seen_in_dataset(depth, K, pose, ds, [3, 5], SeenConfig(max_distance=1.0)).any()  # none near
     moved = off_path(pose)
-    _, depth_off = render_view(scene, K, moved, size)
+    _, depth_off = truth_view(scene, K, moved, size)
     assert seen_in_dataset(depth_off, K, moved, ds, [3, 4, 5]).mean() < np.isfinite(depth_off).mean()
 
 
 @pytest.mark.slow
 def test_eval_cli_on_the_tiny_street(street, tmp_path):
     from bbcity.cli import main as cli_main
-    from billboards import model as billboard_model
+    from billboards import model_reader as billboard_model
     from billboards.sky import Sky, write_sky
-    from data_synth.fileio import read_png
+    from core.fileio import read_png
 
     tiny_dataset, tiny_cloud, model = street
     held_out = billboard_model.load(model).info["held_out_frames"]

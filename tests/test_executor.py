@@ -7,8 +7,8 @@ import time
 
 import pytest
 
+from core.tasks import executor_workers, run_tasks
 from bbcity.executor import SerialExecutor, executor_scope, make_executor
-from data_synth.tasks import executor_workers, run_tasks
 
 
 def _square(x: int) -> int:

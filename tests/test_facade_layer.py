@@ -174,8 +174,8 @@ def test_slits_on_a_street_match_the_ground_truth(layer_street, layer_cloud, tmp
     held-out view, the facade pixels are covered without seams and their slit textures match
     the ground truth better than the billboards alone do (from a ground-truth cloud, which has
     points on glass too)."""
-    from billboards import model as billboard_model
-    from data_synth import render_view as truth_view
+    from billboards import model_reader as billboard_model
+    from data_synth import truth_view
     from data_synth.scene import Kind
     from render.offscreen import render_view
 

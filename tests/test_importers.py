@@ -12,15 +12,17 @@ import pytest
 from PIL import Image as PILImage
 from PIL.TiffImagePlugin import IFDRational
 
-from data_synth import DataFormatError, RigConfig, StreetConfig, load_dataset, write_dataset
+
+from core import DataFormatError
+from data_synth import RigConfig, StreetConfig, load_dataset, write_dataset
 from data_synth.colmap_export import write_colmap_text
 from data_synth.rig import load_poses, save_poses
 from recon.importers.colmap import camera_from_colmap, import_colmap, colmap_pinhole_maps
 from recon.importers.kitti import KittiConfig, import_kitti
 from recon.importers.photos import PhotosConfig, exif_focal_px, import_photos, read_intrinsics
-from recon.poses import align_trajectory, level_from_world, up_direction
+from recon.trajectory import align_trajectory, level_from_world, up_direction
 
-import pycolmap  # noqa: E402  (after data_synth: OpenCV before pycolmap, see recon.poses)
+import pycolmap  # noqa: E402  (after data_synth: OpenCV before pycolmap, see recon.sfm)
 
 from .conftest import SMALL_RIG, tiny_config
 
@@ -463,7 +465,7 @@ def _import_as_photos(street: Path, tmp_path: Path, step: float) -> Path:
 
 @pytest.mark.slow
 def test_sfm_of_photos_with_unknown_poses_is_level_and_step_scaled(one_camera_street, tmp_path):
-    from recon.poses import SfmConfig, poses_sfm
+    from recon.sfm import SfmConfig, poses_sfm
     original = load_dataset(one_camera_street)
     ds = load_dataset(_import_as_photos(one_camera_street, tmp_path, step=1.4))
     res = poses_sfm(ds, tmp_path / "sfm", SfmConfig(num_threads=2), progress=False)

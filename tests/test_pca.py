@@ -8,8 +8,8 @@ import warnings
 import numpy as np
 import pytest
 
-from billboards.pca import (TOL, EigenTextures, PcaConfig, choose_rank, eigen_textures,
-                            eigen_textures_reference, psnr)
+from billboards.pca import TOL, EigenTextures, PcaConfig, choose_rank, eigen_textures, eigen_textures_reference
+from core.metrics import psnr
 
 PRECISIONS = ["float64", "float32"]
 #: (reconstruction atol, orthonormality atol) per Gram precision, values on the 0–1 scale

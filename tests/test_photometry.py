@@ -8,13 +8,13 @@ import shutil
 import numpy as np
 import pytest
 
-from billboards import model as billboard_model
+from core.fileio import read_png, write_png
+import billboards as billboard_model
 from billboards.build import main as build_main
 from billboards.photometry import (PhotometryConfig, apply_gains, collect_observations, components, estimate_gains,
                                    prune, solve_fast, solve_gains, solve_reference)
 from billboards.sampling import Views, views_from_dataset
 from data_synth import load_dataset, write_dataset
-from data_synth.fileio import read_png, write_png
 from recon.cloud_io import read_cloud_arrays
 
 from .conftest import tiny_config, write_ground_truth_cloud

@@ -8,13 +8,15 @@ import shutil
 import numpy as np
 import pytest
 
-import data_synth  # before pycolmap (see recon/poses.py)
-from data_synth import DataFormatError, RigConfig, StreetConfig, load_dataset, write_dataset
+from core import DataFormatError
+import data_synth  # before pycolmap (see recon/sfm.py)
+from data_synth import RigConfig, StreetConfig, load_dataset, write_dataset
 from data_synth.colmap_export import write_colmap_text
-from recon.poses import (
-    MissingFramesError, SfmConfig, align_components, align_trajectory, colmap_log_to_logging, poses_from_colmap,
-    poses_given, poses_sfm, rig_baseline_ratio, trajectory_rmse,
-)
+from recon.colmap_log import colmap_log_to_logging
+from recon.colmap_poses import poses_from_colmap
+from recon.poses import MissingFramesError, poses_given
+from recon.sfm import SfmConfig, poses_sfm
+from recon.trajectory import align_components, align_trajectory, rig_baseline_ratio, trajectory_rmse
 from tests.conftest import tiny_config
 
 import pycolmap  # noqa: E402  (after data_synth)
@@ -211,7 +213,7 @@ def test_colmap_import_warns_when_the_model_is_not_metric(tiny_dataset, tmp_path
 
 
 def test_image_names_match_frames_and_cameras():
-    from recon.poses import _image_index
+    from recon.colmap_poses import _image_index
     frames = {"000000": 0, "000007": 1}
     assert _image_index("cam2/000007.png", frames, 3) == (1, 2)
     assert _image_index("images/cam1/000000.jpg", frames, 3) == (0, 1)
@@ -367,7 +369,7 @@ def test_sfm_registers_every_frame_metric_and_accurate(sfm_dataset, tmp_path):
 
 
 def test_seed_window_is_the_best_connected_run():
-    from recon.poses import _seed_window
+    from recon.sfm import _seed_window
     links = np.array([50, 400, 300, 500, 20, 900, 900, 900, 10])  # links[i]: frame i to frame i + 1
     frames = np.arange(10)
     np.testing.assert_array_equal(_seed_window(frames, links, 3), [5, 6, 7])

@@ -10,10 +10,13 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from core import DataFormatError
+from core.fileio import load_npy, read_png, write_png
+
 from . import fuzzing
 
-from data_synth import DataFormatError, Rig, RigConfig, make_rig
-from data_synth.fileio import load_npy, read_png, write_png
+
+from data_synth import Rig, RigConfig, make_rig
 from data_synth.rig import load_poses, save_poses, yaw_pose
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

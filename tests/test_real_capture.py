@@ -40,7 +40,8 @@ def test_held_out_frames_rule():
 
 
 def test_exposure_matching_undoes_a_gain():
-    from render.evaluate import exposure_matched, psnr
+    from core.metrics import psnr
+    from render.evaluate import exposure_matched
 
     rng = np.random.default_rng(3)
     truth = rng.integers(20, 200, (30, 40, 3)).astype(np.uint8)
@@ -119,7 +120,7 @@ def real_street(tmp_path_factory):
 
 
 def test_eval_of_a_real_capture_scores_the_held_out_images(real_street, tmp_path):
-    from billboards import model as billboard_model
+    from billboards import model_reader as billboard_model
     from render.evaluate import EvalConfig, evaluate_views
 
     real, cloud, model_dir = real_street

@@ -6,7 +6,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from data_synth import DataFormatError
+from core import DataFormatError
 from recon.cloud_io import PlyStreamWriter, read_cloud, write_cloud
 from recon.fusion import (FusionConfig, TileSpill, merge_to_cloud, pack_keys, reduce_records,
                           reduce_records_reference, unpack_keys, voxel_sums)

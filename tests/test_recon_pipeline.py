@@ -9,8 +9,8 @@ import shutil
 import numpy as np
 import pytest
 
-from data_synth import DataFormatError
-from data_synth.fileio import write_png
+from core import DataFormatError
+from core.fileio import write_png
 from recon.cloud_io import read_cloud
 from recon.fusion import FusionConfig
 from recon.pipeline import ReconConfig, main as recon_main

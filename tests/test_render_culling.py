@@ -377,7 +377,7 @@ def reference_image(ctx, fbo, boxes, vp):
 
 
 def seen_ids(image, n):
-    from render.occlusion import BoxRenderer
+    from .boxes import BoxRenderer
     ids = BoxRenderer.decode_ids(image)
     return np.isin(np.arange(n), ids[ids >= 0])
 
@@ -392,7 +392,9 @@ CONFIGS = {
 
 @pytest.mark.parametrize("config", list(CONFIGS))
 def test_occlusion_culling_matches_the_unculled_image(gl, config):
-    from render.occlusion import BoxRenderer, OcclusionConfig, OcclusionCuller
+    from render.occlusion import OcclusionConfig, OcclusionCuller
+
+    from .boxes import BoxRenderer
     ctx, fbo = gl
     lo, hi, g = street_scene()
     n = len(lo)
@@ -424,7 +426,9 @@ def test_occlusion_culling_matches_the_unculled_image(gl, config):
 
 def test_hidden_boxes_culled_without_their_own_queries(gl):
     """Cells behind the wall fail as a whole (Edo); with temporal coherence few queries remain (CHC++)."""
-    from render.occlusion import BoxRenderer, OcclusionConfig, OcclusionCuller
+    from render.occlusion import OcclusionConfig, OcclusionCuller
+
+    from .boxes import BoxRenderer
     ctx, fbo = gl
     lo, hi, g = street_scene()
     n = len(lo)
@@ -446,7 +450,9 @@ def test_hidden_boxes_culled_without_their_own_queries(gl):
 
 
 def test_camera_inside_a_box_and_empty_scene(gl):
-    from render.occlusion import BoxRenderer, OcclusionCuller
+    from render.occlusion import OcclusionCuller
+
+    from .boxes import BoxRenderer
     ctx, fbo = gl
     lo, hi, _ = street_scene()
     lo = np.concatenate([lo, [[-0.5, -0.5, -0.5]]])  # a box around the eye: its inside hides the rest
@@ -466,7 +472,9 @@ def test_camera_inside_a_box_and_empty_scene(gl):
 
 
 def test_auto_mode_switches_off_when_nothing_is_culled_and_retries(gl):
-    from render.occlusion import BoxRenderer, OcclusionConfig, OcclusionCuller, auto_pays
+    from render.occlusion import OcclusionConfig, OcclusionCuller, auto_pays
+
+    from .boxes import BoxRenderer
     ctx, fbo = gl
     # boxes in a row across the view: nothing hides anything
     x = np.linspace(-8, 8, 24)
@@ -512,7 +520,9 @@ def test_culler_checks_viewport_modes_and_release(gl):
 
 def test_cull_nodes_on_an_octree_frustum_result(gl):
     """Frustum result → occlusion culler on an octree of a dense wall with a cloud behind it."""
-    from render.occlusion import BoxRenderer, OcclusionCuller
+    from render.occlusion import OcclusionCuller
+
+    from .boxes import BoxRenderer
     ctx, fbo = gl
     rng = np.random.default_rng(8)
     gy, gz = np.meshgrid(np.arange(-10, 10, 0.1), np.arange(0, 10, 0.1))

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
+from core.fileio import read_png
 from bbcity.cli import main as cli_main
-from billboards.model import save
-from data_synth.fileio import read_png
+from billboards.model_writer import save
 from render.camera import look_at
-from render.fly_through import orbit_poses, save_poses_json
+from render.paths import orbit_poses, save_poses_json
 
 from .test_render_gpu import make_model
 
@@ -36,7 +36,7 @@ def test_orbit_frames_show_the_model(model_dir, tmp_path):
 
 
 def test_video_and_pose_file(model_dir, tmp_path):
-    from billboards.model import load
+    from billboards.model_reader import load
 
     poses = orbit_poses(load(model_dir), 4)
     pose_file = save_poses_json(tmp_path / "poses.json", poses)

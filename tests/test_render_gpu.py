@@ -1,5 +1,5 @@
 """The moderngl renderer on a headless context (EGL; Mesa llvmpipe without a GPU):
-camera matrices against OpenCV projection, GPU decode against billboards.model.decode,
+camera matrices against OpenCV projection, GPU decode against billboards.decode.decode,
 GPU against CPU decode, alpha test, ranks, draw calls, release and the empty model."""
 
 from __future__ import annotations
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from billboards.atlas import pack_rows, pack_tiles
-from billboards.model import BillboardModel, decode, direction_index
+from billboards.decode import decode, direction_index
+from billboards.model import BillboardModel
 from render.camera import gl_camera, look_at, project_cv, project_gl, projection_from_K
 from render.context import describe, max_texture_size
 from render.offscreen import clear_cache, render_view, renderer_for

@@ -7,8 +7,8 @@ import pytest
 
 from data_synth import TownConfig, build_town
 from data_synth.dataset import SynthConfig, capture_path
-from render.benchmark import default_intrinsics, town_views
-from render.camera import look_at
+from render.camera import default_intrinsics, look_at
+from render.paths import town_views
 from render.scene_mesh import SceneMeshRenderer, group_order, mesh_vertices
 
 

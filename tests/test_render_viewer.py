@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from billboards.model import save
-from render.viewer import KEYS_HELP, DrivePath, FlyCamera, drive_path_for
+from billboards.model_writer import save
+from render.paths import DrivePath, drive_path_for
+from render.viewer import KEYS_HELP, FlyCamera
 
 from .test_render_gpu import make_model
 
@@ -166,7 +167,7 @@ def test_viewer_toggles_headless(tmp_path):
 def test_bbcity_view_script_screenshot_under_xvfb(tmp_path):
     if shutil.which("xvfb-run") is None:
         pytest.skip("xvfb-run not on PATH")
-    from data_synth.fileio import read_png
+    from core.fileio import read_png
 
     save(street_model(), tmp_path / "model")
     out = tmp_path / "out.png"

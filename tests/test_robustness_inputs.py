@@ -15,8 +15,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from core.fileio import DataFormatError
 from data_synth import SynthConfig
-from data_synth.fileio import DataFormatError
 from recon.cloud_io import read_cloud, read_cloud_arrays
 
 from .test_robustness_readers import _cloud, ply_bytes
@@ -124,7 +124,8 @@ def test_model_directory_has_the_mode_of_a_new_directory(tmp_path, umask):
     import stat
 
     from billboards import build as build_mod
-    from billboards.model import load, save, temp_dir
+    from billboards.model_reader import load
+    from billboards.model_writer import save, temp_dir
 
     from .test_atlas_model import _write_streamed, make_model
 

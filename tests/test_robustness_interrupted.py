@@ -21,15 +21,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core import DataFormatError
+from core.fileio import load_npy, read_json, read_png
 from billboards import build as build_mod
 from billboards.build import BuildConfig, main as build_main
 from billboards.geometry import DirectionConfig
-from billboards.model import load
+from billboards.model_reader import load
 from billboards.octree import OctreeConfig
 from billboards.pca import PcaConfig
 from billboards.sampling import SamplingConfig
-from data_synth import DataFormatError, load_dataset, write_dataset
-from data_synth.fileio import load_npy, read_json, read_png
+from data_synth import load_dataset, write_dataset
 from recon import pipeline as recon_pipeline
 from recon.cloud_io import PlyStreamWriter, read_cloud_arrays
 from recon.fusion import FusionConfig
@@ -57,7 +58,7 @@ def hidden_entries(root: Path) -> list[Path]:
 
 KILLER = textwrap.dedent("""
     import os, signal, sys
-    import data_synth.fileio as fileio
+    import core.fileio as fileio
     from data_synth import write_dataset
     from tests.conftest import tiny_config
 
@@ -269,7 +270,8 @@ def _dying_renderer(monkeypatch, after: int):
 
 def test_frames_interrupted_keep_the_old_render_and_a_new_one_leaves_no_stale_frames(small_model, tmp_path,
                                                                                         monkeypatch):
-    from render.fly_through import orbit_poses, render_path
+    from render.fly_through import render_path
+    from render.paths import orbit_poses
 
     poses = orbit_poses(small_model, 3)
     out = tmp_path / "frames"
@@ -294,7 +296,8 @@ def test_frames_interrupted_keep_the_old_render_and_a_new_one_leaves_no_stale_fr
 
 
 def test_video_interrupted_keeps_the_old_video(small_model, tmp_path, monkeypatch):
-    from render.fly_through import orbit_poses, render_path
+    from render.fly_through import render_path
+    from render.paths import orbit_poses
 
     poses = orbit_poses(small_model, 3)
     video = tmp_path / "fly.mp4"

@@ -18,12 +18,15 @@ import shutil
 import numpy as np
 import pytest
 
+from core import DataFormatError
+from core.fileio import read_png, write_png
 from billboards.build import BuildConfig, _psnr_db, compress_chunk, main as build_main, place_billboards
-from billboards.model import ModelWriter, decode, decode_directions, direction_index, load, save
+from billboards.decode import decode, decode_directions, direction_index
+from billboards.model_reader import load
+from billboards.model_writer import ModelWriter, save
 from billboards.octree import OctreeConfig, build_octree
 from billboards.pca import PcaConfig, eigen_textures
-from data_synth import DataFormatError, RigConfig, load_dataset, make_rig
-from data_synth.fileio import read_png, write_png
+from data_synth import RigConfig, load_dataset, make_rig
 from recon.cloud_io import read_cloud_arrays
 from recon.fusion import FusionConfig
 from recon.pipeline import ReconConfig, main as recon_main
@@ -329,7 +332,8 @@ def sky_dataset(tiny_dataset, tmp_path_factory):
 
 
 def test_empty_scene_through_every_stage(sky_dataset, tmp_path):
-    from render.fly_through import camera_path, render_path
+    from render.fly_through import render_path
+    from render.paths import camera_path
     from render.offscreen import render_view
 
     from .test_render_gpu import intrinsics

@@ -20,9 +20,10 @@ from pathlib import Path
 
 import pytest
 
+from core import DataFormatError
+from core.workdir import exclusive_output, lock_path, owned_output, pid_alive, sweep_output
 from bbcity.executor import WorkerError, WorkerPool, executor_scope
-from data_synth import DataFormatError, write_dataset
-from data_synth.workdir import exclusive_output, lock_path, owned_output, pid_alive, sweep_output
+from data_synth import write_dataset
 from recon.pipeline import dataset_of_work
 from recon.poses import MissingFramesError
 
@@ -264,9 +265,9 @@ def test_sweep_removes_dead_runs_leftovers_and_restores_a_set_aside_model(tmp_pa
     aside = tmp_path / ".model.old-q1w2e3r4"
     other = tmp_path / ".other.build-abc12345"  # another output's: not ours to touch
     mine = tmp_path / f".model.tmp-{os.getpid()}.json"  # a live process's (this one)
-    for d in (build_state, half_model, other, aside / "model"):
+    for d in (build_state, half_model, other, aside):
         d.mkdir(parents=True)
-    (aside / "model" / "manifest.json").write_text("{}")
+    (aside / "manifest.json").write_text("{}")
     mine.write_text("{}")
     with owned_output(out):  # the previous model was set aside and the new one never renamed in
         assert (out / "manifest.json").is_file()

@@ -24,13 +24,14 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from core.fileio import DataFormatError, load_npy, read_png
+
 from . import fuzzing
 
-from billboards import model as bm
-from data_synth.fileio import DataFormatError, load_npy, read_png
+from billboards import model_reader as bm
 from recon.cloud_io import PlyStreamWriter, read_cloud, read_cloud_arrays
 from render.camera import look_at
-from render.fly_through import file_poses, save_poses_json
+from render.paths import file_poses, save_poses_json
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 READERS = [read_cloud, read_cloud_arrays]
@@ -458,7 +459,7 @@ def test_png_of_the_wrong_size_is_refused_before_decoding(tmp_path, monkeypatch)
     """A small file can claim a huge image (a decompression bomb): the IHDR is checked first."""
     path = tmp_path / "x.png"
     path.write_bytes(png_bytes(30000, 30000, 8, 2, 0, b"\0" * 1000, True))
-    import data_synth.fileio as fileio
+    import core.fileio as fileio
 
     monkeypatch.setattr(fileio.cv2, "imdecode", lambda *a: pytest.fail("decoded before the size check"))
     with pytest.raises(DataFormatError, match="30000x30000, expected 160x120") as info:

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.fileio import write_png
 from billboards.geometry import DirectionConfig, base_yaw_toward
 from billboards.sampling import (OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, ImageSampler, SamplingConfig, Views,
                                  fill_directions, voxel_points, zbuffer)
 from billboards.splat import PointSampler
 from billboards.truth import texture_psnr, truth_textures
-from data_synth.fileio import write_png
 from data_synth.raycast import Renderer
 from data_synth.rig import pinhole
 from data_synth.scene import Kind, MeshBuilder

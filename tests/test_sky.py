@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
+from core import DataFormatError
+from core.fileio import write_png
 from billboards.sampling import Views
 from billboards.sky import (Sky, SkyConfig, estimate_sky, pixel_elevations, read_sky, write_sky)
-from data_synth import DataFormatError
-from data_synth.fileio import write_png
 from render.camera import look_at
 
 W, H = 160, 120
@@ -159,8 +159,8 @@ def test_billboards_are_drawn_over_the_sky(ctx):
 
 def test_render_cli_and_viewer_draw_the_models_sky(tmp_path):
     from bbcity.cli import main as cli_main
-    from billboards.model import save
-    from data_synth.fileio import read_png
+    from billboards.model_writer import save
+    from core.fileio import read_png
 
     from .test_render_gpu import make_model
 
@@ -180,7 +180,7 @@ def test_render_cli_and_viewer_draw_the_models_sky(tmp_path):
         assert 0.2 < sky.mean() < 0.98  # the sky around the billboards
 
     pytest.importorskip("moderngl_window")
-    from billboards.model import load
+    from billboards.model_reader import load
     from render.viewer import ViewerApp, _make_window
 
     try:

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from data_synth import Rig, RigConfig, load_dataset, load_scene, make_rig, render_view
+from data_synth import Rig, RigConfig, load_dataset, load_scene, make_rig, truth_view
 from recon.rectify import rectify_pair, rectify_rig
 from recon.stereo import (PRESETS, StereoConfig, depth_from_disparity, disparity, disparity_range,
                           disparity_reference)
@@ -220,7 +220,7 @@ def sky_pairs(tiny_dataset):
     out = []
     for f in (0, 4):
         T = ds.world_from_rig[f]
-        (l, ldepth), (r, _) = (render_view(scene, rig.intrinsics[c], rig.world_from_cam(T, c), rig.sizes[c])
+        (l, ldepth), (r, _) = (truth_view(scene, rig.intrinsics[c], rig.world_from_cam(T, c), rig.sizes[c])
                                for c in (0, 2))
         out.append((l, r, ldepth))
     return rectify_rig(rig)[(0, 2)], out

@@ -142,8 +142,8 @@ def test_straight_up_and_down_views(pitch):
 def test_load_scene_re_creates_the_dataset_scene(tiny_dataset):
     scene = load_scene(tiny_dataset)
     ds = load_dataset(tiny_dataset)
-    from data_synth import render_view
+    from data_synth import truth_view
 
-    rgb, depth = render_view(scene, ds.rig.intrinsics[0], ds.world_from_cam(2, 0), ds.rig.sizes[0])
+    rgb, depth = truth_view(scene, ds.rig.intrinsics[0], ds.world_from_cam(2, 0), ds.rig.sizes[0])
     np.testing.assert_array_equal(rgb, ds.image(2, 0))
     np.testing.assert_array_equal(depth, ds.gt_depth(2, 0))

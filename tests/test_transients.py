@@ -65,9 +65,10 @@ def test_a_passing_car_stays_out_of_the_ground_texture(tmp_path):
     from billboards.build import main as build_main
     from billboards.geometry import GROUND, DirectionConfig
     from billboards.layer import LayerConfig
-    from billboards.model import decode_directions, load
+    from billboards.decode import decode_directions
+    from billboards.model_reader import load
     from data_synth import load_dataset, write_dataset
-    from data_synth.fileio import write_png
+    from core.fileio import write_png
 
     from .conftest import tiny_config, write_ground_truth_cloud
     from .test_build import small_config

@@ -21,7 +21,7 @@ the dataset itself) are grouped into frames by NAME, the rig taken from the pose
 be rigid). Any other model of several cameras is refused: give it a rig.
 
 World: COLMAP's world is turned so that z points up — up is estimated as minus the mean
-image-down axis of all cameras (held roughly level, see ``recon.poses.up_direction``) —
+image-down axis of all cameras (held roughly level, see ``recon.trajectory.up_direction``) —
 with its origin at the first frame's rig. The rig frame has the project's axes: origin at
 the reference camera, z up (the same estimate, in the rig), x the reference camera's
 viewing direction made horizontal, y left. COLMAP's scale is kept: metres only when the
@@ -41,20 +41,21 @@ import cv2
 import numpy as np
 from PIL import Image as PILImage
 
+from core.fileio import DataFormatError, write_bytes
+from core.rigid import nearest_rotation, rigid_inverse
 from data_synth.distortion import Distortion
-from data_synth.fileio import DataFormatError, write_bytes
+from data_synth.colmap_export import COLMAP_PIXEL_OFFSET
 from data_synth.rig import Rig
-from data_synth.rigid import nearest_rotation, rigid_inverse
 
-# recon.poses loads data_synth (open3d, OpenCV) before pycolmap: see the note there
-from ..poses import _read_reconstruction, _to_4x4, level_from_world, up_direction
+# recon.colmap_poses loads data_synth (open3d, OpenCV) before pycolmap: see the note there
+from ..colmap_poses import _read_reconstruction, _to_4x4
+from ..trajectory import level_from_world, up_direction
 from .common import write_imported_dataset
 
 import pycolmap  # noqa: E402  (after data_synth, see above)
 
 logger = logging.getLogger(__name__)
 
-COLMAP_PIXEL_OFFSET = 0.5  # cx_colmap = cx_opencv + 0.5
 #: Largest spread of a camera's pose relative to camera 0 over frames, when a rig is taken from
 #: poses (no rig in the model): rotation in degrees, translation relative to the largest offset.
 RIG_ROTATION_TOLERANCE_DEG = 0.5

@@ -13,10 +13,10 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
+from core.fileio import DataFormatError, write_bytes, write_json
+from core.rigid import nearest_rotation
 from data_synth.dataset import DATASET_FORMAT, FORMAT_VERSION
-from data_synth.fileio import DataFormatError, write_bytes, write_json
 from data_synth.rig import Rig, save_poses
-from data_synth.rigid import nearest_rotation
 
 logger = logging.getLogger(__name__)
 

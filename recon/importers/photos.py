@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image as PILImage
 
+from core.fileio import DataFormatError
 from data_synth.distortion import Distortion
-from data_synth.fileio import DataFormatError
 from data_synth.rig import Rig
 
 from .common import ZUP_FROM_CAMERA, write_imported_dataset

@@ -1,8 +1,8 @@
 // View-direction interpolation shared by the GPU decode's weights pass: the fractional
-// direction index of billboards.model.direction_index (yaw relative to the base yaw
+// direction index of billboards.decode.direction_index (yaw relative to the base yaw
 // wrapped to (−π, π], pitch, each mapped piecewise-linearly over the sampled angles and
 // clamped), then the (up to) four neighbouring sampled directions and their bilinear
-// weights, like billboards.model.decode. Needs view_angles from billboard_quad.glsl.
+// weights, like billboards.decode.decode. Needs view_angles from billboard_quad.glsl.
 
 uniform sampler2D u_directions;   // R32F (max(d_yaw, d_pitch), 2): row 0 yaw offsets, row 1 pitches
 uniform int u_d_yaw;
@@ -28,7 +28,7 @@ float table_index(int row, int count, float x) {
     return float(lo) + (x - a) / (b - a);
 }
 
-// billboards.model._bracket: neighbours (i0, i1) and the weight of i1.
+// billboards.decode._bracket: neighbours (i0, i1) and the weight of i1.
 void bracket(float index, int count, out int i0, out int i1, out float f) {
     float x = clamp(index, 0.0, float(count - 1));
     i0 = min(int(floor(x)), max(count - 2, 0));

@@ -3,8 +3,8 @@
 //
 // default   screen-aligned query rectangles: in_pos is already in NDC (x, y, depth); the
 //           culler draws them with colour and depth writes off inside occlusion queries.
-// BOXES     axis-aligned boxes as flat-coloured, depth-tested solids (BoxRenderer: the test
-//           scene and a debug view of node bounds). One instance per box; the 36 vertices of
+// BOXES     axis-aligned boxes as flat-coloured, depth-tested solids (BoxRenderer in
+//           tests/boxes.py: the occlusion tests' scene). One instance per box; the 36 vertices of
 //           the 12 triangles come from gl_VertexID.
 
 #if defined VERTEX_SHADER

@@ -8,7 +8,8 @@ left by a killed run and is removed.
 
 The writers' temporaries, all hidden: ``.NAME.tmp-PID.SUFFIX`` (atomic_path),
 ``.NAME.body-PID`` (the PLY writer), ``.NAME.tmp-RANDOM``, ``.NAME.build-RANDOM`` and
-``.NAME.old-RANDOM`` (directories of the model writer and the build).
+``.NAME.old-RANDOM`` (directories of the model writer, the build and
+:func:`core.fileio.replace_dir`).
 """
 
 from __future__ import annotations
@@ -85,8 +86,8 @@ def sweep_temporaries(root: os.PathLike | str, locked: bool = False) -> list[Pat
 
     Temporaries tagged with a pid are removed once that process is gone; those with a
     random tag only when ``locked`` (the caller holds :func:`exclusive_output` of
-    ``root``). A model set aside by an interrupted replacement (``.NAME.old-*/model``
-    while NAME is missing) is put back, never removed.
+    ``root``). An output set aside by an interrupted replacement (``.NAME.old-*`` while
+    NAME is missing) is put back, never removed.
     """
     root = Path(root)
     if not root.is_dir() or root.is_symlink():
@@ -115,8 +116,8 @@ def sweep_output(output: os.PathLike | str) -> list[Path]:
 def _remove_if_dead(path: Path, match: re.Match, locked: bool) -> list[Path]:
     if not _left_by_dead_run(match, locked):
         return []
-    if match["kind"] == "old":
-        _restore_set_aside(path, path.with_name(match["name"]))
+    if match["kind"] == "old" and _restore_set_aside(path, path.with_name(match["name"])):
+        return []
     logger.info("removing %s, left by an interrupted run", path)
     if path.is_dir() and not path.is_symlink():
         shutil.rmtree(path, ignore_errors=True)
@@ -125,12 +126,14 @@ def _remove_if_dead(path: Path, match: re.Match, locked: bool) -> list[Path]:
     return [path]
 
 
-def _restore_set_aside(old: Path, output: Path) -> None:
-    """A replacement killed between its two renames left the previous output in ``old/model``."""
-    kept = old / "model"
-    if kept.is_dir() and not output.exists() and not output.is_symlink():
+def _restore_set_aside(old: Path, output: Path) -> bool:
+    """A replacement killed between its two renames (:func:`core.fileio.replace_dir`) left the
+    previous output set aside as ``old`` and none at ``output``: put it back. Returns whether it did."""
+    if old.is_dir() and not old.is_symlink() and not output.exists() and not output.is_symlink():
         logger.warning("restoring %s from %s (a replacement of it was interrupted)", output, old)
-        os.rename(kept, output)
+        os.rename(old, output)
+        return True
+    return False
 
 
 @contextlib.contextmanager

@@ -14,7 +14,9 @@ import json
 import logging
 import math
 import os
+import shutil
 import tokenize
+import uuid
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -82,6 +84,27 @@ def _naming(error: OSError, path: Path) -> OSError:
     return type(error)(code, text, str(path))
 
 
+def replace_dir(tmp: Path, path: Path) -> None:
+    """Rename the finished directory ``tmp`` to ``path``. A directory already at ``path`` is set
+    aside (``.NAME.old-HEX``) and removed only once the new one is in place: put back if the
+    rename fails, and by :func:`core.workdir.sweep_output` if the process dies in between. A
+    file or link at ``path`` is never replaced (NotADirectoryError)."""
+    tmp, path = Path(tmp), Path(path)
+    if path.is_symlink() or (path.exists() and not path.is_dir()):
+        raise NotADirectoryError(errno.ENOTDIR, "exists and is not a directory; not replacing it", str(path))
+    if not path.exists():
+        os.rename(tmp, path)
+        return
+    old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex}")
+    os.rename(path, old)
+    try:
+        os.rename(tmp, path)
+    except BaseException:
+        os.rename(old, path)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
 def write_bytes(path: os.PathLike | str, data: bytes) -> Path:
     """Atomically write ``data`` to ``path``."""
     with atomic_path(path) as tmp:
@@ -119,6 +142,32 @@ def save_npy(path: os.PathLike | str, array: np.ndarray) -> Path:
     return Path(path)
 
 
+def read_npy_header(path: os.PathLike | str) -> tuple[tuple, bool, np.dtype, int]:
+    """(shape, fortran_order, dtype, data offset in bytes) of a ``.npy`` file, without reading
+    its data; DataFormatError for a missing file or a header that is not a valid one."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "file is missing")
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                header = np.lib.format.read_array_header_1_0(f, max_header_size=10000)
+            elif version == (2, 0):
+                header = np.lib.format.read_array_header_2_0(f, max_header_size=10000)
+            else:
+                raise DataFormatError(path, f"unsupported .npy format version {version}")
+            offset = f.tell()
+    except DataFormatError:
+        raise
+    # numpy parses the header with Python's tokenizer: garbage surfaces as SyntaxError/TokenError
+    except (ValueError, TypeError, OSError, EOFError, OverflowError, SyntaxError, tokenize.TokenError,
+            RecursionError, MemoryError) as e:
+        raise DataFormatError(path, f"not a valid .npy array ({e})") from None
+    shape, fortran, dtype = header
+    return tuple(shape), bool(fortran), dtype, offset
+
+
 def load_npy(
     path: os.PathLike | str,
     dtype: np.dtype | type | None = None,
@@ -134,30 +183,17 @@ def load_npy(
     max_bytes: refuse arrays whose header claims more bytes than this.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(path, "file is missing")
+    file_shape, _, file_dtype, _ = read_npy_header(path)
+    if file_dtype.hasobject:
+        raise DataFormatError(path, "holds Python objects (pickles are not loaded)")
+    if any(n < 0 for n in file_shape):
+        raise DataFormatError(path, f"header claims a negative shape {file_shape}")
+    nbytes = math.prod(file_shape) * file_dtype.itemsize  # Python ints: no int64 overflow
+    if nbytes > max_bytes:
+        raise DataFormatError(path, f"array of {nbytes} bytes exceeds the limit of {max_bytes}")
     try:
-        with open(path, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            read_header = (
-                np.lib.format.read_array_header_1_0
-                if version == (1, 0)
-                else np.lib.format.read_array_header_2_0
-            )
-            file_shape, _, file_dtype = read_header(f, max_header_size=10000)
-            if file_dtype.hasobject:
-                raise DataFormatError(path, "holds Python objects (pickles are not loaded)")
-            if any(n < 0 for n in file_shape):
-                raise DataFormatError(path, f"header claims a negative shape {file_shape}")
-            nbytes = math.prod(file_shape) * file_dtype.itemsize  # Python ints: no int64 overflow
-            if nbytes > max_bytes:
-                raise DataFormatError(path, f"array of {nbytes} bytes exceeds the limit of {max_bytes}")
-            f.seek(0)
-            array = np.load(f, allow_pickle=False)
-    except DataFormatError:
-        raise
-    # numpy parses the header with Python's tokenizer: garbage surfaces as SyntaxError/TokenError
-    except (ValueError, TypeError, OSError, EOFError, OverflowError, SyntaxError, tokenize.TokenError) as e:
+        array = np.load(path, allow_pickle=False)
+    except (ValueError, TypeError, OSError, EOFError, OverflowError) as e:
         raise DataFormatError(path, f"not a valid .npy array ({e})") from None
     if dtype is not None and array.dtype != np.dtype(dtype):
         raise DataFormatError(path, f"dtype {array.dtype}, expected {np.dtype(dtype)}")

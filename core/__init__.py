@@ -1,0 +1,12 @@
+"""The base layer every stage may import, and which imports none of them.
+
+- :mod:`core.fileio` — atomic writers, validated readers, :class:`DataFormatError`;
+- :mod:`core.workdir` — one live run per output (a lock) and the sweep of dead runs' temporaries;
+- :mod:`core.tasks` — independent tasks through any ``concurrent.futures.Executor``;
+- :mod:`core.rigid` — rigid transforms (inverse, nearest rotation);
+- :mod:`core.metrics` — image quality numbers (PSNR).
+"""
+
+from .fileio import DataFormatError
+
+__all__ = ["DataFormatError"]

@@ -1,0 +1,165 @@
+"""Rig poses from a COLMAP model: one the user already has (:func:`poses_from_colmap`,
+text or binary; with rigs and frames, COLMAP ≥ 3.12, or one image per camera) or one
+that SfM just built (:func:`poses_from_reconstruction`).
+
+COLMAP conventions bridged here (see ``data_synth/colmap_export.py``): COLMAP
+cameras use OpenCV's axes but put the top-left pixel centre at (0.5, 0.5), so
+``cx_colmap = cx + 0.5``; a COLMAP rig frame *is* its reference sensor's
+camera frame, so ``world_from_rig = inv(rig_from_world) @ cam_from_rig[ref]``
+with our calibrated ``cam_from_rig`` of the reference camera.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+# data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
+# pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
+from core import DataFormatError
+from core.rigid import rigid_inverse
+from data_synth import Dataset
+
+from .colmap_log import colmap_log_to_logging
+from .poses import MissingFramesError
+from .trajectory import _nan_poses, _valid, rig_baseline_ratio
+
+import pycolmap  # noqa: E402  (after data_synth, see above)
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["poses_from_colmap", "poses_from_reconstruction"]
+
+
+def _to_4x4(rigid: pycolmap.Rigid3d) -> np.ndarray:
+    """pycolmap.Rigid3d → (4, 4) float64."""
+    T = np.eye(4)
+    T[:3, :4] = rigid.matrix()
+    return T
+
+
+_CAM_DIR = re.compile(r"^cam(\d+)$")
+
+
+def _image_index(name: str, frame_index: dict[str, int], num_cameras: int) -> tuple[int, int] | None:
+    """(frame, camera) of a COLMAP image name, or None when it is not one of the dataset's images.
+
+    Accepted: ``cam{c}/{frame}.{ext}``, the same under extra leading folders
+    (``images/cam1/000003.png``), and a bare ``{frame}.{ext}`` when the rig has
+    a single camera (the only unambiguous case).
+    """
+    parts = PurePosixPath(name.replace("\\", "/")).parts
+    if not parts:
+        return None
+    f = frame_index.get(PurePosixPath(parts[-1]).stem)
+    if f is None:
+        return None
+    if len(parts) >= 2:
+        m = _CAM_DIR.match(parts[-2])
+        if m and int(m.group(1)) < num_cameras:
+            return f, int(m.group(1))
+        return None
+    return (f, 0) if num_cameras == 1 else None
+
+
+def poses_from_reconstruction(rec: pycolmap.Reconstruction, dataset: Dataset,
+                              source: os.PathLike | str = "<reconstruction>") -> tuple[np.ndarray, np.ndarray]:
+    """Rig poses from a pycolmap.Reconstruction, matched to the dataset's frames by image name.
+
+    For each dataset frame, the pose comes from its registered image of the
+    model rig's reference sensor when there is one (``world_from_rig =
+    inv(rig_from_world) @ cam_from_rig[ref]``), otherwise from the registered
+    image with the lowest camera index (``inv(cam_from_world) @
+    cam_from_rig[c]``). Both reduce to the same matrix when the model's rig
+    calibration equals the dataset's. Images whose names match no dataset
+    image are ignored (logged).
+
+    Returns world_from_rig (n, 4, 4) float64, NaN for frames without a
+    registered image, and world_from_cam (n, c, 4, 4) float64, NaN where that
+    camera's image is not registered.
+    """
+    n, c = dataset.num_frames, dataset.rig.num_cameras
+    frame_index = {name: i for i, name in enumerate(dataset.frame_names)}
+    cam_from_rig = dataset.rig.cam_from_rig
+    world_from_cam = np.full((n, c, 4, 4), np.nan)
+    is_ref = np.zeros((n, c), dtype=bool)
+    ignored: list[str] = []
+    rigs = rec.rigs
+    for image in rec.images.values():
+        where = _image_index(image.name, frame_index, c)
+        if where is None:
+            ignored.append(image.name)
+            continue
+        if not image.has_pose:
+            continue
+        f, cam = where
+        world_from_cam[f, cam] = rigid_inverse(_to_4x4(image.cam_from_world()))
+        frame = rec.frames[image.frame_id]
+        is_ref[f, cam] = rigs[frame.rig_id].ref_sensor_id == image.data_id.sensor_id
+    if ignored:
+        logger.warning("%s: %d images match no image of the dataset (e.g. %s); ignored",
+                       source, len(ignored), ignored[0])
+
+    have = _valid(world_from_cam.reshape(n * c, 4, 4)).reshape(n, c)
+    # preferred camera per frame: a reference-sensor image first, then the lowest index
+    rank = np.where(have, np.where(is_ref, 0, 1 + np.arange(c)), c + 1)
+    best = np.argmin(rank, axis=1)
+    world_from_rig = _nan_poses(n)
+    rows = np.flatnonzero(have.any(axis=1))
+    world_from_rig[rows] = world_from_cam[rows, best[rows]] @ cam_from_rig[best[rows]]
+    return world_from_rig, world_from_cam
+
+
+def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
+    if not model_dir.is_dir():
+        raise DataFormatError(model_dir, "COLMAP model directory does not exist")
+    names = {p.name for p in model_dir.iterdir()}
+    if not ({"cameras.bin", "images.bin"} <= names or {"cameras.txt", "images.txt"} <= names):
+        raise DataFormatError(model_dir, "not a COLMAP model (needs cameras and images as .bin or .txt)")
+    try:
+        with colmap_log_to_logging():
+            return pycolmap.Reconstruction(model_dir)
+    except Exception as e:  # pycolmap raises ValueError/RuntimeError with C++ messages
+        raise DataFormatError(model_dir, f"cannot read the COLMAP model ({e})") from None
+
+
+def poses_from_colmap(model_dir: os.PathLike | str, dataset: Dataset, allow_missing: bool = False,
+                      metric_tolerance: float = 0.01) -> np.ndarray:
+    """Rig poses from an existing COLMAP model (text or binary, with or without rigs).
+
+    Image names are matched to ``cam{c}/{frame}.png`` (any extension; extra
+    leading folders allowed; bare ``{frame}.png`` only for a one-camera rig).
+    With rigs and frames (COLMAP ≥ 3.12) a frame's pose is its
+    ``rig_from_world`` mapped to our rig frame through ``cam_from_rig`` of the
+    model's reference camera; without, each frame's cam0 image gives the pose
+    (another camera's image when cam0's is not registered).
+
+    The model's units are kept. When two cameras of a frame are registered,
+    the model's camera spacing is compared with the calibrated baseline and a
+    warning is logged if they differ by more than ``metric_tolerance`` (the
+    model is not in metres).
+
+    Returns world_from_rig (n, 4, 4) float64 in ``dataset.frame_names`` order.
+    Raises DataFormatError naming ``model_dir`` when it is missing or
+    unreadable, and MissingFramesError (a DataFormatError) listing the frames
+    without a registered image unless ``allow_missing`` (then they are NaN).
+    """
+    model_dir = Path(model_dir)
+    rec = _read_reconstruction(model_dir)
+    world_from_rig, world_from_cam = poses_from_reconstruction(rec, dataset, model_dir)
+    ratio = rig_baseline_ratio(world_from_cam, dataset.rig.cam_from_rig)
+    if np.isfinite(ratio) and abs(ratio - 1.0) > metric_tolerance:
+        logger.warning("%s: camera spacing is %.4g × the calibrated baseline; the model is not metric "
+                       "(poses are returned in the model's units)", model_dir, ratio)
+    missing = [dataset.frame_names[i] for i in np.flatnonzero(~_valid(world_from_rig))]
+    if missing and not allow_missing:
+        raise MissingFramesError(model_dir, missing, dataset.num_frames,
+                                 " (not registered in the model; allow_missing=True gives NaN poses)")
+    logger.info("imported %d of %d frame poses from %s (%d images, %d rigs)",
+                dataset.num_frames - len(missing), dataset.num_frames, model_dir,
+                rec.num_images(), rec.num_rigs())
+    return world_from_rig
