@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Callable, Iterator
 
 import numpy as np
 
+from core.memory import rss_bytes
+
 if TYPE_CHECKING:
     from data_synth import RigConfig
 
@@ -72,15 +74,6 @@ class Measurement:
     wall: float = 0.0
     cpu: float = 0.0
     peak_rss: int = 0
-
-
-def rss_bytes(pid: str = "self") -> int:
-    """Resident memory of a process (default this one) from /proc, bytes; 0 if it has ended."""
-    try:
-        with open(f"/proc/{pid}/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
 
 
 @contextmanager
@@ -328,6 +321,11 @@ def bench_billboards(cfg: BenchConfig, report: Report, out: Path, work: Path, bu
                     "texels behind occluders": ev[name]["texels_behind_occluders"]})
 
 
+def _number(value: float | None) -> float:
+    """A report's figure as a table number: NaN for "no measurement" (None)."""
+    return float("nan") if value is None else float(value)
+
+
 def _build_rows(report: Report, r: dict, m: Measurement | None = None) -> None:
     """The "Billboard build" and "Billboard model" rows of a build report."""
     for stage, seconds in r["stages"].items():
@@ -338,7 +336,7 @@ def _build_rows(report: Report, r: dict, m: Measurement | None = None) -> None:
     report.add("Billboard build", {"stage": "total", "wall s": r["total_s"] if m is None else m.wall,
                                    "cpu s (main)": float("nan") if m is None else m.cpu,
                                    "peak MB (main)": r["peak_memory"]["main_mb"],
-                                   "peak MB (largest worker)": r["peak_memory"]["largest_worker_mb"],
+                                   "peak MB (largest worker)": _number(r["peak_memory"]["largest_worker_mb"]),
                                    "billboards": r["voxels"],
                                    "billboards/s": r["voxels"] / (r["total_s"] if m is None else m.wall)})
     report.add("Billboard model", {"billboards": r["voxels"], "mean rank": r["mean_rank"], "slots": r["slots"],

@@ -21,7 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench import BenchConfig, Report, rss_bytes
+from core.memory import child_pids, rss_bytes
+
+from .bench import BenchConfig, Report
 
 logger = logging.getLogger(__name__)
 
@@ -37,23 +39,8 @@ class StageTime:
     worker_peak_mb: float = float("nan")
 
 
-def _rss_mb(pid: str = "self") -> float:
+def _rss_mb(pid: int | str = "self") -> float:
     return rss_bytes(pid) / 1e6
-
-
-def _children(pid: int) -> list[str]:
-    """Process ids whose parent is ``pid`` (scanning /proc)."""
-    out = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    stat = f.read()
-            except OSError:
-                continue
-            if int(stat.rpartition(")")[2].split()[1]) == pid:
-                out.append(entry)
-    return out
 
 
 def _run_stage(stage: str, args: tuple) -> dict:
@@ -69,7 +56,7 @@ def _run_stage(stage: str, args: tuple) -> dict:
         me = os.getpid()
         while not stop.wait(0.05):
             peaks["own"] = max(peaks["own"], _rss_mb())
-            for child in _children(me):
+            for child in child_pids(me):
                 peaks["worker"] = np.nanmax([peaks["worker"], _rss_mb(child)])
 
     sampler = threading.Thread(target=sample, daemon=True)

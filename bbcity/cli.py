@@ -42,10 +42,12 @@ def _size_parent(default: tuple[int, int] | None, bytes_per_pixel: int, help: st
 
 def _draw_modes_parent() -> argparse.ArgumentParser:
     """``--decode`` and ``--cull`` of the commands that draw a billboard model (render, view)."""
+    from render.culling import CULL_MODES
+
     p = argparse.ArgumentParser(add_help=False)
     p.add_argument("--decode", choices=("gpu", "cpu"), default="gpu",
                    help="texture decode: in the shader (gpu) or on the CPU (default gpu)")
-    p.add_argument("--cull", choices=("none", "frustum", "occlusion", "auto"), default="frustum",
+    p.add_argument("--cull", choices=CULL_MODES, default="frustum",
                    help="culling (default frustum)")
     return p
 
@@ -222,7 +224,7 @@ def _add_recon(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="work directory")
     p.add_argument("--poses", nargs="+", default=["given"], metavar="SOURCE",
                    help="given (poses.json), colmap DIR (import a COLMAP model) or sfm (pycolmap)")
-    p.add_argument("--preset", default="accurate", help="stereo preset: fast, default or accurate (default: accurate)")
+    p.add_argument("--preset", default="accurate", help="stereo preset: fast, balanced or accurate (default: accurate)")
     p.add_argument("--voxel-size", type=positive_float, default=0.02,
                    help="fused cloud resolution in metres (default 0.02)")
     p.add_argument("--min-depth", type=positive_float, default=None, help="nearest depth to match, metres")

@@ -31,7 +31,7 @@ def stereo_settings() -> dict:
     base = PRESETS["accurate"]  # what `bbcity recon` uses unless told otherwise
     return {
         "fast (preset)": PRESETS["fast"],
-        "default (preset)": PRESETS["default"],
+        "balanced (preset)": PRESETS["balanced"],
         PIPELINE_SETTING: base,
         "accurate, block 5": dataclasses.replace(base, block_size=5),
         "accurate, block 9": dataclasses.replace(base, block_size=9),

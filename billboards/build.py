@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import resource
 import shutil
 import time
 from concurrent.futures import Executor
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from core.fileio import write_json
+from core.memory import peak_memory
 from core.metrics import psnr_from_mse
 from core.tasks import executor_workers, ordered_results
 from data_synth import load_dataset, load_scene
@@ -318,12 +318,6 @@ def _config_from_json(data: dict) -> BuildConfig:
                           "pca": PcaConfig(**data["pca"]), "layer": layer, "photometry": photometry})
 
 
-def _peak_rss_mb() -> dict:
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    return {"main_mb": round(own, 1), "largest_worker_mb": round(child, 1)}
-
-
 @dataclass(frozen=True, eq=False)
 class BuildResult:
     model: Path
@@ -501,7 +495,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     report["layer"] = layer_report
     report["photometry"] = photometry_report
     report.update(cloud=str(cloud_path), dataset=None if dataset_dir is None else str(dataset_dir),
-                  poses=None if poses is None or dataset_dir is None else str(poses), stages=stages, total_s=time.perf_counter() - t0, peak_memory=_peak_rss_mb(),
+                  poses=None if poses is None or dataset_dir is None else str(poses), stages=stages, total_s=time.perf_counter() - t0, peak_memory=peak_memory(),
                   config=_config_to_json(conf))
     write_json(model_dir / "build_report.json", report)
     logger.info("model: %d billboards, %d slots, %.1f MB, compression %.1f×, decode PSNR %s dB → %s",

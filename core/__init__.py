@@ -4,7 +4,8 @@
 - :mod:`core.workdir` — one live run per output (a lock) and the sweep of dead runs' temporaries;
 - :mod:`core.tasks` — independent tasks through any ``concurrent.futures.Executor``;
 - :mod:`core.rigid` — rigid transforms (inverse, nearest rotation);
-- :mod:`core.metrics` — image quality numbers (PSNR).
+- :mod:`core.metrics` — image quality numbers (PSNR);
+- :mod:`core.memory` — resident and peak memory of this process and its workers.
 """
 
 from .fileio import DataFormatError

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import resource
 import time
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field, replace
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from core.fileio import DataFormatError, read_json, write_json
+from core.memory import peak_memory
 from core.tasks import run_tasks
 from data_synth import load_dataset, load_scene
 from data_synth.dataset import held_out_frames
@@ -141,13 +141,6 @@ def _with_motion_partners(tasks: list, ds, world_from_rig: np.ndarray, excluded,
                          f"{config.min_baseline:g}–{config.max_baseline:g} m apart, moving sideways to the view; "
                          "walking toward what is photographed gives none)")
     return out
-
-
-def _peak_rss_mb() -> float:
-    """Peak resident memory of this process and its finished children, MB (max of the two)."""
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return max(own, kids) / 1024.0
 
 
 def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np.ndarray, dict]:
@@ -296,7 +289,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         "poses": pose_report, "poses_file": None if poses_file is None else str(poses_file.resolve()), "stages": stages,
         "seconds_per_frame": float(np.median([s["total_s"] for s in frame_stats])) if frame_stats else None,
         "stereo_seconds_per_frame": float(np.median([s["stereo_s"] for s in frame_stats])) if frame_stats else None,
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_memory": peak_memory(),
     }
     if conf.evaluate and ds.has_ground_truth:
         t3 = time.perf_counter()

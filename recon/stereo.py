@@ -108,14 +108,14 @@ class StereoConfig:
             raise ValueError(f"texture_window must be positive, got {self.texture_window}")
 
 
-#: Named settings. Measured on a 640×480 street (12 frames, trinocular, errors in
-#: the 0.8 m pair's pixels): "fast" (half resolution, 3 SGM paths) runs about
-#: 6× faster than "default" with 2× (wide pair) to 10× (narrow pairs) the 1-px
-#: error rate; "accurate" (8 paths, 3×3 blocks, 5×5 texture test) runs about
-#: 1.2× slower with a third (narrow) to three quarters (wide) of the errors.
+#: Named settings; recon uses "accurate" unless told otherwise. Measured on a 640×480 street
+#: (12 frames, trinocular, errors in the 0.8 m pair's pixels): "fast" (half resolution, 3 SGM
+#: paths) runs about 6× faster than "balanced" (StereoConfig's own defaults) with 2× (wide
+#: pair) to 10× (narrow pairs) the 1-px error rate; "accurate" (8 paths, 3×3 blocks, 5×5
+#: texture test) runs about 1.2× slower with a third (narrow) to three quarters (wide) of the errors.
 PRESETS: dict[str, StereoConfig] = {
     "fast": StereoConfig(block_size=5, mode="sgbm_3way", image_scale=0.5),
-    "default": StereoConfig(),
+    "balanced": StereoConfig(),
     "accurate": StereoConfig(block_size=3, mode="hh", texture_window=5, texture_margin=3),
 }
 

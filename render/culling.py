@@ -45,6 +45,11 @@ PLANE_REL_EPS = 1e-5
 PLANE_NAMES = ("left", "right", "bottom", "top", "near", "far")
 
 
+#: How a renderer culls: none (draws everything), frustum (the view frustum), occlusion (the
+#: frustum, then occlusion queries), auto (occlusion while it pays for itself, else frustum).
+CULL_MODES = ("none", "frustum", "occlusion", "auto")
+
+
 def billboard_radius(voxel_size: float) -> float:
     """Radius of the sphere that holds a view-facing billboard of edge ``voxel_size``: s·√3/2."""
     return float(voxel_size) * math.sqrt(3.0) / 2.0

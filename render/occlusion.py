@@ -58,7 +58,7 @@ if the saving is below the overhead, occlusion culling goes off for
 ``auto_backoff`` frames (doubling after each losing window up to
 ``auto_backoff_max``), then is tried again. Waits on query results also contain
 GPU time of earlier draws; that makes the overhead estimate high, so auto errs
-toward "off".
+toward "frustum".
 
 What the caller provides (see :meth:`OcclusionCuller.cull`): the target
 framebuffer bound (``fbo.use()``) with its viewport equal to the culler's size,
@@ -76,14 +76,14 @@ from dataclasses import dataclass, field
 import moderngl
 import numpy as np
 
-from .culling import FrustumResult, merge_ranges
+from .culling import CULL_MODES, FrustumResult, merge_ranges
 from .program import load_program
 from .quadtree import ScreenQuadtree, project_boxes
 
 logger = logging.getLogger(__name__)
 
 SHADER = "occlusion_box.glsl"
-MODES = ("off", "on", "auto")
+MODES = CULL_MODES[1:]  # the culler is given frustum-culled objects: "none" is not its to choose
 _UNDECIDED, _VISIBLE, _CULLED = 0, 1, 2
 
 
@@ -178,7 +178,7 @@ class OcclusionCuller:
     """Occlusion culling of frustum-culled objects with hardware queries (see the module notes).
 
     ctx: the moderngl context; width, height: the viewport the frame is drawn in;
-    mode: "off" (draw everything given), "on" or "auto". Owns its program,
+    mode: "frustum" (draw everything given), "occlusion" or "auto". Owns its program,
     vertex buffer and queries; :meth:`release` frees them (idempotent).
 
     After each :meth:`cull`, ``stats`` is that frame's :class:`CullStats`,
@@ -236,7 +236,7 @@ class OcclusionCuller:
     @property
     def active(self) -> bool:
         """Whether the next frame runs occlusion culling (auto: unless backed off)."""
-        return self._mode == "on" or (self._mode == "auto" and self._frame >= self._off_until)
+        return self._mode == "occlusion" or (self._mode == "auto" and self._frame >= self._off_until)
 
     # -- per frame -----------------------------------------------------------------------------
 

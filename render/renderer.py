@@ -19,7 +19,7 @@ import numpy as np
 from billboards.model import BillboardModel
 
 from .camera import ClipPlanes, GLCamera, gl_camera
-from .culling import frustum_cull_nodes, model_quad_radius, frustum_planes, ranges_to_indices
+from .culling import CULL_MODES, frustum_cull_nodes, frustum_planes, model_quad_radius, ranges_to_indices
 from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder
@@ -29,7 +29,6 @@ from .target import OffscreenTargets, background_rgb
 logger = logging.getLogger(__name__)
 
 DECODE_MODES = ("gpu", "cpu")
-CULL_MODES = ("none", "frustum", "occlusion", "auto")
 
 
 class BillboardRenderer:
@@ -152,8 +151,7 @@ class BillboardRenderer:
             size = camera.size
             culler = self._cullers.get(size)
             if culler is None:
-                mode = "on" if self.cull == "occlusion" else "auto"
-                culler = self._cullers[size] = OcclusionCuller(self.ctx, size[0], size[1], mode=mode)
+                culler = self._cullers[size] = OcclusionCuller(self.ctx, size[0], size[1], mode=self.cull)
             cull = culler.cull_nodes(view_proj, frustum, model.node_bounds, draw_ranges, pad=pad)
             info.update(billboards_drawn=int(cull.billboards_drawn), objects=int(cull.objects),
                         objects_drawn=int(cull.objects_drawn), queries=int(cull.queries),

@@ -23,13 +23,12 @@ import numpy as np
 from data_synth.scene import Kind, Scene
 
 from .camera import ClipPlanes, GLCamera, gl_bytes, gl_camera
-from .culling import boxes_outside, frustum_planes, indices_to_ranges, merge_ranges, ranges_to_indices
+from .culling import CULL_MODES, boxes_outside, frustum_planes, indices_to_ranges, merge_ranges, ranges_to_indices
 from .occlusion import OcclusionConfig, OcclusionCuller
 from .program import load_program
 from .resources import GpuOwner, release_all
 from .target import OffscreenTargets, background_rgb
 
-CULL_MODES = ("none", "frustum", "occlusion", "auto")
 
 #: Base colour (RGB 0–255) per object kind; each object varies it by ±15 % from its seed.
 KIND_COLOURS = {Kind.GROUND: (110, 120, 95), Kind.ROAD: (70, 70, 75), Kind.SIDEWALK: (150, 145, 140),
@@ -186,7 +185,7 @@ class SceneMeshRenderer(GpuOwner):
                 culler = self._cullers.get(camera.size)
                 if culler is None:
                     culler = self._cullers[camera.size] = OcclusionCuller(
-                        self.ctx, *camera.size, mode="on" if self.cull == "occlusion" else "auto", config=self.occlusion)
+                        self.ctx, *camera.size, mode=self.cull, config=self.occlusion)
                 # The culler's objects are the groups of the objects left: runs of `inside`.
                 group = self.group_at[inside]
                 start = np.flatnonzero(np.r_[True, group[1:] != group[:-1]]) if len(inside) else np.zeros(0, np.int64)

@@ -24,7 +24,8 @@ import numpy as np
 from .camera import default_intrinsics, look_at
 from .hud import HudOverlay
 from .paths import drive_path_for
-from .renderer import CULL_MODES, DECODE_MODES, BillboardRenderer
+from .culling import CULL_MODES
+from .renderer import DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
 
 logger = logging.getLogger(__name__)

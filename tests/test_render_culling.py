@@ -399,7 +399,7 @@ def test_occlusion_culling_matches_the_unculled_image(gl, config):
     lo, hi, g = street_scene()
     n = len(lo)
     with BoxRenderer(ctx, lo, hi) as boxes, \
-            OcclusionCuller(ctx, W, H, mode="on", config=OcclusionConfig(**CONFIGS[config])) as culler:
+            OcclusionCuller(ctx, W, H, mode="occlusion", config=OcclusionConfig(**CONFIGS[config])) as culler:
         # a camera walking sideways and turning: later frames reuse earlier visibility
         for f in range(6):
             eye = np.array([0.8 * f, 0.3 * f, 0.2 * f])
@@ -437,7 +437,7 @@ def test_hidden_boxes_culled_without_their_own_queries(gl):
         ref = reference_image(ctx, fbo, boxes, vp)
         seen = seen_ids(ref, n)
         for temporal in (False, True):
-            with OcclusionCuller(ctx, W, H, mode="on", config=OcclusionConfig(temporal=temporal)) as culler:
+            with OcclusionCuller(ctx, W, H, mode="occlusion", config=OcclusionConfig(temporal=temporal)) as culler:
                 for f in range(3):
                     image, stats = render_frame(ctx, fbo, boxes, culler, vp, lo, hi)
                     np.testing.assert_array_equal(image, ref)
@@ -459,7 +459,7 @@ def test_camera_inside_a_box_and_empty_scene(gl):
     hi = np.concatenate([hi, [[0.5, 3.0, 0.5]]])
     n = len(lo)
     vp = view_proj((0, 0, 0), (0, 10, 0), aspect=W / H, near=0.1, far=200)
-    with BoxRenderer(ctx, lo, hi) as boxes, OcclusionCuller(ctx, W, H, mode="on") as culler:
+    with BoxRenderer(ctx, lo, hi) as boxes, OcclusionCuller(ctx, W, H, mode="occlusion") as culler:
         for _ in range(2):
             image, stats = render_frame(ctx, fbo, boxes, culler, vp, lo, hi)
             np.testing.assert_array_equal(image, reference_image(ctx, fbo, boxes, vp))
@@ -500,7 +500,7 @@ def test_auto_mode_switches_off_when_nothing_is_culled_and_retries(gl):
 def test_culler_checks_viewport_modes_and_release(gl):
     from render.occlusion import OcclusionCuller
     ctx, fbo = gl
-    culler = OcclusionCuller(ctx, W + 1, H, mode="on")
+    culler = OcclusionCuller(ctx, W + 1, H, mode="occlusion")
     fbo.use()
     fbo.viewport = (0, 0, W, H)
     box = np.array([[0.0, 5.0, 0.0]])
@@ -508,7 +508,7 @@ def test_culler_checks_viewport_modes_and_release(gl):
         culler.cull(view_proj((0, 0, 0), (0, 1, 0)), box, box + 1, np.array([[0, 1]]), lambda r: None)
     with pytest.raises(ValueError):
         culler.mode = "sometimes"
-    culler.mode = "off"  # off: no viewport needed, one draw of everything
+    culler.mode = "frustum"  # frustum: no viewport needed, one draw of everything
     calls = []
     stats = culler.cull(view_proj((0, 0, 0), (0, 1, 0)), box, box + 1, np.array([[0, 1]]), calls.append)
     assert len(calls) == 1 and calls[0].tolist() == [[0, 1]] and not stats.active
@@ -541,7 +541,7 @@ def test_cull_nodes_on_an_octree_frustum_result(gl):
     res = frustum_cull_nodes(frustum_planes(vp), t["bounds"], t["children"], t["range"], pad=radius,
                              split_inside_above=32)
     n = len(c)
-    with BoxRenderer(ctx, lo, hi) as boxes, OcclusionCuller(ctx, W, H, mode="on") as culler:
+    with BoxRenderer(ctx, lo, hi) as boxes, OcclusionCuller(ctx, W, H, mode="occlusion") as culler:
         ref = reference_image(ctx, fbo, boxes, vp)
         for _ in range(2):
             fbo.use()

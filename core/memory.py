@@ -1,0 +1,61 @@
+"""Memory of this process and its workers, read from /proc (Linux; 0 or None elsewhere).
+
+``ru_maxrss`` is not used: Linux carries it from the parent into a child through fork
+and exec, so a worker would report the parent's peak. A process's ``VmHWM`` (its peak
+resident set) starts afresh at exec.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def rss_bytes(pid: int | str = "self") -> int:
+    """Resident memory of a process (default this one), bytes; 0 when it has ended."""
+    try:
+        with open(f"/proc/{pid}/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def peak_rss_bytes(pid: int | str = "self") -> int:
+    """Peak resident memory of a process (``VmHWM``), bytes; 0 when it has ended."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def child_pids(pid: int | None = None) -> list[int]:
+    """Process ids whose parent is ``pid`` (default this process), scanning /proc."""
+    pid = os.getpid() if pid is None else pid
+    out = []
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return out
+    for entry in entries:
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    stat = f.read()
+            except OSError:
+                continue
+            if int(stat.rpartition(")")[2].split()[1]) == pid:
+                out.append(int(entry))
+    return out
+
+
+def peak_memory() -> dict:
+    """The stages' reports' peak memory: ``{"main_mb": this process's peak RSS, "largest_worker_mb":
+    the largest peak RSS among its live child processes (its pool workers; None when it has
+    none)}``, MB (10⁶ bytes), one decimal. Called while the pool still lives."""
+    workers = [peak_rss_bytes(p) for p in child_pids()]
+    workers = [b for b in workers if b > 0]
+    return {"main_mb": round(peak_rss_bytes() / 1e6, 1),
+            "largest_worker_mb": round(max(workers) / 1e6, 1) if workers else None}
