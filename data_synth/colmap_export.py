@@ -37,14 +37,12 @@ digits, so float64 poses survive the round trip (city-scale translations of
 from __future__ import annotations
 
 import logging
-import shutil
-import uuid
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 import pycolmap
 
-from core.fileio import replace_dir
+from core.fileio import atomic_dir
 from core.rigid import nearest_rotation, rigid_inverse
 
 from .distortion import Distortion
@@ -278,15 +276,8 @@ def write_colmap_text(
         raise ValueError(f"distortions must hold a Distortion or None for each of the {len(K)} cameras")
     rec = _build_reconstruction(K, sizes_v, cfr, wfr, names, distortions)
 
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex}")
-    tmp_dir.mkdir()
-    try:
+    with atomic_dir(out_dir) as tmp_dir:
         rec.write_text(str(tmp_dir))
-        replace_dir(tmp_dir, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
-        raise
     logger.info(
         "wrote COLMAP text model to %s: %d cameras, %d frames, %d images",
         out_dir, rec.num_cameras(), rec.num_frames(), rec.num_images(),

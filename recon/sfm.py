@@ -23,7 +23,7 @@ from tqdm import tqdm
 # data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
 # pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
 from core import DataFormatError
-from core.fileio import read_json, replace_dir
+from core.fileio import atomic_dir, read_json
 from core.rigid import rigid_inverse
 from data_synth import Dataset
 from data_synth.colmap_export import colmap_camera_model, to_rigid3d
@@ -104,14 +104,8 @@ class SfmResult:
 
 def _write_model(rec: pycolmap.Reconstruction, out_dir: Path) -> Path:
     """Write ``rec`` as a binary COLMAP model to out_dir via a temporary sibling and a rename."""
-    tmp = out_dir.with_name(f".{out_dir.name}.tmp-{uuid.uuid4().hex}")
-    tmp.mkdir(parents=True)
-    try:
+    with atomic_dir(out_dir) as tmp:
         rec.write_binary(str(tmp))
-        replace_dir(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

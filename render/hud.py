@@ -12,7 +12,7 @@ import moderngl
 import numpy as np
 
 from .program import load_program
-from .resources import release_all
+from .resources import GpuOwner
 
 LINE_PX = 20  # text line height in pixels
 FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -31,7 +31,7 @@ def text_image(lines: list[str], width: int | None = None) -> np.ndarray:
     return image
 
 
-class HudOverlay:
+class HudOverlay(GpuOwner):
     """Draws text lines over the bound framebuffer; :meth:`release` is idempotent."""
 
     def __init__(self, ctx: moderngl.Context):
@@ -39,10 +39,8 @@ class HudOverlay:
         self._objects = []
         self._lines: list[str] | None = None
         self.texture: moderngl.Texture | None = None
-        self.program = load_program(ctx, "hud.glsl")
-        self._objects.append(self.program)
-        self.vao = ctx.vertex_array(self.program, [])
-        self._objects.append(self.vao)
+        self.program = self._keep(load_program(ctx, "hud.glsl"))
+        self.vao = self._keep(ctx.vertex_array(self.program, []))
 
     def _upload(self, lines: list[str]) -> None:
         image = text_image(lines)  # row 0 at the top: the quad maps v = 0 to its top edge
@@ -57,7 +55,7 @@ class HudOverlay:
 
     def draw(self, lines: list[str], viewport_size) -> None:
         """Blend ``lines`` over the top-left corner of the bound framebuffer of ``viewport_size`` (w, h)."""
-        if self._objects is None:
+        if self.released:
             raise RuntimeError("HudOverlay used after release()")
         if lines != self._lines:
             self._upload(lines)
@@ -76,10 +74,9 @@ class HudOverlay:
             self.ctx.disable(moderngl.BLEND)
 
     def release(self) -> None:
-        if self._objects is None:
+        if self.released:
             return
         if self.texture is not None:
             self.texture.release()
             self.texture = None
-        release_all(self._objects)
-        self._objects = None
+        super().release()

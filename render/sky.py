@@ -18,10 +18,10 @@ from billboards.sky import Sky
 
 from .camera import check_intrinsics, check_pose
 from .program import load_program
-from .resources import release_all
+from .resources import GpuOwner
 
 
-class SkyPass:
+class SkyPass(GpuOwner):
     """Draws ``sky`` into the bound framebuffer; :meth:`release` is idempotent."""
 
     def __init__(self, ctx: moderngl.Context, sky: Sky):
@@ -30,10 +30,8 @@ class SkyPass:
         self.texture: moderngl.Texture | None = None
         self._objects: list | None = []
         try:
-            self.program = load_program(ctx, "sky.glsl")
-            self._objects.append(self.program)
-            self.vao = ctx.vertex_array(self.program, [])
-            self._objects.append(self.vao)
+            self.program = self._keep(load_program(ctx, "sky.glsl"))
+            self.vao = self._keep(ctx.vertex_array(self.program, []))
             self.set_sky(sky)
         except BaseException:
             self.release()
@@ -41,7 +39,7 @@ class SkyPass:
 
     def set_sky(self, sky: Sky) -> None:
         """Use ``sky`` from the next :meth:`draw` on (uploads its bins when it is another sky)."""
-        if self._objects is None:
+        if self.released:
             raise RuntimeError("SkyPass used after release()")
         if sky is self.sky:
             return
@@ -60,7 +58,7 @@ class SkyPass:
         """Fill the bound framebuffer's viewport of ``size`` = (w, h) with the sky seen by the
         OpenCV camera K (3, 3), world_from_cam (4, 4) float64. Leaves depth test, blending
         and face culling off (the billboard renderer enables what it needs)."""
-        if self._objects is None:
+        if self.released:
             raise RuntimeError("SkyPass used after release()")
         K = check_intrinsics(K)
         R = check_pose(world_from_cam)[:3, :3]
@@ -77,13 +75,12 @@ class SkyPass:
 
     def release(self) -> None:
         """Free the program, vertex array and texture (idempotent)."""
-        if self._objects is None:
+        if self.released:
             return
         if self.texture is not None:
             self.texture.release()
             self.texture = None
-        release_all(self._objects)
-        self._objects = None
+        super().release()
 
     def __enter__(self) -> SkyPass:
         return self
