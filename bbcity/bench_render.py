@@ -93,12 +93,13 @@ def bench_novel_views(cfg: BenchConfig, report: Report, dataset: Path, work: Pat
                       out: Path, holdout: int) -> None:
     """Billboards vs uncompressed billboards vs the cloud's Poisson meshes (depths 8–11) vs
     the Open3D point projection, on and off path, over seen pixels and whole images; the
-    work-precision diagram ``novel_views_workprecision.png`` (:func:`render.evaluate.work_precision_plot`)."""
+    work-precision diagram ``novel_views_workprecision.png`` (:func:`render.eval_report.work_precision_plot`)."""
     from billboards.build import BuildConfig, main as build_main
     from billboards.model_reader import load
     from billboards.pca import PcaConfig
     from billboards.sky import read_sky
-    from render.evaluate import EvalConfig, evaluate_views, work_precision_plot
+    from render.eval_report import work_precision_plot
+    from render.evaluate import EvalConfig, evaluate_views
 
     from .executor import executor_scope
 

@@ -738,7 +738,8 @@ def _eval_config(args):
 def _run_eval(args) -> int:
     from billboards.model_reader import load
     from billboards.sky import read_sky
-    from render.evaluate import evaluate_views, write_report
+    from render.eval_report import write_report
+    from render.evaluate import evaluate_views
 
     config = _eval_config(args)
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]

@@ -1,4 +1,4 @@
-"""Image quality numbers shared by the stages: PSNR, one convention everywhere.
+"""Image quality numbers shared by the stages: PSNR (one convention everywhere) and SSIM.
 
 PSNR is in dB; NaN when nothing was measured; identical inputs give :data:`PSNR_MAX_DB`
 rather than inf, so that reports stay valid JSON (the result is capped there in general).
@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 #: PSNR of identical images, and the cap of every PSNR (dB).
@@ -45,3 +46,22 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, peak: flo
     if not valid.any():
         return float("nan")
     return psnr_from_mse(float(np.mean(np.square(diff[valid]))), peak)
+
+
+def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean SSIM (Wang et al. 2004: 11×11 Gaussian window, σ 1.5, K1 0.01, K2 0.03) of the
+    luminance of uint8 RGB images, averaged over ``mask`` (all pixels if None)."""
+    def grey(x):
+        return cv2.cvtColor(x, cv2.COLOR_RGB2GRAY).astype(np.float64)
+
+    x, y = grey(a), grey(b)
+    c1, c2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
+
+    def blur(z):
+        return cv2.GaussianBlur(z, (11, 11), 1.5, borderType=cv2.BORDER_REFLECT)
+
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    values = s if mask is None else s[mask]
+    return float(values.mean()) if values.size else float("nan")

@@ -212,8 +212,8 @@ def test_city_coordinates_give_the_same_model(tiny_dataset, tiny_cloud, tiny_mod
 
 
 def test_metrics_on_known_images():
-    from core.metrics import psnr
-    from render.evaluate import off_path, ssim
+    from core.metrics import psnr, ssim
+    from render.evaluate import off_path
 
     a = np.full((20, 30, 3), 100, np.uint8)
     b = a.copy()

@@ -102,7 +102,8 @@ def test_poisson_mesh_of_a_wall_shows_its_colours():
 
 
 def test_work_precision_plot_and_markdown(tmp_path):
-    from render.evaluate import markdown, work_precision_plot, work_precision_points
+    from render.eval_report import markdown, work_precision_plot
+    from render.evaluate import work_precision_points
 
     summary = {f"{m}, {w}": {"psnr": 20.0, "psnr_geometry": 21.0, "psnr_seen": p + (w == "off path") * -2,
                              "ssim": 0.5, "ssim_geometry": 0.5, "ssim_seen": 0.6, "seen_fraction": 0.8}
