@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from bbcity.cli import main
-from data_synth import fileio
+from core import fileio
 
 from .conftest import tiny_config, write_ground_truth_cloud
 
