@@ -1,4 +1,5 @@
-"""Tests for recon.poses: given poses, COLMAP import, trajectory alignment and metrics, SfM."""
+"""Tests for the pose sources: given poses, COLMAP import (recon.colmap_poses, recon.colmap_log), trajectory
+alignment and metrics (recon.trajectory), SfM (recon.sfm)."""
 
 from __future__ import annotations
 
@@ -207,7 +208,7 @@ def test_colmap_import_warns_when_the_model_is_not_metric(tiny_dataset, tmp_path
     cam_from_rig = rig.cam_from_rig.copy()
     cam_from_rig[:, :3, 3] *= 3.0  # the whole model three times too large
     write_colmap_text(tmp_path / "model", rig.intrinsics, list(rig.sizes), cam_from_rig, scaled, _names(ds))
-    with caplog.at_level(logging.WARNING, logger="recon.poses"):
+    with caplog.at_level(logging.WARNING, logger="recon.colmap_poses"):
         poses_from_colmap(tmp_path / "model", ds)
     assert "not metric" in caplog.text and "3" in caplog.text
 
@@ -232,7 +233,7 @@ def test_rig_baseline_ratio_is_one_for_the_calibration(tiny_dataset):
 
 
 def test_colmap_log_is_forwarded_to_logging(tiny_dataset, caplog):
-    with caplog.at_level(logging.DEBUG, logger="recon.poses"):
+    with caplog.at_level(logging.DEBUG, logger="recon.colmap_log"):
         with colmap_log_to_logging():
             pycolmap.logging.warning("hello from glog")
     assert any("hello from glog" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
