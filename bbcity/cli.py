@@ -9,14 +9,16 @@ import errno
 import logging
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 from . import __version__
-from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH, MAX_SPP,
-                      MAX_TILE, RENDER_BYTES_PER_PIXEL, CommandParser, UsageError, build_bytes, check_memory,
-                      dimension, float_range, holdout, int_range, nonnegative_float, nonnegative_int,
-                      positive_float, positive_int, size_action, synth_bytes, worker_count)
+from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH,
+                      MAX_REPEATS, MAX_SPP, MAX_TILE, MIN_LENGTH, RENDER_BYTES_PER_PIXEL, CommandParser, UsageError,
+                      build_bytes, check_memory, dimension, float_range, holdout, int_range, length,
+                      nonnegative_float, nonnegative_int, positive_float, positive_int, size_action, synth_bytes,
+                      worker_count)
 
 logger = logging.getLogger("bbcity")
 
@@ -225,10 +227,10 @@ def _add_recon(sub) -> None:
     p.add_argument("--poses", nargs="+", default=["given"], metavar="SOURCE",
                    help="given (poses.json), colmap DIR (import a COLMAP model) or sfm (pycolmap)")
     p.add_argument("--preset", default="accurate", help="stereo preset: fast, balanced or accurate (default: accurate)")
-    p.add_argument("--voxel-size", type=positive_float, default=0.02,
+    p.add_argument("--voxel-size", type=length, default=0.02,
                    help="fused cloud resolution in metres (default 0.02)")
-    p.add_argument("--min-depth", type=positive_float, default=None, help="nearest depth to match, metres")
-    p.add_argument("--max-depth", type=float_range(0.0, allow_inf=True), default=None,
+    p.add_argument("--min-depth", type=length, default=None, help="nearest depth to match, metres")
+    p.add_argument("--max-depth", type=float_range(MIN_LENGTH, lo_open=False, allow_inf=True), default=None,
                    help="farthest depth to match, metres (inf: no limit)")
     p.add_argument("--frame-stride", type=positive_int, default=1, help="use every n-th frame (default 1)")
     p.add_argument("--wls", action="store_true", help="WLS-filter the disparities (smoother, slower)")
@@ -299,7 +301,7 @@ def _add_build(sub) -> None:
                         "computed its poses, e.g. --poses sfm on a photo folder: the cloud is in their frame)")
     p.add_argument("--texture-source", choices=("images", "points"), default="images",
                    help="sample textures from the images (default) or splat the cloud's own points")
-    p.add_argument("--voxel-size", type=positive_float, default=0.5,
+    p.add_argument("--voxel-size", type=length, default=0.5,
                    help="billboard/voxel edge in metres (default 0.5)")
     p.add_argument("--depth", type=int_range(0, MAX_DEPTH, "a Morton code's bits"), default=None,
                    help="octree depth instead of --voxel-size")
@@ -332,7 +334,7 @@ def _add_build(sub) -> None:
     p.add_argument("--layer", choices=("facades+ground", "facades", "ground", "none"), default="facades+ground",
                    help="the facade layer under the billboards: slits on the facades found in the EPIs and/or "
                         "blocks on flat ground (default both; none: billboards only)")
-    p.add_argument("--block-size", type=positive_float, default=None,
+    p.add_argument("--block-size", type=length, default=None,
                    help="edge of the layer's blocks in metres (default: the voxel size)")
     p.add_argument("--photometry", choices=("on", "off"), default="on",
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
@@ -485,7 +487,7 @@ def _add_sampling_eval(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="report directory")
     p.add_argument("--images", type=Path, default=None, help="dataset directory with gt/ (default: WORK's)")
     p.add_argument("--count", type=positive_int, default=200, help="billboards per set (default 200)")
-    p.add_argument("--voxel-size", type=positive_float, default=0.5,
+    p.add_argument("--voxel-size", type=length, default=0.5,
                    help="billboard/voxel edge in metres (default 0.5)")
     p.set_defaults(func=_run_sampling_eval)
 
@@ -554,9 +556,9 @@ def _add_bench(sub) -> None:
     p.add_argument("--scene", choices=("all", "street", "town"), default="all",
                    help="street: the pipeline and everything measured on its model; town: culling on the town")
     p.add_argument("--quick", action="store_true", help="small inputs, for a smoke run (under 3 minutes)")
-    p.add_argument("--repeats", type=positive_int, default=None,
+    p.add_argument("--repeats", type=int_range(1, MAX_REPEATS), default=None,
                    help="timings are the median of this many runs (3; quick 1)")
-    p.add_argument("--street-length", type=float_range(0.0, MAX_LENGTH), default=None,
+    p.add_argument("--street-length", type=float_range(1.0, MAX_LENGTH, lo_open=False), default=None,
                    help="metres of the 1× street of the pipeline runs (30; quick 9)")
     p.add_argument("--work", type=Path, default=None,
                    help="a recon work directory (e.g. of the default street): the billboard build, texture and "
@@ -714,7 +716,7 @@ def _add_eval(sub) -> None:
                    help="a model of the same cloud built with --layer none, scored as 'billboards only'")
     p.add_argument("--models", type=Path, nargs="+", default=[], metavar="MODEL",
                    help="more model directories (other build settings): more points of the work-precision diagram")
-    p.add_argument("--views", type=positive_int, default=None,
+    p.add_argument("--views", type=int_range(1, MAX_FRAMES), default=None,
                    help="viewpoints (default: 8, each also off path; a real capture: every held-out frame)")
     p.add_argument("--poisson-depth", type=int_range(1, 16), default=10,
                    help="octree depth of the Poisson-mesh baseline (10)")
@@ -791,7 +793,12 @@ def _add_view(sub) -> None:
     p.add_argument("--script-keys", default="",
                    help="with --script-frames: comma-separated keys pressed one per frame from the first, "
                         "e.g. C,I,G (moderngl-window key names)")
-    p.set_defaults(func=_run_view)
+    p.set_defaults(func=_run_view, check_options=_check_view)
+
+
+def _check_view(args) -> None:
+    if args.window == "headless" and args.script_frames == 0:
+        raise UsageError("--window headless takes no input and never closes: give --script-frames N")
 
 
 def _run_view(args) -> int:
@@ -834,6 +841,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # Ctrl-C may land while a library is being imported (parsing already imports the viewer's),
+    # where it can surface as another error (an ImportError): one line and 130 all the same
+    interrupted = threading.Event()
+
+    def on_interrupt(signum, frame):
+        interrupted.set()
+        raise KeyboardInterrupt
+
+    main_thread = threading.current_thread() is threading.main_thread()  # signals go to the main thread only
+    previous = signal.signal(signal.SIGINT, on_interrupt) if main_thread else None
+    try:
+        return _main(argv)
+    except BaseException:
+        if not interrupted.is_set():
+            raise
+        logger.error("interrupted")
+        return 130
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")

@@ -33,6 +33,13 @@ MAX_FRAMES = 100_000
 #: Widest panel of eval's side-by-side images, pixels.
 MAX_PANEL_WIDTH = 4096
 
+#: Finest length the stages resolve (voxels, blocks, depths), metres: finer ones overflow
+#: their integer grids (a denormal 1e-320 m voxel is an infinite number of cells).
+MIN_LENGTH = 1e-4
+
+#: Most repetitions of a timed benchmark section.
+MAX_REPEATS = 100
+
 #: Highest frame rate of a rendered video, frames per second.
 MAX_FPS = 1000.0
 
@@ -113,6 +120,8 @@ positive_int = int_range(1)
 nonnegative_int = int_range(0)
 #: A finite number > 0.
 positive_float = float_range(0.0)
+#: A length in metres the stages can resolve: at least :data:`MIN_LENGTH`, finite.
+length = float_range(MIN_LENGTH, lo_open=False)
 #: A finite number ≥ 0.
 nonnegative_float = float_range(0.0, lo_open=False)
 #: A finite number.

@@ -269,7 +269,10 @@ def read_png(path: os.PathLike | str, size: tuple[int, int] | None = None) -> np
 
 
 def as_matrix(value: Any, shape: tuple[int, ...], path: Path, what: str) -> np.ndarray:
-    """Convert a JSON value to a finite float64 array of ``shape`` or raise naming ``what``."""
+    """Convert a JSON value to a finite float64 array of ``shape`` or raise naming ``what``.
+    Its entries must be JSON numbers: not booleans (Python's True is 1), nor numeric strings."""
+    if not _numbers_only(value):
+        raise DataFormatError(path, f"{what} must hold numbers only (no booleans, strings or null)")
     try:
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -279,6 +282,14 @@ def as_matrix(value: Any, shape: tuple[int, ...], path: Path, what: str) -> np.n
     if not np.all(np.isfinite(array)):
         raise DataFormatError(path, f"{what} contains NaN or inf")
     return array
+
+
+def _numbers_only(value: Any) -> bool:
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "iuf"
+    if isinstance(value, (list, tuple)):
+        return all(_numbers_only(v) for v in value)
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 def check_rigid(T: np.ndarray, path: Path, what: str, tol: float = 1e-6) -> np.ndarray:

@@ -6,10 +6,11 @@ any ``concurrent.futures.Executor`` (None runs in this process).
 
 from __future__ import annotations
 
+import contextlib
 from collections import deque
-from concurrent.futures import Executor, as_completed
+from concurrent.futures import Executor, Future, as_completed, wait
 from itertools import islice
-from typing import Callable, Iterator, Sequence, TypeVar
+from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
 from tqdm import tqdm
 
@@ -39,9 +40,11 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: Executor | Non
                 results.append(fn(task))
                 bar.update()
         else:
-            for future in as_completed([executor.submit(fn, task) for task in tasks]):
-                results.append(future.result())
-                bar.update()
+            futures = [executor.submit(fn, task) for task in tasks]
+            with settled(futures):
+                for future in as_completed(futures):
+                    results.append(future.result())
+                    bar.update()
     return results
 
 
@@ -59,11 +62,28 @@ def ordered_results(fn: Callable[[T], R], tasks: Sequence[T], executor: Executor
             return
         pending: deque = deque()
         queue = iter(tasks)
-        for task in islice(queue, max(1, window)):
-            pending.append(executor.submit(fn, task))
-        while pending:
-            result = pending.popleft().result()
-            bar.update()
-            for task in islice(queue, 1):
+        with settled(pending):
+            for task in islice(queue, max(1, window)):
                 pending.append(executor.submit(fn, task))
-            yield result
+            while pending:
+                result = pending.popleft().result()
+                bar.update()
+                for task in islice(queue, 1):
+                    pending.append(executor.submit(fn, task))
+                yield result
+
+
+@contextlib.contextmanager
+def settled(futures: Iterable[Future]) -> Iterator[None]:
+    """On an error (a task's, or the consumer's), cancel the queued ``futures`` and wait for the
+    running ones before it propagates: no task of this call still writes when the caller cleans
+    up after the failure. On Ctrl-C or SIGTERM, only cancel: the executor's owner stops the workers."""
+    try:
+        yield
+    except BaseException as e:
+        futures = list(futures)
+        for future in futures:
+            future.cancel()
+        if isinstance(e, Exception):
+            wait(futures)
+        raise

@@ -40,10 +40,13 @@ import logging
 from pathlib import Path, PurePosixPath
 
 import numpy as np
-import pycolmap
 
 from core.fileio import atomic_dir
 from core.rigid import nearest_rotation, rigid_inverse
+from core.signals import python_signal_handlers
+
+with python_signal_handlers():  # the first import of pycolmap anywhere: data_synth comes first
+    import pycolmap
 
 from .distortion import Distortion
 

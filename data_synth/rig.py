@@ -36,6 +36,10 @@ POSES_FORMAT = "bbcity-poses"
 FORMAT_VERSION = 1
 
 
+#: A focal length lies within this factor of its image edge (pixels), either way.
+FOCAL_RANGE = 1000.0
+
+
 def _is_int(value) -> bool:
     """An integer (Python or numpy), not a bool."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
@@ -194,6 +198,10 @@ class Rig:
             f = as_matrix([cam["fx"], cam["fy"], cam["cx"], cam["cy"]], (4,), path, f"{where} intrinsics")
             if f[0] <= 0 or f[1] <= 0:
                 raise DataFormatError(path, f"{where} focal lengths must be positive")
+            for name, value, edge in (("fx", f[0], w), ("fy", f[1], h)):
+                if not edge / FOCAL_RANGE <= value <= edge * FOCAL_RANGE:  # a 0.06° to 179.9° field of view
+                    raise DataFormatError(path, f"{where}.{name} {value:g} px is not a lens's for a {edge}-px "
+                                                f"image (expected {edge / FOCAL_RANGE:g} to {edge * FOCAL_RANGE:g})")
             Ks.append(np.array([[f[0], 0, f[2]], [0, f[1], f[3]], [0, 0, 1]]))
             sizes.append((w, h))
             Ts.append(check_rigid(as_matrix(cam["cam_from_rig"], (4, 4), path, f"{where}.cam_from_rig"),

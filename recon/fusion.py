@@ -47,6 +47,9 @@ class FusionConfig:
             raise ValueError(f"FusionConfig.tile_size must be a finite number > 0, got {self.tile_size!r}")
         if not (np.isfinite(self.outlier_std_ratio) and self.outlier_std_ratio > 0):
             raise ValueError(f"FusionConfig.outlier_std_ratio must be finite and > 0, got {self.outlier_std_ratio!r}")
+        if not self.tile_size / self.voxel_size < 2 ** 20:  # voxel keys are packed in 21 bits per axis
+            raise ValueError(f"FusionConfig: a {self.tile_size:g} m tile of {self.voxel_size:g} m voxels holds more "
+                             "than 2^20 voxels along an axis; use larger voxels")
         if self.outlier_neighbours < 0 or self.radius_min_points < 0 or self.min_observations < 1:
             raise ValueError("FusionConfig: outlier_neighbours, radius_min_points ≥ 0 and min_observations ≥ 1 required")
 

@@ -56,6 +56,13 @@ MODES = {
 }
 
 
+#: Nearest depth any stereo search may ask for, metres (nearer is no camera's business, and a
+#: denormal depth makes an infinite disparity).
+MIN_DEPTH = 1e-3
+#: Cap of a disparity range's upper end before it is bounded by the image width (pixels).
+MAX_DISPARITY = 1e9
+
+
 @dataclass(frozen=True)
 class StereoConfig:
     block_size: int = 5  # SGBM matching block, pixels (odd, ≥ 1)
@@ -90,8 +97,8 @@ class StereoConfig:
     def __post_init__(self):
         if self.block_size < 1 or self.block_size % 2 == 0:
             raise ValueError(f"block_size must be a positive odd integer, got {self.block_size}")
-        if not (0 < self.min_depth < self.max_depth):
-            raise ValueError(f"need 0 < min_depth < max_depth, got {self.min_depth}, {self.max_depth}")
+        if not (MIN_DEPTH <= self.min_depth < self.max_depth):
+            raise ValueError(f"need {MIN_DEPTH:g} m ≤ min_depth < max_depth, got {self.min_depth}, {self.max_depth}")
         if (self.min_disparity is None) != (self.num_disparities is None):
             raise ValueError("set both min_disparity and num_disparities, or neither")
         if self.num_disparities is not None and (self.num_disparities <= 0 or self.num_disparities % 16):
@@ -134,7 +141,7 @@ def disparity_range(focal_px: float, baseline_m: float, min_depth: float, max_de
     if not (0 < min_depth < max_depth):
         raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
     d_lo = focal_px * baseline_m / max_depth
-    d_hi = focal_px * baseline_m / min_depth
+    d_hi = min(focal_px * baseline_m / min_depth, MAX_DISPARITY)  # finite, for the integer range
     lo = max(0, math.floor(d_lo) - 1)
     hi = math.ceil(d_hi) + 1
     num = 16 * math.ceil((hi - lo + 1) / 16)

@@ -47,6 +47,12 @@ FINDINGS = [
     *((["recon", "D", "--out", "O", "--voxel-size", v], "--voxel-size") for v in ("0", "-1", "nan")),
     *((["recon", "D", "--out", "O", "--frame-stride", v], "--frame-stride") for v in ("0", "-1")),
     (["view", "M", "--script-frames", "-1"], "--script-frames"),
+    (["view", "M", "--window", "headless"], "--script-frames"),  # would never close
+    (["recon", "D", "--out", "O", "--voxel-size", "1e-320"], "--voxel-size"),  # denormal: an infinite grid
+    (["recon", "D", "--out", "O", "--min-depth", "1e-320"], "--min-depth"),
+    (["eval", "M", "D", "--out", "O", "--views", "99999999999"], "--views"),
+    (["bench", "--out", "O", "--repeats", "99999999999"], "--repeats"),
+    (["bench", "--out", "O", "--street-length", "1e-320"], "--street-length"),
     *((["render", "M", "--out", "O", "--fps", v], "--fps") for v in ("0", "-30")),
     (["eval", "M", "D", "--out", "O", "--views", "0"], "--views"),
     *((["synth", "street", "--out", "O", "--length", v], "--length") for v in ("0", "nan")),

@@ -70,7 +70,7 @@ def commands(inputs: dict, out: Path) -> dict[str, list[str]]:
     return {
         "synth": ["synth", "street", "--out", o, "--frames", "2", "--length", "20", "--width", "64", "--height", "48"],
         "import": ["import", "kitti", d, "--out", o],
-        "recon": ["recon", d, "--out", o, "--workers", "1", "--no-eval"],
+        "recon": ["recon", d, "--out", o, "--workers", "2", "--no-eval"],
         "build": ["build", w, "--out", o, "--workers", "1", "--layer", "none", "--photometry", "off"],
         "render": ["render", m, "--out", o, "--frames", "2", "--size", "64", "48"],
         "eval": ["eval", m, d, "--out", o, "--views", "1", "--size", "64", "48"],

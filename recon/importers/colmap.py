@@ -245,6 +245,10 @@ def _rig_layout(rec: pycolmap.Reconstruction, rig_id: int, model_dir: Path) -> _
         if not frame.has_pose() or any(s.id not in by_sensor for s in sensors):
             skipped += 1
             continue
+        missing = [by_sensor[s.id] for s in sensors if by_sensor[s.id] not in rec.images]
+        if missing:  # frames.txt names an image that images.txt lacks
+            raise DataFormatError(model_dir, f"frame {frame.frame_id} of rig {rig_id} names image(s) "
+                                             f"{', '.join(map(str, missing))}, which the model's images lack")
         names = [rec.images[by_sensor[s.id]].name for s in sensors]
         rows.append((names[0], _to_4x4(frame.rig_from_world), names))
     if skipped:
