@@ -7,6 +7,7 @@ import contextlib
 import dataclasses
 import errno
 import logging
+import os
 import signal
 import sys
 import threading
@@ -851,6 +852,8 @@ def main(argv: list[str] | None = None) -> int:
 
     main_thread = threading.current_thread() is threading.main_thread()  # signals go to the main thread only
     previous = signal.signal(signal.SIGINT, on_interrupt) if main_thread else None
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S")  # before parsing, so that even an early error is a log line
     try:
         return _main(argv)
     except BaseException:
@@ -865,8 +868,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
-    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    logging.getLogger().setLevel(logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO)
     from core import DataFormatError
     from core.workdir import owned_output
 
@@ -916,5 +918,17 @@ def os_error_line(error: OSError, out: Path | None = None) -> str:
     return f"{out}: {error.strerror} (while writing it)" if out is not None else error.strerror
 
 
+def entry_point() -> None:
+    """The ``bbcity`` command: :func:`main`, then exit. After Ctrl-C the exit skips the libraries'
+    exit handlers: one interrupted while it was being imported (Open3D) can fail in them."""
+    code = main()
+    if code == 130:
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry_point()

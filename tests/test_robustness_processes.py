@@ -344,3 +344,38 @@ def test_killed_build_takes_its_workers_along_and_the_next_build_sweeps_its_stat
     assert second.returncode == 0, second.stderr
     assert (model / "manifest.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == [".model.lock", "model"]
+
+
+@pytest.mark.parametrize("delay", [0.4, 0.8, 1.2, 2.0])
+def test_ctrl_c_while_starting_is_one_line(delay, street, tmp_path):
+    """Ctrl-C while the command parses and imports its libraries (OpenCV, Open3D, moderngl)."""
+    run = Run("recon", street, "--out", tmp_path / "w", "--workers", "2", "--no-eval")
+    time.sleep(delay)
+    os.killpg(run.proc.pid, signal.SIGINT)
+    code = run.finish(60)
+    if code == 0:  # finished before the signal: nothing to judge
+        return
+    assert code == 130, run.stderr
+    one_error_line(run.stderr, "interrupted")
+
+
+@pytest.fixture(scope="module")
+def model(work, tmp_path_factory):
+    out = tmp_path_factory.mktemp("model") / "model"
+    result = bbcity("build", work, "--out", out, "--workers", "1", "--layer", "none", "--photometry", "off")
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def test_sigterm_unwinds_without_a_native_stack_dump(model, tmp_path):
+    """pycolmap (glog) installs a SIGTERM handler that prints a stack dump; ours must stay."""
+    frames = tmp_path / "frames"
+    run = Run("render", model, "--out", frames, "--frames", "2000", "--size", "64", "48")
+    end = time.monotonic() + 120
+    while not list(frames.glob("*.png")):
+        assert run.proc.poll() is None and time.monotonic() < end, run.stderr
+        time.sleep(0.05)
+    run.proc.terminate()
+    assert run.finish(60) == 143, run.stderr
+    assert "Aborted at" not in run.stderr and "stack trace" not in run.stderr and "Traceback" not in run.stderr
+    assert hidden_temporaries(frames) == []
