@@ -77,11 +77,17 @@ def _naming(error: OSError, path: Path) -> OSError:
     """``error`` with ``path`` as its file; numpy's short writes ("N requested and M written",
     no errno) become ENOSPC when the disk is indeed full."""
     code, text = error.errno, error.strerror or str(error)
-    if code is None:
-        with contextlib.suppress(OSError):
-            if os.statvfs(path.parent).f_bavail == 0:
-                code, text = errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({error})"
+    if code is None and disk_full(path.parent):
+        code, text = errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({error})"
     return type(error)(code, text, str(path))
+
+
+def disk_full(directory: os.PathLike | str) -> bool:
+    """Whether the file system of ``directory`` has no block left (False when it cannot tell)."""
+    try:
+        return os.statvfs(directory).f_bavail == 0
+    except OSError:
+        return False
 
 
 def replace_dir(tmp: Path, path: Path) -> None:

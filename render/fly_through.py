@@ -4,9 +4,12 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
+import re
 import shutil
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -14,7 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 
-from core.fileio import atomic_path, write_png
+from core.fileio import atomic_path, disk_full, write_png
 
 from .camera import default_intrinsics
 from .context import create_context
@@ -50,8 +53,9 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
                 import imageio.v2 as imageio
 
                 with atomic_path(out) as tmp:
+                    # ffmpeg quiet: a failed write is ours to report, in one line (check_video)
                     writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                                                ffmpeg_log_level="error")
+                                                ffmpeg_log_level="fatal")
                     try:
                         for image in bar:
                             writer.append_data(image)
@@ -62,6 +66,7 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
                             writer.close()
                         raise
                     writer.close()
+                    check_video(tmp, len(poses), out)
             else:
                 _write_frames(bar, out)
     finally:
@@ -70,6 +75,21 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
         ctx.release()
     logger.info("rendered %d frames → %s", len(poses), out)
     return out
+
+
+def check_video(path: Path, frames: int, name: Path) -> None:
+    """Raise OSError naming ``name`` unless the video at ``path`` holds ``frames`` frames: ffmpeg
+    reports a failed write (a full disk) on its stderr only, and leaves a truncated file."""
+    import imageio_ffmpeg
+
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-hide_banner", "-i", str(path), "-map", "0:v:0",
+           "-c", "copy", "-f", "null", "-"]
+    result = subprocess.run(cmd, capture_output=True, text=True, errors="replace")
+    counts = re.findall(r"frame=\s*(\d+)", result.stderr)
+    written = int(counts[-1]) if result.returncode == 0 and counts else 0
+    if written != frames:
+        code = errno.ENOSPC if disk_full(path.parent) else errno.EIO
+        raise OSError(code, f"{os.strerror(code)}: the video holds {written} of {frames} frames", str(name))
 
 
 def _write_frames(images, out: Path) -> None:

@@ -129,17 +129,21 @@ def hidden(root: Path) -> list[Path]:
 
 
 @pytest.mark.parametrize("command, kilobytes", [("synth", 64), ("recon", 256), ("build", 256), ("eval", 64),
-                                                ("render", 16)])
+                                                ("render", 16), ("video", 64)])
 def test_full_disk(command, kilobytes, inputs, tmpfs, caplog):
     disk = tmpfs("full", kilobytes)
-    out = disk / "out"
-    argv = commands(inputs, out)[command]
-    if command in ("synth", "render"):
+    out = disk / ("out.mp4" if command == "video" else "out")
+    argv = commands(inputs, out)["render" if command == "video" else command]
+    if command in ("synth", "render", "video"):
         argv[argv.index("--frames") + 1] = "4" if command == "synth" else "40"
+    if command == "video":  # ffmpeg fails only at the end, when it writes the trailer: exit 0 once
+        argv[argv.index("--size") + 1:argv.index("--size") + 3] = ["640", "480"]
     code, errors = run_cli(argv, caplog)
     assert code == 2 and len(errors) == 1, errors
     assert "No space left on device" in errors[0] and str(disk) in errors[0], errors
     assert hidden(disk) == [], "temporaries left behind"
+    if command == "video":
+        assert not out.exists()
     if command == "recon":
         assert not (out / "cloud.ply").exists() and not (out / "spill").exists()
     if command == "build":
