@@ -744,14 +744,20 @@ def _run_eval(args) -> int:
     from render.eval_report import write_report
     from render.evaluate import evaluate_views
 
+    from core.fileio import atomic_dir
+
     config = _eval_config(args)
+    if args.out.is_dir() and any(args.out.iterdir()) and not (args.out / "eval.json").is_file():
+        raise UsageError(f"--out {args.out} holds other files than an eval report; the report replaces its "
+                         "directory whole: give a new one")
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]
     extra = {label: (load(m), read_sky(m)) for label, m in zip(labels, args.models)}
     only = None if args.billboards_only is None else (load(args.billboards_only), read_sky(args.billboards_only))
     model = load(args.model)
-    report = evaluate_views(model, _eval_dataset(model, args.dataset), args.cloud, sky=read_sky(args.model),
-                            extra_models=extra, billboards_only=only, config=config, out_dir=args.out)
-    write_report(report, args.out)
+    with atomic_dir(args.out) as report_dir:  # a failed or interrupted run leaves no partial report
+        report = evaluate_views(model, _eval_dataset(model, args.dataset), args.cloud, sky=read_sky(args.model),
+                                extra_models=extra, billboards_only=only, config=config, out_dir=report_dir)
+        write_report(report, report_dir)
     for name, m in report["summary"].items():
         if report.get("real"):
             logger.info("%s: PSNR %s dB over covered pixels (%s over the image), SSIM %s, %s of the pixels below "

@@ -146,7 +146,7 @@ def test_full_disk(command, kilobytes, inputs, tmpfs, caplog):
         assert not out.exists()
     if command == "recon":
         assert not (out / "cloud.ply").exists() and not (out / "spill").exists()
-    if command == "build":
+    if command in ("build", "eval"):  # no partial model or report
         assert not out.exists()
 
 
@@ -170,3 +170,12 @@ def test_injected_enospc_leaves_nothing_half_written(tmp_path, monkeypatch, capl
     assert hidden(out) == []
     monkeypatch.setattr(fileio.os, "replace", real_replace)
     write_dataset(tiny_config(), out, progress=False)  # the next run completes it
+
+
+def test_eval_does_not_replace_a_directory_of_other_files(inputs, tmp_path, caplog):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("precious")
+    code, errors = run_cli(commands(inputs, out)["eval"], caplog)
+    assert code == 2 and len(errors) == 1 and "holds other files than an eval report" in errors[0]
+    assert (out / "notes.txt").read_text() == "precious"
