@@ -497,3 +497,23 @@ def test_cli_import_photos_then_recon_with_sfm(one_camera_street, tmp_path):
     report = json.loads((tmp_path / "work" / "recon_report.json").read_text())
     assert report["poses"]["source"] == "sfm" and report["poses"]["registered_frames"] == 16
     assert report["points"] > 1000
+
+
+@pytest.mark.parametrize("baseline", [-0.537, 1e6, 0.0])
+def test_kitti_calib_whose_pair_is_no_car_rig_is_one_clear_error(tmp_path, baseline):
+    """A right camera to the left of the left one (a sign slip), or absurdly far or near."""
+    seq = _fake_kitti(tmp_path / "seq", baseline=baseline)
+    with pytest.raises(DataFormatError, match=r"calib\.txt: P1 is not 0\.01–10 m to the right of P0"):
+        import_kitti(seq, tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
+
+
+def test_kitti_pose_at_an_absurd_position_is_one_clear_error(tmp_path):
+    seq = _fake_kitti(tmp_path / "seq")
+    lines = (seq / "poses.txt").read_text().splitlines()
+    values = lines[2].split()
+    values[3] = "1e308"
+    lines[2] = " ".join(values)
+    (seq / "poses.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFormatError, match=r"poses\.txt: line 3: a position beyond 1e\+07 m"):
+        import_kitti(seq, tmp_path / "ds")

@@ -54,6 +54,12 @@ class KittiConfig:
             raise ValueError("first must be ≥ 0, step ≥ 1 and count ≥ 1")
 
 
+#: A stereo pair's baseline, metres (KITTI's: 0.54): shorter or longer ones are no car rig's.
+MIN_BASELINE, MAX_BASELINE = 0.01, 10.0
+#: Farthest a pose may lie from the sequence's origin, metres (beyond: a corrupt number).
+MAX_POSITION = 1e7
+
+
 def read_calib(path: Path) -> dict[int, np.ndarray]:
     """``calib.txt`` → {camera index: (3, 4) float64 P}. Prefixed lines name their camera;
     unprefixed files hold 2 (P0, P1) or 4 (P0..P3) lines."""
@@ -102,6 +108,9 @@ def read_poses(path: Path) -> np.ndarray:
         raise DataFormatError(path, "has no poses")
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    far = np.flatnonzero(np.abs(poses[:, :3, 3]).max(axis=1) > MAX_POSITION)
+    if len(far):
+        raise DataFormatError(path, f"line {far[0] + 1}: a position beyond {MAX_POSITION:g} m from the origin")
     return np.array([clean_rigid(T, path, f"line {i + 1}") for i, T in enumerate(poses)])
 
 
@@ -139,13 +148,20 @@ def kitti_rig(calib: dict[int, np.ndarray], cams: tuple[int, int], size: tuple[i
     if missing:
         raise DataFormatError(calib_path, f"lacks P{missing[0]}, needed for the chosen cameras")
     cam0_from_rig = np.linalg.inv(rig_from_cam0(camera_height))
-    Ks, Ts = [], []
+    Ks, Ts, offsets = [], [], []
     for c in cams:
         K = calib[c][:, :3].copy()
         cam_from_cam0 = np.eye(4)
         cam_from_cam0[:3, 3] = np.linalg.solve(K, calib[c][:, 3])
         Ks.append(K)
         Ts.append(cam_from_cam0 @ cam0_from_rig)
+        offsets.append(-cam_from_cam0[:3, 3])  # the camera's centre in cam0's frame, metres
+    left, right = offsets
+    baseline = right - left
+    if not (MIN_BASELINE <= baseline[0] <= MAX_BASELINE) or np.abs(baseline[1:]).max() > 0.1 * baseline[0]:
+        # a rectified pair's right camera lies to the right of the left one, along x
+        raise DataFormatError(calib_path, f"P{cams[1]} is not {MIN_BASELINE:g}–{MAX_BASELINE:g} m to the right of "
+                                          f"P{cams[0]} along x (offset {np.round(baseline, 4).tolist()} m)")
     return Rig(np.array(Ks), (tuple(size),) * len(cams), np.array(Ts))
 
 
