@@ -8,6 +8,7 @@ import dataclasses
 import errno
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -711,7 +712,8 @@ def _add_eval(sub) -> None:
     p.add_argument("model", type=Path, help="billboard model directory")
     p.add_argument("dataset", type=Path,
                    help="the dataset: synthetic with gt/, or a real capture (scored against its held-out images)")
-    p.add_argument("--out", type=Path, required=True, help="report directory")
+    p.add_argument("--out", type=Path, required=True,
+                   help="report directory: new, or an earlier eval report (replaced whole)")
     p.add_argument("--cloud", type=Path, default=None, help="fused cloud for the Poisson-mesh and point baselines")
     p.add_argument("--billboards-only", type=Path, default=None, metavar="MODEL",
                    help="a model of the same cloud built with --layer none, scored as 'billboards only'")
@@ -727,7 +729,28 @@ def _add_eval(sub) -> None:
                    help="width of each panel of the side-by-side images (default 320; 0: no images)")
     p.add_argument("--no-sky", action="store_true",
                    help="draw the model(s) on black like the baselines, not over their sky")
-    p.set_defaults(func=_run_eval, check_options=_eval_config)
+    p.set_defaults(func=_run_eval, check_options=_check_eval)
+
+
+#: What an eval report directory holds (it is replaced whole by the next report).
+_EVAL_REPORT_FILES = re.compile(r"eval\.json|eval\.md|workprecision\.png|view_\d+_(on|off)_path\.png")
+
+
+def _check_eval(args) -> None:
+    """The eval options, and an --out that is new or an earlier eval report (it is replaced whole)."""
+    _eval_config(args)
+    out = args.out
+    try:
+        if out.is_symlink() or (out.exists() and not out.is_dir()):
+            raise UsageError(f"--out {out} is not a directory (a link or a file); give a new report directory")
+        names = [p.name for p in out.iterdir()] if out.is_dir() else []
+    except OSError as e:  # a name too long, a directory not readable
+        raise UsageError(f"--out {out}: {e.strerror}") from None
+    if names:
+        foreign = [name for name in names if not _EVAL_REPORT_FILES.fullmatch(name)]
+        if foreign:
+            raise UsageError(f"--out {out} holds {foreign[0]!r}, not an eval report's; the report replaces its "
+                             "directory whole: give a new one")
 
 
 def _eval_config(args):
@@ -747,9 +770,6 @@ def _run_eval(args) -> int:
     from core.fileio import atomic_dir
 
     config = _eval_config(args)
-    if args.out.is_dir() and any(args.out.iterdir()) and not (args.out / "eval.json").is_file():
-        raise UsageError(f"--out {args.out} holds other files than an eval report; the report replaces its "
-                         "directory whole: give a new one")
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]
     extra = {label: (load(m), read_sky(m)) for label, m in zip(labels, args.models)}
     only = None if args.billboards_only is None else (load(args.billboards_only), read_sky(args.billboards_only))
@@ -856,8 +876,10 @@ def main(argv: list[str] | None = None) -> int:
         interrupted.set()
         raise KeyboardInterrupt
 
-    main_thread = threading.current_thread() is threading.main_thread()  # signals go to the main thread only
-    previous = signal.signal(signal.SIGINT, on_interrupt) if main_thread else None
+    # signals reach the main thread only; an ignored SIGINT (a background job of a shell script) stays ignored
+    ours = threading.current_thread() is threading.main_thread() and \
+        signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    previous = signal.signal(signal.SIGINT, on_interrupt) if ours else None
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")  # before parsing, so that even an early error is a log line
     try:
@@ -868,7 +890,7 @@ def main(argv: list[str] | None = None) -> int:
         logger.error("interrupted")
         return 130
     finally:
-        if main_thread:
+        if ours and previous is not None:
             signal.signal(signal.SIGINT, previous)
 
 

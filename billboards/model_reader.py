@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.fileio import DataFormatError, load_npy, read_npy_header
+from core.fileio import DataFormatError, load_npy, read_npy_header, reject_json_constant
 
 from .atlas import AtlasLayout, atlas_layout, row_layout
 from .model import (ARRAYS, COEF_MODES, MANIFEST, TILE_MODES, BillboardModel, _Doc, _array_problem, _parse_manifest,
@@ -73,7 +73,7 @@ def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
     if mpath.stat().st_size > _MAX_MANIFEST_BYTES:
         raise DataFormatError(mpath, f"is larger than {_MAX_MANIFEST_BYTES} bytes")
     try:
-        doc = json.loads(mpath.read_bytes(), parse_constant=_reject_constant)
+        doc = json.loads(mpath.read_bytes(), parse_constant=reject_json_constant)
     except (ValueError, UnicodeDecodeError, RecursionError) as e:
         raise DataFormatError(mpath, f"not valid JSON ({e})") from None
     meta = _parse_manifest(doc, mpath)
@@ -101,7 +101,3 @@ def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
         yaw_offsets=meta.yaw_offsets, pitches=meta.pitches, pitched_quads=meta.pitched_quads,
         tile_mode=meta.tile_mode, coef_mode=meta.coef_mode, pages=pages, coef_pages=coef_pages,
         info=meta.info, **arrays)
-
-
-def _reject_constant(name: str) -> None:
-    raise ValueError(f"{name} is not allowed")

@@ -147,12 +147,13 @@ def read_json(path: os.PathLike | str) -> Any:
     if not path.is_file():
         raise DataFormatError(path, "file is missing")
     try:
-        return json.loads(path.read_text(), parse_constant=_reject_constant)
+        return json.loads(path.read_text(), parse_constant=reject_json_constant)
     except (json.JSONDecodeError, UnicodeDecodeError, ValueError) as e:
         raise DataFormatError(path, f"not valid JSON ({e})") from None
 
 
-def _reject_constant(name: str) -> None:
+def reject_json_constant(name: str) -> None:
+    """``json.loads(parse_constant=...)``: NaN and Infinity are not JSON."""
     raise ValueError(f"{name} is not allowed")
 
 
@@ -281,7 +282,7 @@ def as_matrix(value: Any, shape: tuple[int, ...], path: Path, what: str) -> np.n
         raise DataFormatError(path, f"{what} must hold numbers only (no booleans, strings or null)")
     try:
         array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # an integer of 400 digits overflows float64
         raise DataFormatError(path, f"{what} is not a numeric array") from None
     if array.shape != shape:
         raise DataFormatError(path, f"{what} has shape {array.shape}, expected {shape}")

@@ -1,4 +1,6 @@
-"""Image quality numbers shared by the stages: PSNR (one convention everywhere) and SSIM.
+"""Image quality numbers shared by the stages: PSNR and SSIM of images.
+
+(billboards.truth.texture_psnr keeps its own convention for RGBA textures: inf when identical.)
 
 PSNR is in dB; NaN when nothing was measured; identical inputs give :data:`PSNR_MAX_DB`
 rather than inf, so that reports stay valid JSON (the result is capped there in general).

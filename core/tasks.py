@@ -75,9 +75,10 @@ def ordered_results(fn: Callable[[T], R], tasks: Sequence[T], executor: Executor
 
 @contextlib.contextmanager
 def settled(futures: Iterable[Future]) -> Iterator[None]:
-    """On an error (a task's, or the consumer's), cancel the queued ``futures`` and wait for the
-    running ones before it propagates: no task of this call still writes when the caller cleans
-    up after the failure. On Ctrl-C or SIGTERM, only cancel: the executor's owner stops the workers."""
+    """On an error (a task's, or run_tasks' consumer's), cancel the queued ``futures`` and wait for
+    the running ones before it propagates: no task of this call still writes when the caller
+    cleans up after the failure. On Ctrl-C or SIGTERM, or when the consumer of ordered_results
+    stops it (GeneratorExit), only cancel: the executor's owner stops the workers."""
     try:
         yield
     except BaseException as e:

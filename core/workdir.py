@@ -6,10 +6,9 @@ long as it lives; the kernel releases it when the process dies, however it dies.
 The holder then owns the output's temporaries: every one that is not its own was
 left by a killed run and is removed.
 
-The writers' temporaries, all hidden: ``.NAME.tmp-PID.SUFFIX`` (atomic_path),
-``.NAME.body-PID`` (the PLY writer), ``.NAME.tmp-RANDOM``, ``.NAME.build-RANDOM`` and
-``.NAME.old-RANDOM`` (directories of the model writer, the build and
-:func:`core.fileio.replace_dir`).
+The writers' temporaries, all hidden, are named by :func:`temporary`: a pid-tagged one
+is removed once its process is gone; a randomly tagged one (made only beside an output
+or directly in it) by the lock holder.
 """
 
 from __future__ import annotations
@@ -26,10 +25,27 @@ from typing import Iterator
 
 logger = logging.getLogger(__name__)
 
-#: hidden names of temporaries: .NAME.KIND-TAG[.SUFFIX]; the tag is a pid, tempfile's 8 random
-#: characters or a uuid's hex (8 or 32 digits)
-TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<kind>tmp|body|build|old)-(?P<tag>[0-9]+|[0-9a-z_]{8}|[0-9a-f]{32})"
-                       r"(\.\w+)?")
+_TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<kind>tmp|body|build|old)-(?P<tag>[0-9a-z_]+)(?P<suffix>\.\w+)?")
+_MKDTEMP_TAG = re.compile(r"[0-9a-z_]{8}")  # tempfile.mkdtemp's random part
+_UUID_TAG = re.compile(r"[0-9a-f]{32}")
+
+
+def temporary(name: str) -> tuple[str, str, int | None] | None:
+    """(the output's name, kind, the writer's pid or None) when ``name`` is a temporary one of
+    the writers makes, else None: ``.NAME.tmp-PID[.SUFFIX]`` and ``.NAME.body-PID`` (pid),
+    ``.NAME.tmp-XXXXXXXX`` and ``.NAME.build-XXXXXXXX`` (tempfile.mkdtemp), ``.NAME.tmp-HEX`` and
+    ``.NAME.old-HEX`` (a uuid's 32 hex digits: atomic_dir, replace_dir)."""
+    m = _TEMPORARY.fullmatch(name)
+    if m is None:
+        return None
+    kind, tag = m["kind"], m["tag"]
+    if kind in ("tmp", "body") and tag.isdigit():
+        return m["name"], kind, int(tag)
+    if m["suffix"] is not None:
+        return None
+    random = (kind in ("tmp", "build") and _MKDTEMP_TAG.fullmatch(tag)) or \
+        (kind in ("tmp", "old") and _UUID_TAG.fullmatch(tag))
+    return (m["name"], kind, None) if random else None
 
 
 def lock_path(output: os.PathLike | str) -> Path:
@@ -74,49 +90,52 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-def _left_by_dead_run(match: re.Match, locked: bool) -> bool:
-    tag = match["tag"]
-    if match["kind"] in ("tmp", "body") and tag.isdigit():  # named by the writer's pid
-        return int(tag) != os.getpid() and not pid_alive(int(tag))
+def _left_by_dead_run(pid: int | None, locked: bool) -> bool:
+    if pid is not None:  # named by the writer's pid
+        return pid != os.getpid() and not pid_alive(pid)
     return locked  # a random tag: only the lock holder knows nobody else is writing
 
 
 def sweep_temporaries(root: os.PathLike | str, locked: bool = False) -> list[Path]:
-    """Remove the temporaries that dead runs left under ``root``; returns what was removed.
+    """Remove the temporaries that dead runs left in ``root``; returns what was removed.
 
-    Temporaries tagged with a pid are removed once that process is gone; those with a
-    random tag only when ``locked`` (the caller holds :func:`exclusive_output` of
-    ``root``). An output set aside by an interrupted replacement (``.NAME.old-*`` while
-    NAME is missing) is put back, never removed.
+    Temporaries tagged with a pid are removed, at any depth, once that process is gone;
+    those with a random tag only directly in ``root`` (where the writers make them) and only
+    when ``locked`` (the caller holds :func:`exclusive_output` of ``root``). An output set
+    aside by an interrupted replacement (``.NAME.old-HEX`` while NAME is missing) is put
+    back, never removed.
     """
     root = Path(root)
     if not root.is_dir() or root.is_symlink():
         return []
     removed: list[Path] = []
     for path in sorted(root.rglob(".*"), key=lambda p: len(p.parts)):  # a directory before its contents
-        match = TEMPORARY.fullmatch(path.name)
-        if match is not None and (path.exists() or path.is_symlink()):
-            removed += _remove_if_dead(path, match, locked)
+        found = temporary(path.name)
+        if found is None or not (path.exists() or path.is_symlink()):
+            continue
+        if found[2] is None and path.parent != root:
+            continue
+        removed += _remove_if_dead(path, *found, locked=locked)
     return removed
 
 
 def sweep_output(output: os.PathLike | str) -> list[Path]:
     """For the holder of ``output``'s lock: remove the temporaries of dead runs beside it
-    (``.NAME.*``) and, when it is a directory, inside it; returns what was removed."""
+    (``.NAME.*``) and, when it is a directory, in it; returns what was removed."""
     output = Path(output).absolute()
     removed: list[Path] = []
     if output.parent.is_dir():
         for path in sorted(output.parent.iterdir()):
-            match = TEMPORARY.fullmatch(path.name)
-            if match is not None and match["name"] == output.name:
-                removed += _remove_if_dead(path, match, locked=True)
+            found = temporary(path.name)
+            if found is not None and found[0] == output.name:
+                removed += _remove_if_dead(path, *found, locked=True)
     return removed + sweep_temporaries(output, locked=True)
 
 
-def _remove_if_dead(path: Path, match: re.Match, locked: bool) -> list[Path]:
-    if not _left_by_dead_run(match, locked):
+def _remove_if_dead(path: Path, name: str, kind: str, pid: int | None, locked: bool) -> list[Path]:
+    if not _left_by_dead_run(pid, locked):
         return []
-    if match["kind"] == "old" and _restore_set_aside(path, path.with_name(match["name"])):
+    if kind == "old" and _restore_set_aside(path, path.with_name(name)):
         return []
     logger.info("removing %s, left by an interrupted run", path)
     if path.is_dir() and not path.is_symlink():

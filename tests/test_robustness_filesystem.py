@@ -5,7 +5,9 @@ else an injected ENOSPC), ``--out`` naming an existing file, a name too long.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import io
 import logging
 import os
 import subprocess
@@ -82,10 +84,16 @@ def commands(inputs: dict, out: Path) -> dict[str, list[str]]:
 
 
 def run_cli(argv: list[str], caplog) -> tuple[int, list[str]]:
+    """Exit status and error lines: logged errors, or the usage error of options refused as parsed."""
     caplog.clear()
-    with caplog.at_level(logging.INFO):
-        code = main(argv)
-    return code, [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    stderr = io.StringIO()
+    with caplog.at_level(logging.INFO), contextlib.redirect_stderr(stderr):
+        try:
+            code = main(argv)
+        except SystemExit as e:
+            code = e.code
+    usage = [line for line in stderr.getvalue().splitlines() if ": error: " in line]
+    return code, usage + [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
 
 
 WRITING = ["synth", "import", "recon", "build", "render", "eval", "texture-sweep", "sampling-eval", "stereo-sweep",
@@ -177,5 +185,18 @@ def test_eval_does_not_replace_a_directory_of_other_files(inputs, tmp_path, capl
     out.mkdir()
     (out / "notes.txt").write_text("precious")
     code, errors = run_cli(commands(inputs, out)["eval"], caplog)
-    assert code == 2 and len(errors) == 1 and "holds other files than an eval report" in errors[0]
+    assert code == 2 and len(errors) == 1 and "not an eval report's" in errors[0]
     assert (out / "notes.txt").read_text() == "precious"
+
+
+def test_eval_refuses_a_directory_that_is_not_its_report_before_any_sweep(inputs, tmp_path, caplog):
+    """An earlier eval report may be replaced; a directory with anything else (even beside a report)
+    is refused when the options are parsed, before the sweep of temporaries looks inside it."""
+    out = tmp_path / "demo"
+    (out / "work").mkdir(parents=True)
+    (out / "eval.json").write_text("{}")
+    (out / ".draft.tmp-original").write_text("mine")  # looks like a temporary; it is the user's
+    with pytest.raises(SystemExit) as caught:
+        main(commands(inputs, out)["eval"])
+    assert caught.value.code == 2
+    assert sorted(p.name for p in out.iterdir()) == [".draft.tmp-original", "eval.json", "work"]

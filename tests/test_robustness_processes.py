@@ -262,7 +262,7 @@ def test_sweep_removes_dead_runs_leftovers_and_restores_a_set_aside_model(tmp_pa
     out = tmp_path / "model"
     build_state = tmp_path / ".model.build-abc12345"
     half_model = tmp_path / ".model.tmp-k9j8h7g6"
-    aside = tmp_path / ".model.old-q1w2e3r4"
+    aside = tmp_path / f".model.old-{'5e' * 16}"  # replace_dir's: a uuid's hex
     other = tmp_path / ".other.build-abc12345"  # another output's: not ours to touch
     mine = tmp_path / f".model.tmp-{os.getpid()}.json"  # a live process's (this one)
     for d in (build_state, half_model, other, aside):
@@ -379,3 +379,16 @@ def test_sigterm_unwinds_without_a_native_stack_dump(model, tmp_path):
     assert run.finish(60) == 143, run.stderr
     assert "Aborted at" not in run.stderr and "stack trace" not in run.stderr and "Traceback" not in run.stderr
     assert hidden_temporaries(frames) == []
+
+
+def test_a_background_job_ignores_ctrl_c_as_it_was_started_to(street, tmp_path):
+    """A shell starts `bbcity … &` of a script with SIGINT ignored: Ctrl-C at the script is not for it."""
+    proc = subprocess.Popen([sys.executable, "-m", "bbcity.cli", "recon", str(street), "--out", str(tmp_path / "w"),
+                             "--workers", "2", "--no-eval"], cwd=ROOT, env=_env(), start_new_session=True,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    time.sleep(1.5)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 0, stderr
+    assert (tmp_path / "w" / "cloud.ply").is_file()
