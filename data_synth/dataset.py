@@ -29,8 +29,6 @@ import json
 import logging
 import math
 import os
-import re
-import shutil
 import time
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field, replace
@@ -41,6 +39,7 @@ import open3d as o3d
 
 from core.fileio import DataFormatError, atomic_path, load_npy, read_json, read_png, save_npy, write_json, write_png
 from core.tasks import run_tasks
+from core.workdir import sweep_temporaries, temporary
 
 from .colmap_export import write_colmap_text
 from .coverage import street_coverage
@@ -184,27 +183,6 @@ def write_mesh_ply(path: Path, scene: Scene) -> Path:
     return path
 
 
-# what the writers name their temporaries: .NAME.tmp-PID.SUFFIX (atomic_path), .NAME.tmp-HEX (colmap/)
-_TEMPORARY = re.compile(r"\..+\.tmp-[0-9a-f]+(\.\w+)?")
-
-
-def _is_temporary(relative: Path) -> bool:
-    return any(_TEMPORARY.fullmatch(part) for part in relative.parts)
-
-
-def _remove_temporaries(root: Path) -> None:
-    """Delete the temporary files and directories that a killed run left under ``root``."""
-    if not root.is_dir():
-        return
-    for p in sorted(root.rglob(".*.tmp-*")):
-        if _TEMPORARY.fullmatch(p.name):
-            logger.info("removing %s, left by an interrupted run", p)
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
-
-
 def _differences(a, b, prefix: str = "") -> list[str]:
     """Dotted keys at which two JSON values differ ("frames", "rig.width"); [prefix or
     "settings"] when they differ otherwise."""
@@ -242,9 +220,9 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
                                   f"other settings ({differ}): run it again with those settings to finish it, or "
                                   f"remove it (rm -r {root}) to start this one there")
         logger.info("resuming the dataset in %s", root)
-    elif root.exists() and any(p.is_file() and not _is_temporary(p.relative_to(root)) for p in root.rglob("*")):
+    elif root.exists() and any(p.is_file() and not any(temporary(part) for part in p.relative_to(root).parts) for p in root.rglob("*")):
         raise FileExistsError(f"{root} exists and is not an empty directory or a bbcity dataset")
-    _remove_temporaries(root)
+    sweep_temporaries(root, locked=True)  # this writer owns the dataset directory
 
     t0 = time.perf_counter()
     scene = build_scene(cfg.scene, asdict(cfg.street if cfg.scene == "street" else cfg.town))
