@@ -79,22 +79,25 @@ def project_boxes(view_proj, box_min, box_max, width: int, height: int, *, pad_p
         raise ValueError(f"need view_proj (4, 4) and two (k, 3) box arrays, got {m.shape}, {lo.shape}, {hi.shape}")
     if k == 0:
         return np.zeros((0, 4)), np.zeros(0), np.zeros(0, dtype=bool)
-    bits = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=bool)  # (8, 3)
-    corners = np.where(bits[None], hi[:, None, :], lo[:, None, :])  # (k, 8, 3)
-    clip = corners @ m[:, :3].T + m[:, 3]  # (k, 8, 4)
-    cw = clip[..., 3]
-    cz = clip[..., 2]
+    # Component-major (4, 8, k) corners: clip coordinates are affine in the corner (the lo corner
+    # plus 0 or each edge's image), and reductions over the 8 corners run along contiguous rows.
+    bits = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=np.float64)  # (8, 3)
+    base = m[:, :3] @ lo.T + m[:, 3:]  # (4, k)
+    edge = m[:, :3, None] * (hi - lo).T[None]  # (4, 3, k): clip offset of each box edge
+    clip = base[:, None, :] + np.matmul(bits[None], edge)  # (4, 8, k)
+    cw = clip[3]
+    cz = clip[2]
     # On or behind the near plane (z < −w), or at/behind the eye, with a relative margin.
-    crosses = ((cw <= 0) | (cz + cw <= 1e-7 * np.abs(cw))).any(axis=1) | ~np.isfinite(clip).all(axis=(1, 2))
-    safe_w = np.where(crosses[:, None], 1.0, cw)
-    ndc = clip[..., :3] / safe_w[..., None]
-    xw = (ndc[..., 0] + 1.0) * (0.5 * w)
-    yw = (ndc[..., 1] + 1.0) * (0.5 * h)
-    rects = np.stack([np.floor(xw.min(axis=1)) - pad_px, np.floor(yw.min(axis=1)) - pad_px,
-                      np.ceil(xw.max(axis=1)) + pad_px, np.ceil(yw.max(axis=1)) + pad_px], axis=1)
+    crosses = ((cw <= 0) | (cz + cw <= 1e-7 * np.abs(cw))).any(axis=0) | ~np.isfinite(clip).all(axis=(0, 1))
+    safe_w = np.where(crosses[None, :], 1.0, cw)
+    ndc = clip[:3] / safe_w  # (3, 8, k)
+    xw = (ndc[0] + 1.0) * (0.5 * w)
+    yw = (ndc[1] + 1.0) * (0.5 * h)
+    rects = np.stack([np.floor(xw.min(axis=0)) - pad_px, np.floor(yw.min(axis=0)) - pad_px,
+                      np.ceil(xw.max(axis=0)) + pad_px, np.ceil(yw.max(axis=0)) + pad_px], axis=1)
     rects[:, [0, 2]] = np.clip(rects[:, [0, 2]], 0, w)
     rects[:, [1, 3]] = np.clip(rects[:, [1, 3]], 0, h)
-    depth = ndc[..., 2].min(axis=1)
+    depth = ndc[2].min(axis=0)
     rects[crosses] = (0.0, 0.0, float(w), float(h))
     depth[crosses] = -1.0
     return rects, depth, crosses
