@@ -124,10 +124,14 @@ class CpuDecoder:
             sent += h * staging.shape[2] * 4
         return sent
 
-    def draw(self, camera: GLCamera, visible=None) -> dict:
+    def begin_frame(self) -> None:
+        """Start a frame (nothing carries over: every frame decodes what it draws)."""
+
+    def draw(self, camera: GLCamera, visible=None, whole_columns: bool = False) -> dict:
         """Decode, upload and draw into the bound framebuffer.
 
-        Returns stats {draw_calls, instances, upload_bytes, decode_s, upload_s}.
+        Returns stats {draw_calls, instances, upload_bytes, decode_s, upload_s}. Every block is
+        its own quad here, so ``whole_columns`` (see :meth:`GpuDecoder.draw`) changes nothing.
         """
         if self._objects is None:
             raise RuntimeError("CpuDecoder used after release()")

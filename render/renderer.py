@@ -23,6 +23,7 @@ from .culling import CULL_MODES, frustum_cull_nodes, frustum_planes, model_quad_
 from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder
+from .lod import LodConfig
 from .resources import ModelResources
 from .target import OffscreenTargets, background_rgb
 
@@ -54,7 +55,8 @@ class BillboardRenderer:
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, decode: str = "gpu", *,
                  spherical: bool | None = None, interpolate: bool = True, linear: bool = True,
-                 background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "none"):
+                 background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "none",
+                 lod: LodConfig | None = None):
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
         if cull not in CULL_MODES:
@@ -75,7 +77,7 @@ class BillboardRenderer:
         try:
             if decode == "gpu":
                 self.resources = ModelResources(ctx, model)
-                self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate, linear)
+                self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate, linear, lod)
             else:
                 self.decoder = CpuDecoder(ctx, model, self.spherical, interpolate=interpolate, linear=linear)
         except BaseException:
@@ -113,6 +115,7 @@ class BillboardRenderer:
         if self._released:
             raise RuntimeError("BillboardRenderer used after release()")
         self.ctx.enable_only(moderngl.DEPTH_TEST)
+        self.decoder.begin_frame()
         t0 = time.perf_counter()
         if self.cull == "none" or visible is not None or self.model.num_billboards == 0:
             stats = self.decoder.draw(camera, visible)
@@ -134,15 +137,19 @@ class BillboardRenderer:
         after_frustum = int(np.sum(np.diff(frustum.visible_ranges, axis=1))) if len(frustum.visible_ranges) else 0
         info = {"billboards": model.num_billboards, "nodes_tested": frustum.nodes_tested,
                 "billboards_after_frustum": after_frustum, "frustum_s": time.perf_counter() - t0}
-        totals = {"draw_calls": 0, "instances": 0, "upload_bytes": 0}
+        totals = {"draw_calls": 0, "instances": 0, "upload_bytes": 0, "quads": 0, "decoded_tiles": 0,
+                  "lod": [0, 0, 0]}
 
         def draw_ranges(ranges) -> None:
             indices = ranges_to_indices(ranges)
             if len(indices) == 0:
                 return
-            part = self.decoder.draw(camera, indices)
-            for key in totals:
-                totals[key] += int(part.get(key, 0))
+            part = self.decoder.draw(camera, indices, whole_columns=True)
+            for key, value in totals.items():
+                if key == "lod":
+                    totals[key] = [a + b for a, b in zip(value, part.get(key, [0, 0, 0]))]
+                else:
+                    totals[key] = value + int(part.get(key, 0))
 
         if self.cull == "frustum":
             draw_ranges(frustum.visible_ranges)

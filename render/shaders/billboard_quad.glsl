@@ -48,9 +48,10 @@ vec2 quad_corner(int vertex_id) {
     return vec2(float(vertex_id & 1), float((vertex_id >> 1) & 1));
 }
 
-// Clip-space position of `corner` of the quad of `kind` at `centre` facing `angles`;
-// `texel` receives the continuous tile coordinate (x = col, y = row, 0..t; row 0 at the top).
-vec4 quad_vertex(vec3 centre, vec2 angles, int kind, vec2 corner, out vec2 texel) {
+// Clip-space position of `corner` of the quad of `kind` at `centre` facing `angles`, `blocks`
+// blocks tall (a slit of the facade layer: a column of facade blocks, render.slits; 1 otherwise);
+// `texel` receives the continuous tile coordinate (x = col, 0..t; y = row, 0..blocks·t from the top).
+vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, vec2 corner, int blocks, out vec2 texel) {
     float yaw = angles.x, pitch = angles.y;
     vec3 right = vec3(-sin(yaw), cos(yaw), 0.0);
     vec3 up = vec3(0.0, 0.0, 1.0);
@@ -62,9 +63,14 @@ vec4 quad_vertex(vec3 centre, vec2 angles, int kind, vec2 corner, out vec2 texel
     }
     float size = kind == KIND_BILLBOARD ? u_size : u_block_size;
     if (kind == KIND_GROUND) corner = (corner - 0.5) * (1.0 + 2.0 * GROUND_OVERLAP) + 0.5;
-    vec3 p = centre + (corner.x - 0.5) * size * right + (corner.y - 0.5) * size * up;
-    texel = vec2(corner.x, 1.0 - corner.y) * float(u_tile);
+    vec3 p = centre + (corner.x - 0.5) * size * right + (corner.y - 0.5) * (size * float(blocks)) * up;
+    texel = vec2(corner.x, 1.0 - corner.y) * vec2(float(u_tile), float(u_tile * blocks));
     return u_projection * (u_view * vec4(p, 1.0));
+}
+
+// quad_vertex_run of a single block.
+vec4 quad_vertex(vec3 centre, vec2 angles, int kind, vec2 corner, out vec2 texel) {
+    return quad_vertex_run(centre, angles, kind, corner, 1, texel);
 }
 
 // Integer texel (x = col, y = row) of an interpolated tile coordinate, clamped to the tile.

@@ -1,0 +1,73 @@
+"""Level of detail of the GPU decode: fewer eigen images where a texel covers less than a pixel.
+
+An eigen image adds view-dependent detail at the scale of a texel. Once a quad's texel is
+a fraction of a pixel wide on screen, that detail averages out within the pixel, so far
+quads are decoded with fewer eigen images — the decode pass's cost is proportional to
+the eigen images decoded. Levels (per quad, from the width of one texel in pixels):
+
+- 0: every eigen image (texel ≥ ``full_texel_px``),
+- 1: at most ``reduced_rank`` eigen images,
+- 2: the mean only (texel < ``mean_texel_px``).
+
+A quad changes level only when its texel width is ``hysteresis`` beyond a threshold, so
+an eye moving back and forth across one does not switch detail every frame (no popping);
+the tile is decoded again when its level changes. Pure numpy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+LEVEL_NAMES = ("full", "reduced", "mean")
+
+
+@dataclass(frozen=True)
+class LodConfig:
+    """Thresholds (texel width in pixels) and the hysteresis band (a fraction of them)."""
+
+    full_texel_px: float = 0.5
+    mean_texel_px: float = 0.15
+    reduced_rank: int = 2
+    hysteresis: float = 0.25
+
+    def __post_init__(self):
+        if not (0 < self.mean_texel_px <= self.full_texel_px and np.isfinite(self.full_texel_px)):
+            raise ValueError(f"need 0 < mean_texel_px ≤ full_texel_px, got {self.mean_texel_px}, "
+                             f"{self.full_texel_px}")
+        if not 0 <= self.reduced_rank <= 255:
+            raise ValueError(f"reduced_rank must be 0…255, got {self.reduced_rank}")
+        if not 0 <= self.hysteresis < 1:
+            raise ValueError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
+
+    @property
+    def rank_caps(self) -> np.ndarray:
+        """(3,) int64 most eigen images per level."""
+        return np.array([255, self.reduced_rank, 0], np.int64)
+
+
+def texel_pixels(eye, centres: np.ndarray, edge: np.ndarray, tile: int, focal_px: float) -> np.ndarray:
+    """(R,) float64 width in pixels of one texel of quads of ``edge`` (R,) metres at ``centres`` (R, 3)
+    seen from ``eye`` (3,) with a focal length of ``focal_px`` pixels (at the image centre; an upper
+    bound off-axis). A quad around the eye is infinitely large."""
+    dist = np.linalg.norm(np.asarray(centres, np.float64) - np.asarray(eye, np.float64).reshape(1, 3), axis=1)
+    with np.errstate(divide="ignore"):
+        return np.where(dist > 0, focal_px * np.asarray(edge, np.float64) / (tile * dist), np.inf)
+
+
+def _plain_level(texel_px: np.ndarray, config: LodConfig, scale: float) -> np.ndarray:
+    return ((texel_px < config.full_texel_px * scale).astype(np.int8)
+            + (texel_px < config.mean_texel_px * scale).astype(np.int8))
+
+
+def lod_levels(texel_px: np.ndarray, previous: np.ndarray | None, config: LodConfig) -> np.ndarray:
+    """(R,) int8 level per quad from its texel width (R,) px; ``previous`` (R,) int8 (−1: none)
+    is kept while the width stays within the hysteresis band of its thresholds."""
+    level = _plain_level(texel_px, config, 1.0)
+    if previous is None or config.hysteresis == 0:
+        return level
+    finest = _plain_level(texel_px, config, 1.0 - config.hysteresis)
+    coarsest = _plain_level(texel_px, config, 1.0 + config.hysteresis)
+    keep = (previous >= finest) & (previous <= coarsest)
+    return np.where(keep, previous, level).astype(np.int8)

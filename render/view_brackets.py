@@ -1,0 +1,65 @@
+"""Which sampled directions a view blends, per quad, and where their decoded tiles live (numpy).
+
+The GPU decode keeps, per billboard, its texture decoded at up to four sampled
+directions — the corners of the yaw × pitch bracket around the eye — and blends them
+per fragment. A direction with yaw index y and pitch index p is kept in storage slot
+``(p mod 2)·2 + (y mod 2)`` (``y mod 2`` when the model samples one pitch): the
+bracket's corners always fall into different slots, and when the eye crosses into the
+next bracket the corner it shares with the last one is still in its slot, so only the
+new side is decoded. This is the decode reuse of the renderer: a tile is decoded again
+only when the direction its slot must hold changes.
+
+:func:`view_brackets` mirrors :func:`billboards.decode.direction_index` and the
+bilinear bracketing of :func:`billboards.decode.decode` (float64), which the tests
+compare with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def storage_slots(num_pitches: int) -> int:
+    """Decoded tiles kept per billboard: 2 with one sampled pitch, else 4."""
+    return 2 if num_pitches <= 1 else 4
+
+
+def _bracket(index: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    x = np.clip(index, 0, count - 1)
+    i0 = np.minimum(np.floor(x).astype(np.int64), max(count - 2, 0))
+    return i0, np.minimum(i0 + 1, count - 1), x - i0
+
+
+def view_brackets(eye, centres: np.ndarray, base_yaw: np.ndarray, yaw_offsets: np.ndarray, pitches: np.ndarray,
+                  interpolate: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Directions and weights per storage slot for quads at ``centres`` seen from ``eye``.
+
+    eye (3,), centres (R, 3) model coordinates; base_yaw (R,) radians; yaw_offsets (d_yaw,),
+    pitches (d_pitch,) radians, increasing. Without ``interpolate`` the nearest sampled
+    direction alone (ties go to the larger index). Returns (direction (R, S) int32: the
+    direction index p·d_yaw + y each storage slot must hold, −1 where its weight is 0;
+    weight (R, S) float32, summing to 1 per quad), S = :func:`storage_slots`.
+    """
+    c = np.asarray(centres, np.float64).reshape(-1, 3)
+    v = np.asarray(eye, np.float64).reshape(1, 3) - c
+    yaw = np.arctan2(v[:, 1], v[:, 0]) - np.asarray(base_yaw, np.float64)
+    yaw = np.pi - np.mod(np.pi - yaw, 2 * np.pi)
+    pitch = np.arctan2(v[:, 2], np.hypot(v[:, 0], v[:, 1]))
+    dy, dp = len(yaw_offsets), len(pitches)
+    y0, y1, fy = _bracket(np.interp(yaw, yaw_offsets, np.arange(dy, dtype=np.float64)), dy)
+    p0, p1, fp = _bracket(np.interp(pitch, pitches, np.arange(dp, dtype=np.float64)), dp)
+    if not interpolate:
+        fy = (fy >= 0.5).astype(np.float64)
+        fp = (fp >= 0.5).astype(np.float64)
+    slots = storage_slots(dp)
+    direction = np.full((len(c), slots), -1, np.int32)
+    weight = np.zeros((len(c), slots), np.float64)
+    rows = np.arange(len(c))
+    for p, wp in ((p0, 1 - fp), (p1, fp)):
+        for y, wy in ((y0, 1 - fy), (y1, fy)):
+            w = wp * wy
+            slot = (y & 1) if slots == 2 else (p & 1) * 2 + (y & 1)
+            weight[rows, slot] += w  # a clamped bracket (y0 == y1) puts both corners in one slot
+            direction[rows, slot] = np.where(w > 0, p * dy + y, direction[rows, slot])
+    direction[weight <= 0] = -1
+    return direction, weight.astype(np.float32)
