@@ -46,8 +46,10 @@ PLANE_NAMES = ("left", "right", "bottom", "top", "near", "far")
 
 
 #: How a renderer culls: none (draws everything), frustum (the view frustum), occlusion (the
-#: frustum, then occlusion queries), auto (occlusion while it pays for itself, else frustum).
-CULL_MODES = ("none", "frustum", "occlusion", "auto")
+#: frustum, then hardware occlusion queries), hzb (the frustum, then a hierarchical depth buffer
+#: read back once per frame, :mod:`render.hzb_culler`), auto (the HZB while it pays for itself,
+#: else frustum).
+CULL_MODES = ("none", "frustum", "occlusion", "hzb", "auto")
 
 
 def billboard_radius(voxel_size: float) -> float:

@@ -1,9 +1,11 @@
 """Hierarchical depth buffer (HZB): a max-depth pyramid and conservative rectangle tests (pure numpy).
 
 Depths. The pyramid holds GL *window* depths in [0, 1] (0 at the near plane, 1 at the
-far plane and where nothing was drawn), as read back from a depth buffer
-(``glReadPixels(GL_DEPTH_COMPONENT, GL_FLOAT)``): an (h, w) float32 image whose row 0 is
-the **bottom** row, so pixel (i, j) is column i, row j of the window coordinates of
+far plane and where nothing was drawn), as read back from a depth buffer: an (h, w)
+image whose row 0 is the **bottom** row, either float32 depths
+(``glReadPixels(GL_DEPTH_COMPONENT, GL_FLOAT)``) or uint32 depths × (2**32 − 1)
+(``GL_UNSIGNED_INT``, GL's normalised integer read-back; on llvmpipe it skips the float
+conversion and reads twice as fast). Row 0 is the bottom row, so pixel (i, j) is column i, row j of the window coordinates of
 :mod:`render.quadtree`. Nearest depths of boxes come from
 :func:`render.quadtree.project_boxes` as NDC depths; :func:`ndc_to_window` maps them
 (d = (z + 1)/2, the default glDepthRange).
@@ -61,28 +63,37 @@ def pyramid_shapes(width: int, height: int) -> list[tuple[int, int]]:
     return shapes
 
 
+#: Window depth of one unit of a uint32 pyramid.
+UINT_SCALE = 1.0 / 4294967295.0
+
+
 class DepthPyramid:
     """A max-depth pyramid of a width × height window-depth image (see the module notes).
 
-    Fill :attr:`base` ((height, width) float32, row 0 at the bottom; e.g. by reading a
+    dtype: np.float32 (window depths) or np.uint32 (window depths × (2**32 − 1)). Fill
+    :attr:`base` ((height, width) of that dtype, row 0 at the bottom; e.g. by reading a
     depth buffer into it), then call :meth:`update`. ``flat`` is every level, level 0
-    first, in one (total,) float32 array; ``offsets``, ``widths``, ``heights`` (L,) int64
-    locate level l's (heights[l], widths[l]) row-major block in it.
+    first, in one (total,) array; ``offsets``, ``widths``, ``heights`` (L,) int64 locate
+    level l's (heights[l], widths[l]) row-major block in it.
     """
 
-    def __init__(self, width: int, height: int):
+    def __init__(self, width: int, height: int, dtype=np.float32):
+        dtype = np.dtype(dtype)
+        if dtype not in (np.dtype(np.float32), np.dtype(np.uint32)):
+            raise ValueError(f"dtype must be float32 or uint32, got {dtype}")
+        self.dtype = dtype
         shapes = pyramid_shapes(width, height)
         self.width, self.height = int(width), int(height)
         sizes = np.array([h * w for h, w in shapes], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
         self.heights = np.array([h for h, _ in shapes], dtype=np.int64)
         self.widths = np.array([w for _, w in shapes], dtype=np.int64)
-        self.flat = np.zeros(int(sizes.sum()), dtype=np.float32)
+        self.flat = np.zeros(int(sizes.sum()), dtype=dtype)
         self.levels = [self.flat[o:o + h * w].reshape(h, w) for o, (h, w) in zip(self.offsets, shapes)]
 
     @property
     def base(self) -> np.ndarray:
-        """Level 0: the (height, width) float32 window-depth image (a view into ``flat``)."""
+        """Level 0: the (height, width) depth image (a view into ``flat``)."""
         return self.levels[0]
 
     def update(self) -> DepthPyramid:
@@ -103,17 +114,18 @@ class DepthPyramid:
             if h % 2 and w % 2:
                 out[he, we] = a[h - 1, w - 1]
         top = float(self.levels[-1][0, 0])
-        if not np.isfinite(top):
+        if self.dtype == np.float32 and not np.isfinite(top):
             raise ValueError(f"depth image holds non-finite values (maximum {top})")
         return self
 
 
 def depth_pyramid(depth) -> DepthPyramid:
-    """The :class:`DepthPyramid` of an (h, w) window-depth image (float, row 0 at the bottom)."""
+    """The :class:`DepthPyramid` of an (h, w) window-depth image (row 0 at the bottom):
+    float window depths, or uint32 depths × (2**32 − 1)."""
     d = np.asarray(depth)
     if d.ndim != 2 or d.size == 0:
         raise ValueError(f"depth must be a non-empty (h, w) image, got shape {d.shape}")
-    pyr = DepthPyramid(d.shape[1], d.shape[0])
+    pyr = DepthPyramid(d.shape[1], d.shape[0], np.uint32 if d.dtype == np.uint32 else np.float32)
     pyr.base[...] = d
     return pyr.update()
 
@@ -181,14 +193,17 @@ def hzb_occluded(pyramid: DepthPyramid, rects, nearest, eps: float = DEPTH_EPS, 
     index = (pyramid.offsets[level][:, None, None] + ty[:, :, None] * pyramid.widths[level][:, None, None]
              + tx[:, None, :])
     far = pyramid.flat[index].reshape(len(r), -1).max(axis=1)
+    if pyramid.dtype == np.uint32:  # one unit more: GL's integer read-back may round down
+        far = (far.astype(np.float64) + 1.0) * UINT_SCALE
     return empty | (d - eps >= far)
 
 
 def hzb_occluded_reference(depth, rects, nearest, eps: float = DEPTH_EPS) -> np.ndarray:
     """Slow, obvious hidden test for tests → (n,) bool: per rect (Python loop), the maximum
-    of the full-resolution depth (h, w) over its covered pixels, hidden when
+    of the full-resolution depth (h, w) (float, or uint32 as a pyramid's) over its covered pixels, hidden when
     nearest − eps ≥ that maximum (a rect covering no pixel is hidden)."""
-    dimg = np.asarray(depth, dtype=np.float64)
+    dimg = np.asarray(depth)
+    dimg = (dimg.astype(np.float64) + 1.0) * UINT_SCALE if dimg.dtype == np.uint32 else dimg.astype(np.float64)
     h, w = dimg.shape
     r = np.asarray(rects, dtype=np.float64).reshape(-1, 4)
     d = _check_depths(nearest, len(r))

@@ -76,14 +76,14 @@ from dataclasses import dataclass, field
 import moderngl
 import numpy as np
 
-from .culling import CULL_MODES, FrustumResult, merge_ranges
+from .culling import FrustumResult, merge_ranges
 from .program import load_program
 from .quadtree import ScreenQuadtree, project_boxes
 
 logger = logging.getLogger(__name__)
 
 SHADER = "occlusion_box.glsl"
-MODES = CULL_MODES[1:]  # the culler is given frustum-culled objects: "none" is not its to choose
+MODES = ("frustum", "occlusion", "auto")  # given frustum-culled objects: "none" is not its to choose
 _UNDECIDED, _VISIBLE, _CULLED = 0, 1, 2
 
 
@@ -131,6 +131,7 @@ class CullStats:
     billboards: int = 0  # billboards in the objects given
     billboards_drawn: int = 0  # billboards in the objects drawn
     queries: int = 0  # occlusion queries issued
+    depth_reads: int = 0  # depth buffer read-backs (HZB culling)
     query_batches: int = 0  # waits for query results
     draw_calls: int = 0  # calls of draw_callback
     cull_s: float = 0.0  # wall time in cull() outside the draw callbacks (s)
@@ -186,6 +187,9 @@ class OcclusionCuller:
     ``last_decision`` the latest evaluation (saved_s, overhead_s, pays).
     """
 
+    MODES = MODES  # the modes this culler takes
+    ON_MODE = "occlusion"  # the mode that always culls
+
     def __init__(self, ctx: moderngl.Context, width: int, height: int, mode: str = "auto",
                  config: OcclusionConfig = OcclusionConfig()):
         self.ctx = ctx
@@ -212,7 +216,10 @@ class OcclusionCuller:
         self._backoff = config.auto_backoff
         self._prev_keys = np.zeros(0, dtype=np.int64)  # sorted keys of the objects visible last frame
         self._prev_next = np.zeros(0, dtype=np.int64)  # frame at which each must be re-tested
-        self._program = load_program(ctx, SHADER)
+        self._load_gpu()
+
+    def _load_gpu(self) -> None:
+        self._program = load_program(self.ctx, SHADER)
 
     # -- configuration -------------------------------------------------------------------------
 
@@ -222,8 +229,8 @@ class OcclusionCuller:
 
     @mode.setter
     def mode(self, value: str) -> None:
-        if value not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {value!r}")
+        if value not in self.MODES:
+            raise ValueError(f"mode must be one of {self.MODES}, got {value!r}")
         self._mode = value
 
     def resize(self, width: int, height: int) -> None:
@@ -236,7 +243,7 @@ class OcclusionCuller:
     @property
     def active(self) -> bool:
         """Whether the next frame runs occlusion culling (auto: unless backed off)."""
-        return self._mode == "occlusion" or (self._mode == "auto" and self._frame >= self._off_until)
+        return self._mode == self.ON_MODE or (self._mode == "auto" and self._frame >= self._off_until)
 
     # -- per frame -----------------------------------------------------------------------------
 
@@ -367,7 +374,7 @@ class OcclusionCuller:
             return
         bb = int((r[:, 1].astype(np.int64) - r[:, 0]).sum())
         timer = None
-        if self.config.gpu_timers:
+        if self.config.gpu_timers and self._mode == "auto":  # only auto uses the times
             if self._timer_next == len(self._timers):
                 self._timers.append(self.ctx.query(time=True))
             timer = self._timers[self._timer_next]

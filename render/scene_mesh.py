@@ -9,8 +9,10 @@ multi-draw-indirect call (one command per run of consecutive objects).
 
 Culling, as :class:`~render.renderer.BillboardRenderer`: "none"; "frustum" (every
 object's box against the view frustum, vectorised); "occlusion" (frustum, then
-:class:`~render.occlusion.OcclusionCuller` over the boxes that are left, with the
-object index as the temporal key); "auto" (occlusion only while it pays).
+:class:`~render.occlusion.OcclusionCuller` over the groups of boxes that are left, with
+the group as the temporal key); "hzb" (frustum, then
+:class:`~render.hzb_culler.HzbCuller` over every object left, the object as the key,
+its group tested first); "auto" (the HZB only while it pays).
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ import numpy as np
 from data_synth.scene import Kind, Scene
 
 from .camera import ClipPlanes, GLCamera, gl_bytes, gl_camera
-from .culling import CULL_MODES, boxes_outside, frustum_planes, indices_to_ranges, merge_ranges, ranges_to_indices
+from .culling import CULL_MODES, boxes_outside, classify_boxes, frustum_planes, indices_to_ranges, merge_ranges, ranges_to_indices
+from .hzb_culler import HzbConfig, HzbCuller
 from .occlusion import OcclusionConfig, OcclusionCuller
 from .program import load_program
 from .resources import GpuOwner, release_all
@@ -91,23 +94,26 @@ class SceneMeshRenderer(GpuOwner):
     """Renders a scene's meshes from OpenCV cameras into (h, w, 3) uint8 images.
 
     origin: model origin (3,) float64 (default: the centre of the scene's bounds);
-    cull: one of :data:`CULL_MODES`; occlusion: the occlusion culler's settings;
-    group_cell: occlusion culling tests groups of objects, one per ground grid cell of
+    cull: one of :data:`CULL_MODES`; occlusion, hzb: the two occlusion cullers' settings;
+    group_cell: occlusion queries test groups of objects, one per ground grid cell of
     this edge (metres; None: every object alone). Each query costs a draw call, which
-    on llvmpipe is ~15 µs, so a query per house costs more than drawing the houses. After each :meth:`render`, ``stats`` holds
-    objects, objects_after_frustum, objects_drawn, triangles_drawn, draw_calls,
-    queries and timings (seconds).
+    on llvmpipe is ~15 µs, so a query per house costs more than drawing the houses.
+    The HZB tests each object alone (its tests cost no draw call), after its group.
+    After each :meth:`render`, ``stats`` holds objects, objects_after_frustum,
+    objects_drawn, triangles_drawn, draw_calls, queries, depth_reads and timings (seconds).
     """
 
     def __init__(self, ctx: moderngl.Context, scene: Scene, cull: str = "frustum", origin=None,
                  clip: ClipPlanes = ClipPlanes(near=0.1, far=5000.0), background=(0.55, 0.7, 0.9),
-                 occlusion: OcclusionConfig = OcclusionConfig(), group_cell: float | None = 60.0):
+                 occlusion: OcclusionConfig = OcclusionConfig(), group_cell: float | None = 60.0,
+                 hzb: HzbConfig = HzbConfig()):
         if cull not in CULL_MODES:
             raise ValueError(f"cull must be one of {CULL_MODES}, got {cull!r}")
         self.ctx = ctx
         self.scene = scene
         self.cull = cull
         self.occlusion = occlusion
+        self.hzb = hzb
         self.clip = clip
         self.background = background_rgb(background)
         bounds = scene.object_bounds
@@ -118,9 +124,14 @@ class SceneMeshRenderer(GpuOwner):
         self.box_min = bounds[self.object_at, 0] - self.origin
         self.box_max = bounds[self.object_at, 1] - self.origin
         vertices, self.first_vertex = mesh_vertices(scene, self.origin, self.object_at)
+        start = np.flatnonzero(np.r_[True, self.group_at[1:] != self.group_at[:-1]]) if len(self.group_at) \
+            else np.zeros(0, np.int64)
+        self.group_range = np.stack([start, np.r_[start[1:], len(self.group_at)]], axis=1).astype(np.int64)
+        self.group_min = np.minimum.reduceat(self.box_min, start) if len(start) else np.zeros((0, 3))
+        self.group_max = np.maximum.reduceat(self.box_max, start) if len(start) else np.zeros((0, 3))
         self.stats: dict = {}
         self._objects: list = []
-        self._cullers: dict[tuple[int, int], OcclusionCuller] = {}
+        self._cullers: dict[tuple[int, int], OcclusionCuller | HzbCuller] = {}
         self.targets = OffscreenTargets(ctx)
         try:
             self.program = self._keep(load_program(ctx, "scene_mesh.glsl"))
@@ -135,6 +146,17 @@ class SceneMeshRenderer(GpuOwner):
 
     def camera(self, K, world_from_cam, size) -> GLCamera:
         return gl_camera(K, world_from_cam, size, self.origin, self.clip)
+
+    def frustum_inside(self, planes) -> np.ndarray:
+        """Positions (ascending, (k,) int64) of the objects whose boxes are not outside the
+        frustum ``planes`` (6, 4): each group's box first (as the octree's nodes): a group
+        inside takes its objects untested, one outside drops them; a partial group tests them."""
+        if 4 * len(self.group_range) > len(self.box_min):  # (nearly) ungrouped: one flat test
+            return np.flatnonzero(~boxes_outside(planes, self.box_min, self.box_max))
+        cls = classify_boxes(planes, self.group_min, self.group_max)
+        part = ranges_to_indices(self.group_range[cls == 1])
+        part = part[~boxes_outside(planes, self.box_min[part], self.box_max[part])]
+        return np.sort(np.concatenate([ranges_to_indices(self.group_range[cls == 2]), part]))
 
     def draw_objects(self, view_proj, ranges) -> tuple[int, int]:
         """Draw runs of object positions ``ranges`` (r, 2) [begin, end) with one
@@ -175,12 +197,26 @@ class SceneMeshRenderer(GpuOwner):
             draw_ranges(np.array([[0, n]]))
             stats.update(objects_after_frustum=n, queries=0)
         else:
-            inside = np.flatnonzero(~boxes_outside(frustum_planes(view_proj), self.box_min, self.box_max))
+            inside = self.frustum_inside(frustum_planes(view_proj))
             stats["objects_after_frustum"] = len(inside)
             stats["frustum_s"] = time.perf_counter() - t0
             if self.cull == "frustum":
                 draw_ranges(indices_to_ranges(inside))
                 stats["queries"] = 0
+            elif self.cull in ("hzb", "auto"):
+                culler = self._cullers.get(camera.size)
+                if culler is None:
+                    culler = self._cullers[camera.size] = HzbCuller(self.ctx, *camera.size, mode=self.cull,
+                                                                    config=self.hzb)
+                runs = np.stack([np.arange(len(inside)), np.arange(1, len(inside) + 1)], axis=1)
+
+                def draw_inside(ranges) -> None:  # runs of `inside` → object positions
+                    draw_ranges(indices_to_ranges(inside[ranges_to_indices(ranges)]))
+
+                cull = culler.cull(view_proj, self.box_min[inside], self.box_max[inside], runs, draw_inside,
+                                   keys=inside, groups=self.group_at[inside])
+                stats.update(queries=0, depth_reads=int(cull.depth_reads), occlusion_on=bool(cull.active),
+                             cull_s=float(cull.cull_s))
             else:
                 culler = self._cullers.get(camera.size)
                 if culler is None:

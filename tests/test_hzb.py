@@ -57,16 +57,26 @@ def test_pyramid_levels_are_block_maxima(h, w):
         np.testing.assert_array_equal(pyr.flat[o:o + lh * lw].reshape(lh, lw), got)
 
 
+def as_uint(depth: np.ndarray) -> np.ndarray:
+    """Float window depths as GL's uint32 read-back of a 24-bit buffer: 24 bits, replicated."""
+    d24 = np.round(depth.astype(np.float64) * (2 ** 24 - 1)).astype(np.uint32)
+    return (d24 << 8) | (d24 >> 16)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "uint32"])
 @pytest.mark.parametrize("span", [1, 2, 4])
 @pytest.mark.parametrize("h,w", [(1, 1), (7, 13), (45, 80), (64, 64), (37, 100)])
-def test_fast_test_never_hides_what_the_reference_keeps(h, w, span):
+def test_fast_test_never_hides_what_the_reference_keeps(h, w, span, dtype):
     rng = np.random.default_rng(7 + h + w + span)
     for trial in range(4):
         depth = random_depth(rng, h, w)
+        if dtype == "uint32":
+            depth = as_uint(depth)
         pyr = depth_pyramid(depth)
         rects = random_rects(rng, 300, w, h)
         # nearest depths around the image's values, so that both outcomes occur
-        nearest = np.clip(rng.choice(depth.ravel(), 300) + rng.normal(0, 0.05, 300), 0, 1)
+        values = depth.ravel() / 4294967295.0 if dtype == "uint32" else depth.ravel()
+        nearest = np.clip(rng.choice(values, 300) + rng.normal(0, 0.05, 300), 0, 1)
         fast = hzb_occluded(pyr, rects, nearest, span=span)
         ref = hzb_occluded_reference(depth, rects, nearest)
         assert fast.dtype == bool and fast.shape == (300,)
@@ -76,7 +86,8 @@ def test_fast_test_never_hides_what_the_reference_keeps(h, w, span):
         if h * w > 1:
             assert ref.sum() > empty.sum()  # the random cases do hide some rects
     # a rect fully behind a uniform near depth is hidden by every span; in front of it, kept
-    flat = depth_pyramid(np.full((h, w), 0.5, np.float32))
+    flat = depth_pyramid(np.full((h, w), 0.5, np.float32) if dtype == "float32"
+                         else as_uint(np.full((h, w), 0.5)))
     whole = np.array([[0.0, 0.0, w, h], [0.2, 0.2, 0.7, 0.9]])
     assert hzb_occluded(flat, whole, [0.9, 0.9], span=span).all()
     assert not hzb_occluded(flat, whole, [0.4, 0.4], span=span).any()
@@ -123,6 +134,12 @@ def test_eps_and_degenerate_inputs():
         depth_pyramid(bad)
     with pytest.raises(ValueError):
         DepthPyramid(0, 4)
+    with pytest.raises(ValueError):
+        DepthPyramid(4, 4, np.float64)
+    # uint32 depths: the same answers at the same window depths, one unit of margin
+    upyr = depth_pyramid(as_uint(np.full((8, 8), 0.5)))
+    assert upyr.flat.dtype == np.uint32
+    assert not hzb_occluded(upyr, rect, [0.5 + DEPTH_EPS / 2])[0] and hzb_occluded(upyr, rect, [0.5 + 2 * DEPTH_EPS])[0]
     np.testing.assert_allclose(ndc_to_window([-1.0, 0.0, 1.0]), [0.0, 0.5, 1.0])
 
 

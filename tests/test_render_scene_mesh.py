@@ -38,13 +38,13 @@ def test_every_culling_mode_draws_the_same_image_along_a_path(ctx, town, group_c
     poses, _ = capture_path(SynthConfig(scene="town", town=town_config(town), frames=8, town_path_length=200.0))
     views = town_views(poses)
     images, stats = {}, {}
-    for mode in ("none", "frustum", "occlusion", "auto"):
+    for mode in ("none", "frustum", "occlusion", "hzb", "auto"):
         with SceneMeshRenderer(ctx, town, cull=mode, group_cell=group_cell) as renderer:
             images[mode] = [renderer.render(K, v, size) for v in views]
             stats[mode] = renderer.stats
     for view, image in enumerate(images["none"]):
         assert np.unique(image.reshape(-1, 3), axis=0).shape[0] > 10, "the town should show many houses"
-        for mode in ("frustum", "occlusion", "auto"):
+        for mode in ("frustum", "occlusion", "hzb", "auto"):
             differ = np.mean(np.any(images[mode][view] != image, axis=-1))
             assert differ == 0, f"{mode}, view {view}: {differ:.2%} of the pixels differ"
     n = town.num_objects
@@ -52,6 +52,9 @@ def test_every_culling_mode_draws_the_same_image_along_a_path(ctx, town, group_c
     assert stats["frustum"]["objects_drawn"] == stats["frustum"]["objects_after_frustum"] < n
     occl = stats["occlusion"]
     assert occl["queries"] > 0 and occl["objects_drawn"] < occl["objects_after_frustum"] / 2
+    hzb = stats["hzb"]  # one read-back, no query; each house tested alone
+    assert hzb["queries"] == 0 and hzb["depth_reads"] == 1
+    assert hzb["objects_drawn"] < hzb["objects_after_frustum"] / 2
 
 
 def town_config(scene) -> TownConfig:
@@ -68,7 +71,8 @@ def test_view_from_above_the_town_and_from_inside_a_house(ctx, town):
     inside = 0.5 * (house[0] + house[1])
     views = [look_at([0.0, 0.0, 300.0], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0)),
              look_at(inside, inside + [10.0, 0.0, 0.0])]
-    with SceneMeshRenderer(ctx, town, cull="none") as plain, SceneMeshRenderer(ctx, town, cull="occlusion") as culled:
-        for v in views:
-            differ = np.mean(np.any(plain.render(K, v, size) != culled.render(K, v, size), axis=-1))
-            assert differ < 1e-3, f"{differ:.3%} of the pixels differ"
+    for mode in ("occlusion", "hzb"):
+        with SceneMeshRenderer(ctx, town, cull="none") as plain, SceneMeshRenderer(ctx, town, cull=mode) as culled:
+            for v in views:
+                differ = np.mean(np.any(plain.render(K, v, size) != culled.render(K, v, size), axis=-1))
+                assert differ < 1e-3, f"{mode}: {differ:.3%} of the pixels differ"
