@@ -38,6 +38,16 @@ QUAD_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("kind", "<i4"
 QUAD_FORMAT = "3f 1f 1i 1i 2f 4f/i"
 QUAD_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_kind", "in_blocks", "in_origin", "in_weights")
 
+#: Per-block record of the pre-blend pass (billboard_blend.glsl).
+BLEND_DTYPE = np.dtype([("source", "<i4", 2), ("target", "<i4", 2), ("weights", "<f4", 4)])
+BLEND_FORMAT = "2i 2i 4f/i"
+BLEND_ATTRIBUTES = ("in_source", "in_target", "in_weights")
+
+#: Quads whose texel spans at least this many pixels are blended once per texel into the view
+#: atlas and drawn with one fetch per fragment (fewer texels than fragments); the second fetch
+#: of the direction blend costs about a third of the fragment stage on llvmpipe.
+PREBLEND_TEXEL_PX = 2.0
+
 #: Per-tile record of the decode pass (billboard_decode.glsl).
 DECODE_DTYPE = np.dtype([("origin", "<i4", 2), ("slot", "<i4", 2), ("direction", "<i4")])
 DECODE_FORMAT = "2i 2i 1i/i"
@@ -45,6 +55,24 @@ DECODE_ATTRIBUTES = ("in_origin", "in_slot", "in_direction")
 
 DECODED_WIDTH = 8192  # texels per row of the decoded atlas (at most)
 BAND_ROWS = 64  # tiles per band of the decoded atlas: the tallest slit, in blocks
+
+
+def atlas_layout(place: np.ndarray, slots: int, tile: int, limit: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """Texel origins (P, 2) int32 of places ``place`` (P,) int and the atlas size (w, h): bands of
+    BAND_ROWS places, each place a row of ``slots`` t×t tiles, bands side by side up to
+    DECODED_WIDTH texels, then stacked. A column's blocks fill consecutive places of one band
+    (:func:`render.slits.pack_columns`), so a fragment of a slit finds its block's tile by
+    adding to the first one's origin."""
+    places = int(place.max()) + 1 if len(place) else 1
+    per_row = max(min(DECODED_WIDTH, limit) // (tile * slots), 1)  # bands per row of bands
+    bands = -(-places // BAND_ROWS)
+    size = (min(bands, per_row) * slots * tile, -(-bands // per_row) * BAND_ROWS * tile)
+    if size[1] > limit:
+        raise ValueError(f"{len(place)} billboards need a decoded atlas {size[1]} texels tall; "
+                         f"GL_MAX_TEXTURE_SIZE is {limit} (split the model)")
+    band = place // BAND_ROWS
+    origin = np.stack([(band % per_row) * slots * tile, ((band // per_row) * BAND_ROWS + place % BAND_ROWS) * tile], 1)
+    return origin.astype(np.int32), size
 
 
 class GpuDecoder(GpuOwner):
@@ -57,7 +85,7 @@ class GpuDecoder(GpuOwner):
     everywhere, the exact decode).
     """
 
-    DECODED_UNIT = 6  # texture unit of the decoded atlas (ModelResources uses 0…4)
+    DECODED_UNIT = 6  # texture unit of the atlas drawn from (ModelResources uses 0…4)
 
     def __init__(self, ctx: moderngl.Context, resources: ModelResources, spherical: bool = False,
                  interpolate: bool = True, linear: bool = True, lod: LodConfig | None = None):
@@ -79,12 +107,21 @@ class GpuDecoder(GpuOwner):
         self._drawn = np.zeros(self.slits.num_columns, bool)  # columns drawn this frame
         self._objects = []
         try:
-            self.program = self._keep(load_program(ctx, "billboard.glsl", {"STORAGE_SLOTS": self.storage_slots}))
+            self.programs = {(view, linear): self._keep(load_program(
+                ctx, "billboard.glsl", {"STORAGE_SLOTS": self.storage_slots, "VIEW": int(view), "LINEAR": int(linear)}))
+                for view in (False, True) for linear in (False, True)}
             self.decode_program = self._keep(load_program(ctx, "billboard_decode.glsl"))
-            self.quads = self._keep(InstanceStream(ctx, QUAD_DTYPE.itemsize))
+            self.quads = {view: self._keep(InstanceStream(ctx, QUAD_DTYPE.itemsize)) for view in (False, True)}
             self.tiles = self._keep(InstanceStream(ctx, DECODE_DTYPE.itemsize))
-            self.vao = self._keep(ctx.vertex_array(
-                self.program, [vertex_binding(self.program, self.quads.buffer, QUAD_FORMAT, QUAD_ATTRIBUTES)]))
+            self.blends = self._keep(InstanceStream(ctx, BLEND_DTYPE.itemsize))
+            self.blend_program = self._keep(load_program(ctx, "billboard_blend.glsl",
+                                                         {"STORAGE_SLOTS": self.storage_slots}))
+            self.blend_vao = self._keep(ctx.vertex_array(
+                self.blend_program,
+                [vertex_binding(self.blend_program, self.blends.buffer, BLEND_FORMAT, BLEND_ATTRIBUTES)]))
+            self.vaos = {key: self._keep(ctx.vertex_array(
+                prog, [vertex_binding(prog, self.quads[key[0]].buffer, QUAD_FORMAT, QUAD_ATTRIBUTES)]))
+                for key, prog in self.programs.items()}
             self.decode_vao = self._keep(ctx.vertex_array(
                 self.decode_program,
                 [vertex_binding(self.decode_program, self.tiles.buffer, DECODE_FORMAT, DECODE_ATTRIBUTES)]))
@@ -94,31 +131,26 @@ class GpuDecoder(GpuOwner):
             raise
 
     def _make_atlas(self) -> None:
-        """The decoded atlas: bands of BAND_ROWS places stacked in tiles, each place one block with
-        its storage slots side by side; a column's blocks fill consecutive places of one band,
-        so a fragment of a slit finds its block's tile by adding to the first one's origin."""
-        t, slots = self.model.tile, self.storage_slots
+        """The decoded atlas and the view atlas (:func:`atlas_layout`); the view atlas holds, per
+        block, one tile blended for the current view (pre-blend of large quads)."""
         counts = self.slits.column_count
         first = pack_columns(counts, BAND_ROWS)
         within = np.arange(len(self.slits.order)) - np.repeat(self.slits.column_start, counts)
         place = np.repeat(first, counts) + within  # per position
-        places = int(place[-1]) + 1 if len(place) else 1
         limit = max_texture_size(self.ctx)
-        per_row = max(min(DECODED_WIDTH, limit) // (t * slots), 1)  # bands per row of bands
-        bands = -(-places // BAND_ROWS)
-        band_rows = -(-bands // per_row)
-        size = (min(bands, per_row) * slots * t, band_rows * BAND_ROWS * t)
-        if size[1] > limit:
-            raise ValueError(f"{self.model.num_billboards} billboards need a decoded atlas {size[1]} texels tall; "
-                             f"GL_MAX_TEXTURE_SIZE is {limit} (split the model)")
-        band = place // BAND_ROWS
-        self._origin = np.stack([(band % per_row) * slots * t,
-                                 ((band // per_row) * BAND_ROWS + place % BAND_ROWS) * t], 1).astype(np.int32)
-        self.decoded = self._keep(self.ctx.texture(size, 4, np.zeros(size[0] * size[1] * 4, np.float16), dtype="f2"))
-        self.decoded.filter = (moderngl.LINEAR, moderngl.LINEAR)  # sampled bilinear only within a tile
-        self.decoded.repeat_x = self.decoded.repeat_y = False
+        self._origin, size = atlas_layout(place, self.storage_slots, self.model.tile, limit)
+        self._view_origin, view_size = atlas_layout(place, 1, self.model.tile, limit)
+        self.decoded = self._keep(self._atlas_texture(size))
         self.decoded_fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.decoded]))
-        self.nbytes = size[0] * size[1] * 8
+        self.view_tiles = self._keep(self._atlas_texture(view_size))
+        self.view_fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.view_tiles]))
+        self.nbytes = (size[0] * size[1] + view_size[0] * view_size[1]) * 8
+
+    def _atlas_texture(self, size) -> moderngl.Texture:
+        tex = self.ctx.texture(size, 4, np.zeros(size[0] * size[1] * 4, np.float16), dtype="f2")
+        tex.filter = (moderngl.LINEAR, moderngl.LINEAR)  # sampled bilinear only within a tile
+        tex.repeat_x = tex.repeat_y = False
+        return tex
 
     def tile_origin(self, positions: np.ndarray, slots) -> np.ndarray:
         """(P, 2) int32 texel (x, y) of the top-left corner of the decoded tile of ``positions`` (P,)
@@ -152,8 +184,8 @@ class GpuDecoder(GpuOwner):
             raise RuntimeError("GpuDecoder used after release()")
         model = self.model
         visible = check_billboards(visible, model.num_billboards)
-        stats = {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "upload_bytes": 0,
-                 "lod": [0, 0, 0]}
+        stats = {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "blended_tiles": 0,
+                 "upload_bytes": 0, "lod": [0, 0, 0]}
         if model.num_billboards == 0 or (visible is not None and len(visible) == 0):
             return stats
         start, count = self._runs(visible, whole_columns)
@@ -162,48 +194,95 @@ class GpuDecoder(GpuOwner):
         order = self.slits.order
         top, bottom = order[start], order[start + count - 1]
         centre = 0.5 * (model.centres[top].astype(np.float64) + model.centres[bottom])
-        eye = np.asarray(camera.eye, np.float64)
-        direction, weight = view_brackets(eye, centre, model.base_yaw[top], model.yaw_offsets, model.pitches,
-                                          self.interpolate)
-        positions = np.repeat(start - np.cumsum(np.r_[0, count[:-1]]), count) + np.arange(int(count.sum()))
-        level = self._levels(camera, centre, model.kind[top], top, positions, count)
+        direction, weight = view_brackets(camera.eye, centre, model.base_yaw[top], model.yaw_offsets,
+                                          model.pitches, self.interpolate)
+        firsts = np.cumsum(np.r_[0, count[:-1]])
+        positions = np.repeat(start - firsts, count) + np.arange(int(count.sum()))
+        kind = model.kind[top]
+        edge = np.where(kind == 0, model.voxel_size, model.block_size)
+        focal_px = float(camera.projection[0, 0]) * camera.size[0] / 2
+        texel_px = texel_pixels(camera.eye, centre, edge, model.tile, focal_px)
+        level = self._levels(texel_px, positions, firsts, count)
         stats["lod"] = np.bincount(level, minlength=3).tolist()
-        stats["decoded_tiles"], decode_bytes = self._decode(positions, np.repeat(direction, count, axis=0),
-                                                            np.repeat(level, count))
+        mean = level == 2  # the mean does not depend on the direction: one slot, any direction held
+        weight[mean] = 0.0
+        weight[mean, 0] = 1.0
+        direction[mean] = -1
+        block_direction = np.repeat(direction, count, axis=0)
+        block_level = np.repeat(level, count)
+        mean_block = block_level == 2
+        held0 = self._held[positions[mean_block], 0]
+        block_direction[mean_block, 0] = np.where(self._held_level[positions[mean_block], 0] == 2, held0, 0)
+        stats["decoded_tiles"], upload = self._decode(positions, block_direction, block_level)
+        blend = (texel_px >= PREBLEND_TEXEL_PX) & (np.count_nonzero(weight, axis=1) > 1)
+        blended, blend_bytes = self._blend(positions, np.repeat(blend, count), np.repeat(weight, count, axis=0))
+        stats["blended_tiles"] = blended
+        upload += blend_bytes
         quads = np.empty(len(start), QUAD_DTYPE)
         quads["centre"] = centre
         quads["base_yaw"] = model.base_yaw[top]
-        quads["kind"] = model.kind[top]
+        quads["kind"] = kind
         quads["blocks"] = count
-        quads["origin"] = self._origin[start]
+        quads["origin"] = np.where(blend[:, None], self._view_origin[start], self._origin[start])
         quads["weights"][:, :self.storage_slots] = weight
         quads["weights"][:, self.storage_slots:] = 0.0
-        stats["upload_bytes"] = decode_bytes + self.quads.write(quads)
-        prog = self.program
-        self.resources.bind(prog)
-        self.decoded.use(self.DECODED_UNIT)
-        set_uniform(prog, "u_decoded", self.DECODED_UNIT)
-        set_uniform(prog, "u_decoded_texel", tuple(1.0 / float(v) for v in self.decoded.size))
-        prog["u_projection"].write(gl_bytes(camera.projection))
-        prog["u_view"].write(gl_bytes(camera.view))
-        set_uniform(prog, "u_eye", tuple(np.asarray(camera.eye, np.float32).tolist()))
-        set_uniform(prog, "u_spherical", self.spherical)
-        set_uniform(prog, "u_linear", self.linear)
-        self.vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(start))
-        stats.update(draw_calls=1, instances=int(count.sum()), quads=len(start))
+        for view, atlas in ((False, self.decoded), (True, self.view_tiles)):
+            part = quads[blend == view]
+            if len(part) == 0:
+                continue
+            upload += self.quads[view].write(part)
+            prog = self.programs[view, self.linear]
+            self.resources.bind(prog)
+            atlas.use(self.DECODED_UNIT)
+            set_uniform(prog, "u_tiles_in", self.DECODED_UNIT)
+            set_uniform(prog, "u_atlas_texel", tuple(1.0 / float(v) for v in atlas.size))
+            prog["u_projection"].write(gl_bytes(camera.projection))
+            prog["u_view"].write(gl_bytes(camera.view))
+            set_uniform(prog, "u_eye", tuple(np.asarray(camera.eye, np.float32).tolist()))
+            set_uniform(prog, "u_spherical", self.spherical)
+            self.vaos[view, self.linear].render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(part))
+            stats["draw_calls"] += 1
+        stats.update(upload_bytes=upload, instances=int(count.sum()), quads=len(start))
         return stats
 
-    def _levels(self, camera: GLCamera, centre, kind, top, positions, count) -> np.ndarray:
-        """(R,) int8 level of detail per run (all 0 without ``lod``), remembered per position."""
+    def _levels(self, texel_px: np.ndarray, positions: np.ndarray, firsts: np.ndarray, count: np.ndarray) -> np.ndarray:
+        """(R,) int8 level of detail per run from its texel width in pixels (all 0 without ``lod``),
+        remembered per position for the hysteresis."""
         if self.lod is None:
-            return np.zeros(len(centre), np.int8)
-        edge = np.where(kind == 0, self.model.voxel_size, self.model.block_size)
-        focal_px = float(camera.projection[0, 0]) * camera.size[0] / 2
-        texel_px = texel_pixels(camera.eye, centre, edge, self.model.tile, focal_px)
-        firsts = np.cumsum(np.r_[0, count[:-1]])
+            return np.zeros(len(texel_px), np.int8)
         level = lod_levels(texel_px, self._level[positions[firsts]], self.lod)
         self._level[positions] = np.repeat(level, count)
         return level
+
+    def _blend(self, positions: np.ndarray, blend: np.ndarray, weight: np.ndarray) -> tuple[int, int]:
+        """Blend the held tiles of ``positions[blend]`` with ``weight`` (P, S) into the view atlas;
+        returns (tiles blended, bytes uploaded). Restores the bound framebuffer."""
+        rows = np.flatnonzero(blend)
+        if len(rows) == 0:
+            return 0, 0
+        pos = positions[rows]
+        records = np.empty(len(rows), BLEND_DTYPE)
+        records["source"] = self._origin[pos]
+        records["target"] = self._view_origin[pos]
+        records["weights"][:, :self.storage_slots] = weight[rows]
+        records["weights"][:, self.storage_slots:] = 0.0
+        nbytes = self.blends.write(records)
+        prog = self.blend_program
+        set_uniform(prog, "u_tile", int(self.model.tile))
+        set_uniform(prog, "u_decoded", self.DECODED_UNIT)
+        set_uniform(prog, "u_target_size", tuple(float(v) for v in self.view_tiles.size))
+        self.decoded.use(self.DECODED_UNIT)
+        self._offscreen(self.view_fbo, self.blend_vao, len(records))
+        return len(records), nbytes
+
+    def _offscreen(self, fbo: moderngl.Framebuffer, vao: moderngl.VertexArray, instances: int) -> None:
+        """Draw ``instances`` tile quads into an atlas's framebuffer, then rebind the caller's."""
+        target = self.ctx.fbo
+        fbo.use()
+        self.ctx.disable(moderngl.DEPTH_TEST)  # atlases have no depth; every texel of a tile is written
+        vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=instances)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        target.use()
 
     def _decode(self, positions: np.ndarray, direction: np.ndarray, level: np.ndarray) -> tuple[int, int]:
         """Decode the tiles of ``positions`` (P,) whose storage slots do not hold ``direction`` (P, S)
@@ -223,16 +302,11 @@ class GpuDecoder(GpuOwner):
         tiles["slot"][:, 1] = np.minimum(model.rank[billboard], caps[level[rows]])
         tiles["direction"] = direction[rows, slots]
         nbytes = self.tiles.write(tiles)
-        target = self.ctx.fbo
         prog = self.decode_program
         self.resources.bind(prog)
         set_uniform(prog, "u_linear", False)
         set_uniform(prog, "u_decoded_size", tuple(float(v) for v in self.decoded.size))
-        self.decoded_fbo.use()
-        self.ctx.disable(moderngl.DEPTH_TEST)  # the atlas has no depth; every texel of a tile is written
-        self.decode_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(tiles))
-        self.ctx.enable(moderngl.DEPTH_TEST)
-        target.use()
+        self._offscreen(self.decoded_fbo, self.decode_vao, len(tiles))
         self._held[pos, slots] = tiles["direction"]
         self._held_level[pos, slots] = level[rows]
         return len(tiles), nbytes

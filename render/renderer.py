@@ -20,6 +20,7 @@ from billboards.model import BillboardModel
 
 from .camera import ClipPlanes, GLCamera, gl_camera
 from .culling import CULL_MODES, frustum_cull_nodes, frustum_planes, model_quad_radius, ranges_to_indices
+from .hzb_culler import HzbCuller
 from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder
@@ -45,8 +46,10 @@ class BillboardRenderer:
     background: RGB in [0, 1] (or 0–255).
     clip: near/far planes (m). cull: "none"; "frustum" (the model's octree nodes
     against the view frustum); "occlusion" (frustum, then hardware occlusion queries
-    over a screen-space quadtree, :class:`~render.occlusion.OcclusionCuller`); "auto"
-    (occlusion culling only while it pays for itself, measured per frame).
+    over a screen-space quadtree, :class:`~render.occlusion.OcclusionCuller`); "hzb"
+    (frustum, then a depth pyramid read back once per frame,
+    :class:`~render.hzb_culler.HzbCuller`); "auto" (the HZB only while it pays for
+    itself, measured per frame).
 
     After each :meth:`render` / :meth:`draw`, ``stats`` holds that frame's
     draw_calls, instances, upload_bytes and timings (seconds), and with culling the
@@ -62,7 +65,7 @@ class BillboardRenderer:
         if cull not in CULL_MODES:
             raise ValueError(f"cull must be one of {CULL_MODES}, got {cull!r}")
         self.cull = cull
-        self._cullers: dict[tuple[int, int], OcclusionCuller] = {}
+        self._cullers: dict[tuple[int, int], OcclusionCuller | HzbCuller] = {}
         self.ctx = ctx
         self.model = model
         self.decode = decode
@@ -138,7 +141,7 @@ class BillboardRenderer:
         info = {"billboards": model.num_billboards, "nodes_tested": frustum.nodes_tested,
                 "billboards_after_frustum": after_frustum, "frustum_s": time.perf_counter() - t0}
         totals = {"draw_calls": 0, "instances": 0, "upload_bytes": 0, "quads": 0, "decoded_tiles": 0,
-                  "lod": [0, 0, 0]}
+                  "blended_tiles": 0, "lod": [0, 0, 0]}
 
         def draw_ranges(ranges) -> None:
             indices = ranges_to_indices(ranges)
@@ -158,7 +161,8 @@ class BillboardRenderer:
             size = camera.size
             culler = self._cullers.get(size)
             if culler is None:
-                culler = self._cullers[size] = OcclusionCuller(self.ctx, size[0], size[1], mode=self.cull)
+                kind = OcclusionCuller if self.cull == "occlusion" else HzbCuller  # hzb, auto: the HZB
+                culler = self._cullers[size] = kind(self.ctx, size[0], size[1], mode=self.cull)
             cull = culler.cull_nodes(view_proj, frustum, model.node_bounds, draw_ranges, pad=pad)
             info.update(billboards_drawn=int(cull.billboards_drawn), objects=int(cull.objects),
                         objects_drawn=int(cull.objects_drawn), queries=int(cull.queries),

@@ -1,0 +1,48 @@
+#version 330 core
+// Pre-blend pass of the GPU decode: for quads that are large on screen, the decoded tiles of
+// the direction bracket are blended once per texel with this view's weights into the view
+// atlas, so that their fragments fetch one texel instead of one per direction (render.gpu_decode).
+// One instance per block: a t×t-pixel quad at its place in the view atlas.
+
+#if defined VERTEX_SHADER
+
+in ivec2 in_source;    // top-left texel of the block's storage slot 0 in the decoded atlas
+in ivec2 in_target;    // top-left texel of its tile in the view atlas
+in vec4 in_weights;    // weight of each storage slot
+
+uniform int u_tile;
+uniform vec2 u_target_size;
+
+flat out ivec2 v_source;
+flat out ivec2 v_target;
+flat out vec4 v_weights;
+
+void main() {
+    v_source = in_source;
+    v_target = in_target;
+    v_weights = in_weights;
+    vec2 corner = vec2(float(gl_VertexID & 1), float((gl_VertexID >> 1) & 1));
+    gl_Position = vec4((vec2(in_target) + corner * float(u_tile)) / u_target_size * 2.0 - 1.0, 0.0, 1.0);
+}
+
+#elif defined FRAGMENT_SHADER
+
+uniform sampler2D u_decoded;   // RGBA16F decoded atlas
+uniform int u_tile;
+
+flat in ivec2 v_source;
+flat in ivec2 v_target;
+flat in vec4 v_weights;
+
+out vec4 f_colour;
+
+void main() {
+    ivec2 texel = ivec2(gl_FragCoord.xy) - v_target;
+    vec4 colour = vec4(0.0);
+    for (int s = 0; s < STORAGE_SLOTS; ++s) {
+        if (v_weights[s] != 0.0) colour += v_weights[s] * texelFetch(u_decoded, v_source + ivec2(s * u_tile, 0) + texel, 0);
+    }
+    f_colour = colour;   // unclamped, like the decoded tiles: filtering then clamping as the direct path
+}
+
+#endif
