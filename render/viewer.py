@@ -38,7 +38,7 @@ keys:
   M              toggle fly / drive (follow the capture path)
   + / -          drive speed up / down    (also fly speed)
   G              toggle GPU / CPU decode
-  C              cycle culling: none, frustum, occlusion, auto
+  C              cycle culling: none, frustum, occlusion, hzb, auto
   I              toggle view interpolation (blend sampled directions / nearest)
   F              toggle wireframe (billboard outlines)
   U              toggle the on-screen HUD
