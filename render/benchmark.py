@@ -1,12 +1,20 @@
-"""Frame rate of the GPU and CPU decode paths on a model (``bbcity fps MODEL``).
+"""Frame rates of a billboard model (``bbcity fps MODEL``, ``bbcity bench``).
 
-Renders from capture-like viewpoints (camera 2 m above the street axis y = 0, looking
-at the facades on either side and along the street; the street runs along +x in
-world coordinates) at 1280×720, stepping 5 cm sideways every frame, and reports frames per second of
-:meth:`~render.renderer.BillboardRenderer.render` (draw plus read-back, which waits
-for the frame to finish) for each decode mode, and the ratio GPU/CPU measured in the
-same run; with ``--cull``, the frame rate and drawn billboards of each culling mode
-(:func:`cull_fps`). ``bbcity fps`` and ``bbcity bench`` call them.
+Every frame is timed on its own: :meth:`~render.renderer.BillboardRenderer.render` (draw
+plus read-back, which waits for the frame to finish); rows give the median frame time and
+its frame rate, the 95th-percentile frame time and the frame rate it allows (the 5th
+percentile of frame rates: 5 % of frames are slower), the mean, and the renderer's
+per-frame counts averaged over the frames (:func:`frame_time_stats`, :func:`mean_counts`).
+
+- :func:`decode_fps`: per decode set-up (:data:`DECODE_SETUPS`: GPU decode with level of
+  detail, exact GPU decode, CPU decode) and capture-like view (camera 2 m above the street
+  axis y = 0 facing either facade or along the street, :func:`render.paths.street_views`),
+  stepping 5 cm sideways every frame; optionally each view's overdraw
+  (:func:`render.overdraw.measure_overdraw`);
+- :func:`path_fps`: along a sequence of poses (the capture path, :func:`render.paths.capture_walk`),
+  so the decoded atlas is reused from frame to frame as in a walkthrough;
+- :func:`cull_fps`: per culling mode and view, with the billboards left after each step;
+- :func:`lod_psnr`: the quality cost of level of detail, PSNR of its image against the exact one.
 """
 
 from __future__ import annotations
@@ -18,51 +26,136 @@ import numpy as np
 from billboards.model import BillboardModel
 
 from .camera import default_intrinsics
+from .lod import LodConfig
 from .paths import walk
 from .renderer import BillboardRenderer
 
+#: Decode set-ups by name: (decode mode, level of detail; None = exact, every eigen image).
+DECODE_SETUPS = {"gpu": ("gpu", LodConfig()), "gpu exact": ("gpu", None), "cpu": ("cpu", None)}
+
+
+def frame_time_stats(frame_s) -> dict:
+    """Summary of per-frame times ``frame_s`` (n,) float seconds, n ≥ 1, each > 0.
+
+    Returns {frames, ms, ms_p95, ms_mean, fps, fps_p5, fps_mean}: the median frame time (ms)
+    and its rate (fps), the 95th-percentile frame time (linear interpolation between frames)
+    and the rate it allows (fps_p5: 5 % of frames are slower), the mean frame time and its
+    rate (frames over total time).
+    """
+    t = np.asarray(frame_s, np.float64).ravel()
+    if len(t) == 0 or not np.all(np.isfinite(t) & (t > 0)):
+        raise ValueError(f"frame times must be a non-empty list of positive seconds, got {t!r}")
+    ms, ms_p95, ms_mean = (1000.0 * float(v) for v in (np.median(t), np.percentile(t, 95), t.mean()))
+    return {"frames": len(t), "ms": ms, "ms_p95": ms_p95, "ms_mean": ms_mean,
+            "fps": 1000.0 / ms, "fps_p5": 1000.0 / ms_p95, "fps_mean": 1000.0 / ms_mean}
+
+
+def mean_counts(stats: list[dict]) -> dict:
+    """Means over frames of the renderer's per-frame ``stats`` (:attr:`BillboardRenderer.stats`;
+    a missing key counts 0): {instances, quads, decoded_tiles, draw_calls, lod_full, lod_reduced,
+    lod_mean, decode_ms (CPU decode), cull_ms (frustum plus occlusion culling)}."""
+    def mean(value) -> float:
+        return float(np.mean([value(s) for s in stats])) if stats else 0.0
+
+    def levels(s: dict) -> list:
+        lod = s.get("lod")  # absent, or not a list, where nothing reports levels (the CPU decode)
+        return list(lod)[:3] + [0] * (3 - len(lod)) if isinstance(lod, (list, tuple)) else [0, 0, 0]
+
+    lod = np.mean([levels(s) for s in stats], axis=0) if stats else np.zeros(3)
+    return {"instances": mean(lambda s: s.get("instances", 0)), "quads": mean(lambda s: s.get("quads", 0)),
+            "decoded_tiles": mean(lambda s: s.get("decoded_tiles", 0)),
+            "draw_calls": mean(lambda s: s.get("draw_calls", 0)),
+            "lod_full": float(lod[0]), "lod_reduced": float(lod[1]), "lod_mean": float(lod[2]),
+            "decode_ms": mean(lambda s: 1000.0 * s.get("decode_s", 0.0)),
+            "cull_ms": mean(lambda s: 1000.0 * (s.get("frustum_s", 0.0) + s.get("cull_s", 0.0)))}
+
+
+def timed_frames(renderer: BillboardRenderer, K, poses, size) -> tuple[list[float], list[dict]]:
+    """Render ``poses`` (each (4, 4) world_from_cam) in order; each frame's seconds and stats."""
+    times, stats = [], []
+    for pose in poses:
+        t0 = time.perf_counter()
+        renderer.render(K, pose, size)
+        times.append(time.perf_counter() - t0)
+        stats.append(dict(renderer.stats))
+    return times, stats
+
 
 def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720),
-               frames: dict[str, int] | None = None, K=None) -> list[dict]:
-    """Mean frame time per decode mode and view: rows {decode, view, fps, ms, instances, draw_calls, decode_ms}."""
+               frames: dict[str, int] | None = None, K=None, cull: str = "frustum",
+               overdraw: bool = False) -> list[dict]:
+    """Frame rate per decode set-up (``frames``: a name of :data:`DECODE_SETUPS` → timed frames
+    per view) and view, ``cull`` culling for all. Rows {decode, lod, cull, view,
+    **frame_time_stats, **mean_counts}; with ``overdraw``, GPU rows also hold the view's
+    fragments per pixel {layers, written, covered} (:func:`render.overdraw.measure_overdraw`)."""
+    from .overdraw import measure_overdraw
+
     frames = frames or {"gpu": 10, "cpu": 3}
     K = default_intrinsics(*size) if K is None else K
     rows = []
-    for mode, count in frames.items():
-        with BillboardRenderer(ctx, model, mode) as renderer:
-            for name, pose in views.items():
+    for name, count in frames.items():
+        decode, lod = DECODE_SETUPS[name]
+        with BillboardRenderer(ctx, model, decode, cull=cull, lod=lod) as renderer:
+            for view, pose in views.items():
                 renderer.render(K, pose, size)  # warm-up
-                decode_s = 0.0
-                t0 = time.perf_counter()
-                for moved in walk(pose, count):
-                    renderer.render(K, moved, size)
-                    decode_s += renderer.stats.get("decode_s", 0.0)
-                dt = (time.perf_counter() - t0) / count
-                rows.append({"decode": mode, "view": name, "fps": 1 / dt, "ms": 1000 * dt,
-                             "instances": renderer.stats["instances"], "draw_calls": renderer.stats["draw_calls"],
-                             "decode_ms": 1000 * decode_s / count})
+                times, stats = timed_frames(renderer, K, walk(pose, count), size)
+                row = {"decode": name, "lod": lod is not None, "cull": cull, "view": view,
+                       **frame_time_stats(times), **mean_counts(stats)}
+                if overdraw and decode == "gpu":
+                    row.update({k: v for k, v in measure_overdraw(renderer, K, pose, size).items()
+                                if k != "pixels"})
+                rows.append(row)
     return rows
 
 
+def path_fps(ctx, model: BillboardModel, poses, size=(1280, 720), decode: str = "gpu", cull: str = "frustum",
+             lod: LodConfig | None = LodConfig(), K=None) -> dict:
+    """Frame rate along ``poses`` (n, 4, 4) world_from_cam, rendered in order after one untimed
+    frame at the first: {decode, lod, cull, **frame_time_stats, **mean_counts}. Consecutive
+    poses close together let the GPU decode reuse its decoded atlas as in a walkthrough."""
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    if len(poses) == 0:
+        raise ValueError("path_fps needs at least one pose")
+    K = default_intrinsics(*size) if K is None else K
+    with BillboardRenderer(ctx, model, decode, cull=cull, lod=lod if decode == "gpu" else None) as renderer:
+        renderer.render(K, poses[0], size)  # warm-up: buffers, programs
+        times, stats = timed_frames(renderer, K, poses, size)
+    return {"decode": decode, "lod": decode == "gpu" and lod is not None, "cull": cull,
+            **frame_time_stats(times), **mean_counts(stats)}
+
+
+def lod_psnr(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720), K=None,
+             lod: LodConfig = LodConfig(), cull: str = "frustum") -> dict[str, float]:
+    """PSNR (dB, 8-bit RGB over the whole image) per view of the GPU decode with level of detail
+    ``lod`` against the exact GPU decode from the same pose: the image cost of fewer eigen images."""
+    from core.metrics import psnr
+
+    K = default_intrinsics(*size) if K is None else K
+    images = {}
+    for key, config in (("lod", lod), ("exact", None)):
+        with BillboardRenderer(ctx, model, "gpu", cull=cull, lod=config) as renderer:
+            images[key] = {view: renderer.render(K, pose, size) for view, pose in views.items()}
+    return {view: psnr(images["lod"][view], images["exact"][view]) for view in views}
+
+
 def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720), frames: int = 10,
-             K=None, modes=("none", "frustum", "occlusion", "auto")) -> list[dict]:
+             K=None, modes=("none", "frustum", "occlusion", "auto"),
+             lod: LodConfig | None = LodConfig()) -> list[dict]:
     """GPU-decode frame rate per culling mode and view, with the billboards left after each
-    culling step: rows {cull, view, fps, ms, after_frustum, drawn, queries, draw_calls}."""
+    culling step: rows {cull, view, **frame_time_stats, **mean_counts, after_frustum, drawn, queries}
+    (counts of the last frame)."""
     K = default_intrinsics(*size) if K is None else K
     rows = []
     for mode in modes:
-        with BillboardRenderer(ctx, model, "gpu", cull=mode) as renderer:
+        with BillboardRenderer(ctx, model, "gpu", cull=mode, lod=lod) as renderer:
             for name, pose in views.items():
                 renderer.render(K, pose, size)  # warm-up (and a first frame for temporal reuse)
-                t0 = time.perf_counter()
-                for moved in walk(pose, frames):
-                    renderer.render(K, moved, size)
-                dt = (time.perf_counter() - t0) / frames
+                times, stats = timed_frames(renderer, K, walk(pose, frames), size)
                 st = renderer.stats
-                rows.append({"cull": mode, "view": name, "fps": 1 / dt, "ms": 1000 * dt,
+                rows.append({"cull": mode, "view": name, **frame_time_stats(times), **mean_counts(stats),
                              "after_frustum": st.get("billboards_after_frustum", model.num_billboards),
                              "drawn": st.get("billboards_drawn", st.get("instances", model.num_billboards)),
-                             "queries": st.get("queries", 0), "draw_calls": st.get("draw_calls", 0)})
+                             "queries": st.get("queries", 0)})
     return rows
 
 

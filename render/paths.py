@@ -10,7 +10,10 @@ Pure numpy (no moderngl), so they are made and tested without a GPU.
   above (:func:`orbit_poses`), or a file (:func:`file_poses`): a dataset directory (its
   camera-0 poses) or a JSON list of 4×4 ``world_from_cam`` matrices
   (:func:`save_poses_json` writes one);
-* the benchmark's viewpoints: :func:`street_views`, :func:`town_views` and :func:`walk`.
+* the benchmark's viewpoints: :func:`street_views`, :func:`town_views` and :func:`walk`;
+  along the capture path, :func:`capture_camera_poses` (camera 0 of every posed frame of
+  the model's dataset), :func:`densify_poses` (a walk: poses at most a step apart) and
+  :func:`capture_walk` (a stretch of that walk).
 """
 
 from __future__ import annotations
@@ -191,3 +194,96 @@ def walk(world_from_cam: np.ndarray, count: int, step: float = 0.05) -> list[np.
         pose[:3, 3] += step * (i + 1) * pose[:3, 0]
         poses.append(pose)
     return poses
+
+
+def capture_camera_poses(model, dataset: os.PathLike | str | None = None) -> np.ndarray | None:
+    """(n, 4, 4) float64 world_from_cam of camera 0 in every posed frame of ``dataset`` (a
+    dataset directory), in frame order; by default the model's own (``model.info["dataset"]``),
+    then with the poses it was built with (``info["poses"]``, e.g. from SfM). None when no
+    dataset is given and the model's is not recorded or no longer readable; a given
+    dataset that cannot be read raises (DataFormatError naming the file)."""
+    from data_synth import load_dataset
+
+    info = model.info if isinstance(model.info, dict) else {}
+    recorded = info.get("dataset")
+    if dataset is None:
+        if not isinstance(recorded, str):
+            return None
+        try:
+            return capture_camera_poses(model, recorded)
+        except (OSError, ValueError) as e:  # a moved or deleted dataset: no capture path
+            logger.info("no capture path from %s (%s)", recorded, e)
+            return None
+    own = isinstance(recorded, str) and Path(recorded).resolve() == Path(dataset).resolve()
+    poses = info.get("poses") if own and isinstance(info.get("poses"), str) else None
+    ds = load_dataset(dataset, poses=poses)
+    posed = np.flatnonzero(ds.posed).tolist()
+    if not posed:
+        raise DataFormatError(Path(poses or Path(dataset) / "poses.json"), "no frame has a pose")
+    return np.stack([ds.world_from_cam(f, 0) for f in posed])
+
+
+def _quaternions(R: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions (w, x, y, z), sign arbitrary, of rotation matrices ``R`` (n, 3, 3)."""
+    m = np.asarray(R, np.float64).reshape(-1, 3, 3)
+    d0, d1, d2 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    # each row of a case is 4·q_k·(w, x, y, z); the case of the largest q_k is the best conditioned
+    cases = np.stack([
+        np.stack([1 + d0 + d1 + d2, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], 1),
+        np.stack([m[:, 2, 1] - m[:, 1, 2], 1 + d0 - d1 - d2, m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], 1),
+        np.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - d0 + d1 - d2, m[:, 1, 2] + m[:, 2, 1]], 1),
+        np.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1], 1 - d0 - d1 + d2], 1),
+    ])  # (4, n, 4)
+    k = np.argmax(np.stack([cases[i, :, i] for i in range(4)]), axis=0)
+    q = cases[k, np.arange(len(m))]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _rotations(q: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotation matrices of quaternions ``q`` (n, 4) (w, x, y, z), normalised first."""
+    q = np.asarray(q, np.float64) / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+
+
+def densify_poses(poses: np.ndarray, step: float) -> np.ndarray:
+    """(m, 4, 4) float64 poses along ``poses`` (n, 4, 4) world_from_cam with consecutive eyes at
+    most ``step`` metres apart: each gap split evenly, positions interpolated linearly and
+    rotations by spherical interpolation (a turn on the spot stays one pose: its eyes do not
+    move). The input poses are kept; ``step`` ≤ 0 returns them as they are."""
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    if step <= 0 or len(poses) < 2:
+        return poses.copy()
+    eye = poses[:, :3, 3]
+    parts = np.maximum(np.ceil(np.linalg.norm(np.diff(eye, axis=0), axis=1) / step).astype(np.int64), 1)
+    seg = np.repeat(np.arange(len(poses) - 1), parts)  # the gap each output pose (but the last) lies in
+    t = (np.arange(len(seg)) - np.repeat(np.cumsum(parts) - parts, parts)) / np.repeat(parts, parts)
+    q = _quaternions(poses[:, :3, :3])
+    q0, q1 = q[seg], q[seg + 1]
+    dot = np.sum(q0 * q1, axis=1)
+    q1 = np.where(dot[:, None] < 0, -q1, q1)  # the shorter way round
+    angle = np.arccos(np.clip(np.abs(dot), -1.0, 1.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = np.sin(angle)
+        a = np.where(s > 1e-9, np.sin((1 - t) * angle) / s, 1 - t)
+        b = np.where(s > 1e-9, np.sin(t * angle) / s, t)
+    out = np.tile(np.eye(4), (len(seg) + 1, 1, 1))
+    out[:-1, :3, :3] = _rotations(a[:, None] * q0 + b[:, None] * q1)
+    out[:-1, :3, 3] = eye[seg] * (1 - t[:, None]) + eye[seg + 1] * t[:, None]
+    out[:-1][t == 0] = poses[seg[t == 0]]  # the input poses exactly
+    out[-1] = poses[-1]
+    return out
+
+
+def capture_walk(poses: np.ndarray, step: float, frames: int, at: float = 0.25) -> np.ndarray:
+    """A walk along a capture path: ``poses`` (n, 4, 4) densified to ``step`` metres
+    (:func:`densify_poses`), then the ``frames`` consecutive poses centred ``at`` (a fraction)
+    of the way along it — a quarter of the way is the middle of the outbound pass of a
+    there-and-back drive; ``frames`` ≤ 0 or more than there are: all of them."""
+    walk_poses = densify_poses(poses, step)
+    if frames <= 0 or frames >= len(walk_poses):
+        return walk_poses
+    first = int(np.clip(round(at * (len(walk_poses) - 1) - frames / 2), 0, len(walk_poses) - frames))
+    return walk_poses[first:first + frames]
