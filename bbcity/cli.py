@@ -581,20 +581,42 @@ def _run_bench(args) -> int:
 
 
 def _add_fps(sub) -> None:
+    from render.culling import CULL_MODES
+
     p = sub.add_parser(
-        "fps", help="frame rate of GPU vs CPU texture decode (and of the culling modes) on a model or the town",
-        description="Render MODEL offscreen from capture-like viewpoints of a street along +x (2 m up, facing "
-                    "either facade and along the street), stepping 5 cm sideways every frame, and print the "
-                    "frames per second of GPU and CPU texture decode and their ratio, measured in the same run; "
-                    "with --cull also each culling mode's frame rate and drawn billboards (GPU decode); with "
-                    "--town the culling modes on the town scene's meshes along its capture path.",
+        "fps", help="frame rates of GPU vs CPU texture decode, with level of detail, overdraw and culling, on a "
+                    "model (views and its capture path) or the town",
+        description="Render MODEL offscreen (frustum culling unless --cull-mode) from capture-like viewpoints "
+                    "of a street along +x (2 m up, facing either facade and along the street; the eye stepping "
+                    "5 cm sideways every frame) and along the capture path of its dataset, timing every frame "
+                    "(draw and read-back): per row the median "
+                    "and 5th-percentile frame rate (from the median and 95th-percentile frame time), quads and "
+                    "billboards drawn, tiles decoded, quads per level of detail (full/reduced/mean) and, per "
+                    "view, fragments per pixel (overdraw); GPU decode with level of detail (--exact: every eigen "
+                    "image) against CPU decode, the baseline, with their ratio measured in the same run; with "
+                    "--cull also each culling mode's frame rate and drawn billboards (GPU decode); with --town "
+                    "the culling modes on the town scene's meshes along its capture path.",
         parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "default 1280 720")])
     p.add_argument("model", type=Path, nargs="?", default=None,
                    help="billboard model directory (optional with --town)")
     p.add_argument("--gpu-frames", type=positive_int, default=10, metavar="N",
                    help="timed frames per view with GPU decode, and per culling mode (default 10)")
     p.add_argument("--cpu-frames", type=positive_int, default=3, metavar="N",
-                   help="timed frames per view with CPU decode (default 3)")
+                   help="timed frames per view, and along the capture path, with CPU decode (default 3)")
+    p.add_argument("--exact", action="store_true",
+                   help="GPU decode without level of detail (every eigen image everywhere)")
+    p.add_argument("--dataset", type=Path, default=None, metavar="DIR",
+                   help="dataset whose camera-0 poses are the capture path (default: the model's, when its "
+                        "manifest records one that is still there)")
+    p.add_argument("--path-step", type=nonnegative_float, default=0.25, metavar="M",
+                   help="the capture path walked with the eye at most M metres per frame, rotations "
+                        "interpolated (default 0.25; 0: the capture frames as they are)")
+    p.add_argument("--path-frames", type=int_range(0, MAX_FRAMES), default=240, metavar="N",
+                   help="timed GPU frames along the capture path: N consecutive poses centred a quarter of "
+                        "the way along (the middle of a there-and-back drive's outbound pass); 0: all (default 240)")
+    p.add_argument("--cull-mode", choices=CULL_MODES, default="frustum",
+                   help="culling of the decode rows and the capture path (default frustum, as render and view "
+                        "draw; none: every billboard decoded and drawn)")
     p.add_argument("--cull", action="store_true", help="also compare the culling modes (GPU decode)")
     p.add_argument("--town", action="store_true",
                    help="culling on the town scene's meshes along its capture path (default TownConfig)")
@@ -608,8 +630,8 @@ def _check_fps(args) -> None:
 
 def _run_fps(args) -> int:
     from billboards.model_reader import load
-    from render.benchmark import cull_fps, decode_fps, town_cull_fps
-    from render.paths import street_views, town_views
+    from render.benchmark import town_cull_fps
+    from render.paths import town_views
     from render.context import create_context, describe
 
     model = None if args.model is None else load(args.model)  # a bad model fails before any GL work
@@ -629,23 +651,74 @@ def _run_fps(args) -> int:
                       f"{r['queries']:.0f} queries")
         if model is None:
             return 0
-        print(f"{model.num_billboards} billboards, {model.num_slots} slots, {len(model.pages)} atlas pages, "
-              f"{size[0]}×{size[1]}")
-        rows = decode_fps(ctx, model, street_views(), size, {"gpu": args.gpu_frames, "cpu": args.cpu_frames})
-        for r in rows:
-            print(f"{r['decode']} {r['view']:>10}: {r['fps']:6.2f} fps ({r['ms']:.0f} ms/frame, {r['instances']} "
-                  f"billboards, {r['draw_calls']} draw call, CPU decode {r['decode_ms']:.0f} ms)")
-        for view in dict.fromkeys(r["view"] for r in rows):
-            fps = {r["decode"]: r["fps"] for r in rows if r["view"] == view}
-            if "gpu" in fps and "cpu" in fps:
-                print(f"GPU/CPU decode fps ratio, {view}: {fps['gpu'] / fps['cpu']:.1f}×")
-        if args.cull:
-            for r in cull_fps(ctx, model, street_views(), size, args.gpu_frames):
-                print(f"cull {r['cull']:>9} {r['view']:>10}: {r['fps']:6.2f} fps, {r['after_frustum']} billboards "
-                      f"after frustum, {r['drawn']} drawn, {r['queries']} queries, {r['draw_calls']} draw calls")
+        _print_model_fps(ctx, model, args, size)
         return 0
     finally:
         ctx.release()
+
+
+def _fps_row(label: str, r: dict) -> str:
+    """One line of ``bbcity fps``: a row of render.benchmark's decode_fps / path_fps."""
+    line = (f"{label}: {r['fps']:6.1f} fps median, {r['fps_p5']:6.1f} p5 ({r['ms']:.1f} ms, p95 {r['ms_p95']:.1f} ms, "
+            f"{r['frames']} frames), {r['instances']:.0f} billboards")
+    if r["decode"] == "cpu":
+        line += f", CPU decode {r['decode_ms']:.0f} ms" if r["decode_ms"] > 0 else ""  # not reported under culling
+    else:
+        line += (f" in {r['quads']:.0f} quads, {r['decoded_tiles']:.0f} tiles decoded, LOD "
+                 f"{r['lod_full']:.0f}/{r['lod_reduced']:.0f}/{r['lod_mean']:.0f}")
+    if r["cull"] != "none":
+        line += f", cull {r['cull_ms']:.1f} ms"
+    if "layers" in r:
+        line += (f", overdraw {r['layers']:.2f} layers / {r['written']:.2f} written per pixel "
+                 f"({r['covered']:.0%} covered)")
+    return line
+
+
+def _print_model_fps(ctx, model, args, size) -> None:
+    """The model part of ``bbcity fps``: the views, the capture path, the culling modes."""
+    import numpy as np
+
+    from render.benchmark import cull_fps, decode_fps, path_fps
+    from render.lod import LodConfig
+    from render.paths import capture_camera_poses, capture_walk, street_views
+
+    capture = capture_camera_poses(model, args.dataset)  # a bad dataset fails before the timings
+    gpu = "gpu exact" if args.exact else "gpu"
+    lod = None if args.exact else LodConfig()
+    names = {"gpu": "gpu LOD", "gpu exact": "gpu exact", "cpu": "cpu"}
+    print(f"{model.num_billboards} billboards, {model.num_slots} slots, {len(model.pages)} atlas pages, "
+          f"{size[0]}×{size[1]}, {args.cull_mode} culling; fps median / p5 from the median / 95th-percentile frame "
+          "time; LOD: quads at full / reduced / mean detail")
+    rows = decode_fps(ctx, model, street_views(), size, {gpu: args.gpu_frames, "cpu": args.cpu_frames},
+                      cull=args.cull_mode, overdraw=True)
+    for r in rows:
+        print(_fps_row(f"{names[r['decode']]:>9} {r['view']:>12}", r))
+    for view in dict.fromkeys(r["view"] for r in rows):
+        by = {r["decode"]: r for r in rows if r["view"] == view}
+        if gpu in by and "cpu" in by:
+            print(f"GPU/CPU decode fps ratio, {view}: {by[gpu]['fps'] / by['cpu']['fps']:.1f}× median, "
+                  f"{by[gpu]['fps_p5'] / by['cpu']['fps_p5']:.1f}× p5")
+    if capture is None:
+        print("capture path: the model records no dataset that is still there (give --dataset DIR)")
+    else:
+        poses = capture_walk(capture, args.path_step, args.path_frames)
+        eyes = poses[:, :3, 3]
+        length = float(np.sum(np.linalg.norm(np.diff(eyes, axis=0), axis=1)))
+        print(f"capture path: {len(poses)} of {len(capture)} camera-0 poses"
+              + (f" walked every {args.path_step:g} m" if args.path_step > 0 else "")
+              + f", {length:.0f} m from {np.round(eyes[0], 1).tolist()}")
+        g = path_fps(ctx, model, poses, size, "gpu", cull=args.cull_mode, lod=lod)
+        print(_fps_row(f"{names[gpu]:>9} {'capture path':>12}", g))
+        pick = np.unique(np.linspace(0, len(poses) - 1, min(args.cpu_frames, len(poses))).round().astype(int))
+        c = path_fps(ctx, model, poses[pick], size, "cpu", cull=args.cull_mode)
+        print(_fps_row(f"{'cpu':>9} {'capture path':>12}", c))
+        print(f"GPU/CPU decode fps ratio, capture path: {g['fps'] / c['fps']:.1f}× median, "
+              f"{g['fps_p5'] / c['fps_p5']:.1f}× p5 (CPU on {len(pick)} poses spread along it)")
+    if args.cull:
+        for r in cull_fps(ctx, model, street_views(), size, args.gpu_frames, lod=lod):
+            print(f"cull {r['cull']:>9} {r['view']:>10}: {r['fps']:6.1f} fps median, {r['fps_p5']:6.1f} p5, "
+                  f"{r['after_frustum']} billboards after frustum, {r['drawn']} drawn, {r['queries']} queries, "
+                  f"{r['draw_calls']:.0f} draw calls, cull {r['cull_ms']:.1f} ms")
 
 
 def _add_render(sub) -> None:

@@ -241,7 +241,7 @@ def _commands(tmp):
         ("render", nx, "--out", out): {"--size": 2, "--frames": 1, "--fps": 1},
         ("eval", nx, nx, "--out", out): {"--views": 1, "--size": 2, "--poisson-depth": 1,
                                          "--workprecision-depths": "+", "--panel-width": 1},
-        ("fps", nx): {"--size": 2, "--gpu-frames": 1, "--cpu-frames": 1},
+        ("fps", nx): {"--size": 2, "--gpu-frames": 1, "--cpu-frames": 1, "--path-step": 1, "--path-frames": 1},
     }
 
 
