@@ -139,7 +139,7 @@ def lod_psnr(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
 
 
 def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720), frames: int = 10,
-             K=None, modes=("none", "frustum", "occlusion", "auto"),
+             K=None, modes=("none", "frustum", "occlusion", "hzb", "auto"),
              lod: LodConfig | None = LodConfig()) -> list[dict]:
     """GPU-decode frame rate per culling mode and view, with the billboards left after each
     culling step: rows {cull, view, **frame_time_stats, **mean_counts, after_frustum, drawn, queries}
@@ -160,10 +160,11 @@ def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
 
 
 def town_cull_fps(ctx, scene, views: list[np.ndarray], size=(1280, 720), K=None,
-                  modes=("none", "frustum", "occlusion", "auto"), group_cells=(60.0,)) -> list[dict]:
+                  modes=("none", "frustum", "occlusion", "hzb", "auto"), group_cells=(60.0,)) -> list[dict]:
     """Frame rate and drawn objects of :class:`~render.scene_mesh.SceneMeshRenderer` per culling
-    mode, averaged over ``views`` (a path, so temporal coherence works as in a walkthrough):
-    rows {cull, group_cell, fps, ms, objects, after_frustum, drawn, groups, queries, triangles}.
+    mode along ``views`` (a path, so temporal coherence works as in a walkthrough), each frame
+    timed: rows {cull, group_cell, **frame_time_stats, objects, after_frustum, drawn, groups,
+    queries, depth_reads, triangles} (counts averaged over the frames).
     Every mode is run once per entry of ``group_cells`` (the grid that orders the vertex
     buffer, so frustum culling draws the same runs of objects as occlusion culling)."""
     from .scene_mesh import SceneMeshRenderer
@@ -174,19 +175,19 @@ def town_cull_fps(ctx, scene, views: list[np.ndarray], size=(1280, 720), K=None,
         for cell in (group_cells if mode != "none" else group_cells[:1]):
             with SceneMeshRenderer(ctx, scene, cull=mode, group_cell=cell) as renderer:
                 renderer.render(K, views[0], size)  # warm-up
-                stats = []
-                t0 = time.perf_counter()
+                stats, times = [], []
                 for pose in views:
+                    t0 = time.perf_counter()
                     renderer.render(K, pose, size)
+                    times.append(time.perf_counter() - t0)
                     stats.append(renderer.stats)
-                dt = (time.perf_counter() - t0) / len(views)
 
             def mean(key, stats=stats):
                 return float(np.mean([st.get(key, 0) for st in stats]))
 
-            rows.append({"cull": mode, "group_cell": cell, "fps": 1 / dt, "ms": 1000 * dt,
+            rows.append({"cull": mode, "group_cell": cell, **frame_time_stats(times),
                          "objects": scene.num_objects, "after_frustum": mean("objects_after_frustum"),
                          "drawn": mean("objects_drawn"), "groups": mean("groups"), "queries": mean("queries"),
-                         "triangles": mean("triangles_drawn")})
+                         "depth_reads": mean("depth_reads"), "triangles": mean("triangles_drawn")})
     return rows
 
