@@ -645,10 +645,16 @@ def _run_fps(args) -> int:
 
             scene = build_town(TownConfig())
             poses, _ = capture_path(SynthConfig(scene="town", frames=300))
-            for r in town_cull_fps(ctx, scene, town_views(poses[100:160]), size, group_cells=(30.0, 60.0)):
-                print(f"town cull {r['cull']:>9} (groups of {r['group_cell']} m): {r['fps']:6.2f} fps, "
+            rows = town_cull_fps(ctx, scene, town_views(poses[100:160]), size, group_cells=(30.0, 60.0))
+            frustum = {r["group_cell"]: r for r in rows if r["cull"] == "frustum"}
+            for r in rows:
+                f = frustum.get(r["group_cell"])
+                ratios = (f", fps this/frustum {r['fps'] / f['fps']:.2f}×, drawn frustum/this "
+                          f"{f['drawn'] / max(r['drawn'], 1e-9):.1f}×" if f else "")
+                print(f"town cull {r['cull']:>9} (groups of {r['group_cell']} m): {r['fps']:6.2f} fps "
+                      f"(median; {r['fps_p5']:.2f} at the 95th-percentile frame time), "
                       f"{r['after_frustum']:.0f} of {r['objects']} objects after frustum, {r['drawn']:.0f} drawn, "
-                      f"{r['queries']:.0f} queries")
+                      f"{r['queries']:.0f} queries, {r['depth_reads']:.0f} depth reads{ratios}")
         if model is None:
             return 0
         _print_model_fps(ctx, model, args, size)
