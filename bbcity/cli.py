@@ -882,14 +882,18 @@ def _add_view(sub) -> None:
     p = sub.add_parser(
         "view", help="open a billboard model in an interactive window (fly, drive, toggles, screenshots)",
         description="Open a billboard model in a moderngl-window window: mouse look and WASD/QE fly, a drive "
-                    "mode along the capture path, GPU/CPU decode, culling and view-interpolation toggles; a HUD "
-                    "and the title bar show fps, drawn/culled billboards, decode and cull mode. With --script-frames it renders that many "
+                    "mode along the capture path, GPU/CPU decode, level-of-detail, culling and view-interpolation "
+                    "toggles; a HUD and the title bar show frame time and fps, draw and cull time, quads and "
+                    "billboards drawn, quads per level of detail, tiles decoded, decode and cull mode. With "
+                    "--script-frames it renders that many "
                     "frames along the drive path, saves a screenshot and exits (runs under xvfb-run).",
         epilog=KEYS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
         parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "window size (default 1280 720)"),
                  _draw_modes_parent()])
     p.add_argument("model", type=Path, help="billboard model directory")
     p.add_argument("--mode", choices=("drive", "fly"), default="drive", help="camera mode at start")
+    p.add_argument("--exact", action="store_true",
+                   help="start with level of detail off (GPU decode of every eigen image everywhere; key L toggles)")
     p.add_argument("--window", default="auto",
                    help="moderngl-window backend: auto (pyglet, else headless), pyglet, glfw, headless, ...")
     p.add_argument("--screenshot-dir", type=Path, default=Path("."), help="where F12/P screenshots go")
@@ -916,7 +920,8 @@ def _run_view(args) -> int:
     out = run_viewer(model, size=tuple(args.size), decode=args.decode, cull=args.cull, window=args.window,
                      screenshot_dir=args.screenshot_dir, script_frames=args.script_frames,
                      screenshot=args.screenshot, mode=args.mode,
-                     script_keys=[k for k in args.script_keys.split(",") if k.strip()], sky=read_sky(args.model))
+                     script_keys=[k for k in args.script_keys.split(",") if k.strip()], sky=read_sky(args.model),
+                     lod=not args.exact)
     if out is not None:
         logger.info("screenshot %s", out)
     return 0

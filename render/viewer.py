@@ -1,9 +1,11 @@
 """Interactive viewer: a real window (moderngl-window) around :class:`BillboardRenderer`.
 
 Fly with the mouse and WASD/QE, or drive along the capture path; toggle GPU/CPU
-decode, cycle the culling modes, view interpolation, wireframe; a HUD over the
-frame (and the title bar) shows fps, drawn/culled billboard counts, decode and cull
-mode. F12 or P saves a screenshot.
+decode, level of detail (on by default), cycle the culling modes, view interpolation,
+wireframe; a HUD over the frame (and the title bar) shows the frame time and fps, the
+draw and cull times, quads and billboards drawn (and culled), quads per level of detail,
+tiles decoded, and the decode and cull modes (:meth:`ViewerApp.hud_lines`). F12 or P
+saves a screenshot.
 
 :class:`FlyCamera` is pure numpy (world coordinates, z up, float64) so it can be tested
 without a window; the drive path is :class:`render.paths.DrivePath`. ``run_viewer(..., script_frames=N)``
@@ -25,6 +27,7 @@ from .camera import default_intrinsics, look_at
 from .hud import HudOverlay
 from .paths import drive_path_for
 from .culling import CULL_MODES
+from .lod import LodConfig
 from .renderer import DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
 
@@ -38,6 +41,7 @@ keys:
   M              toggle fly / drive (follow the capture path)
   + / -          drive speed up / down    (also fly speed)
   G              toggle GPU / CPU decode
+  L              toggle level of detail (GPU decode: fewer eigen images where a texel is under a pixel)
   C              cycle culling: none, frustum, occlusion, hzb, auto
   I              toggle view interpolation (blend sampled directions / nearest)
   F              toggle wireframe (billboard outlines)
@@ -154,7 +158,7 @@ class ViewerApp(_WindowConfig):
     gl_version = (3, 3)
 
     def __init__(self, model, decode: str = "gpu", cull: str = "frustum", background=(0.55, 0.7, 0.9),
-                 screenshot_dir: Path = Path("."), mode: str = "drive", sky=None, **kwargs):
+                 screenshot_dir: Path = Path("."), mode: str = "drive", sky=None, lod: bool = True, **kwargs):
         super().__init__(**kwargs)
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}")
@@ -172,6 +176,7 @@ class ViewerApp(_WindowConfig):
         self.held: set[str] = set()
         self.wireframe = False
         self.interpolate = True
+        self.lod = bool(lod)  # level of detail of the GPU decode (render.lod.LodConfig's defaults)
         self.show_hud = True
         self.overlay = HudOverlay(self.ctx)
         self.sky_pass = SkyPass(self.ctx, sky) if sky is not None else None  # drawn behind the model
@@ -180,7 +185,7 @@ class ViewerApp(_WindowConfig):
         self.fps = 0.0
         self._fps_frames, self._fps_t0 = 0, time.perf_counter()
         self._title_t = 0.0
-        self._hud_text = ""
+        self._hud_lines: list[str] = []
         self.shots: list[Path] = []
 
     # -- state
@@ -188,7 +193,8 @@ class ViewerApp(_WindowConfig):
         if self.renderer is not None:
             self.renderer.release()
         self.renderer = BillboardRenderer(self.ctx, self.model, self.decode, cull=self.cull,
-                                          background=self.background, interpolate=self.interpolate)
+                                          background=self.background, interpolate=self.interpolate,
+                                          lod=LodConfig() if self.lod else None)
 
     def pose(self, dt: float) -> np.ndarray:
         if self.mode == "drive":
@@ -224,21 +230,41 @@ class ViewerApp(_WindowConfig):
             self._fps_frames, self._fps_t0 = 0, now
         if now - self._title_t > 0.25:
             self._title_t = now
-            self._hud_text = self.hud(stats)
-            wnd.title = self._hud_text
+            self._hud_lines = self.hud_lines(stats)
+            wnd.title = " | ".join(self._hud_lines)
         if self.show_hud:
-            items = self._hud_text.split(" | ")
-            self.overlay.draw([" | ".join(items[i:i + 2]) for i in range(0, len(items), 2)], (w, h))
+            self.overlay.draw(self._hud_lines, (w, h))
         return stats
 
-    def hud(self, stats: dict | None = None) -> str:
+    def hud_lines(self, stats: dict | None = None) -> list[str]:
+        """The HUD's lines from a frame's renderer stats (missing keys count 0): frame time and
+        fps (over the last half second), draw and cull time (frustum plus occlusion) of the
+        frame; quads and billboards drawn; quads per level of detail and tiles decoded (GPU
+        decode); the modes."""
         s = self.renderer.stats if stats is None else stats
         total = self.model.num_billboards
         drawn = int(s.get("billboards_drawn", s.get("instances", total)))
+        frame_ms = 1000.0 / self.fps if self.fps > 0 else 0.0
+        cull_ms = 1000.0 * (s.get("frustum_s", 0.0) + s.get("cull_s", 0.0))
+        if self.decode == "gpu":
+            full, reduced, mean = (list(s.get("lod", [])) + [0, 0, 0])[:3]
+            quads = int(s.get("quads", 0))
+            detail = (f"LOD {'on' if self.lod else 'off'}: full {full} reduced {reduced} mean {mean} | "
+                      f"decoded {int(s.get('decoded_tiles', 0))} tiles")
+        else:
+            quads = drawn  # the CPU decode draws a quad per billboard
+            detail = "CPU decode of every drawn billboard (no level of detail)"
         extra = f" speed {self.path.speed:.0f} m/s" if self.mode == "drive" else ""
-        return (f"bbcity | {self.fps:5.1f} fps | drawn {drawn}/{total} culled {total - drawn} | "
-                f"decode {self.decode} | cull {self.cull} | interpolation {'on' if self.interpolate else 'off'} | "
-                f"{self.mode}{extra}" + (" | wireframe" if self.wireframe else ""))
+        draw_ms = 1000.0 * s.get("draw_s", 0.0)
+        return [f"bbcity | {self.fps:5.1f} fps, {frame_ms:5.1f} ms/frame | draw {draw_ms:.1f} ms, cull {cull_ms:.1f} ms",
+                f"quads {quads} | drawn {drawn}/{total} culled {total - drawn}",
+                detail,
+                f"decode {self.decode} | cull {self.cull} | interpolation {'on' if self.interpolate else 'off'}",
+                f"{self.mode}{extra}" + (" | wireframe" if self.wireframe else "")]
+
+    def hud(self, stats: dict | None = None) -> str:
+        """The HUD's lines as one line (the title bar and the log)."""
+        return " | ".join(self.hud_lines(stats))
 
     def read_image(self) -> np.ndarray:
         """The window's current colour buffer as (h, w, 3) uint8, row 0 at the top."""
@@ -258,7 +284,7 @@ class ViewerApp(_WindowConfig):
     # -- input
     def _name(self, key) -> str | None:
         k = self.wnd.keys
-        for name in ("W", "A", "S", "D", "Q", "E", "M", "G", "C", "I", "U", "F", "P", "H", "F12", "ESCAPE",
+        for name in ("W", "A", "S", "D", "Q", "E", "M", "G", "L", "C", "I", "U", "F", "P", "H", "F12", "ESCAPE",
                      "LEFT_SHIFT", "RIGHT_SHIFT", "EQUAL", "MINUS", "NUMPAD_ADD", "NUMPAD_SUBTRACT"):
             if getattr(k, name, None) == key and key != "undefined":
                 return name
@@ -287,6 +313,9 @@ class ViewerApp(_WindowConfig):
                 self.mode = "drive"
         elif name == "G":
             self.decode = "cpu" if self.decode == "gpu" else "gpu"
+            self._rebuild()
+        elif name == "L":
+            self.lod = not self.lod
             self._rebuild()
         elif name == "C":
             self.cull = CULL_MODES[(CULL_MODES.index(self.cull) + 1) % len(CULL_MODES)]
@@ -366,10 +395,11 @@ def save_image(path: Path | str, rgb: np.ndarray) -> Path:
 
 def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "frustum", window: str = "auto",
                screenshot_dir: Path = Path("."), script_frames: int = 0, screenshot: Path | None = None,
-               script_dt: float = 1 / 30, mode: str = "drive", script_keys=(), sky=None) -> Path | None:
+               script_dt: float = 1 / 30, mode: str = "drive", script_keys=(), sky=None,
+               lod: bool = True) -> Path | None:
     """Open the viewer (over ``sky``, a :class:`billboards.sky.Sky`, when given; else a plain
-    background). With ``script_frames`` > 0: render that many frames along the
-    drive path with a fixed ``script_dt``, pressing the moderngl-window key names in
+    background), GPU decode with level of detail unless ``lod`` is False. With
+    ``script_frames`` > 0: render that many frames along the drive path with a fixed ``script_dt``, pressing the moderngl-window key names in
     ``script_keys`` (e.g. "C", "I") one per frame from the first, through the window's
     key-event handler; save the last frame to ``screenshot`` (in the format its suffix
     names, see :data:`IMAGE_FORMATS`; or as PNG in the screenshot dir) and return its path. Otherwise run until the window closes."""
@@ -380,7 +410,7 @@ def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "fru
     wnd = _make_window(window, size, "bbcity")
     logger.info("window %s, %s", type(wnd).__module__, wnd.ctx.info["GL_RENDERER"])
     timer = Timer()
-    app = ViewerApp(model, decode=decode, cull=cull, screenshot_dir=screenshot_dir, mode=mode, sky=sky,
+    app = ViewerApp(model, decode=decode, cull=cull, screenshot_dir=screenshot_dir, mode=mode, sky=sky, lod=lod,
                     ctx=wnd.ctx, wnd=wnd, timer=timer)
     wnd.config = app
     out = None

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from billboards.model_writer import save
+from render.culling import CULL_MODES
 from render.paths import DrivePath, drive_path_for
 from render.viewer import KEYS_HELP, FlyCamera
 
@@ -117,29 +118,57 @@ def test_viewer_toggles_headless(tmp_path):
         bare = app.read_image()
         changed = np.any(bare != ref, axis=-1)
         ys, xs = np.nonzero(changed)
-        assert changed.mean() > 0.01 and ys.min() < 5 and xs.min() < 5 and ys.max() < 120 and xs.max() < 400
         from render.hud import text_image
 
         text = text_image(app.overlay._lines)  # the HUD's pure white text pixels land upright, 1:1
+        assert changed.mean() > 0.01 and ys.min() < 5 and xs.min() < 5
+        assert ys.max() < text.shape[0] <= 120 and xs.max() < text.shape[1] < 470  # the top-left corner only
         white = np.all(text[..., :3] == 255, axis=-1) & (text[..., 3] == 255)
         shown = np.all(ref[:text.shape[0], :text.shape[1]] == 255, axis=-1)
         assert white.sum() > 50 and np.array_equal(shown, white)
         assert not changed[-10:].any() and not changed[:, -10:].any()
         app.handle_command("U")
+        # the HUD: frame time, draw and cull time, quads and billboards, levels of detail, tiles decoded
+        assert app.overlay._lines == app._hud_lines  # what the last refresh drew
+        lines = app.hud_lines()
+        assert app.hud() == " | ".join(lines)
+        stats = app.renderer.stats
+        assert app.lod and app.renderer.decoder.lod is not None  # level of detail on by default
+        total = app.model.num_billboards
+        assert f"quads {stats['quads']} | drawn {stats['billboards_drawn']}/{total}" in lines[1]
+        full, reduced, mean = stats["lod"]
+        assert lines[2] == (f"LOD on: full {full} reduced {reduced} mean {mean} | "
+                            f"decoded {stats['decoded_tiles']} tiles")
+        assert "fps," in lines[0] and " ms/frame | draw " in lines[0] and ", cull " in lines[0]
+        fake = {"draw_s": 0.0125, "frustum_s": 0.001, "cull_s": 0.0025, "quads": 7, "billboards_drawn": 9,
+                "lod": [4, 2, 1], "decoded_tiles": 3}
+        app.fps = 50.0
+        lines = app.hud_lines(fake)
+        assert lines[0].endswith("50.0 fps,  20.0 ms/frame | draw 12.5 ms, cull 3.5 ms")
+        assert lines[1] == f"quads 7 | drawn 9/{total} culled {total - 9}"
+        assert lines[2] == "LOD on: full 4 reduced 2 mean 1 | decoded 3 tiles"
+        assert app.hud_lines({})[2] == "LOD on: full 0 reduced 0 mean 0 | decoded 0 tiles"  # .get defaults
+        app.handle_command("L")  # level of detail off: every eigen image
+        assert not app.lod and app.renderer.decoder.lod is None and "LOD off" in app.hud()
+        stats = app.render_frame(0.0)
+        assert stats["lod"][1:] == [0, 0] and stats["quads"] > 0
+        app.handle_command("L")
+        assert app.lod and app.renderer.decoder.lod is not None and "LOD on" in app.hud()
         app.handle_command("I")
         assert not app.interpolate and not app.renderer.interpolate and "interpolation off" in app.hud()
         app.handle_command("I")
         app.handle_command("G")
         assert app.decode == "cpu"
-        app.render_frame(0.0)
+        stats = app.render_frame(0.0)
+        assert f"quads {stats['billboards_drawn']} | drawn" in app.hud() and "CPU decode" in app.hud()
         app.handle_command("G")
         seen = []
-        for _ in range(4):
+        for _ in CULL_MODES:
             app.handle_command("C")
             seen.append(app.cull)
             stats = app.render_frame(0.0)
             assert stats["instances"] > 0
-        assert sorted(seen) == sorted(["none", "frustum", "occlusion", "auto"])
+        assert sorted(seen) == sorted(CULL_MODES) and "frustum" in seen
         app.handle_command("F")
         app.render_frame(0.0)
         assert app.wireframe and "wireframe" in app.hud()
@@ -174,14 +203,14 @@ def test_bbcity_view_script_screenshot_under_xvfb(tmp_path):
     bbcity = Path(sys.executable).with_name("bbcity")
     cmd = [str(bbcity)] if bbcity.exists() else [sys.executable, "-m", "bbcity.cli"]
     res = subprocess.run(["xvfb-run", "-a", *cmd, "view", str(tmp_path / "model"), "--script-frames", "4",
-                          "--script-keys", "C,I,C", "--screenshot", str(out), "--size", "320", "240"],
+                          "--script-keys", "C,I,L", "--screenshot", str(out), "--size", "320", "240"],
                          cwd=ROOT, capture_output=True, text=True, timeout=60,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert res.returncode == 0, res.stdout + res.stderr
     assert "pyglet" in res.stderr  # a real window, not the headless fallback
-    # the keys went through the window's key handler: frustum → occlusion, interpolation off, → auto
-    assert "cull occlusion | interpolation on" in res.stderr
-    assert "cull occlusion | interpolation off" in res.stderr and "cull auto | interpolation off" in res.stderr
+    # the keys went through the window's key handler: frustum → occlusion, interpolation off, level of detail off
+    assert "cull occlusion | interpolation on" in res.stderr and "LOD on:" in res.stderr
+    assert "cull occlusion | interpolation off" in res.stderr and "LOD off:" in res.stderr
     img = read_png(out)
     assert img.shape[:2] == (240, 320)
     rgb = img[..., :3].reshape(-1, 3).astype(int)
