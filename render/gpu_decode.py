@@ -21,6 +21,8 @@ made the fragment stage the bottleneck on llvmpipe (3–4× the cost of a single
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import moderngl
 import numpy as np
 
@@ -73,6 +75,20 @@ def atlas_layout(place: np.ndarray, slots: int, tile: int, limit: int) -> tuple[
     band = place // BAND_ROWS
     origin = np.stack([(band % per_row) * slots * tile, ((band // per_row) * BAND_ROWS + place % BAND_ROWS) * tile], 1)
     return origin.astype(np.int32), size
+
+
+class _Plan(NamedTuple):
+    start: np.ndarray            # (R,) int64 first position of each run
+    count: np.ndarray            # (R,) int64 blocks per run
+    top: np.ndarray              # (R,) int64 billboard at each run's top
+    centre: np.ndarray           # (R, 3) float64 run centres (model coordinates)
+    kind: np.ndarray             # (R,) uint8
+    weight: np.ndarray           # (R, S) float32 weight of each storage slot
+    level: np.ndarray            # (R,) int8 level of detail
+    texel_px: np.ndarray         # (R,) float64 texel width in pixels
+    positions: np.ndarray        # (P,) int64 positions of the runs' blocks
+    block_direction: np.ndarray  # (P, S) int32 direction each slot must hold (−1: unused)
+    block_level: np.ndarray      # (P,) int8
 
 
 class GpuDecoder(GpuOwner):
@@ -191,8 +207,44 @@ class GpuDecoder(GpuOwner):
         start, count = self._runs(visible, whole_columns)
         if len(start) == 0:
             return stats
-        order = self.slits.order
-        top, bottom = order[start], order[start + count - 1]
+        plan = self._plan(camera, start, count)
+        stats["decoded_tiles"], stats["upload_bytes"] = self._decode(plan.positions, plan.block_direction,
+                                                                     plan.block_level)
+        self._emit(camera, plan, True, stats)
+        return stats
+
+    def draw_views(self, lod_camera: GLCamera, views, before=None) -> dict:
+        """Draw several selections, each with its own camera (all with ``lod_camera``'s eye), into
+        the bound framebuffer: views is a list of (camera, billboards (B,) int); ``before(i)`` is
+        called before view i is drawn (to set a viewport, clear). Levels of detail follow
+        ``lod_camera``; the tiles are decoded in one pass first and nothing is pre-blended, so
+        the framebuffer is left only once (for impostors: every switch makes llvmpipe finish
+        the frame so far). Returns the summed stats."""
+        stats = {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "blended_tiles": 0,
+                 "upload_bytes": 0, "lod": [0, 0, 0]}
+        plans = []
+        for camera, billboards in views:
+            start, count = exact_runs(self.slits, billboards)
+            plans.append(self._plan(camera, start, count, lod_camera) if len(start) else None)
+        used = [p for p in plans if p is not None]
+        if not used:
+            return stats
+        stats["decoded_tiles"], stats["upload_bytes"] = self._decode(
+            np.concatenate([p.positions for p in used]), np.concatenate([p.block_direction for p in used]),
+            np.concatenate([p.block_level for p in used]))
+        for i, ((camera, _), plan) in enumerate(zip(views, plans)):
+            if before is not None:
+                before(i)
+            if plan is not None:
+                self._emit(camera, plan, False, stats)
+        return stats
+
+    def _plan(self, camera: GLCamera, start: np.ndarray, count: np.ndarray, lod_camera: GLCamera | None = None):
+        """What a draw of runs (start, count) needs: per run the centre, kind, weights, level and
+        texel width; per block the position, the directions its slots must hold and its level."""
+        model = self.model
+        lod_camera = camera if lod_camera is None else lod_camera
+        top, bottom = self.slits.order[start], self.slits.order[start + count - 1]
         centre = 0.5 * (model.centres[top].astype(np.float64) + model.centres[bottom])
         direction, weight = view_brackets(camera.eye, centre, model.base_yaw[top], model.yaw_offsets,
                                           model.pitches, self.interpolate)
@@ -200,10 +252,9 @@ class GpuDecoder(GpuOwner):
         positions = np.repeat(start - firsts, count) + np.arange(int(count.sum()))
         kind = model.kind[top]
         edge = np.where(kind == 0, model.voxel_size, model.block_size)
-        focal_px = float(camera.projection[0, 0]) * camera.size[0] / 2
-        texel_px = texel_pixels(camera.eye, centre, edge, model.tile, focal_px)
+        focal_px = float(lod_camera.projection[0, 0]) * lod_camera.size[0] / 2
+        texel_px = texel_pixels(lod_camera.eye, centre, edge, model.tile, focal_px)
         level = self._levels(texel_px, positions, firsts, count)
-        stats["lod"] = np.bincount(level, minlength=3).tolist()
         mean = level == 2  # the mean does not depend on the direction: one slot, any direction held
         weight[mean] = 0.0
         weight[mean, 0] = 1.0
@@ -213,24 +264,33 @@ class GpuDecoder(GpuOwner):
         mean_block = block_level == 2
         held0 = self._held[positions[mean_block], 0]
         block_direction[mean_block, 0] = np.where(self._held_level[positions[mean_block], 0] == 2, held0, 0)
-        stats["decoded_tiles"], upload = self._decode(positions, block_direction, block_level)
-        blend = (texel_px >= PREBLEND_TEXEL_PX) & (np.count_nonzero(weight, axis=1) > 1)
-        blended, blend_bytes = self._blend(positions, np.repeat(blend, count), np.repeat(weight, count, axis=0))
-        stats["blended_tiles"] = blended
-        upload += blend_bytes
+        return _Plan(start, count, top, centre, kind, weight, level, texel_px, positions, block_direction,
+                     block_level)
+
+    def _emit(self, camera: GLCamera, plan: _Plan, preblend: bool, stats: dict) -> None:
+        """Draw a plan's quads (pre-blending the large ones if ``preblend``), adding to ``stats``."""
+        model = self.model
+        start, count = plan.start, plan.count
+        blend = np.zeros(len(start), bool)
+        if preblend:
+            blend = (plan.texel_px >= PREBLEND_TEXEL_PX) & (np.count_nonzero(plan.weight, axis=1) > 1)
+            blended, blend_bytes = self._blend(plan.positions, np.repeat(blend, count),
+                                               np.repeat(plan.weight, count, axis=0))
+            stats["blended_tiles"] += blended
+            stats["upload_bytes"] += blend_bytes
         quads = np.empty(len(start), QUAD_DTYPE)
-        quads["centre"] = centre
-        quads["base_yaw"] = model.base_yaw[top]
-        quads["kind"] = kind
+        quads["centre"] = plan.centre
+        quads["base_yaw"] = model.base_yaw[plan.top]
+        quads["kind"] = plan.kind
         quads["blocks"] = count
         quads["origin"] = np.where(blend[:, None], self._view_origin[start], self._origin[start])
-        quads["weights"][:, :self.storage_slots] = weight
+        quads["weights"][:, :self.storage_slots] = plan.weight
         quads["weights"][:, self.storage_slots:] = 0.0
         for view, atlas in ((False, self.decoded), (True, self.view_tiles)):
             part = quads[blend == view]
             if len(part) == 0:
                 continue
-            upload += self.quads[view].write(part)
+            stats["upload_bytes"] += self.quads[view].write(part)
             prog = self.programs[view, self.linear]
             self.resources.bind(prog)
             atlas.use(self.DECODED_UNIT)
@@ -242,8 +302,9 @@ class GpuDecoder(GpuOwner):
             set_uniform(prog, "u_spherical", self.spherical)
             self.vaos[view, self.linear].render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(part))
             stats["draw_calls"] += 1
-        stats.update(upload_bytes=upload, instances=int(count.sum()), quads=len(start))
-        return stats
+        stats["instances"] += int(count.sum())
+        stats["quads"] += len(start)
+        stats["lod"] = [a + b for a, b in zip(stats["lod"], np.bincount(plan.level, minlength=3).tolist())]
 
     def _levels(self, texel_px: np.ndarray, positions: np.ndarray, firsts: np.ndarray, count: np.ndarray) -> np.ndarray:
         """(R,) int8 level of detail per run from its texel width in pixels (all 0 without ``lod``),

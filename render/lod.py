@@ -24,13 +24,41 @@ LEVEL_NAMES = ("full", "reduced", "mean")
 
 
 @dataclass(frozen=True)
+class ImpostorConfig:
+    """Far nodes as impostors (:mod:`render.impostors`). node_edge (m): the octree level used;
+    texels: tile side; max_angle_deg: view change an image survives; updates_per_frame: images
+    made per frame at most; hysteresis: fraction of the switching distance within which a node
+    keeps its state."""
+
+    node_edge: float = 4.0
+    texels: int = 128
+    max_angle_deg: float = 1.0
+    updates_per_frame: int = 24
+    hysteresis: float = 0.1
+
+    def __post_init__(self):
+        if not (np.isfinite(self.node_edge) and self.node_edge > 0):
+            raise ValueError(f"node_edge must be a positive length, got {self.node_edge}")
+        if not 8 <= self.texels <= 1024:
+            raise ValueError(f"texels must lie in [8, 1024], got {self.texels}")
+        if not 0 < self.max_angle_deg <= 30:
+            raise ValueError(f"max_angle_deg must lie in (0, 30], got {self.max_angle_deg}")
+        if self.updates_per_frame < 0:
+            raise ValueError(f"updates_per_frame must be ≥ 0, got {self.updates_per_frame}")
+        if not 0 <= self.hysteresis < 1:
+            raise ValueError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
+
+
+@dataclass(frozen=True)
 class LodConfig:
-    """Thresholds (texel width in pixels) and the hysteresis band (a fraction of them)."""
+    """Thresholds (texel width in pixels), the hysteresis band (a fraction of them) and the
+    impostors of far nodes (None: every quad drawn)."""
 
     full_texel_px: float = 0.5
     mean_texel_px: float = 0.15
     reduced_rank: int = 2
     hysteresis: float = 0.25
+    impostors: ImpostorConfig | None = ImpostorConfig()
 
     def __post_init__(self):
         if not (0 < self.mean_texel_px <= self.full_texel_px and np.isfinite(self.full_texel_px)):

@@ -24,6 +24,7 @@ from .hzb_culler import HzbCuller
 from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder
+from .impostors import Impostors
 from .lod import LodConfig
 from .resources import ModelResources
 from .target import OffscreenTargets, background_rgb
@@ -31,6 +32,19 @@ from .target import OffscreenTargets, background_rgb
 logger = logging.getLogger(__name__)
 
 DECODE_MODES = ("gpu", "cpu")
+
+
+def add_stats(totals: dict, part: dict) -> None:
+    """Add a draw's counts to ``totals``: numbers summed, lists (LOD counts) element-wise."""
+    for key in ("draw_calls", "instances", "upload_bytes", "quads", "decoded_tiles", "blended_tiles", "lod"):
+        if key not in part:
+            continue
+        value = part[key]
+        if isinstance(value, list):
+            old = totals.get(key, [0] * len(value))
+            totals[key] = [a + b for a, b in zip(old, value)]
+        else:
+            totals[key] = totals.get(key, 0) + int(value)
 
 
 class BillboardRenderer:
@@ -75,12 +89,15 @@ class BillboardRenderer:
         self.stats: dict = {}
         self.resources: ModelResources | None = None
         self.decoder = None
+        self.impostors: Impostors | None = None
         self.targets = OffscreenTargets(ctx)
         self._released = False
         try:
             if decode == "gpu":
                 self.resources = ModelResources(ctx, model)
                 self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate, linear, lod)
+                if lod is not None and lod.impostors is not None:
+                    self.impostors = Impostors(ctx, model, lod.impostors)
             else:
                 self.decoder = CpuDecoder(ctx, model, self.spherical, interpolate=interpolate, linear=linear)
         except BaseException:
@@ -120,17 +137,33 @@ class BillboardRenderer:
         self.ctx.enable_only(moderngl.DEPTH_TEST)
         self.decoder.begin_frame()
         t0 = time.perf_counter()
-        if self.cull == "none" or visible is not None or self.model.num_billboards == 0:
+        n = self.model.num_billboards
+        if visible is not None or n == 0 or (self.cull == "none" and self.impostors is None):
             stats = self.decoder.draw(camera, visible)
+        elif self.cull == "none":
+            stats = self._draw_culled(camera, everything=True)
         else:
             stats = self._draw_culled(camera)
         stats["draw_s"] = time.perf_counter() - t0
         self.stats = stats
         return stats
 
-    def _draw_culled(self, camera: GLCamera) -> dict:
-        """Frustum culling over the octree nodes, then (occlusion/auto) the occlusion culler."""
+    def _draw_culled(self, camera: GLCamera, everything: bool = False) -> dict:
+        """Frustum culling over the octree nodes, then (occlusion/auto) the occlusion culler;
+        far nodes as impostors (with level of detail). ``everything``: no culling (impostors only)."""
         model = self.model
+        updates = {"draw_calls": 0, "instances": 0, "upload_bytes": 0, "quads": 0, "decoded_tiles": 0,
+                   "blended_tiles": 0, "lod": [0, 0, 0]}  # and the impostors' images: their decoding counts
+        #                                                   with the frame, their quads apart
+        if self.impostors is not None:
+            def draw_views(lod_camera, views, before):
+                part = self.decoder.draw_views(lod_camera, views, before)
+                add_stats(updates, {"decoded_tiles": part["decoded_tiles"], "upload_bytes": part["upload_bytes"]})
+                updates["impostor_quads"] = updates.get("impostor_quads", 0) + part["quads"]
+            updates.update(self.impostors.begin_frame(camera, draw_views))
+        if everything:
+            totals = self._draw_blocks(camera, np.arange(model.num_billboards), updates)
+            return self._draw_impostors(camera, totals)
         t0 = time.perf_counter()
         view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
         pad = model_quad_radius(model)
@@ -140,19 +173,10 @@ class BillboardRenderer:
         after_frustum = int(np.sum(np.diff(frustum.visible_ranges, axis=1))) if len(frustum.visible_ranges) else 0
         info = {"billboards": model.num_billboards, "nodes_tested": frustum.nodes_tested,
                 "billboards_after_frustum": after_frustum, "frustum_s": time.perf_counter() - t0}
-        totals = {"draw_calls": 0, "instances": 0, "upload_bytes": 0, "quads": 0, "decoded_tiles": 0,
-                  "blended_tiles": 0, "lod": [0, 0, 0]}
+        totals = updates  # the impostors' images count with the frame
 
         def draw_ranges(ranges) -> None:
-            indices = ranges_to_indices(ranges)
-            if len(indices) == 0:
-                return
-            part = self.decoder.draw(camera, indices, whole_columns=True)
-            for key, value in totals.items():
-                if key == "lod":
-                    totals[key] = [a + b for a, b in zip(value, part.get(key, [0, 0, 0]))]
-                else:
-                    totals[key] = value + int(part.get(key, 0))
+            self._draw_blocks(camera, ranges_to_indices(ranges), totals)
 
         if self.cull == "frustum":
             draw_ranges(frustum.visible_ranges)
@@ -167,7 +191,23 @@ class BillboardRenderer:
             info.update(billboards_drawn=int(cull.billboards_drawn), objects=int(cull.objects),
                         objects_drawn=int(cull.objects_drawn), queries=int(cull.queries),
                         occlusion_on=bool(cull.active), cull_s=float(cull.cull_s))
-        return {**totals, **info}
+        return self._draw_impostors(camera, {**totals, **info})
+
+    def _draw_blocks(self, camera: GLCamera, indices: np.ndarray, totals: dict) -> dict:
+        """Draw billboards ``indices`` (B,) (those of impostor nodes go to the impostors), whole
+        slits, adding the decoder's stats to ``totals``; returns it."""
+        if self.impostors is not None:
+            indices = self.impostors.split(indices)
+        if len(indices):
+            add_stats(totals, self.decoder.draw(camera, indices, whole_columns=True))
+        return totals
+
+    def _draw_impostors(self, camera: GLCamera, stats: dict) -> dict:
+        if self.impostors is not None:
+            def draw_quads(cam, billboards):
+                add_stats(stats, self.decoder.draw(cam, billboards))
+            stats.update(self.impostors.draw(camera, draw_quads))
+        return stats
 
     def framebuffer(self, size) -> moderngl.Framebuffer:
         """The offscreen framebuffer for ``size`` = (w, h), created on first use."""
@@ -202,6 +242,8 @@ class BillboardRenderer:
         for culler in self._cullers.values():
             culler.release()
         self._cullers = {}
+        if self.impostors is not None:
+            self.impostors.release()
         if self.decoder is not None:
             self.decoder.release()
         if self.resources is not None:

@@ -1,0 +1,266 @@
+"""Far octree nodes drawn as impostors: one quad with the node rendered into a texture.
+
+Level of detail for geometry. Far from the eye a 4 m octree node holds tens of quads that
+cover a few dozen pixels, and on a CPU rasterizer every quad costs vertex and triangle
+setup on one thread. Such a node is drawn instead as one quad textured with an image of
+its quads (a dynamic impostor, Schaufler 1995):
+
+- **Which nodes.** The octree nodes whose edge is closest to ``ImpostorConfig.node_edge``
+  and whose bounding sphere, seen from the eye, spans at most ``texels`` pixels, so the
+  impostor's texture is never coarser than the screen (with ``hysteresis`` on the
+  distance, so a node does not switch back and forth).
+- **The image.** The node's quads drawn by the decoder, with the eye's own perspective
+  cropped to the node's screen rectangle, into its ``texels``² tile of an RGBA8 atlas (with
+  depth, cleared transparent). The impostor quad is a plane through the node's centre,
+  facing the eye, covering the node's bounding sphere; its fragments look the image up
+  through the camera it was made with (projective texturing), so at that moment it shows
+  exactly what the quads would show, at the screen's resolution.
+- **Reuse.** The image is kept while the direction from the node to the eye stays within
+  ``max_angle_deg`` of the one it was made from and the distance within 10 %; then it is
+  made again, at most ``updates_per_frame`` per frame, the stalest first. A node whose
+  image is missing or too stale and not remade this frame is drawn in full, so quality
+  never waits on the budget and no frame pays for every node at once.
+
+The split happens per selection of billboards (:meth:`Impostors.split`), so it works under
+every culling mode: blocks of impostor nodes are replaced by their node's quad.
+"""
+
+from __future__ import annotations
+
+import math
+import moderngl
+import numpy as np
+
+from billboards.model import BillboardModel
+
+from .camera import GLCamera, gl_bytes
+from .culling import model_quad_radius
+from .lod import ImpostorConfig
+from .program import load_program
+from .resources import GpuOwner, InstanceStream, set_uniform, vertex_binding
+
+#: Per-impostor record of the draw (impostor.glsl): the quad's corners (model coordinates; bottom
+#: left, bottom right, top left, top right), rows 0, 1 and 3 of the matrix from model coordinates to
+#: the image's clip space when it was made (projective texturing), and the tile's texel origin.
+IMPOSTOR_DTYPE = np.dtype([("corners", "<f4", (4, 3)), ("image_from_model", "<f4", (3, 4)), ("origin", "<f4", 2)])
+IMPOSTOR_FORMAT = "3f 3f 3f 3f 4f 4f 4f 2f/i"
+IMPOSTOR_ATTRIBUTES = ("in_corner0", "in_corner1", "in_corner2", "in_corner3", "in_image_x", "in_image_y",
+                       "in_image_w", "in_origin")
+
+ATLAS_WIDTH = 4096  # texels per row of the impostor atlas (at most)
+
+
+def impostor_nodes(model: BillboardModel, node_edge: float) -> tuple[np.ndarray, np.ndarray]:
+    """The octree level whose edge is closest to ``node_edge``: its nodes (k,) int64 and, per billboard,
+    the index into them of the node holding it ((n,) int64). Every billboard lies in one node of
+    each level (the octree's ranges nest), so the map is total."""
+    n = model.num_billboards
+    if len(model.node_level) == 0 or n == 0:
+        return np.zeros(0, np.int64), np.zeros(n, np.int64)
+    edges = (model.node_bounds[:, 1, 0] - model.node_bounds[:, 0, 0]).astype(np.float64)
+    levels = np.unique(model.node_level)
+    level_edge = np.array([np.median(edges[model.node_level == lv]) for lv in levels])
+    level = levels[np.argmin(np.abs(np.log(level_edge / node_edge)))]
+    nodes = np.flatnonzero((model.node_level == level) & (model.node_range[:, 1] > model.node_range[:, 0]))
+    nodes = nodes[np.argsort(model.node_range[nodes, 0], kind="stable")]
+    starts = model.node_range[nodes, 0].astype(np.int64)
+    owner = np.searchsorted(starts, np.arange(n), side="right") - 1
+    inside = (owner >= 0) & (np.arange(n) < model.node_range[nodes[np.maximum(owner, 0)], 1])
+    if not inside.all():
+        raise ValueError("octree node ranges do not cover every billboard at one level")
+    return nodes.astype(np.int64), owner.astype(np.int64)
+
+
+class Impostors(GpuOwner):
+    """Impostors of a model's far nodes; :meth:`release` is idempotent.
+
+    Per frame: :meth:`begin_frame`, then :meth:`split` on each selection of billboards
+    (returns the ones to draw in full), then :meth:`draw`, which makes the images due
+    (through ``draw_quads(camera, billboards)``, drawing into the bound framebuffer) and
+    draws the impostors.
+    """
+
+    def __init__(self, ctx: moderngl.Context, model: BillboardModel, config: ImpostorConfig = ImpostorConfig()):
+        self.ctx = ctx
+        self.model = model
+        self.config = config
+        self.nodes, self.node_of = impostor_nodes(model, config.node_edge)
+        k = len(self.nodes)
+        self._range = model.node_range[self.nodes].astype(np.int64)  # (k, 2) billboards of each node
+        # tight boxes around each node's quads (a facade's node is a slab, seen edge-on from the street)
+        pad = model_quad_radius(model)
+        centres = model.centres.astype(np.float64)
+        starts = self._range[:, 0]
+        self.box = np.stack([np.minimum.reduceat(centres, starts, axis=0) - pad,
+                             np.maximum.reduceat(centres, starts, axis=0) + pad], 1) if k else np.zeros((0, 2, 3))
+        self.centre = self.box.mean(axis=1)  # (k, 3)
+        corner_index = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
+        self._corners8 = np.where(corner_index[None, :, :] == 0, self.box[:, None, 0], self.box[:, None, 1])  # (k, 8, 3)
+        self._far = np.zeros(k, bool)
+        self._made_dir = np.zeros((k, 3))  # unit direction node → eye the image was made from
+        self._made_dist = np.zeros(k)  # 0: no image
+        self._corners = np.zeros((k, 4, 3), np.float32)
+        self._image_from_model = np.zeros((k, 3, 4), np.float32)
+        self._wanted = np.zeros(k, bool)  # nodes selected this frame
+        self._objects = []
+        t = config.texels
+        per_row = max(ATLAS_WIDTH // t, 1)
+        rows = max(-(-k // per_row), 1)
+        size = (min(max(k, 1), per_row) * t, rows * t)
+        tiles = np.arange(k)
+        self._origin = np.stack([(tiles % per_row) * t, (tiles // per_row) * t], 1).astype(np.int32)
+        try:
+            self.atlas = self._keep(ctx.texture(size, 4))
+            self.atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            self.depth = self._keep(ctx.depth_renderbuffer(size))
+            self.fbo = self._keep(ctx.framebuffer(color_attachments=[self.atlas], depth_attachment=self.depth))
+            self.program = self._keep(load_program(ctx, "impostor.glsl"))
+            self.stream = self._keep(InstanceStream(ctx, IMPOSTOR_DTYPE.itemsize))
+            self.vao = self._keep(ctx.vertex_array(
+                self.program, [vertex_binding(self.program, self.stream.buffer, IMPOSTOR_FORMAT,
+                                              IMPOSTOR_ATTRIBUTES)]))
+        except BaseException:
+            self.release()
+            raise
+        self.nbytes = size[0] * size[1] * 8
+
+    def begin_frame(self, camera: GLCamera, draw_views) -> dict:
+        """Choose the far nodes for this view — those whose box spans at most ``texels`` pixels
+        either way on screen (with hysteresis), wholly in front of the eye — and remake the
+        stalest images of far nodes that were drawn last frame (``draw_views``:
+        :meth:`GpuDecoder.draw_views`). Images are made before the frame's own drawing because
+        on llvmpipe leaving the frame's framebuffer makes it finish everything drawn so far.
+        Returns stats {impostor_updates}."""
+        if len(self.nodes) == 0:
+            return {"impostor_updates": 0}
+        rect = self._screen_rects(camera)
+        side = np.maximum(rect[:, 1, 0] - rect[:, 0, 0], rect[:, 1, 1] - rect[:, 0, 1])
+        side = side * 0.5 * max(camera.size)  # NDC → pixels (the larger image side: conservative)
+        t, h = self.config.texels, self.config.hysteresis
+        self._far = np.where(self._far, side < t * (1 + h), side < t * (1 - h))
+        candidates = np.flatnonzero(self._far & self._wanted)
+        self._wanted[:] = False
+        fresh, cosine = self._fresh(camera, candidates, self.config.max_angle_deg)
+        stale = candidates[~fresh]
+        made = self._made_dist[stale] > 0
+        staleness = np.where(made, 1 - cosine[~fresh], np.inf)  # missing images first
+        update = stale[np.argsort(-staleness, kind="stable")[:self.config.updates_per_frame]]
+        if len(update):
+            self._make(camera, update, draw_views)
+        return {"impostor_updates": len(update)}
+
+    def _fresh(self, camera: GLCamera, nodes: np.ndarray, max_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """Whether each node's image (N,) is usable from ``camera``: made within ``max_angle_deg`` of
+        the direction to the eye and 10 % of its distance; and the cosine of that angle (N,)."""
+        to_eye = np.asarray(camera.eye, np.float64) - self.centre[nodes]
+        dist = np.linalg.norm(to_eye, axis=1)
+        cosine = np.einsum("ij,ij->i", to_eye / dist[:, None], self._made_dir[nodes])
+        made = self._made_dist[nodes] > 0
+        ratio = dist / np.where(made, self._made_dist[nodes], 1.0)
+        fresh = made & (cosine >= math.cos(math.radians(max_angle_deg))) & (np.abs(ratio - 1) <= 0.1)
+        return fresh, cosine
+
+    def _screen_rects(self, camera: GLCamera, nodes=None) -> np.ndarray:
+        """(k, 2, 2) NDC (min, max) of the nodes' boxes; boxes reaching behind the eye's near plane
+        get an infinite rectangle."""
+        corners = self._corners8 if nodes is None else self._corners8[nodes]
+        m = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
+        clip = corners @ m[:, :3].T + m[:, 3]  # (k, 8, 4)
+        w = clip[..., 3]
+        in_front = np.all(w > 1e-6, axis=1)
+        ndc = clip[..., :2] / np.where(w > 1e-6, w, 1.0)[..., None]
+        rect = np.stack([ndc.min(axis=1), ndc.max(axis=1)], 1)
+        rect[~in_front] = [[-np.inf, -np.inf], [np.inf, np.inf]]
+        return rect
+
+    def split(self, billboards: np.ndarray) -> np.ndarray:
+        """Of ``billboards`` (B,) int, those to draw in full; the nodes of the rest are kept for :meth:`draw`."""
+        b = np.asarray(billboards, np.int64)
+        if len(self.nodes) == 0 or len(b) == 0:
+            return b
+        node = self.node_of[b]
+        far = self._far[node]
+        self._wanted[node[far]] = True
+        return b[~far]
+
+    def draw(self, camera: GLCamera, draw_quads) -> dict:
+        """Draw the far nodes selected this frame into the bound framebuffer: as impostors where the
+        image is usable (made within twice ``max_angle_deg``: an image is remade at the start of a
+        frame once it is past the angle, but only so many per frame), else in full
+        (``draw_quads(camera, billboards)``). Returns stats {impostors, nodes_in_full}."""
+        wanted = np.flatnonzero(self._wanted)
+        stats = {"impostors": 0, "nodes_in_full": 0}
+        if len(wanted) == 0:
+            return stats
+        usable, _ = self._fresh(camera, wanted, 2 * self.config.max_angle_deg)
+        if not usable.all():
+            draw_quads(camera, self._billboards(wanted[~usable]))
+        shown = wanted[usable]
+
+        if len(shown):
+            records = np.empty(len(shown), IMPOSTOR_DTYPE)
+            records["corners"] = self._corners[shown]
+            records["image_from_model"] = self._image_from_model[shown]
+            records["origin"] = self._origin[shown]
+            self.stream.write(records)
+            prog = self.program
+            self.atlas.use(0)
+            set_uniform(prog, "u_atlas", 0)
+            set_uniform(prog, "u_atlas_texel", tuple(1.0 / float(v) for v in self.atlas.size))
+            set_uniform(prog, "u_texels", float(self.config.texels))
+            self.ctx.enable(moderngl.DEPTH_TEST)
+            prog["u_projection"].write(gl_bytes(camera.projection))
+            prog["u_view"].write(gl_bytes(camera.view))
+            self.vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(shown))
+        stats.update(impostors=len(shown), nodes_in_full=int(np.count_nonzero(~usable)))
+        return stats
+
+    def _make(self, camera: GLCamera, nodes: np.ndarray, draw_views) -> None:
+        """Render the images of ``nodes`` (U,) from ``camera`` into their tiles, all in one visit of
+        the atlas's framebuffer (``draw_views(lod_camera, views, before)``: the decoder's)."""
+        view = camera.view.astype(np.float64)
+        proj = camera.projection.astype(np.float64)
+        eye = np.asarray(camera.eye, np.float64)
+        t = self.config.texels
+        inverse = np.linalg.inv(proj @ view)
+        rects = self._screen_rects(camera, nodes)
+        views = []
+        for node, (lo, hi) in zip(nodes.tolist(), rects):
+            # the plane through the box's centre facing the eye, cut to the box's screen rectangle
+            c = self.centre[node]
+            normal = (eye - c) / np.linalg.norm(eye - c)
+            ndc = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
+            far = np.c_[ndc, np.ones(4), np.ones(4)] @ inverse.T
+            far = far[:, :3] / far[:, 3:]
+            ray = far - eye
+            corners = eye + ray * (np.dot(c - eye, normal) / (ray @ normal))[:, None]
+            size = np.maximum(hi - lo, 1e-9)
+            crop = np.eye(4)
+            crop[0, 0], crop[1, 1] = 2 / size[0], 2 / size[1]
+            crop[0, 3], crop[1, 3] = -(hi[0] + lo[0]) / size[0], -(hi[1] + lo[1]) / size[1]
+            views.append((GLCamera((crop @ proj).astype(np.float32), camera.view, camera.eye, (t, t)),
+                          self._billboards([node])))
+            self._corners[node] = corners.astype(np.float32)
+            self._image_from_model[node] = (crop @ proj @ view)[[0, 1, 3]].astype(np.float32)
+            self._made_dir[node] = normal
+            self._made_dist[node] = float(np.linalg.norm(eye - c))
+
+        def before(i: int) -> None:
+            x, y = (int(v) for v in self._origin[nodes[i]])
+            self.fbo.viewport = (x, y, t, t)
+            self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=(x, y, t, t))
+
+        target = self.ctx.fbo
+        self.fbo.use()
+        draw_views(camera, views, before)
+        target.use()
+
+    def _billboards(self, nodes) -> np.ndarray:
+        """(B,) int64 billboards of ``nodes`` (a node's billboards are one range of the octree order)."""
+        ranges = self._range[np.asarray(nodes, np.int64)]
+        lengths = ranges[:, 1] - ranges[:, 0]
+        return np.repeat(ranges[:, 0] - np.cumsum(np.r_[0, lengths[:-1]]), lengths) + np.arange(int(lengths.sum()))
+
+    def release(self) -> None:
+        """Free the atlas, its framebuffer, the program and the stream (idempotent)."""
+        super().release()

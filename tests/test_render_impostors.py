@@ -1,0 +1,93 @@
+"""Impostors of far octree nodes: which nodes, and images close to drawing every quad."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from billboards.octree import OctreeConfig, build_octree
+from render.camera import look_at
+from render.impostors import impostor_nodes
+from render.lod import ImpostorConfig, LodConfig
+from render.renderer import BillboardRenderer
+
+from .test_render_gpu import SKY, SKY_U8, intrinsics, make_model
+
+SIZE = (320, 180)
+
+
+@pytest.fixture(scope="module")
+def long_street():
+    """Two walls of billboards 8 m apart along 160 m of street, with the octree's node table."""
+    x, z = np.meshgrid(np.arange(0.0, 160.0, 0.5), np.arange(0.25, 6.0, 0.5))
+    walls = [np.stack([x.ravel(), np.full(x.size, y), z.ravel()], 1) for y in (-4.0, 4.0)]
+    octree = build_octree(np.concatenate(walls), OctreeConfig(voxel_size=0.5, min_points=1))
+    centres = octree.centres() - octree.origin
+    base_yaw = np.where(centres[:, 1] + octree.origin[1] > 0, -np.pi / 2, np.pi / 2)
+    model = make_model(centres, base_yaw=base_yaw, voxel_size=0.5, d_yaw=5, yaw_span_deg=160.0, rank=1,
+                       origin=octree.origin, page_size=1024, seed=4)
+    model.node_level = octree.node_level.astype(np.uint8)
+    model.node_bounds = (octree.node_bounds() - octree.origin).astype(np.float32)
+    model.node_children = octree.node_children.astype(np.int32)
+    model.node_range = octree.node_range.astype(np.int32)
+    model.check()
+    return model
+
+
+def test_every_billboard_has_one_node_of_the_level(long_street):
+    model = long_street
+    nodes, owner = impostor_nodes(model, 4.0)
+    edges = model.node_bounds[nodes, 1, 0] - model.node_bounds[nodes, 0, 0]
+    assert np.allclose(edges, edges[0]) and 2.0 < edges[0] <= 8.0
+    ranges = model.node_range[nodes]
+    b = np.arange(model.num_billboards)
+    assert np.all((ranges[owner, 0] <= b) & (b < ranges[owner, 1]))
+    inside = (model.centres >= model.node_bounds[nodes[owner], 0]) & (model.centres <= model.node_bounds[nodes[owner], 1])
+    assert inside.all()
+
+
+@pytest.mark.parametrize("cull", ["none", "frustum", "hzb"])
+def test_impostors_look_like_the_quads_and_replace_them(ctx, long_street, cull):
+    """Looking down the street, far nodes become impostors from the second frame (images are made
+    at the start of a frame for nodes drawn far the frame before); the image stays close to the
+    one that draws every quad, and far fewer quads are drawn."""
+    model = long_street
+    K = intrinsics(200.0, *SIZE)
+    eye = model.origin + [1.0, 0.0, 1.6]
+    poses = [look_at(eye + [0.05 * i, 0.0, 0.0], eye + [60.0, 0.0, 1.0]) for i in range(4)]
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, updates_per_frame=1000))
+    with BillboardRenderer(ctx, model, "gpu", background=SKY, cull=cull, lod=lod) as fast, \
+            BillboardRenderer(ctx, model, "gpu", background=SKY, cull=cull, lod=LodConfig(impostors=None)) as full:
+        first = fast.render(K, poses[0], SIZE)
+        assert fast.stats["impostors"] == 0 and fast.stats["nodes_in_full"] > 0  # no image yet
+        assert np.array_equal(first, full.render(K, poses[0], SIZE))
+        for pose in poses[1:]:
+            a = fast.render(K, pose, SIZE).astype(int)
+            b = full.render(K, pose, SIZE).astype(int)
+            assert fast.stats["impostors"] > 10 and fast.stats["quads"] < 0.7 * full.stats["quads"]
+            assert np.mean(np.any(b != SKY_U8, -1)) > 0.3
+            diff = np.abs(a - b).max(-1)
+            assert diff.mean() < 4.0 and np.mean(diff > 48) < 0.02, (diff.mean(), np.mean(diff > 48))
+
+
+def test_an_image_is_remade_once_the_view_turns_past_the_angle(ctx, long_street):
+    model = long_street
+    K = intrinsics(200.0, *SIZE)
+    eye = model.origin + [1.0, 0.0, 1.6]
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_angle_deg=1.0, updates_per_frame=1000))
+    with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
+        for step in range(2):
+            renderer.render(K, look_at(eye, eye + [60.0, 0.0, 1.0]), SIZE)
+        assert renderer.stats["impostor_updates"] > 0
+        renderer.render(K, look_at(eye, eye + [60.0, 0.0, 1.0]), SIZE)
+        assert renderer.stats["impostor_updates"] == 0  # same view: every image still fresh
+        moved = eye + [0.0, 1.5, 0.0]  # 1.5 m sideways: nodes within ~80 m turn by more than 1°
+        renderer.render(K, look_at(moved, moved + [60.0, 0.0, 1.0]), SIZE)
+        assert renderer.stats["impostor_updates"] > 0
+
+
+def test_impostor_config_is_validated():
+    for bad in (dict(node_edge=0.0), dict(texels=4), dict(max_angle_deg=0.0), dict(updates_per_frame=-1),
+                dict(hysteresis=1.0)):
+        with pytest.raises(ValueError):
+            ImpostorConfig(**bad)
