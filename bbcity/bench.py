@@ -399,7 +399,7 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
         model = out / "model" if cfg.work is not None else run.model
         dataset = dataset_of_work(work)
         length = json.loads((dataset / "dataset.json").read_text())["synth"]["street"]["length"]
-        section("rendering", bench_decode_and_cull, cfg, report, model, float(length))
+        section("rendering", bench_decode_and_cull, cfg, report, model, float(length), dataset)
         section("novel views", bench_novel_views, cfg, report, run.dataset, run.work, run.model, out, 4)
     if cfg.scene in ("all", "town"):
         section("town", bench_town, cfg, report)

@@ -1,7 +1,10 @@
 """Rendering and novel-view sections of ``bbcity bench``.
 
-- Decode: GPU vs CPU decode frame rate on a street model at 1280×720.
-- Culling on the street model (none / frustum / occlusion / auto) and on the ``town``
+- Decode: CPU decode (the baseline), exact GPU decode and GPU decode with level of detail
+  on a street model at 1280×720, per view and along the capture path, with percentiles,
+  counts and overdraw; level of detail against exact GPU decode at 1280×720 and 1920×1080
+  with the PSNR it costs.
+- Culling on the street model (each mode against frustum culling) and on the ``town``
   scene's meshes along its capture path, with drawn counts.
 - Novel views: PSNR/SSIM on and off the capture path (over seen pixels, geometry and
   whole images) for the billboards, uncompressed billboards (every eigen image kept), the
@@ -21,39 +24,135 @@ from .bench import BenchConfig, Report
 logger = logging.getLogger(__name__)
 
 SIZE = (1280, 720)
+SIZE_HD = (1920, 1080)
 
 
-def bench_decode_and_cull(cfg: BenchConfig, report: Report, model_dir: Path, street_length: float) -> None:
+def bench_decode_and_cull(cfg: BenchConfig, report: Report, model_dir: Path, street_length: float,
+                          dataset: Path | None = None) -> None:
+    """Decode (CPU baseline, exact GPU, GPU with level of detail) at 1280×720 without culling
+    and with frustum culling, per view and along the capture path of ``dataset`` (else the
+    model's); level of detail against exact GPU decode at 1280×720 and 1920×1080 with the PSNR
+    of its images; the culling modes against frustum culling. Percentiles throughout."""
     from billboards.model_reader import load
-    from render.benchmark import cull_fps, decode_fps
-    from render.paths import street_views
+    from render.benchmark import cull_fps, decode_fps, path_fps
     from render.context import create_context, describe
+    from render.lod import LodConfig
+    from render.paths import capture_camera_poses, capture_walk, street_views
 
     model = load(model_dir)
+    capture = capture_camera_poses(model, dataset)
+    path = None if capture is None else capture_walk(capture, PATH_STEP, 30 if cfg.quick else 120)
     ctx = create_context()
     try:
         views = street_views(street_length)
-        frames = {"gpu": 4, "cpu": 2} if cfg.quick else {"gpu": 10, "cpu": 3}
-        rows = decode_fps(ctx, model, views, SIZE, frames)
-        gpu = {r["view"]: r["fps"] for r in rows if r["decode"] == "gpu"}
-        cpu = {r["view"]: r["fps"] for r in rows if r["decode"] == "cpu"}
-        for r in rows:
-            report.add("Rendering: decode", {
-                "decode": r["decode"] + (" (baseline)" if r["decode"] == "cpu" else ""), "view": r["view"],
-                "fps": r["fps"], "ms": r["ms"], "billboards": r["instances"], "CPU decode ms": r["decode_ms"],
-                "ratio to CPU decode": r["fps"] / cpu[r["view"]]})
+        n_gpu, n_cpu = (4, 2) if cfg.quick else (10, 3)
+        frustum_rows = []
+        for cull in ("none", "frustum"):
+            rows = decode_fps(ctx, model, views, SIZE, {"cpu": n_cpu, "gpu exact": n_gpu, "gpu": n_gpu}, cull=cull,
+                              overdraw=cull == "frustum")
+            if path is not None:
+                pick = np.unique(np.linspace(0, len(path) - 1, min(n_cpu, len(path))).round().astype(int))
+                rows += [{**path_fps(ctx, model, path[pick], SIZE, "cpu", cull), "decode": "cpu"},
+                         {**path_fps(ctx, model, path, SIZE, "gpu", cull, None), "decode": "gpu exact"},
+                         {**path_fps(ctx, model, path, SIZE, "gpu", cull, LodConfig()), "decode": "gpu"}]
+                for r in rows[-3:]:
+                    r["view"] = "capture path"
+            cpu = {r["view"]: r for r in rows if r["decode"] == "cpu"}
+            for r in rows:
+                report.add("Rendering: decode", {**_fps_columns(r, baseline="cpu", size=SIZE),
+                                                 "ratio to CPU decode": r["fps"] / cpu[r["view"]]["fps"],
+                                                 "p5 ratio to CPU decode": r["fps_p5"] / cpu[r["view"]]["fps_p5"]})
+            if cull == "frustum":
+                frustum_rows = [r for r in rows if r["decode"] != "cpu"]
+        gpu = [r for r in frustum_rows if r["decode"] == "gpu"]
         report.notes["Rendering: decode"] = (
-            f"{describe(ctx)}; {model.num_billboards} billboards, {SIZE[0]}×{SIZE[1]}, the eye stepping 5 cm per "
-            f"frame. Median GPU/CPU ratio {np.median([gpu[v] / cpu[v] for v in gpu]):.1f}×.")
-        base = {}
-        for r in cull_fps(ctx, model, views, SIZE, 4 if cfg.quick else 10):
-            base.setdefault(r["view"], r["fps"])  # "none" comes first
+            f"{describe(ctx)}; {model.num_billboards} billboards, {SIZE[0]}×{SIZE[1]}; views: the eye stepping 5 cm "
+            f"per frame from each view; capture path: {_path_note(path, capture)}. Every frame timed (draw and "
+            "read-back): fps from the median frame time, fps p5 from the 95th-percentile one. CPU decode, the "
+            "baseline, on a few poses spread along the path (it reuses nothing between frames). Counts are means "
+            "per frame; LOD: quads at full / reduced / mean detail. Overdraw (frustum culling, at each view's "
+            "first pose): fragments per pixel passing the alpha test with the depth test always passing (layers) "
+            "and with it on (written). Targets at 1280×720 with GPU decode: ≥ 60 fps median and ≥ 45 fps p5; GPU "
+            "decode ≥ 10× CPU decode." + (f" GPU LOD with frustum culling: median {min(r['fps'] for r in gpu):.1f}"
+                                          f"–{max(r['fps'] for r in gpu):.1f} fps." if gpu else ""))
+        _bench_lod(report, ctx, model, views, path, frustum_rows, n_gpu)
+        rows = cull_fps(ctx, model, views, SIZE, 4 if cfg.quick else 10)
+        none = {r["view"]: r for r in rows if r["cull"] == "none"}
+        frustum = {r["view"]: r for r in rows if r["cull"] == "frustum"}
+        for r in rows:
             report.add("Rendering: culling (street)", {
-                "cull": r["cull"] + (" (baseline)" if r["cull"] == "none" else ""), "view": r["view"],
-                "fps": r["fps"], "after frustum": r["after_frustum"], "drawn": r["drawn"], "queries": r["queries"],
-                "ratio to no culling": r["fps"] / base[r["view"]]})
+                "cull": r["cull"] + (" (baseline)" if r["cull"] == "frustum" else ""), "view": r["view"],
+                "fps": r["fps"], "fps p5": r["fps_p5"], "ms": r["ms"], "ms p95": r["ms_p95"],
+                "cull ms": r["cull_ms"], "after frustum": r["after_frustum"], "drawn": r["drawn"],
+                "queries": r["queries"], "ratio to frustum": r["fps"] / frustum[r["view"]]["fps"],
+                "p5 ratio to frustum": r["fps_p5"] / frustum[r["view"]]["fps_p5"],
+                "ratio to no culling": r["fps"] / none[r["view"]]["fps"]})
+        report.notes["Rendering: culling (street)"] = (
+            f"GPU decode with level of detail, {SIZE[0]}×{SIZE[1]}, the eye stepping 5 cm per frame from each "
+            "view; baseline: frustum culling over the octree. cull ms: frustum plus occlusion culling per frame.")
     finally:
         ctx.release()
+
+
+#: The bench's walk along the capture path: the eye at most this far (m) from one frame to the next.
+PATH_STEP = 0.25
+
+
+def _path_note(path, capture) -> str:
+    if path is None:
+        return "none (the model records no dataset)"
+    length = float(np.sum(np.linalg.norm(np.diff(path[:, :3, 3], axis=0), axis=1)))
+    return (f"{len(path)} consecutive poses ({length:.0f} m) of the {len(capture)} capture frames' camera 0 walked "
+            f"every {PATH_STEP} m, centred a quarter of the way along")
+
+
+def _fps_columns(r: dict, baseline: str, size) -> dict:
+    """The report columns of a row of render.benchmark's decode_fps / path_fps."""
+    name = {"gpu": "gpu LOD", "gpu exact": "gpu exact", "cpu": "cpu"}[r["decode"]]
+    return {"decode": name + (" (baseline)" if r["decode"] == baseline else ""), "size": f"{size[0]}×{size[1]}",
+            "cull": r["cull"], "view": r["view"], "frames": r["frames"], "fps": r["fps"], "fps p5": r["fps_p5"],
+            "fps mean": r["fps_mean"], "ms": r["ms"], "ms p95": r["ms_p95"], "billboards": r["instances"],
+            "quads": r["quads"] if r["decode"] != "cpu" else float("nan"), "tiles decoded": r["decoded_tiles"],
+            "LOD full": r["lod_full"], "LOD reduced": r["lod_reduced"], "LOD mean": r["lod_mean"],
+            "CPU decode ms": r["decode_ms"] if r["decode"] == "cpu" and r["decode_ms"] > 0 else float("nan"),
+            "cull ms": r["cull_ms"], "overdraw layers": r.get("layers", float("nan")),
+            "overdraw written": r.get("written", float("nan")), "covered": r.get("covered", float("nan"))}
+
+
+def _bench_lod(report: Report, ctx, model, views: dict, path, rows_720: list[dict], n_gpu: int) -> None:
+    """"Rendering: level of detail": GPU decode with level of detail against exact GPU decode (the
+    baseline) with frustum culling, frame rates and the PSNR of the LOD image against the exact one,
+    at 1280×720 (the decode section's rows) and 1920×1080."""
+    from render.benchmark import decode_fps, lod_psnr, path_fps
+    from render.lod import LodConfig
+
+    spread = {} if path is None else {f"capture path {i}": path[i] for i in
+                                      np.unique(np.linspace(0, len(path) - 1, 3).round().astype(int))}
+    for size in (SIZE, SIZE_HD):
+        if size == SIZE:
+            rows = rows_720
+        else:
+            rows = decode_fps(ctx, model, views, size, {"gpu exact": n_gpu, "gpu": n_gpu}, cull="frustum")
+            if path is not None:
+                rows += [{**path_fps(ctx, model, path, size, "gpu", "frustum", None), "decode": "gpu exact",
+                          "view": "capture path"},
+                         {**path_fps(ctx, model, path, size, "gpu", "frustum", LodConfig()), "decode": "gpu",
+                          "view": "capture path"}]
+        quality = lod_psnr(ctx, model, {**views, **spread}, size)
+        if spread:
+            quality["capture path"] = float(np.mean([quality.pop(k) for k in spread]))
+        exact = {r["view"]: r for r in rows if r["decode"] == "gpu exact"}
+        for r in rows:
+            report.add("Rendering: level of detail", {
+                **_fps_columns(r, baseline="gpu exact", size=size),
+                "ratio to exact": r["fps"] / exact[r["view"]]["fps"],
+                "p5 ratio to exact": r["fps_p5"] / exact[r["view"]]["fps_p5"],
+                "PSNR vs exact dB": quality[r["view"]] if r["decode"] == "gpu" else float("nan")})
+    report.notes["Rendering: level of detail"] = (
+        f"GPU decode with level of detail ({LodConfig()}) against exact GPU decode (every eigen image), frustum "
+        f"culling, at {SIZE[0]}×{SIZE[1]} (the decode section's frames) and {SIZE_HD[0]}×{SIZE_HD[1]}. PSNR: "
+        "the LOD image against the exact one from the same pose (whole image, 8-bit RGB; the capture path: mean "
+        f"over 3 of its poses), the quality level of detail costs. Target at {SIZE_HD[0]}×{SIZE_HD[1]}: ≥ 30 fps.")
 
 
 def bench_town(cfg: BenchConfig, report: Report) -> None:

@@ -54,7 +54,7 @@ def test_quick_bench_writes_every_section(tmp_path):
     sections = data["sections"]
     for name in ("Scene generation", "Pipeline stages", "Scaling", "Octree", "Stereo sweep",
                  "Stereo: trinocular vs single pairs", "Texture sweep", "Sampling against ground truth",
-                 "Billboard model", "Rendering: decode", "Rendering: culling (street)",
+                 "Billboard model", "Rendering: decode", "Rendering: level of detail", "Rendering: culling (street)",
                  "Rendering: culling (town meshes)", "Novel views"):
         assert sections.get(name), f"section {name!r} missing or empty"
     stages = {r["stage"].strip() for r in sections["Pipeline stages"]}
@@ -65,6 +65,17 @@ def test_quick_bench_writes_every_section(tmp_path):
     decode = sections["Rendering: decode"]
     assert any("baseline" in r["decode"] for r in decode)
     assert all(math.isfinite(r["ratio to CPU decode"]) and r["ratio to CPU decode"] > 0 for r in decode)
+    assert all(0 < r["fps p5"] <= r["fps"] for r in decode)  # the 95th-percentile frame time is no shorter
+    assert {r["decode"] for r in decode} == {"cpu (baseline)", "gpu exact", "gpu LOD"}
+    assert {r["view"] for r in decode} == {"facade -y", "facade +y", "along +x", "capture path"}
+    assert all(r["overdraw layers"] >= r["overdraw written"] > 0 for r in decode
+               if r["cull"] == "frustum" and r["view"] != "capture path" and "gpu" in r["decode"])
+    lod = sections["Rendering: level of detail"]
+    assert {r["size"] for r in lod} == {"1280×720", "1920×1080"}
+    assert all(r["PSNR vs exact dB"] > 20 for r in lod if r["decode"] == "gpu LOD")
+    assert all(r["ratio to exact"] == 1 for r in lod if "baseline" in r["decode"])
+    street = sections["Rendering: culling (street)"]
+    assert all(r["ratio to frustum"] == 1 for r in street if r["cull"] == "frustum (baseline)")
     town = {r["cull"]: r for r in sections["Rendering: culling (town meshes)"]}
     assert town["occlusion"]["drawn"] < town["frustum"]["drawn"] <= town["none"]["drawn"]
     methods = {r["method"] for r in sections["Novel views"]}
