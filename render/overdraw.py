@@ -3,7 +3,8 @@
 A CPU rasterizer pays per fragment, so how many fragments a frame shades matters as much
 as how many quads it sends. :func:`measure_overdraw` draws the frame a
 :class:`~render.renderer.BillboardRenderer` would draw for a camera (the billboards its
-culling keeps) twice more inside a samples query (``ctx.query(samples=True)``):
+culling keeps, and with level of detail the impostor quads of far nodes, drawn after them as
+in the frame) twice more inside a samples query (``ctx.query(samples=True)``):
 
 - **layers**: depth test always passing — every fragment that survives the alpha test,
   i.e. how many opaque quad layers cover a pixel on average;
@@ -27,19 +28,17 @@ from .camera import GLCamera
 
 
 def _drawn_selection(renderer, camera: GLCamera):
-    """Draw a frame as ``renderer.draw`` does (culling included) and return what it drew: None
-    (every billboard, no culling) or (B,) int64 billboard indices, the union of the decoder's
-    draws. The decoder's ``draw`` is wrapped on the instance for the frame only."""
+    """Draw a frame as ``renderer.draw`` does (culling and impostors included) and return the
+    billboards drawn as quads: None (every billboard, in one call) or (B,) int64 indices, the
+    union of the decoder's draws. The decoder's ``draw`` is wrapped on the instance for the
+    frame only (impostor images go through ``draw_views``, not recorded: they are offscreen)."""
     decoder = renderer.decoder
-    drawn: list[np.ndarray] = []
+    drawn: list[np.ndarray | None] = []
     plain = decoder.draw
 
     def recording(cam, visible=None, *args, **kwargs):
-        if visible is None:
-            drawn.append(np.arange(renderer.model.num_billboards, dtype=np.int64))
-        else:
-            v = np.asarray(visible)
-            drawn.append(np.flatnonzero(v) if v.dtype == bool else v.astype(np.int64).ravel())
+        v = None if visible is None else np.asarray(visible)
+        drawn.append(None if v is None else np.flatnonzero(v) if v.dtype == bool else v.astype(np.int64).ravel())
         return plain(cam, visible, *args, **kwargs)
 
     decoder.draw = recording
@@ -47,7 +46,7 @@ def _drawn_selection(renderer, camera: GLCamera):
         renderer.draw(camera)
     finally:
         del decoder.draw  # the class's method again
-    if renderer.cull == "none":
+    if any(d is None for d in drawn):
         return None
     return np.unique(np.concatenate(drawn)) if drawn else np.zeros(0, np.int64)
 
@@ -112,6 +111,7 @@ def measure_overdraw(renderer, K, world_from_cam, size) -> dict:
     visible = _drawn_selection(renderer, camera)  # decodes the view's tiles
     stats = renderer.stats
     decoder = renderer.decoder
+    impostors = getattr(renderer, "impostors", None)  # level of detail's impostors of far octree nodes
     whole = visible is not None
 
     def draw(depth_func: str) -> int:
@@ -122,6 +122,8 @@ def measure_overdraw(renderer, K, world_from_cam, size) -> dict:
         try:
             with _DrawPassQuery(ctx, decoder) as query:
                 part = decoder.draw(camera, visible, whole_columns=whole)
+                if impostors is not None:  # far nodes as one quad each, drawn last as in the frame
+                    impostors.draw(camera, lambda cam, billboards: None)  # nodes drawn in full: in ``visible``
         finally:
             ctx.depth_func = "<"
         atlas_tiles = part.get("decoded_tiles", 0) + part.get("blended_tiles", 0)
