@@ -36,9 +36,10 @@ from .view_brackets import storage_slots, view_brackets
 
 #: Per-quad record of the draw pass (billboard.glsl).
 QUAD_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("kind", "<i4"), ("blocks", "<i4"),
-                       ("origin", "<f4", 2), ("weights", "<f4", 4)])
-QUAD_FORMAT = "3f 1f 1i 1i 2f 4f/i"
-QUAD_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_kind", "in_blocks", "in_origin", "in_weights")
+                       ("origin", "<f4", 2), ("weights", "<f4", 4), ("view", "<i4")])
+QUAD_FORMAT = "3f 1f 1i 1i 2f 4f 1i/i"
+QUAD_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_kind", "in_blocks", "in_origin", "in_weights", "in_view")
+MAX_VIEWS = 32  # views per draw of draw_views (billboard.glsl MULTIVIEW)
 
 #: Per-block record of the pre-blend pass (billboard_blend.glsl).
 BLEND_DTYPE = np.dtype([("source", "<i4", 2), ("target", "<i4", 2), ("weights", "<f4", 4)])
@@ -123,9 +124,11 @@ class GpuDecoder(GpuOwner):
         self._drawn = np.zeros(self.slits.num_columns, bool)  # columns drawn this frame
         self._objects = []
         try:
-            self.programs = {(view, linear): self._keep(load_program(
-                ctx, "billboard.glsl", {"STORAGE_SLOTS": self.storage_slots, "VIEW": int(view), "LINEAR": int(linear)}))
-                for view in (False, True) for linear in (False, True)}
+            self.programs = {(view, linear, multiview): self._keep(load_program(
+                ctx, "billboard.glsl", {"STORAGE_SLOTS": self.storage_slots, "VIEW": int(view), "LINEAR": int(linear),
+                                        "MULTIVIEW": int(multiview)}))
+                for view in (False, True) for linear in (False, True) for multiview in (False, True)
+                if not (view and multiview)}
             self.decode_program = self._keep(load_program(ctx, "billboard_decode.glsl"))
             self.quads = {view: self._keep(InstanceStream(ctx, QUAD_DTYPE.itemsize)) for view in (False, True)}
             self.tiles = self._keep(InstanceStream(ctx, DECODE_DTYPE.itemsize))
@@ -213,30 +216,28 @@ class GpuDecoder(GpuOwner):
         self._emit(camera, plan, True, stats)
         return stats
 
-    def draw_views(self, lod_camera: GLCamera, views, before=None) -> dict:
-        """Draw several selections, each with its own camera (all with ``lod_camera``'s eye), into
-        the bound framebuffer: views is a list of (camera, billboards (B,) int); ``before(i)`` is
-        called before view i is drawn (to set a viewport, clear). Levels of detail follow
-        ``lod_camera``; the tiles are decoded in one pass first and nothing is pre-blended, so
-        the framebuffer is left only once (for impostors: every switch makes llvmpipe finish
-        the frame so far). Returns the summed stats."""
+    def draw_views(self, camera: GLCamera, projections: np.ndarray, rects: np.ndarray, selections) -> dict:
+        """Draw several views of ``camera``'s eye into the bound framebuffer in one pass per
+        MAX_VIEWS: view i draws the billboards ``selections[i]`` (B_i,) with ``projections[i]``
+        (4, 4) (GL clip of the whole framebuffer from GL eye) and only inside ``rects[i]`` (x0, y0,
+        x1, y1) pixels. Levels of detail follow ``camera``; nothing is pre-blended. For the
+        impostors' images: each switch of framebuffer makes llvmpipe finish the frame so far, and
+        a draw per view costs more than its quads. Returns the summed stats."""
         stats = {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "blended_tiles": 0,
                  "upload_bytes": 0, "lod": [0, 0, 0]}
-        plans = []
-        for camera, billboards in views:
-            start, count = exact_runs(self.slits, billboards)
-            plans.append(self._plan(camera, start, count, lod_camera) if len(start) else None)
-        used = [p for p in plans if p is not None]
-        if not used:
-            return stats
-        stats["decoded_tiles"], stats["upload_bytes"] = self._decode(
-            np.concatenate([p.positions for p in used]), np.concatenate([p.block_direction for p in used]),
-            np.concatenate([p.block_level for p in used]))
-        for i, ((camera, _), plan) in enumerate(zip(views, plans)):
-            if before is not None:
-                before(i)
-            if plan is not None:
-                self._emit(camera, plan, False, stats)
+        for first in range(0, len(selections), MAX_VIEWS):
+            runs = [exact_runs(self.slits, b) for b in selections[first:first + MAX_VIEWS]]
+            start = np.concatenate([r[0] for r in runs])
+            if len(start) == 0:
+                continue
+            count = np.concatenate([r[1] for r in runs])
+            view = np.repeat(np.arange(len(runs)), [len(r[0]) for r in runs])
+            plan = self._plan(camera, start, count)
+            decoded, nbytes = self._decode(plan.positions, plan.block_direction, plan.block_level)
+            stats["decoded_tiles"] += decoded
+            stats["upload_bytes"] += nbytes
+            self._emit(camera, plan, False, stats, (view, projections[first:first + MAX_VIEWS],
+                                                    rects[first:first + MAX_VIEWS]))
         return stats
 
     def _plan(self, camera: GLCamera, start: np.ndarray, count: np.ndarray, lod_camera: GLCamera | None = None):
@@ -267,8 +268,9 @@ class GpuDecoder(GpuOwner):
         return _Plan(start, count, top, centre, kind, weight, level, texel_px, positions, block_direction,
                      block_level)
 
-    def _emit(self, camera: GLCamera, plan: _Plan, preblend: bool, stats: dict) -> None:
-        """Draw a plan's quads (pre-blending the large ones if ``preblend``), adding to ``stats``."""
+    def _emit(self, camera: GLCamera, plan: _Plan, preblend: bool, stats: dict, views=None) -> None:
+        """Draw a plan's quads (pre-blending the large ones if ``preblend``), adding to ``stats``.
+        ``views``: (view of each run (R,), projections (V, 4, 4), rects (V, 4)) for draw_views."""
         model = self.model
         start, count = plan.start, plan.count
         blend = np.zeros(len(start), bool)
@@ -286,21 +288,31 @@ class GpuDecoder(GpuOwner):
         quads["origin"] = np.where(blend[:, None], self._view_origin[start], self._origin[start])
         quads["weights"][:, :self.storage_slots] = plan.weight
         quads["weights"][:, self.storage_slots:] = 0.0
+        quads["view"] = 0 if views is None else views[0]
         for view, atlas in ((False, self.decoded), (True, self.view_tiles)):
             part = quads[blend == view]
             if len(part) == 0:
                 continue
             stats["upload_bytes"] += self.quads[view].write(part)
-            prog = self.programs[view, self.linear]
+            key = (view, self.linear, views is not None)
+            prog = self.programs[key]
             self.resources.bind(prog)
             atlas.use(self.DECODED_UNIT)
             set_uniform(prog, "u_tiles_in", self.DECODED_UNIT)
             set_uniform(prog, "u_atlas_texel", tuple(1.0 / float(v) for v in atlas.size))
-            prog["u_projection"].write(gl_bytes(camera.projection))
+            if views is None:
+                prog["u_projection"].write(gl_bytes(camera.projection))
+            else:
+                matrices = np.zeros((MAX_VIEWS, 4, 4), np.float32)
+                matrices[:len(views[1])] = views[1].transpose(0, 2, 1)  # column-major for GLSL
+                prog["u_view_projections"].write(matrices.tobytes())
+                rects = np.zeros((MAX_VIEWS, 4), np.float32)
+                rects[:len(views[2])] = views[2]
+                prog["u_view_rects"].write(rects.tobytes())
             prog["u_view"].write(gl_bytes(camera.view))
             set_uniform(prog, "u_eye", tuple(np.asarray(camera.eye, np.float32).tolist()))
             set_uniform(prog, "u_spherical", self.spherical)
-            self.vaos[view, self.linear].render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(part))
+            self.vaos[key].render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(part))
             stats["draw_calls"] += 1
         stats["instances"] += int(count.sum())
         stats["quads"] += len(start)

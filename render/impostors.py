@@ -41,11 +41,13 @@ from .resources import GpuOwner, InstanceStream, set_uniform, vertex_binding
 
 #: Per-impostor record of the draw (impostor.glsl): the quad's corners (model coordinates; bottom
 #: left, bottom right, top left, top right), rows 0, 1 and 3 of the matrix from model coordinates to
-#: the image's clip space when it was made (projective texturing), and the tile's texel origin.
-IMPOSTOR_DTYPE = np.dtype([("corners", "<f4", (4, 3)), ("image_from_model", "<f4", (3, 4)), ("origin", "<f4", 2)])
-IMPOSTOR_FORMAT = "3f 3f 3f 3f 4f 4f 4f 2f/i"
+#: the image's clip space when it was made (projective texturing), and the image's texel origin and
+#: extent in its tile (the node's size on screen then, so a thin node costs few texels).
+IMPOSTOR_DTYPE = np.dtype([("corners", "<f4", (4, 3)), ("image_from_model", "<f4", (3, 4)), ("origin", "<f4", 2),
+                           ("extent", "<f4", 2)])
+IMPOSTOR_FORMAT = "3f 3f 3f 3f 4f 4f 4f 2f 2f/i"
 IMPOSTOR_ATTRIBUTES = ("in_corner0", "in_corner1", "in_corner2", "in_corner3", "in_image_x", "in_image_y",
-                       "in_image_w", "in_origin")
+                       "in_image_w", "in_origin", "in_extent")
 
 ATLAS_WIDTH = 4096  # texels per row of the impostor atlas (at most)
 
@@ -101,6 +103,7 @@ class Impostors(GpuOwner):
         self._made_dist = np.zeros(k)  # 0: no image
         self._corners = np.zeros((k, 4, 3), np.float32)
         self._image_from_model = np.zeros((k, 3, 4), np.float32)
+        self._extent = np.ones((k, 2), np.float32)
         self._wanted = np.zeros(k, bool)  # nodes selected this frame
         self._objects = []
         t = config.texels
@@ -115,6 +118,10 @@ class Impostors(GpuOwner):
             self.depth = self._keep(ctx.depth_renderbuffer(size))
             self.fbo = self._keep(ctx.framebuffer(color_attachments=[self.atlas], depth_attachment=self.depth))
             self.program = self._keep(load_program(ctx, "impostor.glsl"))
+            self.clear_program = self._keep(load_program(ctx, "impostor_clear.glsl"))
+            self.clear_stream = self._keep(InstanceStream(ctx, 16))
+            self.clear_vao = self._keep(ctx.vertex_array(self.clear_program,
+                                                         [(self.clear_stream.buffer, "4f/i", "in_rect")]))
             self.stream = self._keep(InstanceStream(ctx, IMPOSTOR_DTYPE.itemsize))
             self.vao = self._keep(ctx.vertex_array(
                 self.program, [vertex_binding(self.program, self.stream.buffer, IMPOSTOR_FORMAT,
@@ -202,12 +209,12 @@ class Impostors(GpuOwner):
             records["corners"] = self._corners[shown]
             records["image_from_model"] = self._image_from_model[shown]
             records["origin"] = self._origin[shown]
+            records["extent"] = self._extent[shown]
             self.stream.write(records)
             prog = self.program
             self.atlas.use(0)
             set_uniform(prog, "u_atlas", 0)
             set_uniform(prog, "u_atlas_texel", tuple(1.0 / float(v) for v in self.atlas.size))
-            set_uniform(prog, "u_texels", float(self.config.texels))
             self.ctx.enable(moderngl.DEPTH_TEST)
             prog["u_projection"].write(gl_bytes(camera.projection))
             prog["u_view"].write(gl_bytes(camera.view))
@@ -216,16 +223,23 @@ class Impostors(GpuOwner):
         return stats
 
     def _make(self, camera: GLCamera, nodes: np.ndarray, draw_views) -> None:
-        """Render the images of ``nodes`` (U,) from ``camera`` into their tiles, all in one visit of
-        the atlas's framebuffer (``draw_views(lod_camera, views, before)``: the decoder's)."""
+        """Render the images of ``nodes`` (U,) from ``camera`` into their tiles: one clear pass and
+        the views through ``draw_views(camera, projections, rects, selections)`` (the decoder's),
+        all in one visit of the atlas's framebuffer."""
         view = camera.view.astype(np.float64)
         proj = camera.projection.astype(np.float64)
         eye = np.asarray(camera.eye, np.float64)
-        t = self.config.texels
         inverse = np.linalg.inv(proj @ view)
         rects = self._screen_rects(camera, nodes)
-        views = []
-        for node, (lo, hi) in zip(nodes.tolist(), rects):
+        t = self.config.texels
+        width, height = self.atlas.size
+        # each image twice as fine as the node is on screen now (resampling a 1:1 image blurs it),
+        # at least 2 texels and at most the tile
+        extent = np.clip(np.ceil((rects[:, 1] - rects[:, 0]) * np.asarray(camera.size)), 2, t)
+        self._extent[nodes] = extent
+        tiles = np.c_[self._origin[nodes], self._origin[nodes] + extent].astype(np.float64)  # (U, 4) pixels
+        projections = np.empty((len(nodes), 4, 4))
+        for i, (node, (lo, hi)) in enumerate(zip(nodes.tolist(), rects)):
             # the plane through the box's centre facing the eye, cut to the box's screen rectangle
             c = self.centre[node]
             normal = (eye - c) / np.linalg.norm(eye - c)
@@ -233,26 +247,28 @@ class Impostors(GpuOwner):
             far = np.c_[ndc, np.ones(4), np.ones(4)] @ inverse.T
             far = far[:, :3] / far[:, 3:]
             ray = far - eye
-            corners = eye + ray * (np.dot(c - eye, normal) / (ray @ normal))[:, None]
+            self._corners[node] = (eye + ray * (np.dot(c - eye, normal) / (ray @ normal))[:, None]).astype(np.float32)
             size = np.maximum(hi - lo, 1e-9)
-            crop = np.eye(4)
+            crop = np.eye(4)  # the rectangle → the whole of NDC
             crop[0, 0], crop[1, 1] = 2 / size[0], 2 / size[1]
             crop[0, 3], crop[1, 3] = -(hi[0] + lo[0]) / size[0], -(hi[1] + lo[1]) / size[1]
-            views.append((GLCamera((crop @ proj).astype(np.float32), camera.view, camera.eye, (t, t)),
-                          self._billboards([node])))
-            self._corners[node] = corners.astype(np.float32)
             self._image_from_model[node] = (crop @ proj @ view)[[0, 1, 3]].astype(np.float32)
+            x0, y0, x1, y1 = tiles[i]
+            place = np.eye(4)  # the whole of NDC → the tile's part of the atlas
+            place[0, 0], place[1, 1] = (x1 - x0) / width, (y1 - y0) / height
+            place[0, 3], place[1, 3] = (x0 + x1) / width - 1, (y0 + y1) / height - 1
+            projections[i] = place @ crop @ proj
             self._made_dir[node] = normal
             self._made_dist[node] = float(np.linalg.norm(eye - c))
-
-        def before(i: int) -> None:
-            x, y = (int(v) for v in self._origin[nodes[i]])
-            self.fbo.viewport = (x, y, t, t)
-            self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=(x, y, t, t))
-
         target = self.ctx.fbo
         self.fbo.use()
-        draw_views(camera, views, before)
+        self.fbo.viewport = (0, 0, width, height)
+        self.clear_stream.write(tiles.astype(np.float32))
+        set_uniform(self.clear_program, "u_target_size", (float(width), float(height)))
+        self.ctx.depth_func = "1"  # always: the far plane overwrites the old depth
+        self.clear_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(nodes))
+        self.ctx.depth_func = "<"
+        draw_views(camera, projections, tiles, [self._billboards([node]) for node in nodes.tolist()])
         target.use()
 
     def _billboards(self, nodes) -> np.ndarray:

@@ -156,8 +156,8 @@ class BillboardRenderer:
                    "blended_tiles": 0, "lod": [0, 0, 0]}  # and the impostors' images: their decoding counts
         #                                                   with the frame, their quads apart
         if self.impostors is not None:
-            def draw_views(lod_camera, views, before):
-                part = self.decoder.draw_views(lod_camera, views, before)
+            def draw_views(cam, projections, rects, selections):
+                part = self.decoder.draw_views(cam, projections, rects, selections)
                 add_stats(updates, {"decoded_tiles": part["decoded_tiles"], "upload_bytes": part["upload_bytes"]})
                 updates["impostor_quads"] = updates.get("impostor_quads", 0) + part["quads"]
             updates.update(self.impostors.begin_frame(camera, draw_views))

@@ -11,6 +11,20 @@
 // fetch per slot (or one fetch of the tile pre-blended for this view), bilinear within the
 // block's tile or the nearest texel, never reading a neighbouring tile. Alpha < 0.5 is discarded.
 
+// MULTIVIEW 1: several views in one draw (impostor images, render.impostors): each instance
+// names its view, whose projection maps into that view's tile of the target; fragments outside
+// the tile are discarded.
+
+#if MULTIVIEW
+const int MAX_VIEWS = 32;
+uniform mat4 u_view_projections[MAX_VIEWS];   // per view: GL clip (of the whole target) from GL eye
+uniform vec4 u_view_rects[MAX_VIEWS];         // per view: its tile (x0, y0, x1, y1) in target pixels
+#if defined VERTEX_SHADER
+in int in_view;
+#define QUAD_PROJECTION u_view_projections[in_view]
+#endif
+#endif
+
 #include "billboard_quad.glsl"
 
 #if defined VERTEX_SHADER
@@ -26,8 +40,14 @@ out vec2 v_texel;
 flat out vec2 v_origin;
 flat out float v_blocks;
 flat out vec4 v_weights;
+#if MULTIVIEW
+flat out vec4 v_rect;
+#endif
 
 void main() {
+#if MULTIVIEW
+    v_rect = u_view_rects[in_view];
+#endif
     v_origin = in_origin;
     v_blocks = float(in_blocks);
     v_weights = in_weights;
@@ -49,6 +69,9 @@ in vec2 v_texel;
 flat in vec2 v_origin;
 flat in float v_blocks;
 flat in vec4 v_weights;
+#if MULTIVIEW
+flat in vec4 v_rect;
+#endif
 
 out vec4 f_color;
 
@@ -61,6 +84,9 @@ vec4 fetch(vec2 origin, vec2 texel) {
 }
 
 void main() {
+#if MULTIVIEW
+    if (any(lessThan(gl_FragCoord.xy, v_rect.xy)) || any(greaterThanEqual(gl_FragCoord.xy, v_rect.zw))) discard;
+#endif
     float t = float(u_tile);
     float block = clamp(floor(v_texel.y / t), 0.0, v_blocks - 1.0);
     vec2 texel = vec2(v_texel.x, v_texel.y - block * t);

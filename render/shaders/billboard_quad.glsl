@@ -65,7 +65,11 @@ vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, vec2 corner, int blocks
     if (kind == KIND_GROUND) corner = (corner - 0.5) * (1.0 + 2.0 * GROUND_OVERLAP) + 0.5;
     vec3 p = centre + (corner.x - 0.5) * size * right + (corner.y - 0.5) * (size * float(blocks)) * up;
     texel = vec2(corner.x, 1.0 - corner.y) * vec2(float(u_tile), float(u_tile * blocks));
+#ifdef QUAD_PROJECTION
+    return QUAD_PROJECTION * (u_view * vec4(p, 1.0));   // a program's own choice (several views in one draw)
+#else
     return u_projection * (u_view * vec4(p, 1.0));
+#endif
 }
 
 // quad_vertex_run of a single block.
