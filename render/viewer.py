@@ -30,6 +30,7 @@ from .culling import CULL_MODES
 from .lod import LodConfig
 from .renderer import DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
+from .target import OffscreenTargets
 
 logger = logging.getLogger(__name__)
 
@@ -179,6 +180,7 @@ class ViewerApp(_WindowConfig):
         self.lod = bool(lod)  # level of detail of the GPU decode (render.lod.LodConfig's defaults)
         self.show_hud = True
         self.overlay = HudOverlay(self.ctx)
+        self.targets = OffscreenTargets(self.ctx)
         self.sky_pass = SkyPass(self.ctx, sky) if sky is not None else None  # drawn behind the model
         self.renderer: BillboardRenderer | None = None
         self._rebuild()
@@ -209,11 +211,11 @@ class ViewerApp(_WindowConfig):
         wnd = self.wnd
         w, h = wnd.buffer_size
         pose = self.pose(dt)
-        wnd.use()
-        self.ctx.viewport = (0, 0, w, h)
-        self.ctx.wireframe = False
         r = self.renderer
-        self.ctx.clear(*r.background, 1.0, depth=1.0)
+        # The frame is drawn offscreen and copied to the window: culling reads the depth back, and
+        # a window's framebuffer may not give it (multisampled, or not the buffer being drawn).
+        target = self.targets.begin((w, h), r.background)
+        self.ctx.wireframe = False
         K = default_intrinsics(w, h)
         camera = r.camera(K, pose, (w, h))
         if self.sky_pass is not None:
@@ -223,6 +225,9 @@ class ViewerApp(_WindowConfig):
             stats = r.draw(camera)
         finally:
             self.ctx.wireframe = False
+        self.ctx.copy_framebuffer(wnd.fbo, target)
+        wnd.use()
+        self.ctx.viewport = (0, 0, w, h)
         self._fps_frames += 1
         now = time.perf_counter()
         if now - self._fps_t0 >= 0.5:
@@ -352,6 +357,7 @@ class ViewerApp(_WindowConfig):
         if self.sky_pass is not None:
             self.sky_pass.release()
         self.overlay.release()
+        self.targets.release()
 
 
 class _Modifiers:

@@ -217,3 +217,28 @@ def test_bbcity_view_script_screenshot_under_xvfb(tmp_path):
     assert len(np.unique(rgb, axis=0)) > 50  # not blank
     assert (np.abs(rgb - BG_U8).sum(-1) > 6).mean() > 0.05  # billboards over the sky
     assert (np.abs(rgb - BG_U8).sum(-1) <= 6).mean() > 0.1  # and the sky around them
+
+
+def test_culling_in_a_window_draws_what_frustum_culling_draws(tmp_path):
+    """In a real window (xvfb) the frame is drawn offscreen and copied in, so the HZB's depth
+    read-back works: hzb and auto give frustum culling's screenshot (the HUD hidden)."""
+    if shutil.which("xvfb-run") is None:
+        pytest.skip("xvfb-run not on PATH")
+    from core.fileio import read_png
+
+    save(street_model(), tmp_path / "model")
+    bbcity = Path(sys.executable).with_name("bbcity")
+    cmd = [str(bbcity)] if bbcity.exists() else [sys.executable, "-m", "bbcity.cli"]
+    shots = {}
+    for cull in ("frustum", "hzb", "auto"):
+        out = tmp_path / f"{cull}.png"
+        res = subprocess.run(["xvfb-run", "-a", *cmd, "view", str(tmp_path / "model"), "--cull", cull,
+                              "--script-frames", "3", "--script-keys", "U", "--screenshot", str(out),
+                              "--size", "320", "240"],
+                             cwd=ROOT, capture_output=True, text=True, timeout=60,
+                             env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert res.returncode == 0, res.stdout + res.stderr
+        shots[cull] = read_png(out)[..., :3]
+    assert np.mean(np.abs(shots["frustum"].astype(int) - BG_U8).sum(-1) > 6) > 0.05
+    for cull in ("hzb", "auto"):
+        assert np.array_equal(shots[cull], shots["frustum"]), cull
