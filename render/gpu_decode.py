@@ -41,10 +41,10 @@ QUAD_FORMAT = "3f 1f 1i 1i 2f 4f 1i/i"
 QUAD_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_kind", "in_blocks", "in_origin", "in_weights", "in_view")
 MAX_VIEWS = 32  # views per draw of draw_views (billboard.glsl MULTIVIEW)
 
-#: Per-block record of the pre-blend pass (billboard_blend.glsl).
-BLEND_DTYPE = np.dtype([("source", "<i4", 2), ("target", "<i4", 2), ("weights", "<f4", 4)])
-BLEND_FORMAT = "2i 2i 4f/i"
-BLEND_ATTRIBUTES = ("in_source", "in_target", "in_weights")
+#: Per-run record of the pre-blend pass (billboard_blend.glsl).
+BLEND_DTYPE = np.dtype([("source", "<i4", 2), ("target", "<i4", 2), ("blocks", "<i4"), ("weights", "<f4", 4)])
+BLEND_FORMAT = "2i 2i 1i 4f/i"
+BLEND_ATTRIBUTES = ("in_source", "in_target", "in_blocks", "in_weights")
 
 #: Quads whose texel spans at least this many pixels are blended once per texel into the view
 #: atlas and drawn with one fetch per fragment (fewer texels than fragments); the second fetch
@@ -122,6 +122,9 @@ class GpuDecoder(GpuOwner):
         self._held_level = np.full((n, self.storage_slots), -1, np.int8)  # its level of detail
         self._level = np.full(n, -1, np.int8)  # current level per position (hysteresis)
         self._drawn = np.zeros(self.slits.num_columns, bool)  # columns drawn this frame
+        ends = self.slits.column_start + self.slits.column_count - 1
+        self._column_centre = 0.5 * (model.centres[self.slits.order[self.slits.column_start]].astype(np.float64)
+                                     + model.centres[self.slits.order[ends]])
         self._objects = []
         try:
             self.programs = {(view, linear, multiview): self._keep(load_program(
@@ -161,12 +164,13 @@ class GpuDecoder(GpuOwner):
         self._view_origin, view_size = atlas_layout(place, 1, self.model.tile, limit)
         self.decoded = self._keep(self._atlas_texture(size))
         self.decoded_fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.decoded]))
-        self.view_tiles = self._keep(self._atlas_texture(view_size))
+        self.view_tiles = self._keep(self._atlas_texture(view_size, "f1"))
         self.view_fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.view_tiles]))
         self.nbytes = (size[0] * size[1] + view_size[0] * view_size[1]) * 8
 
-    def _atlas_texture(self, size) -> moderngl.Texture:
-        tex = self.ctx.texture(size, 4, np.zeros(size[0] * size[1] * 4, np.float16), dtype="f2")
+    def _atlas_texture(self, size, dtype: str = "f2") -> moderngl.Texture:
+        zeros = np.zeros(size[0] * size[1] * 4, np.float16 if dtype == "f2" else np.uint8)
+        tex = self.ctx.texture(size, 4, zeros, dtype=dtype)
         tex.filter = (moderngl.LINEAR, moderngl.LINEAR)  # sampled bilinear only within a tile
         tex.repeat_x = tex.repeat_y = False
         return tex
@@ -254,7 +258,9 @@ class GpuDecoder(GpuOwner):
         kind = model.kind[top]
         edge = np.where(kind == 0, model.voxel_size, model.block_size)
         focal_px = float(lod_camera.projection[0, 0]) * lod_camera.size[0] / 2
-        texel_px = texel_pixels(lod_camera.eye, centre, edge, model.tile, focal_px)
+        # the level follows the whole column, so a slit cut by a selection keeps its blocks' level
+        column_centre = self._column_centre[self.slits.column[start]]
+        texel_px = texel_pixels(lod_camera.eye, column_centre, edge, model.tile, focal_px)
         level = self._levels(texel_px, positions, firsts, count)
         mean = level == 2  # the mean does not depend on the direction: one slot, any direction held
         weight[mean] = 0.0
@@ -276,8 +282,7 @@ class GpuDecoder(GpuOwner):
         blend = np.zeros(len(start), bool)
         if preblend:
             blend = (plan.texel_px >= PREBLEND_TEXEL_PX) & (np.count_nonzero(plan.weight, axis=1) > 1)
-            blended, blend_bytes = self._blend(plan.positions, np.repeat(blend, count),
-                                               np.repeat(plan.weight, count, axis=0))
+            blended, blend_bytes = self._blend(start[blend], count[blend], plan.weight[blend])
             stats["blended_tiles"] += blended
             stats["upload_bytes"] += blend_bytes
         quads = np.empty(len(start), QUAD_DTYPE)
@@ -327,17 +332,17 @@ class GpuDecoder(GpuOwner):
         self._level[positions] = np.repeat(level, count)
         return level
 
-    def _blend(self, positions: np.ndarray, blend: np.ndarray, weight: np.ndarray) -> tuple[int, int]:
-        """Blend the held tiles of ``positions[blend]`` with ``weight`` (P, S) into the view atlas;
-        returns (tiles blended, bytes uploaded). Restores the bound framebuffer."""
-        rows = np.flatnonzero(blend)
-        if len(rows) == 0:
+    def _blend(self, start: np.ndarray, count: np.ndarray, weight: np.ndarray) -> tuple[int, int]:
+        """Blend the held tiles of runs (start (R,), count (R,)) with ``weight`` (R, S) into the view
+        atlas, one quad per run (a run's blocks lie one below the other in both atlases); returns
+        (tiles blended, bytes uploaded). Restores the bound framebuffer."""
+        if len(start) == 0:
             return 0, 0
-        pos = positions[rows]
-        records = np.empty(len(rows), BLEND_DTYPE)
-        records["source"] = self._origin[pos]
-        records["target"] = self._view_origin[pos]
-        records["weights"][:, :self.storage_slots] = weight[rows]
+        records = np.empty(len(start), BLEND_DTYPE)
+        records["source"] = self._origin[start]
+        records["target"] = self._view_origin[start]
+        records["blocks"] = count
+        records["weights"][:, :self.storage_slots] = weight
         records["weights"][:, self.storage_slots:] = 0.0
         nbytes = self.blends.write(records)
         prog = self.blend_program
@@ -346,7 +351,7 @@ class GpuDecoder(GpuOwner):
         set_uniform(prog, "u_target_size", tuple(float(v) for v in self.view_tiles.size))
         self.decoded.use(self.DECODED_UNIT)
         self._offscreen(self.view_fbo, self.blend_vao, len(records))
-        return len(records), nbytes
+        return int(count.sum()), nbytes
 
     def _offscreen(self, fbo: moderngl.Framebuffer, vao: moderngl.VertexArray, instances: int) -> None:
         """Draw ``instances`` tile quads into an atlas's framebuffer, then rebind the caller's."""

@@ -36,7 +36,8 @@ DECODE_MODES = ("gpu", "cpu")
 
 def add_stats(totals: dict, part: dict) -> None:
     """Add a draw's counts to ``totals``: numbers summed, lists (LOD counts) element-wise."""
-    for key in ("draw_calls", "instances", "upload_bytes", "quads", "decoded_tiles", "blended_tiles", "lod"):
+    for key in ("draw_calls", "instances", "upload_bytes", "quads", "decoded_tiles", "blended_tiles", "lod",
+                "decode_s", "upload_s"):
         if key not in part:
             continue
         value = part[key]
@@ -44,7 +45,7 @@ def add_stats(totals: dict, part: dict) -> None:
             old = totals.get(key, [0] * len(value))
             totals[key] = [a + b for a, b in zip(old, value)]
         else:
-            totals[key] = totals.get(key, 0) + int(value)
+            totals[key] = totals.get(key, 0) + value
 
 
 class BillboardRenderer:

@@ -2,12 +2,15 @@
 // Pre-blend pass of the GPU decode: for quads that are large on screen, the decoded tiles of
 // the direction bracket are blended once per texel with this view's weights into the view
 // atlas, so that their fragments fetch one texel instead of one per direction (render.gpu_decode).
-// One instance per block: a t×t-pixel quad at its place in the view atlas.
+// One instance per run (a slit's blocks lie one below the other in both atlases): a quad of
+// t × blocks·t pixels at its place in the view atlas. The view atlas is RGBA8: the blend is
+// clamped as it is stored, as the CPU decode clamps before filtering.
 
 #if defined VERTEX_SHADER
 
 in ivec2 in_source;    // top-left texel of the block's storage slot 0 in the decoded atlas
 in ivec2 in_target;    // top-left texel of its tile in the view atlas
+in int in_blocks;      // blocks in the run
 in vec4 in_weights;    // weight of each storage slot
 
 uniform int u_tile;
@@ -22,7 +25,8 @@ void main() {
     v_target = in_target;
     v_weights = in_weights;
     vec2 corner = vec2(float(gl_VertexID & 1), float((gl_VertexID >> 1) & 1));
-    gl_Position = vec4((vec2(in_target) + corner * float(u_tile)) / u_target_size * 2.0 - 1.0, 0.0, 1.0);
+    gl_Position = vec4((vec2(in_target) + corner * vec2(u_tile, u_tile * in_blocks)) / u_target_size * 2.0 - 1.0,
+                       0.0, 1.0);
 }
 
 #elif defined FRAGMENT_SHADER
@@ -38,11 +42,13 @@ out vec4 f_colour;
 
 void main() {
     ivec2 texel = ivec2(gl_FragCoord.xy) - v_target;
-    vec4 colour = vec4(0.0);
-    for (int s = 0; s < STORAGE_SLOTS; ++s) {
-        if (v_weights[s] != 0.0) colour += v_weights[s] * texelFetch(u_decoded, v_source + ivec2(s * u_tile, 0) + texel, 0);
-    }
-    f_colour = colour;   // unclamped, like the decoded tiles: filtering then clamping as the direct path
+    ivec2 p = v_source + texel;   // branch-free (see billboard.glsl)
+    vec4 colour = v_weights.x * texelFetch(u_decoded, p, 0) + v_weights.y * texelFetch(u_decoded, p + ivec2(u_tile, 0), 0);
+#if STORAGE_SLOTS == 4
+    colour += v_weights.z * texelFetch(u_decoded, p + ivec2(2 * u_tile, 0), 0)
+            + v_weights.w * texelFetch(u_decoded, p + ivec2(3 * u_tile, 0), 0);
+#endif
+    f_colour = colour;
 }
 
 #endif
