@@ -70,6 +70,19 @@ def mean_counts(stats: list[dict]) -> dict:
             "cull_ms": mean(lambda s: 1000.0 * (s.get("frustum_s", 0.0) + s.get("cull_s", 0.0)))}
 
 
+#: Frames rendered on the way to a view before it is timed or compared: a walkthrough's steady state
+#: (the decoded atlas holds the brackets around the eye, far nodes have their impostor images,
+#: made at most ImpostorConfig.updates_per_frame per frame).
+WARM_UP_FRAMES = 40
+
+
+def warm_up(renderer: BillboardRenderer, K, pose, size, frames: int = WARM_UP_FRAMES) -> None:
+    """Render ``frames`` poses stepping 5 cm along the camera's x axis up to ``pose`` (4, 4)."""
+    for moved in walk(pose, frames, step=-0.05)[::-1]:
+        renderer.render(K, moved, size)
+    renderer.render(K, pose, size)
+
+
 def timed_frames(renderer: BillboardRenderer, K, poses, size) -> tuple[list[float], list[dict]]:
     """Render ``poses`` (each (4, 4) world_from_cam) in order; each frame's seconds and stats."""
     times, stats = [], []
@@ -97,7 +110,7 @@ def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1
         decode, lod = DECODE_SETUPS[name]
         with BillboardRenderer(ctx, model, decode, cull=cull, lod=lod) as renderer:
             for view, pose in views.items():
-                renderer.render(K, pose, size)  # warm-up
+                warm_up(renderer, K, pose, size, WARM_UP_FRAMES if decode == "gpu" else 1)
                 times, stats = timed_frames(renderer, K, walk(pose, count), size)
                 row = {"decode": name, "lod": lod is not None, "cull": cull, "view": view,
                        **frame_time_stats(times), **mean_counts(stats)}
@@ -118,7 +131,7 @@ def path_fps(ctx, model: BillboardModel, poses, size=(1280, 720), decode: str = 
         raise ValueError("path_fps needs at least one pose")
     K = default_intrinsics(*size) if K is None else K
     with BillboardRenderer(ctx, model, decode, cull=cull, lod=lod if decode == "gpu" else None) as renderer:
-        renderer.render(K, poses[0], size)  # warm-up: buffers, programs
+        warm_up(renderer, K, poses[0], size)
         times, stats = timed_frames(renderer, K, poses, size)
     return {"decode": decode, "lod": decode == "gpu" and lod is not None, "cull": cull,
             **frame_time_stats(times), **mean_counts(stats)}
@@ -134,7 +147,10 @@ def lod_psnr(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
     images = {}
     for key, config in (("lod", lod), ("exact", None)):
         with BillboardRenderer(ctx, model, "gpu", cull=cull, lod=config) as renderer:
-            images[key] = {view: renderer.render(K, pose, size) for view, pose in views.items()}
+            images[key] = {}
+            for view, pose in views.items():
+                warm_up(renderer, K, pose, size)  # impostor images as in a walkthrough
+                images[key][view] = renderer.render(K, pose, size)
     return {view: psnr(images["lod"][view], images["exact"][view]) for view in views}
 
 
@@ -149,7 +165,7 @@ def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
     for mode in modes:
         with BillboardRenderer(ctx, model, "gpu", cull=mode, lod=lod) as renderer:
             for name, pose in views.items():
-                renderer.render(K, pose, size)  # warm-up (and a first frame for temporal reuse)
+                warm_up(renderer, K, pose, size)  # and frames for temporal reuse
                 times, stats = timed_frames(renderer, K, walk(pose, frames), size)
                 st = renderer.stats
                 rows.append({"cull": mode, "view": name, **frame_time_stats(times), **mean_counts(stats),

@@ -34,6 +34,7 @@ import numpy as np
 from billboards.model import BillboardModel
 
 from .camera import GLCamera, gl_bytes
+from .context import max_texture_size
 from .culling import model_quad_radius
 from .lod import ImpostorConfig
 from .program import load_program
@@ -110,6 +111,10 @@ class Impostors(GpuOwner):
         per_row = max(ATLAS_WIDTH // t, 1)
         rows = max(-(-k // per_row), 1)
         size = (min(max(k, 1), per_row) * t, rows * t)
+        limit = max_texture_size(ctx)
+        if size[1] > limit:
+            raise ValueError(f"{k} impostor tiles of {t}² texels need an atlas {size[1]} texels tall; "
+                             f"GL_MAX_TEXTURE_SIZE is {limit} (fewer texels or a larger node_edge)")
         tiles = np.arange(k)
         self._origin = np.stack([(tiles % per_row) * t, (tiles // per_row) * t], 1).astype(np.int32)
         try:
