@@ -34,7 +34,7 @@ def bench_decode_and_cull(cfg: BenchConfig, report: Report, model_dir: Path, str
     model's); level of detail against exact GPU decode at 1280×720 and 1920×1080 with the PSNR
     of its images; the culling modes against frustum culling. Percentiles throughout."""
     from billboards.model_reader import load
-    from render.benchmark import cull_fps, decode_fps, path_fps
+    from render.benchmark import WARM_UP_FRAMES, cull_fps, decode_fps, path_fps
     from render.context import create_context, describe
     from render.lod import LodConfig
     from render.paths import capture_camera_poses, capture_walk, street_views
@@ -46,15 +46,18 @@ def bench_decode_and_cull(cfg: BenchConfig, report: Report, model_dir: Path, str
     try:
         views = street_views(street_length)
         n_gpu, n_cpu = (4, 2) if cfg.quick else (10, 3)
+        warm = 8 if cfg.quick else WARM_UP_FRAMES
         frustum_rows = []
         for cull in ("none", "frustum"):
             rows = decode_fps(ctx, model, views, SIZE, {"cpu": n_cpu, "gpu exact": n_gpu, "gpu": n_gpu}, cull=cull,
-                              overdraw=cull == "frustum")
+                              overdraw=cull == "frustum", warm_up_frames=warm)
             if path is not None:
                 pick = np.unique(np.linspace(0, len(path) - 1, min(n_cpu, len(path))).round().astype(int))
-                rows += [{**path_fps(ctx, model, path[pick], SIZE, "cpu", cull), "decode": "cpu"},
-                         {**path_fps(ctx, model, path, SIZE, "gpu", cull, None), "decode": "gpu exact"},
-                         {**path_fps(ctx, model, path, SIZE, "gpu", cull, LodConfig()), "decode": "gpu"}]
+                rows += [{**path_fps(ctx, model, path[pick], SIZE, "cpu", cull, warm_up_frames=1), "decode": "cpu"},
+                         {**path_fps(ctx, model, path, SIZE, "gpu", cull, None, warm_up_frames=warm),
+                          "decode": "gpu exact"},
+                         {**path_fps(ctx, model, path, SIZE, "gpu", cull, LodConfig(), warm_up_frames=warm),
+                          "decode": "gpu"}]
                 for r in rows[-3:]:
                     r["view"] = "capture path"
             cpu = {r["view"]: r for r in rows if r["decode"] == "cpu"}
@@ -67,7 +70,7 @@ def bench_decode_and_cull(cfg: BenchConfig, report: Report, model_dir: Path, str
         gpu = [r for r in frustum_rows if r["decode"] == "gpu"]
         report.notes["Rendering: decode"] = (
             f"{describe(ctx)}; {model.num_billboards} billboards, {SIZE[0]}×{SIZE[1]}; views: the eye stepping 5 cm "
-            f"per frame from each view; capture path: {_path_note(path, capture)}. Every frame timed (draw and "
+            f"per frame from each view, after {warm} frames walking to it; capture path: {_path_note(path, capture)}. Every frame timed (draw and "
             "read-back): fps from the median frame time, fps p5 from the 95th-percentile one. CPU decode, the "
             "baseline, on a few poses spread along the path (it reuses nothing between frames). Counts are means "
             "per frame; LOD: quads at full / reduced / mean detail. Overdraw (frustum culling, at each view's "
@@ -75,8 +78,8 @@ def bench_decode_and_cull(cfg: BenchConfig, report: Report, model_dir: Path, str
             "and with it on (written). Targets at 1280×720 with GPU decode: ≥ 60 fps median and ≥ 45 fps p5; GPU "
             "decode ≥ 10× CPU decode." + (f" GPU LOD with frustum culling: median {min(r['fps'] for r in gpu):.1f}"
                                           f"–{max(r['fps'] for r in gpu):.1f} fps." if gpu else ""))
-        _bench_lod(report, ctx, model, views, path, frustum_rows, n_gpu)
-        rows = cull_fps(ctx, model, views, SIZE, 4 if cfg.quick else 10)
+        _bench_lod(report, ctx, model, views, path, frustum_rows, n_gpu, warm)
+        rows = cull_fps(ctx, model, views, SIZE, 4 if cfg.quick else 10, warm_up_frames=warm)
         none = {r["view"]: r for r in rows if r["cull"] == "none"}
         frustum = {r["view"]: r for r in rows if r["cull"] == "frustum"}
         for r in rows:
@@ -119,7 +122,7 @@ def _fps_columns(r: dict, baseline: str, size) -> dict:
             "overdraw written": r.get("written", float("nan")), "covered": r.get("covered", float("nan"))}
 
 
-def _bench_lod(report: Report, ctx, model, views: dict, path, rows_720: list[dict], n_gpu: int) -> None:
+def _bench_lod(report: Report, ctx, model, views: dict, path, rows_720: list[dict], n_gpu: int, warm: int) -> None:
     """"Rendering: level of detail": GPU decode with level of detail against exact GPU decode (the
     baseline) with frustum culling, frame rates and the PSNR of the LOD image against the exact one,
     at 1280×720 (the decode section's rows) and 1920×1080."""
@@ -132,13 +135,14 @@ def _bench_lod(report: Report, ctx, model, views: dict, path, rows_720: list[dic
         if size == SIZE:
             rows = rows_720
         else:
-            rows = decode_fps(ctx, model, views, size, {"gpu exact": n_gpu, "gpu": n_gpu}, cull="frustum")
+            rows = decode_fps(ctx, model, views, size, {"gpu exact": n_gpu, "gpu": n_gpu}, cull="frustum",
+                              warm_up_frames=warm)
             if path is not None:
-                rows += [{**path_fps(ctx, model, path, size, "gpu", "frustum", None), "decode": "gpu exact",
-                          "view": "capture path"},
-                         {**path_fps(ctx, model, path, size, "gpu", "frustum", LodConfig()), "decode": "gpu",
-                          "view": "capture path"}]
-        quality = lod_psnr(ctx, model, {**views, **spread}, size)
+                rows += [{**path_fps(ctx, model, path, size, "gpu", "frustum", None, warm_up_frames=warm),
+                          "decode": "gpu exact", "view": "capture path"},
+                         {**path_fps(ctx, model, path, size, "gpu", "frustum", LodConfig(), warm_up_frames=warm),
+                          "decode": "gpu", "view": "capture path"}]
+        quality = lod_psnr(ctx, model, {**views, **spread}, size, warm_up_frames=warm)
         if spread:
             quality["capture path"] = float(np.mean([quality.pop(k) for k in spread]))
         exact = {r["view"]: r for r in rows if r["decode"] == "gpu exact"}

@@ -96,7 +96,7 @@ def timed_frames(renderer: BillboardRenderer, K, poses, size) -> tuple[list[floa
 
 def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720),
                frames: dict[str, int] | None = None, K=None, cull: str = "frustum",
-               overdraw: bool = False) -> list[dict]:
+               overdraw: bool = False, warm_up_frames: int = WARM_UP_FRAMES) -> list[dict]:
     """Frame rate per decode set-up (``frames``: a name of :data:`DECODE_SETUPS` → timed frames
     per view) and view, ``cull`` culling for all. Rows {decode, lod, cull, view,
     **frame_time_stats, **mean_counts}; with ``overdraw``, GPU rows also hold the view's
@@ -110,7 +110,7 @@ def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1
         decode, lod = DECODE_SETUPS[name]
         with BillboardRenderer(ctx, model, decode, cull=cull, lod=lod) as renderer:
             for view, pose in views.items():
-                warm_up(renderer, K, pose, size, WARM_UP_FRAMES if decode == "gpu" else 1)
+                warm_up(renderer, K, pose, size, warm_up_frames if decode == "gpu" else 1)
                 times, stats = timed_frames(renderer, K, walk(pose, count), size)
                 row = {"decode": name, "lod": lod is not None, "cull": cull, "view": view,
                        **frame_time_stats(times), **mean_counts(stats)}
@@ -122,7 +122,7 @@ def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1
 
 
 def path_fps(ctx, model: BillboardModel, poses, size=(1280, 720), decode: str = "gpu", cull: str = "frustum",
-             lod: LodConfig | None = LodConfig(), K=None) -> dict:
+             lod: LodConfig | None = LodConfig(), K=None, warm_up_frames: int = WARM_UP_FRAMES) -> dict:
     """Frame rate along ``poses`` (n, 4, 4) world_from_cam, rendered in order after one untimed
     frame at the first: {decode, lod, cull, **frame_time_stats, **mean_counts}. Consecutive
     poses close together let the GPU decode reuse its decoded atlas as in a walkthrough."""
@@ -131,14 +131,15 @@ def path_fps(ctx, model: BillboardModel, poses, size=(1280, 720), decode: str = 
         raise ValueError("path_fps needs at least one pose")
     K = default_intrinsics(*size) if K is None else K
     with BillboardRenderer(ctx, model, decode, cull=cull, lod=lod if decode == "gpu" else None) as renderer:
-        warm_up(renderer, K, poses[0], size)
+        warm_up(renderer, K, poses[0], size, warm_up_frames)
         times, stats = timed_frames(renderer, K, poses, size)
     return {"decode": decode, "lod": decode == "gpu" and lod is not None, "cull": cull,
             **frame_time_stats(times), **mean_counts(stats)}
 
 
 def lod_psnr(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720), K=None,
-             lod: LodConfig = LodConfig(), cull: str = "frustum") -> dict[str, float]:
+             lod: LodConfig = LodConfig(), cull: str = "frustum", warm_up_frames: int = WARM_UP_FRAMES
+             ) -> dict[str, float]:
     """PSNR (dB, 8-bit RGB over the whole image) per view of the GPU decode with level of detail
     ``lod`` against the exact GPU decode from the same pose: the image cost of fewer eigen images."""
     from core.metrics import psnr
@@ -149,14 +150,14 @@ def lod_psnr(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
         with BillboardRenderer(ctx, model, "gpu", cull=cull, lod=config) as renderer:
             images[key] = {}
             for view, pose in views.items():
-                warm_up(renderer, K, pose, size)  # impostor images as in a walkthrough
+                warm_up(renderer, K, pose, size, warm_up_frames)  # impostor images as in a walkthrough
                 images[key][view] = renderer.render(K, pose, size)
     return {view: psnr(images["lod"][view], images["exact"][view]) for view in views}
 
 
 def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720), frames: int = 10,
              K=None, modes=("none", "frustum", "occlusion", "hzb", "auto"),
-             lod: LodConfig | None = LodConfig()) -> list[dict]:
+             lod: LodConfig | None = LodConfig(), warm_up_frames: int = WARM_UP_FRAMES) -> list[dict]:
     """GPU-decode frame rate per culling mode and view, with the billboards left after each
     culling step: rows {cull, view, **frame_time_stats, **mean_counts, after_frustum, drawn, queries}
     (counts of the last frame)."""
@@ -165,7 +166,7 @@ def cull_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
     for mode in modes:
         with BillboardRenderer(ctx, model, "gpu", cull=mode, lod=lod) as renderer:
             for name, pose in views.items():
-                warm_up(renderer, K, pose, size)  # and frames for temporal reuse
+                warm_up(renderer, K, pose, size, warm_up_frames)  # and frames for temporal reuse
                 times, stats = timed_frames(renderer, K, walk(pose, frames), size)
                 st = renderer.stats
                 rows.append({"cull": mode, "view": name, **frame_time_stats(times), **mean_counts(stats),

@@ -38,7 +38,7 @@ def decode_for_eye(model: BillboardModel, billboards: np.ndarray, eye: np.ndarra
 
     The view direction of a billboard is the vector from its centre to the eye;
     without ``interpolate`` the nearest sampled direction is decoded (ties go up, as
-    in the GPU weights pass).
+    in render.view_brackets).
     Returns (B, t, t, 4) uint8 = round(255 · decode(...)). Works in chunks of
     ``chunk`` billboards so the float32 temporaries stay bounded.
     """

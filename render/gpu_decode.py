@@ -1,6 +1,6 @@
 """GPU decode path: eigen-textures decoded on the GPU once per direction, drawn from the result.
 
-Two passes per frame:
+Three passes per frame:
 
 1. **Decode** (``billboard_decode.glsl``): each tile that the view needs and the decoded
    atlas does not hold yet — a billboard's texture at one sampled direction — is decoded
@@ -9,14 +9,18 @@ Two passes per frame:
    slots (:mod:`render.view_brackets`), so a tile is decoded again only when the eye
    crosses into another bracket (6° of yaw by default) or its level of detail changes
    (:mod:`render.lod`); in between, frames decode nothing.
-2. **Draw** (``billboard.glsl``): one instanced draw of quads — billboards, ground blocks
-   and slits (the facade layer's columns as one quad each, :mod:`render.slits`) — whose
-   fragments blend the decoded tiles of the bracket with this view's weights: one
-   bilinear fetch per corner instead of two fetches per eigen image.
+2. **Pre-blend** (``billboard_blend.glsl``): quads whose texel covers at least
+   PREBLEND_TEXEL_PX pixels have their bracket blended once per texel, one quad per run,
+   into an RGBA8 view atlas — fewer texels than their fragments.
+3. **Draw** (``billboard.glsl``): instanced quads — billboards, ground blocks and slits
+   (the facade layer's columns as one quad each, :mod:`render.slits`) — whose fragments
+   blend the decoded tiles of the bracket with this view's weights (one bilinear fetch per
+   corner), or fetch the pre-blended texel; one draw per atlas drawn from.
 
 The view-dependent bookkeeping (brackets, weights, which tiles to decode, levels) is numpy
 over the quads drawn. Before this, a fragment decoded every eigen image itself, which
 made the fragment stage the bottleneck on llvmpipe (3–4× the cost of a single fetch).
+Every pass that writes an atlas goes through :meth:`GpuDecoder._offscreen`.
 """
 
 from __future__ import annotations

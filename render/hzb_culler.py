@@ -47,7 +47,6 @@ depth can be read back (otherwise the culler draws everything and logs a warning
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 
 import moderngl

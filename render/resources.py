@@ -1,4 +1,4 @@
-"""A billboard model on the GPU: atlas and coefficient pages, slot table, instances, directions.
+"""A billboard model on the GPU: atlas and coefficient pages and the slot table.
 
 Upload once, draw every frame. What goes where:
 
@@ -18,13 +18,9 @@ Upload once, draw every frame. What goes where:
   eigen image k (0: the mean) of that billboard (both exact in float32 below 2²⁴);
   ``slots_per_row`` slots (a power of two) per texture row. (moderngl has no texture
   buffer objects.)
-- **Instance table** → RGBA32F 2-D texture, one texel per billboard in the same
-  layout: centre relative to the model origin, base yaw (for the decode's weights pass).
-- **Direction table** → R32F texture (max(d_yaw, d_pitch), 2): row 0 the yaw offsets,
-  row 1 the pitches, radians.
-- **Instances** → one static buffer of :data:`INSTANCE_DTYPE` records (24 bytes per
-  billboard): centre relative to the model origin (float32), base yaw, first slot and
-  rank; :meth:`ModelResources.instance_data` gathers a subset for per-frame culling.
+
+What varies with the view — which quads to draw, their direction weights, the decoded tiles —
+belongs to the decoder (:mod:`render.gpu_decode`).
 """
 
 from __future__ import annotations
@@ -40,10 +36,6 @@ from .context import max_array_layers, max_texture_size
 
 logger = logging.getLogger(__name__)
 
-#: Per-billboard instance record (attributes in_centre, in_base_yaw, in_slot = (first slot, rank), in_kind).
-INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("slot", "<i4", 2), ("kind", "<i4")])
-INSTANCE_FORMAT = "3f 1f 2i 1i/i"
-INSTANCE_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_slot", "in_kind")
 _FORMAT_BYTES = {"f": 4, "i": 4, "u": 4}
 
 _TILE_DTYPE = {"u8": "f1", "f16": "f2"}  # moderngl texture dtypes: normalised unsigned byte, half float
@@ -76,18 +68,6 @@ def vertex_binding(program: moderngl.Program, buffer: moderngl.Buffer, fmt: str,
     return (buffer, " ".join(parts) + (f"/{divisor}" if divisor else ""), *used)
 
 
-def instance_records(model: BillboardModel, billboards=None) -> np.ndarray:
-    """(B,) :data:`INSTANCE_DTYPE` records of ``billboards`` (B,) int (all when None)."""
-    idx = slice(None) if billboards is None else np.asarray(billboards, dtype=np.int64)
-    rec = np.empty(len(model.centres[idx]), INSTANCE_DTYPE)
-    rec["centre"] = model.centres[idx]
-    rec["base_yaw"] = model.base_yaw[idx]
-    rec["slot"][:, 0] = model.first_slot[idx]
-    rec["slot"][:, 1] = model.rank[idx]
-    rec["kind"] = model.kind[idx]
-    return rec
-
-
 def slot_table(model: BillboardModel, slots_per_row: int) -> np.ndarray:
     """(rows, 3·slots_per_row, 4) float32 slot table (see module docstring); at least one row."""
     m = model.num_slots
@@ -102,26 +82,6 @@ def slot_table(model: BillboardModel, slots_per_row: int) -> np.ndarray:
     table[:m, 2, 2] = np.arange(m) - model.first_slot[owner]
     table[:m, 2, 3] = owner
     return table.reshape(rows, slots_per_row * 3, 4)
-
-
-def instance_table(model: BillboardModel, slots_per_row: int) -> np.ndarray:
-    """(rows, slots_per_row, 4) float32: each billboard's centre (model coordinates) and base yaw."""
-    n = model.num_billboards
-    rows = max(-(-n // slots_per_row), 1)
-    table = np.zeros((rows * slots_per_row, 4), np.float32)
-    table[:n, :3] = model.centres
-    table[:n, 3] = model.base_yaw
-    return table.reshape(rows, slots_per_row, 4)
-
-
-def direction_table(model: BillboardModel) -> np.ndarray:
-    """(2, max(d_yaw, d_pitch)) float32: yaw offsets and pitches (radians), padded with their last value."""
-    dy, dp = len(model.yaw_offsets), len(model.pitches)
-    n = max(dy, dp)
-    table = np.empty((2, n), np.float32)
-    table[0, :dy], table[0, dy:] = model.yaw_offsets, model.yaw_offsets[-1]
-    table[1, :dp], table[1, dp:] = model.pitches, model.pitches[-1]
-    return table
 
 
 def _page_array(ctx: moderngl.Context, pages, width: int, components: int, dtype: str,
@@ -175,13 +135,12 @@ class GpuOwner:
         release_all(self._objects)
         self._objects = None
 
+
 class ModelResources(GpuOwner):
     """Every GPU object of one model; :meth:`release` frees them (idempotent).
 
-    ``tiles``, ``coefs``: TextureArray; ``slot_table``, ``directions``: Texture;
-    ``instances``: Buffer of all billboards' :data:`INSTANCE_DTYPE` records (None
-    for an empty model); ``uniforms``: the integer layout constants the decode shader
-    needs (see :meth:`bind`).
+    ``tiles``, ``coefs``: TextureArray; ``slot_table``: Texture; ``uniforms``: the layout
+    constants the decode shaders need (see :meth:`bind`).
     """
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel):
@@ -212,43 +171,27 @@ class ModelResources(GpuOwner):
             raise ValueError(f"{model.num_slots} slots need a {table.shape[0]}-row slot table, "
                              f"GL_MAX_TEXTURE_SIZE is {limit}")
         self.slot_table = self._keep(ctx.texture((table.shape[1], table.shape[0]), 4, table, dtype="f4"))
-        instances = instance_table(model, self.slots_per_row)
-        self.instance_table = self._keep(ctx.texture((instances.shape[1], instances.shape[0]), 4, instances,
-                                                     dtype="f4"))
-        directions = direction_table(model)
-        self.directions = self._keep(ctx.texture((directions.shape[1], 2), 1, directions, dtype="f4"))
-        for tex in (self.slot_table, self.instance_table, self.directions):
-            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        records = instance_records(model)
-        self.instances = self._keep(ctx.buffer(records)) if len(records) else None
+        self.slot_table.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.uniforms = {
             "u_size": float(model.voxel_size), "u_block_size": float(model.block_size), "u_tile": int(model.tile),
-            "u_d_yaw": len(model.yaw_offsets), "u_d_pitch": len(model.pitches),
             "u_slots_per_row": self.slots_per_row,
             "u_tiles_per_row": tiles.tiles_per_row, "u_tiles_per_page": tiles.tiles_per_page,
             "u_d": model.num_directions, "u_rows_per_line": rows.tiles_per_row,
-            "u_rows_per_page": rows.tiles_per_page, "u_num_slots": model.num_slots,
+            "u_rows_per_page": rows.tiles_per_page,
         }
         self.nbytes = {"tiles": self.tiles.width * self.tiles.height * self.tiles.layers * 4 *
                        {"u8": 1, "f16": 2}[model.tile_mode],
                        "coefficients": self.coefs.width * self.coefs.height * self.coefs.layers *
                        {"u8": 1, "f16": 2, "f32": 4}[model.coef_mode],
-                       "slot_table": table.nbytes, "instance_table": instances.nbytes,
-                       "instances": records.nbytes}
+                       "slot_table": table.nbytes}
         logger.debug("uploaded model: %s", self.nbytes)
-
-    def instance_data(self, billboards=None) -> np.ndarray:
-        """(B,) :data:`INSTANCE_DTYPE` records of ``billboards`` (all when None)."""
-        return instance_records(self.model, billboards)
 
     def bind(self, program: moderngl.Program, first_unit: int = 0) -> None:
         """Bind the textures to units ``first_unit``… and set the layout uniforms ``program`` uses."""
         if self.released:
             raise RuntimeError("ModelResources used after release()")
         for unit, (name, tex) in enumerate((("u_tiles", self.tiles), ("u_coefs", self.coefs),
-                                            ("u_slot_table", self.slot_table),
-                                            ("u_directions", self.directions),
-                                            ("u_instance_table", self.instance_table)), first_unit):
+                                            ("u_slot_table", self.slot_table)), first_unit):
             tex.use(unit)
             set_uniform(program, name, unit)
         for name, value in self.uniforms.items():
@@ -257,7 +200,7 @@ class ModelResources(GpuOwner):
     def release(self) -> None:
         """Free every GPU object (idempotent)."""
         super().release()
-        self.tiles = self.coefs = self.slot_table = self.directions = self.instance_table = self.instances = None
+        self.tiles = self.coefs = self.slot_table = None
 
 
 class InstanceStream:

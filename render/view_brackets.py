@@ -40,8 +40,10 @@ def view_brackets(eye, centres: np.ndarray, base_yaw: np.ndarray, yaw_offsets: n
     direction index p·d_yaw + y each storage slot must hold, −1 where its weight is 0;
     weight (R, S) float32, summing to 1 per quad), S = :func:`storage_slots`.
     """
-    c = np.asarray(centres, np.float64).reshape(-1, 3)
-    v = np.asarray(eye, np.float64).reshape(1, 3) - c
+    # The view vector as the CPU decode forms it (float32 eye minus float32 centre): straight above
+    # or below a quad its yaw is atan2 of rounding noise, and both decodes must see the same noise.
+    c = np.asarray(centres, np.float32).reshape(-1, 3)
+    v = (np.asarray(eye, np.float64).reshape(1, 3).astype(np.float32) - c).astype(np.float64)
     yaw = np.arctan2(v[:, 1], v[:, 0]) - np.asarray(base_yaw, np.float64)
     yaw = np.pi - np.mod(np.pi - yaw, 2 * np.pi)
     pitch = np.arctan2(v[:, 2], np.hypot(v[:, 0], v[:, 1]))
