@@ -245,7 +245,7 @@ class ViewerApp(_WindowConfig):
         """The HUD's lines from a frame's renderer stats (missing keys count 0): frame time and
         fps (over the last half second), draw and cull time (frustum plus occlusion) of the
         frame; quads and billboards drawn; quads per level of detail and tiles decoded (GPU
-        decode); the modes."""
+        decode) and impostors drawn and remade; the modes."""
         s = self.renderer.stats if stats is None else stats
         total = self.model.num_billboards
         drawn = int(s.get("billboards_drawn", s.get("instances", total)))
@@ -254,8 +254,9 @@ class ViewerApp(_WindowConfig):
         if self.decode == "gpu":
             full, reduced, mean = (list(s.get("lod", [])) + [0, 0, 0])[:3]
             quads = int(s.get("quads", 0))
-            detail = (f"LOD {'on' if self.lod else 'off'}: full {full} reduced {reduced} mean {mean} | "
-                      f"decoded {int(s.get('decoded_tiles', 0))} tiles")
+            detail = (f"LOD {'on' if self.lod else 'off'}: full {full} reduced {reduced} mean {mean} "
+                      f"impostors {int(s.get('impostors', 0))} | decoded {int(s.get('decoded_tiles', 0))} tiles, "
+                      f"{int(s.get('impostor_updates', 0))} impostor images")
         else:
             quads = drawn  # the CPU decode draws a quad per billboard
             detail = "CPU decode of every drawn billboard (no level of detail)"
