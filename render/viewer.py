@@ -254,16 +254,17 @@ class ViewerApp(_WindowConfig):
         if self.decode == "gpu":
             full, reduced, mean = (list(s.get("lod", [])) + [0, 0, 0])[:3]
             quads = int(s.get("quads", 0))
-            detail = (f"LOD {'on' if self.lod else 'off'}: full {full} reduced {reduced} mean {mean} "
-                      f"impostors {int(s.get('impostors', 0))} | decoded {int(s.get('decoded_tiles', 0))} tiles, "
-                      f"{int(s.get('impostor_updates', 0))} impostor images")
+            detail = (f"LOD {'on' if self.lod else 'off'}: full {full} reduced {reduced} mean {mean} | "
+                      f"impostors {int(s.get('impostors', 0))}, {int(s.get('impostor_updates', 0))} new")
+            decoded = f" | decoded {int(s.get('decoded_tiles', 0))} tiles"
         else:
             quads = drawn  # the CPU decode draws a quad per billboard
             detail = "CPU decode of every drawn billboard (no level of detail)"
+            decoded = ""
         extra = f" speed {self.path.speed:.0f} m/s" if self.mode == "drive" else ""
         draw_ms = 1000.0 * s.get("draw_s", 0.0)
         return [f"bbcity | {self.fps:5.1f} fps, {frame_ms:5.1f} ms/frame | draw {draw_ms:.1f} ms, cull {cull_ms:.1f} ms",
-                f"quads {quads} | drawn {drawn}/{total} culled {total - drawn}",
+                f"quads {quads} | drawn {drawn}/{total} culled {total - drawn}{decoded}",
                 detail,
                 f"decode {self.decode} | cull {self.cull} | interpolation {'on' if self.interpolate else 'off'}",
                 f"{self.mode}{extra}" + (" | wireframe" if self.wireframe else "")]
