@@ -118,19 +118,24 @@ def view_from_pose(world_from_cam, origin) -> np.ndarray:
     exact to float32 rounding of *relative* positions whatever the origin's magnitude.
     """
     T = check_pose(world_from_cam)
+    return _view(T, T[:3, 3] - np.asarray(origin, dtype=np.float64).reshape(3))
+
+
+def _view(T: np.ndarray, eye: np.ndarray) -> np.ndarray:
     R = T[:3, :3]
     cam_from_model = np.eye(4)
     cam_from_model[:3, :3] = R.T
-    cam_from_model[:3, 3] = -R.T @ eye_position(T, origin)
+    cam_from_model[:3, 3] = -R.T @ eye
     return (GL_FROM_CV @ cam_from_model).astype(np.float32)
 
 
 def gl_camera(K, world_from_cam, size, origin, clip: ClipPlanes = ClipPlanes()) -> GLCamera:
     """:class:`GLCamera` for an OpenCV camera and a model ``origin`` (3,) float64."""
     size = _size(size)
-    return GLCamera(projection=projection_from_K(K, size, clip.near, clip.far),
-                    view=view_from_pose(world_from_cam, origin),
-                    eye=eye_position(world_from_cam, origin), size=size)
+    T = check_pose(world_from_cam)  # once: a frame's budget is milliseconds
+    eye = T[:3, 3] - np.asarray(origin, dtype=np.float64).reshape(3)
+    return GLCamera(projection=projection_from_K(K, size, clip.near, clip.far), view=_view(T, eye), eye=eye,
+                    size=size)
 
 
 def gl_bytes(matrix: np.ndarray) -> bytes:

@@ -145,10 +145,8 @@ class Impostors(GpuOwner):
         Returns stats {impostor_updates}."""
         if len(self.nodes) == 0:
             return {"impostor_updates": 0}
-        rect = self._screen_rects(camera)
-        side = np.maximum(rect[:, 1, 0] - rect[:, 0, 0], rect[:, 1, 1] - rect[:, 0, 1])
-        side = side * 0.5 * max(camera.size)  # NDC → pixels (the larger image side: conservative)
         t, h = self.config.texels, self.config.hysteresis
+        side = self._screen_sides(camera, t * (1 - h))
         self._far = np.where(self._far, side < t * (1 + h), side < t * (1 - h))
         candidates = np.flatnonzero(self._far & self._wanted)
         self._wanted[:] = False
@@ -171,6 +169,26 @@ class Impostors(GpuOwner):
         ratio = dist / np.where(made, self._made_dist[nodes], 1.0)
         fresh = made & (cosine >= math.cos(math.radians(max_angle_deg))) & (np.abs(ratio - 1) <= 0.1)
         return fresh, cosine
+
+    def _screen_sides(self, camera: GLCamera, small: float) -> np.ndarray:
+        """(k,) the larger side in pixels of each node's box on screen (inf reaching behind the near
+        plane); only bounded by ``small`` where a bound on the box's sphere shows it is below: the
+        exact rectangle (eight projected corners) is computed for the other nodes only."""
+        view = camera.view.astype(np.float64)
+        depth = -(self.centre @ view[2, :3] + view[2, 3])  # along the view direction
+        radius = 0.5 * np.linalg.norm(self.box[:, 1] - self.box[:, 0], axis=1)
+        scale = 0.5 * max(camera.size) * float(max(camera.projection[0, 0], camera.projection[1, 1]))
+        # a sphere off the axis projects larger than on it: twice the on-axis bound covers any
+        # field of view below 120°
+        gap = depth - radius
+        bound = np.where(gap > 0, 4 * radius * scale / np.where(gap > 0, gap, 1.0), np.inf)
+        side = np.where(bound < small, bound, np.inf)
+        exact = np.flatnonzero(~(bound < small))
+        if len(exact):
+            rect = self._screen_rects(camera, exact)
+            side[exact] = np.maximum(rect[:, 1, 0] - rect[:, 0, 0], rect[:, 1, 1] - rect[:, 0, 1]) \
+                * 0.5 * max(camera.size)  # NDC → pixels (the larger image side: conservative)
+        return side
 
     def _screen_rects(self, camera: GLCamera, nodes=None) -> np.ndarray:
         """(k, 2, 2) NDC (min, max) of the nodes' boxes; boxes reaching behind the eye's near plane
