@@ -98,7 +98,8 @@ class Impostors(GpuOwner):
                              np.maximum.reduceat(centres, starts, axis=0) + pad], 1) if k else np.zeros((0, 2, 3))
         self.centre = self.box.mean(axis=1)  # (k, 3)
         corner_index = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
-        self._corners8 = np.where(corner_index[None, :, :] == 0, self.box[:, None, 0], self.box[:, None, 1])  # (k, 8, 3)
+        corners = np.where(corner_index[None, :, :] == 0, self.box[:, None, 0], self.box[:, None, 1])  # (k, 8, 3)
+        self._corners8 = np.concatenate([corners, np.ones((k, 8, 1))], axis=2).astype(np.float32)  # homogeneous
         self._far = np.zeros(k, bool)
         self._made_dir = np.zeros((k, 3))  # unit direction node → eye the image was made from
         self._made_dist = np.zeros(k)  # 0: no image
@@ -194,8 +195,8 @@ class Impostors(GpuOwner):
         """(k, 2, 2) NDC (min, max) of the nodes' boxes; boxes reaching behind the eye's near plane
         get an infinite rectangle."""
         corners = self._corners8 if nodes is None else self._corners8[nodes]
-        m = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
-        clip = corners @ m[:, :3].T + m[:, 3]  # (k, 8, 4)
+        m = (camera.projection.astype(np.float64) @ camera.view.astype(np.float64)).astype(np.float32)
+        clip = corners @ m.T  # (k, 8, 4)
         w = clip[..., 3]
         in_front = np.all(w > 1e-6, axis=1)
         ndc = clip[..., :2] / np.where(w > 1e-6, w, 1.0)[..., None]

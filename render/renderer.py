@@ -170,7 +170,7 @@ class BillboardRenderer:
         pad = model_quad_radius(model)
         frustum = frustum_cull_nodes(frustum_planes(view_proj), model.node_bounds, model.node_children,
                                      model.node_range, pad=pad, centres=model.centres, radius=pad,
-                                     split_inside_above=256)
+                                     split_inside_above=None if self.cull == "frustum" else 256)
         after_frustum = int(np.sum(np.diff(frustum.visible_ranges, axis=1))) if len(frustum.visible_ranges) else 0
         info = {"billboards": model.num_billboards, "nodes_tested": frustum.nodes_tested,
                 "billboards_after_frustum": after_frustum, "frustum_s": time.perf_counter() - t0}
