@@ -31,11 +31,12 @@ culled; rectangles entirely off screen are. ``depth_eps`` is in window depth
 shallower depth buffer needs a larger one).
 
 Auto mode ("auto"): as :class:`~render.occlusion.OcclusionCuller`'s, with the
-read-back, the pyramid and the tests as the overhead: after ``auto_window`` frames
-on, if the draw time of what the HZB culled (objects culled × the measured cost
-per object drawn) is below that overhead, the culler draws everything it is given
-(frustum culling alone, no read-back) for ``auto_backoff`` frames, doubling after
-each further losing window, then tries again.
+read-back, the pyramid and the tests as the overhead: from the second frame of a
+trial on, if the draw time of what the HZB culled so far (objects culled × the
+measured cost per object drawn) is below that overhead, the culler draws everything
+it is given (frustum culling alone, no read-back) for ``auto_backoff`` frames,
+doubling after each further losing trial, then tries again; after ``auto_window``
+winning frames it stays on.
 
 What the caller provides: as for :class:`~render.occlusion.OcclusionCuller` (the
 target framebuffer bound with the culler's viewport, depth cleared or holding only
@@ -72,7 +73,7 @@ class HzbConfig:
     cut_reads: int = 3  # with no previous frame, the rest is drawn front to back in up to this many batches
     gpu_timers: bool = True  # time draw callbacks with GL timer queries (the callback must not use one itself)
     auto_window: int = 8  # auto: frames with HZB culling on between decisions
-    auto_backoff: int = 30  # auto: frames off after a losing window ...
+    auto_backoff: int = 60  # auto: frames off after a losing window ...
     auto_backoff_max: int = 480  # ... doubling after each further loss, up to this
     auto_margin: float = 1.0  # auto: stay on while saved time ≥ margin × overhead
 

@@ -53,10 +53,11 @@ on, the wall time of :meth:`OcclusionCuller.cull` minus the time spent in the
 draw callbacks (CPU, and GPU by timer queries, read a frame later): that is the
 overhead of culling. The saving is the billboards it culled times the measured
 cost of drawing one billboard (callback CPU + GPU time per billboard drawn,
-averaged over frames, also measured while off). After ``auto_window`` frames on,
-if the saving is below the overhead, occlusion culling goes off for
-``auto_backoff`` frames (doubling after each losing window up to
-``auto_backoff_max``), then is tried again. Waits on query results also contain
+averaged over frames, also measured while off). From the second frame of a trial on,
+if the saving so far is below the overhead, occlusion culling goes off for
+``auto_backoff`` frames (doubling after each losing trial up to
+``auto_backoff_max``), then is tried again; it stays on after ``auto_window``
+winning frames. A losing trial so costs two frames in ``auto_backoff``. Waits on query results also contain
 GPU time of earlier draws; that makes the overhead estimate high, so auto errs
 toward "frustum".
 
@@ -84,6 +85,8 @@ logger = logging.getLogger(__name__)
 
 SHADER = "occlusion_box.glsl"
 MODES = ("frustum", "occlusion", "auto")  # given frustum-culled objects: "none" is not its to choose
+#: auto: a trial that has not paid after this many frames ends there (a losing trial costs its frames).
+AUTO_EARLY_FRAMES = 2
 _UNDECIDED, _VISIBLE, _CULLED = 0, 1, 2
 
 
@@ -101,7 +104,7 @@ class OcclusionConfig:
     revisit_frames: int = 8  # such objects are re-tested within this many frames (staggered by key)
     gpu_timers: bool = True  # time draw callbacks with GL timer queries (the callback must not use one itself)
     auto_window: int = 8  # auto: frames with occlusion on between decisions
-    auto_backoff: int = 30  # auto: frames off after a losing window ...
+    auto_backoff: int = 60  # auto: frames off after a losing window ...
     auto_backoff_max: int = 480  # ... doubling after each further loss, up to this
     auto_margin: float = 1.0  # auto: stay on while saved time ≥ margin × overhead
 
@@ -340,12 +343,15 @@ class OcclusionCuller:
         if self._mode != "auto" or not rec.active:
             return
         self._window.append(rec)
-        if len(self._window) < self.config.auto_window:
+        full = len(self._window) >= self.config.auto_window
+        if not full and len(self._window) < min(AUTO_EARLY_FRAMES, self.config.auto_window):
             return
         cost = self.cost_per_billboard or 0.0
         culled = sum(r.billboards_culled for r in self._window)
         overhead = sum(max(r.wall_s - r.cb_cpu_s - r.cb_gpu_s, 0.0) for r in self._window)
         pays = auto_pays(culled, overhead, cost, self.config.auto_margin)
+        if pays and not full:
+            return  # on only after a whole winning window; off as soon as a trial clearly loses
         self.last_decision = dict(frame=self._frame, saved_s=culled * cost, overhead_s=overhead, pays=pays,
                                   frames=len(self._window))
         self._window = []
