@@ -64,6 +64,12 @@ DECODED_WIDTH = 8192  # texels per row of the decoded atlas (at most)
 BAND_ROWS = 64  # tiles per band of the decoded atlas: the tallest slit, in blocks
 
 
+def empty_stats() -> dict:
+    """The decoder's per-draw counts, all zero (see :meth:`GpuDecoder.draw`)."""
+    return {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "blended_tiles": 0,
+            "upload_bytes": 0, "lod": [0, 0, 0]}
+
+
 def atlas_layout(place: np.ndarray, slots: int, tile: int, limit: int) -> tuple[np.ndarray, tuple[int, int]]:
     """Texel origins (P, 2) int32 of places ``place`` (P,) int and the atlas size (w, h): bands of
     BAND_ROWS places, each place a row of ``slots`` t×t tiles, bands side by side up to
@@ -170,7 +176,7 @@ class GpuDecoder(GpuOwner):
         self.decoded_fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.decoded]))
         self.view_tiles = self._keep(self._atlas_texture(view_size, "f1"))
         self.view_fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.view_tiles]))
-        self.nbytes = (size[0] * size[1] + view_size[0] * view_size[1]) * 8
+        self.nbytes = size[0] * size[1] * 8 + view_size[0] * view_size[1] * 4
 
     def _atlas_texture(self, size, dtype: str = "f2") -> moderngl.Texture:
         zeros = np.zeros(size[0] * size[1] * 4, np.float16 if dtype == "f2" else np.uint8)
@@ -199,9 +205,9 @@ class GpuDecoder(GpuOwner):
 
     def draw(self, camera: GLCamera, visible=None, whole_columns: bool = False) -> dict:
         """Draw into the bound framebuffer; returns stats {draw_calls, instances, quads,
-        decoded_tiles, upload_bytes, lod} (instances: billboards drawn; quads: runs drawn, a
-        slit counting once; decoded_tiles: tiles the decode pass computed; lod: quads per level
-        of detail, full / reduced / mean).
+        decoded_tiles, blended_tiles, upload_bytes, lod} (instances: billboards drawn; quads:
+        runs drawn, a slit counting once; decoded_tiles, blended_tiles: tiles the decode and
+        pre-blend passes computed; lod: quads per level of detail, full / reduced / mean).
 
         visible: None (all billboards), (B,) int indices or an (n,) bool mask.
         ``whole_columns``: draw the whole slit of any facade block in ``visible``, each once per
@@ -211,8 +217,7 @@ class GpuDecoder(GpuOwner):
             raise RuntimeError("GpuDecoder used after release()")
         model = self.model
         visible = check_billboards(visible, model.num_billboards)
-        stats = {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "blended_tiles": 0,
-                 "upload_bytes": 0, "lod": [0, 0, 0]}
+        stats = empty_stats()
         if model.num_billboards == 0 or (visible is not None and len(visible) == 0):
             return stats
         start, count = self._runs(visible, whole_columns)
@@ -231,8 +236,7 @@ class GpuDecoder(GpuOwner):
         x1, y1) pixels. Levels of detail follow ``camera``; nothing is pre-blended. For the
         impostors' images: each switch of framebuffer makes llvmpipe finish the frame so far, and
         a draw per view costs more than its quads. Returns the summed stats."""
-        stats = {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "blended_tiles": 0,
-                 "upload_bytes": 0, "lod": [0, 0, 0]}
+        stats = empty_stats()
         for first in range(0, len(selections), MAX_VIEWS):
             runs = [exact_runs(self.slits, b) for b in selections[first:first + MAX_VIEWS]]
             start = np.concatenate([r[0] for r in runs])
@@ -248,11 +252,10 @@ class GpuDecoder(GpuOwner):
                                                     rects[first:first + MAX_VIEWS]))
         return stats
 
-    def _plan(self, camera: GLCamera, start: np.ndarray, count: np.ndarray, lod_camera: GLCamera | None = None):
+    def _plan(self, camera: GLCamera, start: np.ndarray, count: np.ndarray) -> _Plan:
         """What a draw of runs (start, count) needs: per run the centre, kind, weights, level and
         texel width; per block the position, the directions its slots must hold and its level."""
         model = self.model
-        lod_camera = camera if lod_camera is None else lod_camera
         top, bottom = self.slits.order[start], self.slits.order[start + count - 1]
         centre = 0.5 * (model.centres[top].astype(np.float64) + model.centres[bottom])
         direction, weight = view_brackets(camera.eye, centre, model.base_yaw[top], model.yaw_offsets,
@@ -261,10 +264,10 @@ class GpuDecoder(GpuOwner):
         positions = np.repeat(start - firsts, count) + np.arange(int(count.sum()))
         kind = model.kind[top]
         edge = np.where(kind == 0, model.voxel_size, model.block_size)
-        focal_px = float(lod_camera.projection[0, 0]) * lod_camera.size[0] / 2
+        focal_px = float(camera.projection[0, 0]) * camera.size[0] / 2
         # the level follows the whole column, so a slit cut by a selection keeps its blocks' level
         column_centre = self._column_centre[self.slits.column[start]]
-        texel_px = texel_pixels(lod_camera.eye, column_centre, edge, model.tile, focal_px)
+        texel_px = texel_pixels(camera.eye, column_centre, edge, model.tile, focal_px)
         level = self._levels(texel_px, positions, firsts, count)
         mean = level == 2  # the mean does not depend on the direction: one slot, any direction held
         weight[mean] = 0.0

@@ -6,19 +6,21 @@ setup on one thread. Such a node is drawn instead as one quad textured with an i
 its quads (a dynamic impostor, Schaufler 1995):
 
 - **Which nodes.** The octree nodes whose edge is closest to ``ImpostorConfig.node_edge``
-  and whose bounding sphere, seen from the eye, spans at most ``texels`` pixels, so the
-  impostor's texture is never coarser than the screen (with ``hysteresis`` on the
-  distance, so a node does not switch back and forth).
-- **The image.** The node's quads drawn by the decoder, with the eye's own perspective
-  cropped to the node's screen rectangle, into its ``texels``² tile of an RGBA8 atlas (with
-  depth, cleared transparent). The impostor quad is a plane through the node's centre,
-  facing the eye, covering the node's bounding sphere; its fragments look the image up
-  through the camera it was made with (projective texturing), so at that moment it shows
-  exactly what the quads would show, at the screen's resolution.
+  whose box (tight around its quads) spans at most ``texels`` pixels on screen either way
+  and lies wholly in front of the eye (with ``hysteresis`` on that size, so a node does
+  not switch back and forth).
+- **The image.** The node's quads drawn by the decoder with the eye's own perspective
+  cropped to the box's screen rectangle, into a part of the node's ``texels``² tile of an
+  RGBA8 atlas (with depth, cleared transparent) twice as fine as the node is on screen.
+  The impostor quad lies on the plane through the box's centre facing the eye, cut to
+  that rectangle; its fragments look the image up through the camera it was made with
+  (projective texturing), so at that moment it shows what the quads would show.
 - **Reuse.** The image is kept while the direction from the node to the eye stays within
-  ``max_angle_deg`` of the one it was made from and the distance within 10 %; then it is
-  made again, at most ``updates_per_frame`` per frame, the stalest first. A node whose
-  image is missing or too stale and not remade this frame is drawn in full, so quality
+  ``max_angle_deg`` of the one it was made from and the distance within 10 %. Images are
+  made at the start of a frame (leaving the frame's framebuffer would make llvmpipe finish
+  it), for nodes drawn far the frame before, at most ``updates_per_frame``, the stalest
+  first, all in one draw (:meth:`~render.gpu_decode.GpuDecoder.draw_views`). A far node
+  whose image is missing or more than twice the angle old is drawn in full, so quality
   never waits on the budget and no frame pays for every node at once.
 
 The split happens per selection of billboards (:meth:`Impostors.split`), so it works under

@@ -23,7 +23,7 @@ from .culling import CULL_MODES, frustum_cull_nodes, frustum_planes, model_quad_
 from .hzb_culler import HzbCuller
 from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
-from .gpu_decode import GpuDecoder
+from .gpu_decode import GpuDecoder, empty_stats
 from .impostors import Impostors
 from .lod import LodConfig
 from .resources import ModelResources
@@ -51,9 +51,9 @@ def add_stats(totals: dict, part: dict) -> None:
 class BillboardRenderer:
     """Renders ``model`` from OpenCV cameras into (h, w, 3) uint8 images.
 
-    decode: "gpu" (eigen-texture decode in the fragment shader, one instanced draw)
-    or "cpu" (numpy decode of each drawn billboard every frame, then one instanced
-    draw of the per-frame atlas). spherical: quads also pitch toward the eye; None
+    decode: "gpu" (eigen-textures decoded on the GPU once per sampled direction and kept,
+    :class:`~render.gpu_decode.GpuDecoder`) or "cpu" (numpy decode of each drawn billboard
+    every frame, then one instanced draw of the per-frame atlas). spherical: quads also pitch toward the eye; None
     takes the model's ``pitched_quads``. interpolate: blend the sampled view
     directions around the view (else the nearest one; settable between frames).
     linear: texels bilinear within each tile, never reading a neighbouring tile (else
@@ -64,11 +64,15 @@ class BillboardRenderer:
     over a screen-space quadtree, :class:`~render.occlusion.OcclusionCuller`); "hzb"
     (frustum, then a depth pyramid read back once per frame,
     :class:`~render.hzb_culler.HzbCuller`); "auto" (the HZB only while it pays for
-    itself, measured per frame).
+    itself, measured per frame). lod: level of detail of the GPU decode
+    (:class:`~render.lod.LodConfig`: fewer eigen images where a texel is below a pixel,
+    far octree nodes as impostors, :mod:`render.impostors`); None, the default, draws
+    every quad with every eigen image (evaluation does).
 
     After each :meth:`render` / :meth:`draw`, ``stats`` holds that frame's
-    draw_calls, instances, upload_bytes and timings (seconds), and with culling the
-    nodes and billboards left after each culling step.
+    draw_calls, instances, quads, tiles decoded and blended, LOD counts, upload_bytes and
+    timings (seconds), with culling the nodes and billboards left after each culling step,
+    and with impostors the impostors drawn and images made.
     """
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, decode: str = "gpu", *,
@@ -153,18 +157,15 @@ class BillboardRenderer:
         """Frustum culling over the octree nodes, then (occlusion/auto) the occlusion culler;
         far nodes as impostors (with level of detail). ``everything``: no culling (impostors only)."""
         model = self.model
-        updates = {"draw_calls": 0, "instances": 0, "upload_bytes": 0, "quads": 0, "decoded_tiles": 0,
-                   "blended_tiles": 0, "lod": [0, 0, 0]}  # and the impostors' images: their decoding counts
-        #                                                   with the frame, their quads apart
-        if self.impostors is not None:
+        totals = empty_stats()
+        if self.impostors is not None:  # images first: their decoding counts with the frame, their quads apart
             def draw_views(cam, projections, rects, selections):
                 part = self.decoder.draw_views(cam, projections, rects, selections)
-                add_stats(updates, {"decoded_tiles": part["decoded_tiles"], "upload_bytes": part["upload_bytes"]})
-                updates["impostor_quads"] = updates.get("impostor_quads", 0) + part["quads"]
-            updates.update(self.impostors.begin_frame(camera, draw_views))
+                add_stats(totals, {"decoded_tiles": part["decoded_tiles"], "upload_bytes": part["upload_bytes"]})
+                totals["impostor_quads"] = totals.get("impostor_quads", 0) + part["quads"]
+            totals.update(self.impostors.begin_frame(camera, draw_views))
         if everything:
-            totals = self._draw_blocks(camera, np.arange(model.num_billboards), updates)
-            return self._draw_impostors(camera, totals)
+            return self._draw_impostors(camera, self._draw_blocks(camera, np.arange(model.num_billboards), totals))
         t0 = time.perf_counter()
         view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
         pad = model_quad_radius(model)
@@ -174,7 +175,6 @@ class BillboardRenderer:
         after_frustum = int(np.sum(np.diff(frustum.visible_ranges, axis=1))) if len(frustum.visible_ranges) else 0
         info = {"billboards": model.num_billboards, "nodes_tested": frustum.nodes_tested,
                 "billboards_after_frustum": after_frustum, "frustum_s": time.perf_counter() - t0}
-        totals = updates  # the impostors' images count with the frame
 
         def draw_ranges(ranges) -> None:
             self._draw_blocks(camera, ranges_to_indices(ranges), totals)
