@@ -22,10 +22,19 @@ def walled_model():
     wall = np.stack([gx.ravel(), np.zeros(gx.size), gz.ravel()], 1)
     rng = np.random.default_rng(5)
     behind = np.stack([rng.uniform(-5, 5, 1500), rng.uniform(2, 12, 1500), rng.uniform(0.3, 5, 1500)], 1)
-    octree = build_octree(np.concatenate([wall, behind]), OctreeConfig(voxel_size=0.5, min_points=1))
+    return octree_model(np.concatenate([wall, behind]), base_yaw=-np.pi / 2, d_yaw=3, yaw_span_deg=60.0,
+                        page_size=256, seed=2)
+
+
+def octree_model(points: np.ndarray, base_yaw=None, **kwargs):
+    """A random model (tests.test_render_gpu.make_model) with a billboard in every occupied 0.5 m voxel
+    of ``points`` (n, 3) and the octree's node table (Morton order); ``base_yaw`` may be a function
+    of the billboards' world centres (n, 3)."""
+    octree = build_octree(points, OctreeConfig(voxel_size=0.5, min_points=1))
     centres = octree.centres() - octree.origin
-    model = make_model(centres, base_yaw=-np.pi / 2, voxel_size=0.5, d_yaw=3, yaw_span_deg=60.0,
-                       origin=octree.origin, page_size=256, seed=2)
+    if callable(base_yaw):
+        base_yaw = base_yaw(centres + octree.origin)
+    model = make_model(centres, base_yaw=base_yaw, voxel_size=0.5, origin=octree.origin, **kwargs)
     model.node_level = octree.node_level.astype(np.uint8)
     model.node_bounds = (octree.node_bounds() - octree.origin).astype(np.float32)
     model.node_children = octree.node_children.astype(np.int32)

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from billboards.octree import OctreeConfig, build_octree
 from render.camera import look_at
 from render.impostors import impostor_nodes
 from render.lod import ImpostorConfig, LodConfig
 from render.renderer import BillboardRenderer
 
-from .test_render_gpu import SKY, SKY_U8, intrinsics, make_model
+from .test_render_cull_draw import octree_model
+from .test_render_gpu import SKY, SKY_U8, intrinsics
 
 SIZE = (320, 180)
 
@@ -21,17 +21,8 @@ def long_street():
     """Two walls of billboards 8 m apart along 160 m of street, with the octree's node table."""
     x, z = np.meshgrid(np.arange(0.0, 160.0, 0.5), np.arange(0.25, 6.0, 0.5))
     walls = [np.stack([x.ravel(), np.full(x.size, y), z.ravel()], 1) for y in (-4.0, 4.0)]
-    octree = build_octree(np.concatenate(walls), OctreeConfig(voxel_size=0.5, min_points=1))
-    centres = octree.centres() - octree.origin
-    base_yaw = np.where(centres[:, 1] + octree.origin[1] > 0, -np.pi / 2, np.pi / 2)
-    model = make_model(centres, base_yaw=base_yaw, voxel_size=0.5, d_yaw=5, yaw_span_deg=160.0, rank=1,
-                       origin=octree.origin, page_size=1024, seed=4)
-    model.node_level = octree.node_level.astype(np.uint8)
-    model.node_bounds = (octree.node_bounds() - octree.origin).astype(np.float32)
-    model.node_children = octree.node_children.astype(np.int32)
-    model.node_range = octree.node_range.astype(np.int32)
-    model.check()
-    return model
+    return octree_model(np.concatenate(walls), base_yaw=lambda c: np.where(c[:, 1] > 0, -np.pi / 2, np.pi / 2),
+                        d_yaw=5, yaw_span_deg=160.0, rank=1, page_size=1024, seed=4)
 
 
 def test_every_billboard_has_one_node_of_the_level(long_street):
