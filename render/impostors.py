@@ -206,6 +206,10 @@ class Impostors(GpuOwner):
         rect[~in_front] = [[-np.inf, -np.inf], [np.inf, np.inf]]
         return rect
 
+    def forget(self) -> None:
+        """Drop every image (the decode's settings changed): far nodes are drawn in full until remade."""
+        self._made_dist[:] = 0.0
+
     def split(self, billboards: np.ndarray) -> np.ndarray:
         """Of ``billboards`` (B,) int, those to draw in full; the nodes of the rest are kept for :meth:`draw`."""
         b = np.asarray(billboards, np.int64)

@@ -117,6 +117,8 @@ class BillboardRenderer:
     @interpolate.setter
     def interpolate(self, value: bool) -> None:
         self.decoder.interpolate = bool(value)
+        if self.impostors is not None:
+            self.impostors.forget()  # images made the other way
 
     @property
     def linear(self) -> bool:
@@ -126,6 +128,8 @@ class BillboardRenderer:
     @linear.setter
     def linear(self, value: bool) -> None:
         self.decoder.linear = bool(value)
+        if self.impostors is not None:
+            self.impostors.forget()
 
     def camera(self, K, world_from_cam, size) -> GLCamera:
         """The :class:`GLCamera` of an OpenCV camera for this model's origin."""

@@ -82,3 +82,20 @@ def test_impostor_config_is_validated():
                 dict(hysteresis=1.0)):
         with pytest.raises(ValueError):
             ImpostorConfig(**bad)
+
+
+def test_changing_the_decode_settings_drops_the_images(ctx, long_street):
+    model = long_street
+    K = intrinsics(200.0, *SIZE)
+    eye = model.origin + [1.0, 0.0, 1.6]
+    pose = look_at(eye, eye + [60.0, 0.0, 1.0])
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, updates_per_frame=1000))
+    with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
+        for _ in range(2):
+            renderer.render(K, pose, SIZE)
+        assert renderer.stats["impostors"] > 0
+        renderer.render(K, pose, SIZE)
+        assert renderer.stats["impostor_updates"] == 0  # the same view: every image kept
+        renderer.interpolate = False
+        renderer.render(K, pose, SIZE)  # every image made again, the nearest direction's
+        assert renderer.stats["impostor_updates"] == renderer.stats["impostors"] > 0
