@@ -173,9 +173,18 @@ class BillboardRenderer:
         t0 = time.perf_counter()
         view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
         pad = model_quad_radius(model)
+        culler = None
+        if self.cull != "frustum":
+            culler = self._cullers.get(camera.size)
+            if culler is None:
+                kind = OcclusionCuller if self.cull == "occlusion" else HzbCuller  # hzb, auto: the HZB
+                culler = self._cullers[camera.size] = kind(self.ctx, *camera.size, mode=self.cull)
+        # objects of a useful size for occlusion tests; frustum culling alone (or auto while off)
+        # keeps inside nodes whole, which is cheaper
+        split = 256 if culler is not None and culler.active else None
         frustum = frustum_cull_nodes(frustum_planes(view_proj), model.node_bounds, model.node_children,
                                      model.node_range, pad=pad, centres=model.centres, radius=pad,
-                                     split_inside_above=None if self.cull == "frustum" else 256)
+                                     split_inside_above=split)
         after_frustum = int(np.sum(np.diff(frustum.visible_ranges, axis=1))) if len(frustum.visible_ranges) else 0
         info = {"billboards": model.num_billboards, "nodes_tested": frustum.nodes_tested,
                 "billboards_after_frustum": after_frustum, "frustum_s": time.perf_counter() - t0}
@@ -187,11 +196,6 @@ class BillboardRenderer:
             draw_ranges(frustum.visible_ranges)
             info["billboards_drawn"] = after_frustum
         else:
-            size = camera.size
-            culler = self._cullers.get(size)
-            if culler is None:
-                kind = OcclusionCuller if self.cull == "occlusion" else HzbCuller  # hzb, auto: the HZB
-                culler = self._cullers[size] = kind(self.ctx, size[0], size[1], mode=self.cull)
             cull = culler.cull_nodes(view_proj, frustum, model.node_bounds, draw_ranges, pad=pad)
             info.update(billboards_drawn=int(cull.billboards_drawn), objects=int(cull.objects),
                         objects_drawn=int(cull.objects_drawn), queries=int(cull.queries),
