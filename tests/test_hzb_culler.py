@@ -8,7 +8,8 @@ import pytest
 from render.hzb_culler import HzbConfig, HzbCuller
 
 from .boxes import BoxRenderer
-from .test_render_culling import H, W, gl, reference_image, render_frame, seen_ids, street_scene, view_proj  # noqa: F401
+from .test_render_culling import (H, W, auto_trials, gl, reference_image, render_frame, seen_ids,  # noqa: F401
+                                  street_scene, view_proj)
 
 
 @pytest.mark.parametrize("config", [{}, dict(temporal=False), dict(span=1, cut_reads=1), dict(span=2)])
@@ -72,17 +73,7 @@ def test_hzb_camera_inside_a_box_empty_scene_and_modes(gl):  # noqa: F811
 
 def test_hzb_auto_switches_off_when_nothing_is_hidden(gl):  # noqa: F811
     ctx, fbo = gl
-    x = np.linspace(-8, 8, 24)  # boxes in a row across the view: nothing hides anything
-    lo = np.stack([x - 0.3, np.full_like(x, 15.0), np.full_like(x, -0.3)], axis=1)
-    hi = lo + 0.6
-    vp = view_proj((0, 0, 0), (0, 10, 0), aspect=W / H, near=0.1, far=200)
     cfg = HzbConfig(auto_window=3, auto_backoff=4, auto_backoff_max=8)
-    with BoxRenderer(ctx, lo, hi) as boxes, HzbCuller(ctx, W, H, mode="auto", config=cfg) as culler:
-        ref = reference_image(ctx, fbo, boxes, vp)
-        active = []
-        for _ in range(12):
-            image, stats = render_frame(ctx, fbo, boxes, culler, vp, lo, hi)
-            np.testing.assert_array_equal(image, ref)
-            active.append(stats.active)
-        assert active == [True] * 2 + [False] * 4 + [True] * 2 + [False] * 4  # a losing trial: 2 frames
-        assert culler.last_decision["pays"] is False
+    active, culler = auto_trials(ctx, fbo, lambda c, w, h: HzbCuller(c, w, h, mode="auto", config=cfg), 12)
+    assert active == [True] * 2 + [False] * 4 + [True] * 2 + [False] * 4  # a losing trial: 2 frames
+    assert culler.last_decision["pays"] is False

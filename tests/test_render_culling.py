@@ -471,28 +471,35 @@ def test_camera_inside_a_box_and_empty_scene(gl):
         assert (image == 0).all() and stats.objects == 0 and stats.draw_calls == 0 and stats.queries == 0
 
 
-def test_auto_mode_switches_off_when_nothing_is_culled_and_retries(gl):
-    from render.occlusion import OcclusionConfig, OcclusionCuller, auto_pays
-
+def auto_trials(ctx, fbo, make_culler, frames: int) -> tuple[list[bool], object]:
+    """Frames of an auto culler (``make_culler(ctx, W, H)``) over boxes in a row across the view, where
+    nothing hides anything: whether it culled in each frame (the image always the reference's)."""
     from .boxes import BoxRenderer
-    ctx, fbo = gl
-    # boxes in a row across the view: nothing hides anything
+
     x = np.linspace(-8, 8, 24)
     lo = np.stack([x - 0.3, np.full_like(x, 15.0), np.full_like(x, -0.3)], axis=1)
     hi = lo + 0.6
     vp = view_proj((0, 0, 0), (0, 10, 0), aspect=W / H, near=0.1, far=200)
-    cfg = OcclusionConfig(auto_window=3, auto_backoff=4, auto_backoff_max=8)
-    with BoxRenderer(ctx, lo, hi) as boxes, OcclusionCuller(ctx, W, H, mode="auto", config=cfg) as culler:
+    with BoxRenderer(ctx, lo, hi) as boxes, make_culler(ctx, W, H) as culler:
         ref = reference_image(ctx, fbo, boxes, vp)
         active = []
-        for _ in range(16):
+        for _ in range(frames):
             image, stats = render_frame(ctx, fbo, boxes, culler, vp, lo, hi)
             np.testing.assert_array_equal(image, ref)
             active.append(stats.active)
             assert stats.objects_drawn == len(lo)
-        # a losing trial ends after 2 frames: on 2, off 4, on 2, off 8 (backoff doubled)
-        assert active == [True] * 2 + [False] * 4 + [True] * 2 + [False] * 8
-        assert culler.last_decision["pays"] is False and culler.cost_per_billboard is not None
+        return active, culler
+
+
+def test_auto_mode_switches_off_when_nothing_is_culled_and_retries(gl):
+    from render.occlusion import OcclusionConfig, OcclusionCuller, auto_pays
+
+    ctx, fbo = gl
+    cfg = OcclusionConfig(auto_window=3, auto_backoff=4, auto_backoff_max=8)
+    active, culler = auto_trials(ctx, fbo, lambda c, w, h: OcclusionCuller(c, w, h, mode="auto", config=cfg), 16)
+    # a losing trial ends after 2 frames: on 2, off 4, on 2, off 8 (backoff doubled)
+    assert active == [True] * 2 + [False] * 4 + [True] * 2 + [False] * 8
+    assert culler.last_decision["pays"] is False and culler.cost_per_billboard is not None
     assert not auto_pays(0, 0.0, 1.0)
     assert auto_pays(100, 1e-3, 2e-5) and not auto_pays(10, 1e-3, 2e-5)
 
