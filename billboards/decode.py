@@ -13,8 +13,9 @@ from .atlas import read_rows, read_tiles
 from .model import BillboardModel
 
 
-def _bracket(index: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Neighbouring sample indices (i0, i1) and weight of i1 for fractional ``index``, clamped."""
+def bracket(index: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Neighbouring sample indices (i0, i1) (B,) int64 and the weight of i1 (B,) float32 for
+    fractional ``index`` (B,) over ``count`` samples, clamped."""
     x = np.clip(index, 0, count - 1)
     i0 = np.minimum(np.floor(x).astype(np.int64), max(count - 2, 0))
     i1 = np.minimum(i0 + 1, count - 1)
@@ -62,8 +63,8 @@ def decode(model: BillboardModel, billboards, yaw_index, pitch_index=None) -> np
     if not (np.all(np.isfinite(yi)) and np.all(np.isfinite(pi))):
         raise ValueError("direction indices must be finite")
     dy = len(model.yaw_offsets)
-    y0, y1, fy = _bracket(yi, dy)
-    p0, p1, fp = _bracket(pi, len(model.pitches))
+    y0, y1, fy = bracket(yi, dy)
+    p0, p1, fp = bracket(pi, len(model.pitches))
     corners = np.stack([p0 * dy + y0, p0 * dy + y1, p1 * dy + y0, p1 * dy + y1], axis=1)  # (B, 4)
     weights = np.stack([(1 - fy) * (1 - fp), fy * (1 - fp), (1 - fy) * fp, fy * fp], axis=1)
     first = model.first_slot[b].astype(np.int64)
@@ -106,9 +107,17 @@ def direction_index(model: BillboardModel, billboards, view_dirs) -> tuple[np.nd
     v = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
     if len(v) != b.size:
         raise ValueError(f"{b.size} billboards but {len(v)} view directions")
-    yaw = np.arctan2(v[:, 1], v[:, 0]) - model.base_yaw[b].astype(np.float64)
+    return view_direction_index(v, model.base_yaw[b], model.yaw_offsets, model.pitches)
+
+
+def view_direction_index(view_dirs: np.ndarray, base_yaw: np.ndarray, yaw_offsets: np.ndarray,
+                         pitches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`direction_index` from arrays: view_dirs (B, 3) float64 toward the viewer, base_yaw (B,),
+    yaw_offsets (d_yaw,), pitches (d_pitch,) radians → (yaw_index (B,), pitch_index (B,)) float64."""
+    v = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
+    yaw = np.arctan2(v[:, 1], v[:, 0]) - np.asarray(base_yaw, np.float64)
     yaw = np.pi - np.mod(np.pi - yaw, 2 * np.pi)
     pitch = np.arctan2(v[:, 2], np.hypot(v[:, 0], v[:, 1]))
-    yi = np.interp(yaw, model.yaw_offsets, np.arange(len(model.yaw_offsets), dtype=np.float64))
-    pi = np.interp(pitch, model.pitches, np.arange(len(model.pitches), dtype=np.float64))
+    yi = np.interp(yaw, yaw_offsets, np.arange(len(yaw_offsets), dtype=np.float64))
+    pi = np.interp(pitch, pitches, np.arange(len(pitches), dtype=np.float64))
     return yi, pi

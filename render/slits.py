@@ -136,15 +136,35 @@ def exact_runs_reference(slits: Slits, billboards) -> tuple[np.ndarray, np.ndarr
 def pack_columns(column_count: np.ndarray, rows: int) -> np.ndarray:
     """Place columns (counts (c,) int, each ≤ rows) one after another into bands of ``rows``
     places, never across a band's end: (c,) int64 place of each column's first block (the
-    band is place // rows). Blocks of a column then sit at consecutive places of one band."""
+    band is place // rows). Blocks of a column then sit at consecutive places of one band.
+
+    Only columns of several blocks can cross a band's end: the loop runs over those (the
+    slits), the single blocks between them are placed in one step each stretch."""
     counts = np.asarray(column_count, np.int64)
     if len(counts) and counts.max() > rows:
         raise ValueError(f"a column of {counts.max()} blocks does not fit a band of {rows}")
     first = np.empty(len(counts), np.int64)
-    place = 0
-    for i, c in enumerate(counts.tolist()):
-        if place % rows + c > rows:
+    place = done = 0
+    for i in np.flatnonzero(counts > 1).tolist():
+        first[done:i] = place + np.arange(i - done)  # single blocks: consecutive places
+        place += i - done
+        if place % rows + counts[i] > rows:
             place += rows - place % rows
         first[i] = place
-        place += c
+        place += int(counts[i])
+        done = i + 1
+    first[done:] = place + np.arange(len(counts) - done)
     return first
+
+
+def pack_columns_reference(column_count, rows: int) -> np.ndarray:
+    """Slow, obvious :func:`pack_columns`: every column in turn, moved to the next band when it would cross."""
+    first, place = [], 0
+    for c in (int(c) for c in column_count):
+        if c > rows:
+            raise ValueError(f"a column of {c} blocks does not fit a band of {rows}")
+        if place % rows + c > rows:
+            place += rows - place % rows
+        first.append(place)
+        place += c
+    return np.array(first, np.int64)

@@ -9,25 +9,20 @@ next bracket the corner it shares with the last one is still in its slot, so onl
 new side is decoded. This is the decode reuse of the renderer: a tile is decoded again
 only when the direction its slot must hold changes.
 
-:func:`view_brackets` mirrors :func:`billboards.decode.direction_index` and the
-bilinear bracketing of :func:`billboards.decode.decode` (float64), which the tests
-compare with.
+:func:`view_brackets` uses the CPU decode's direction indices and bracketing
+(:mod:`billboards.decode`), so both decodes blend the same directions.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from billboards.decode import bracket, view_direction_index
+
 
 def storage_slots(num_pitches: int) -> int:
     """Decoded tiles kept per billboard: 2 with one sampled pitch, else 4."""
     return 2 if num_pitches <= 1 else 4
-
-
-def _bracket(index: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    x = np.clip(index, 0, count - 1)
-    i0 = np.minimum(np.floor(x).astype(np.int64), max(count - 2, 0))
-    return i0, np.minimum(i0 + 1, count - 1), x - i0
 
 
 def view_brackets(eye, centres: np.ndarray, base_yaw: np.ndarray, yaw_offsets: np.ndarray, pitches: np.ndarray,
@@ -44,15 +39,13 @@ def view_brackets(eye, centres: np.ndarray, base_yaw: np.ndarray, yaw_offsets: n
     # or below a quad its yaw is atan2 of rounding noise, and both decodes must see the same noise.
     c = np.asarray(centres, np.float32).reshape(-1, 3)
     v = (np.asarray(eye, np.float64).reshape(1, 3).astype(np.float32) - c).astype(np.float64)
-    yaw = np.arctan2(v[:, 1], v[:, 0]) - np.asarray(base_yaw, np.float64)
-    yaw = np.pi - np.mod(np.pi - yaw, 2 * np.pi)
-    pitch = np.arctan2(v[:, 2], np.hypot(v[:, 0], v[:, 1]))
     dy, dp = len(yaw_offsets), len(pitches)
-    y0, y1, fy = _bracket(np.interp(yaw, yaw_offsets, np.arange(dy, dtype=np.float64)), dy)
-    p0, p1, fp = _bracket(np.interp(pitch, pitches, np.arange(dp, dtype=np.float64)), dp)
+    yi, pi = view_direction_index(v, base_yaw, yaw_offsets, pitches)
+    y0, y1, fy = bracket(yi, dy)
+    p0, p1, fp = bracket(pi, dp)
     if not interpolate:
-        fy = (fy >= 0.5).astype(np.float64)
-        fp = (fp >= 0.5).astype(np.float64)
+        fy = (fy >= 0.5).astype(np.float32)
+        fp = (fp >= 0.5).astype(np.float32)
     slots = storage_slots(dp)
     direction = np.full((len(c), slots), -1, np.int32)
     weight = np.zeros((len(c), slots), np.float64)

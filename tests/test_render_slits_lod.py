@@ -8,7 +8,8 @@ import pytest
 from billboards.decode import direction_index
 from billboards.geometry import BILLBOARD, FACADE, GROUND
 from render.lod import LodConfig, lod_levels, texel_pixels
-from render.slits import build_slits, exact_runs, exact_runs_reference, pack_columns, whole_runs
+from render.slits import (build_slits, exact_runs, exact_runs_reference, pack_columns, pack_columns_reference,
+                          whole_runs)
 from render.view_brackets import storage_slots, view_brackets
 
 from .test_render_gpu import make_model
@@ -84,6 +85,9 @@ def test_pack_columns_never_crosses_a_band():
     rng = np.random.default_rng(3)
     counts = rng.integers(1, 9, 500)
     first = pack_columns(counts, 8)
+    assert np.array_equal(first, pack_columns_reference(counts, 8))
+    mostly_single = np.where(rng.random(500) < 0.8, 1, counts)  # as in a street: few slits among blocks
+    assert np.array_equal(pack_columns(mostly_single, 8), pack_columns_reference(mostly_single, 8))
     assert np.all(first // 8 == (first + counts - 1) // 8)
     assert np.all(np.diff(first) >= counts[:-1])
     assert len(pack_columns(np.zeros(0, int), 8)) == 0

@@ -6,6 +6,8 @@
 // t × blocks·t pixels at its place in the view atlas. The view atlas is RGBA8: the blend is
 // clamped as it is stored, as the CPU decode clamps before filtering.
 
+#include "atlas_rect.glsl"
+
 #if defined VERTEX_SHADER
 
 in ivec2 in_source;    // top-left texel of the block's storage slot 0 in the decoded atlas
@@ -24,9 +26,7 @@ void main() {
     v_source = in_source;
     v_target = in_target;
     v_weights = in_weights;
-    vec2 corner = vec2(float(gl_VertexID & 1), float((gl_VertexID >> 1) & 1));
-    gl_Position = vec4((vec2(in_target) + corner * vec2(u_tile, u_tile * in_blocks)) / u_target_size * 2.0 - 1.0,
-                       0.0, 1.0);
+    gl_Position = atlas_rect_corner(vec2(in_target), vec2(u_tile, u_tile * in_blocks), u_target_size, 0.0);
 }
 
 #elif defined FRAGMENT_SHADER

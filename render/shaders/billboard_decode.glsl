@@ -8,6 +8,7 @@
 
 #include "billboard_quad.glsl"
 #include "billboard_slots.glsl"
+#include "atlas_rect.glsl"
 
 #if defined VERTEX_SHADER
 
@@ -25,8 +26,7 @@ void main() {
     v_origin = in_origin;
     v_slot = in_slot;
     v_direction = in_direction;
-    vec2 corner = vec2(float(gl_VertexID & 1), float((gl_VertexID >> 1) & 1));
-    gl_Position = vec4((vec2(v_origin) + corner * float(u_tile)) / u_decoded_size * 2.0 - 1.0, 0.0, 1.0);
+    gl_Position = atlas_rect_corner(vec2(in_origin), vec2(u_tile), u_decoded_size, 0.0);
 }
 
 #elif defined FRAGMENT_SHADER
