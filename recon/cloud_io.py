@@ -18,9 +18,40 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from core.fileio import DataFormatError, atomic_path
+from core.fileio import DataFormatError, atomic_path, read_json, write_json
 
 CLOUD_SUFFIXES = (".ply", ".pcd")
+TILE_INDEX_FORMAT = "bbcity-cloud-tiles"
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    """Square xy tiles of ``size`` metres from ``origin`` (3,) float64 world: tile (i, j)
+    holds the points with floor((x − origin_x) / size) = i and likewise j."""
+
+    origin: tuple[float, float, float]
+    size: float
+
+    def __post_init__(self):
+        if not (len(self.origin) == 3 and all(np.isfinite(self.origin))):
+            raise ValueError(f"TileGrid.origin must be three finite numbers, got {self.origin!r}")
+        if not (np.isfinite(self.size) and self.size > 0):
+            raise ValueError(f"TileGrid.size must be a finite number > 0, got {self.size!r}")
+
+    def tile_of(self, points: np.ndarray) -> np.ndarray:
+        """(n, 3) float64 world → (n, 2) int64 tile indices."""
+        return np.floor((points[:, :2] - np.asarray(self.origin[:2])) / self.size).astype(np.int64)
+
+    def box(self, index) -> tuple[np.ndarray, np.ndarray]:
+        """xy bounds (2,), (2,) float64 world of tile ``index`` (lower closed, upper open)."""
+        lo = np.asarray(self.origin[:2], np.float64) + np.asarray(index, np.float64) * self.size
+        return lo, lo + self.size
+
+
+def tile_index_path(cloud: os.PathLike | str) -> Path:
+    """Where the tile index of a cloud lives: ``cloud.ply`` → ``cloud_tiles.json``."""
+    cloud = Path(cloud)
+    return cloud.with_name(f"{cloud.stem}_tiles.json")
 
 
 def write_cloud(path: os.PathLike | str, pcd: o3d.geometry.PointCloud) -> Path:
@@ -42,10 +73,19 @@ class PlyStreamWriter:
     it into place. An exception inside the ``with`` block leaves nothing behind.
     Layout: double x, y, z; float nx, ny, nz (if ``normals``); uchar red, green, blue
     (what Open3D writes and reads).
+
+    With ``tiles`` each :meth:`append` names the spatial tile its rows belong to (a tile's
+    rows in one run of appends) and closing writes the tile index beside the cloud
+    (:func:`tile_index_path`) after the cloud itself, so that readers can take one tile
+    at a time (:func:`read_cloud_tiles`). An earlier index goes just before the new cloud
+    replaces the old one (it would describe another cloud); a cloud without an index is
+    read whole.
     """
 
-    def __init__(self, path: os.PathLike | str, normals: bool = True):
+    def __init__(self, path: os.PathLike | str, normals: bool = True, tiles: TileGrid | None = None):
         self.path = Path(path)
+        self.tiles = tiles
+        self._ranges: list[tuple[tuple[int, int], int, int, np.ndarray, np.ndarray]] = []
         if self.path.suffix.lower() != ".ply":
             raise ValueError(f"{self.path}: streamed clouds are PLY")
         fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
@@ -63,8 +103,12 @@ class PlyStreamWriter:
         self._body = open(self._body_path, "wb")
         return self
 
-    def append(self, points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None = None) -> None:
-        """points (n, 3) float64, colours (n, 3) uint8, normals (n, 3) float (if enabled)."""
+    def append(self, points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None = None,
+               tile: tuple[int, int] | None = None) -> None:
+        """points (n, 3) float64, colours (n, 3) uint8, normals (n, 3) float (if enabled);
+        tile: the (x, y) tile index of these rows (required with ``tiles``)."""
+        if self.tiles is not None:
+            self._add_range(tile, points)
         rows = np.empty(len(points), self.dtype)
         for i, axis in enumerate("xyz"):
             rows[axis] = points[:, i]
@@ -85,8 +129,35 @@ class PlyStreamWriter:
                 with atomic_path(self.path) as tmp, open(tmp, "wb") as out, open(self._body_path, "rb") as body:
                     out.write(header.encode("ascii"))
                     shutil.copyfileobj(body, out, 16 << 20)
+                    out.flush()
+                    tile_index_path(self.path).unlink(missing_ok=True)  # it describes the cloud being replaced
+                if self.tiles is not None:
+                    self._write_index(len(header))
         finally:
             self._body_path.unlink(missing_ok=True)
+
+    def _add_range(self, tile, points: np.ndarray) -> None:
+        if tile is None:
+            raise ValueError(f"{self.path}: a tiled cloud's rows need their tile")
+        tile = (int(tile[0]), int(tile[1]))
+        if not len(points):
+            return
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        if self._ranges and self._ranges[-1][0] == tile:
+            _, first, count, lo0, hi0 = self._ranges[-1]
+            self._ranges[-1] = (tile, first, count + len(points), np.minimum(lo, lo0), np.maximum(hi, hi0))
+        elif any(r[0] == tile for r in self._ranges):
+            raise ValueError(f"{self.path}: the rows of tile {tile} must be appended in one run")
+        else:
+            self._ranges.append((tile, self.count, len(points), lo, hi))
+
+    def _write_index(self, header_bytes: int) -> None:
+        write_json(tile_index_path(self.path), {
+            "format": TILE_INDEX_FORMAT, "version": 1, "cloud": self.path.name,
+            "points": self.count, "bytes": header_bytes + self.count * self.dtype.itemsize,
+            "origin": [float(v) for v in self.tiles.origin], "tile_size": float(self.tiles.size),
+            "tiles": [{"index": list(t), "first": int(f), "count": int(c), "lo": lo.tolist(), "hi": hi.tolist()}
+                      for t, f, c, lo, hi in self._ranges]})
 
 
 def read_cloud(path: os.PathLike | str, require_colours: bool = True) -> o3d.geometry.PointCloud:
@@ -372,3 +443,90 @@ def read_cloud_arrays(path: os.PathLike | str, require_colours: bool = True
     points, colours = _points_and_colours(path, columns, layout, require_colours)
     del columns
     return points, colours
+
+
+@dataclass(frozen=True, eq=False)
+class CloudTiles:
+    """A cloud written tile by tile and its index: which rows hold which tile's points.
+
+    path: the cloud (binary PLY); grid: its tiles; index (k, 2) int64 tile indices;
+    first, count (k,) int64 rows of each tile; lo, hi (k, 3) float64 world bounds of the
+    tile's points. Tiles are in the cloud's row order.
+    """
+
+    path: Path
+    grid: TileGrid
+    index: np.ndarray
+    first: np.ndarray
+    count: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @property
+    def num_points(self) -> int:
+        return int(self.count.sum())
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World bounds (3,), (3,) float64 of all points."""
+        return self.lo.min(axis=0), self.hi.max(axis=0)
+
+    def overlapping(self, lo, hi) -> np.ndarray:
+        """Rows (m,) int64 of the tiles whose points' bounds meet the xy box [lo, hi] (2,) world."""
+        lo, hi = np.asarray(lo, np.float64)[:2], np.asarray(hi, np.float64)[:2]
+        meets = np.all((self.lo[:, :2] <= hi) & (self.hi[:, :2] >= lo), axis=1)
+        return np.flatnonzero(meets)
+
+    def read(self, rows, require_colours: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """The points of tiles ``rows`` (indices into this index), in row order: points
+        (n, 3) float64 world, colours (n, 3) uint8 or None. Reads those rows only."""
+        layout = _ply_layout(self.path)
+        data = np.memmap(self.path, dtype=layout.dtype, mode="r", offset=layout.offset, shape=(layout.count,))
+        parts = [data[self.first[r]:self.first[r] + self.count[r]] for r in np.asarray(rows, np.int64).tolist()]
+        rows_read = np.concatenate(parts) if parts else data[:0]
+        del data
+        columns = {name: rows_read[name] for name in layout.dtype.names}
+        fake = _PlyLayout(layout.format, layout.offset, layout.dtype, len(rows_read), layout.types)
+        return _points_and_colours(self.path, columns, fake, require_colours)
+
+
+def read_cloud_tiles(path: os.PathLike | str) -> CloudTiles | None:
+    """The tile index of the cloud at ``path`` (:class:`CloudTiles`), or None when it has none.
+
+    The index must describe this cloud: its point count and byte size, ranges that
+    cover the rows once in order, finite bounds; else :class:`DataFormatError` names it.
+    """
+    path = Path(path)
+    index_path = tile_index_path(path)
+    if not index_path.is_file():
+        return None
+    doc = read_json(index_path)
+    try:
+        if doc["format"] != TILE_INDEX_FORMAT or doc["version"] != 1:
+            raise DataFormatError(index_path, f"not a version 1 {TILE_INDEX_FORMAT} file")
+        grid = TileGrid(tuple(float(v) for v in doc["origin"]), float(doc["tile_size"]))
+        tiles = doc["tiles"]
+        index = np.array([t["index"] for t in tiles], np.int64).reshape(-1, 2)
+        first = np.array([t["first"] for t in tiles], np.int64)
+        count = np.array([t["count"] for t in tiles], np.int64)
+        lo = np.array([t["lo"] for t in tiles], np.float64).reshape(-1, 3)
+        hi = np.array([t["hi"] for t in tiles], np.float64).reshape(-1, 3)
+        points, size = int(doc["points"]), int(doc["bytes"])
+    except DataFormatError:
+        raise
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataFormatError(index_path, f"malformed tile index ({type(e).__name__}: {e})") from None
+    if not path.is_file():
+        raise DataFormatError(path, "point cloud file is missing (its tile index is there)")
+    layout = _ply_layout(path)
+    actual = path.stat().st_size
+    if layout.format == "ascii" or layout.count != points or actual != size:
+        raise DataFormatError(index_path, f"describes a cloud of {points} points and {size} bytes, {path.name} "
+                                          f"has {layout.count} points and {actual} bytes: a stale index; run "
+                                          "recon again")
+    ends = np.concatenate([[0], np.cumsum(count)])
+    if (np.any(count < 1) or not np.array_equal(first, ends[:-1]) or ends[-1] != points
+            or len(np.unique(index, axis=0)) != len(index)):
+        raise DataFormatError(index_path, "tile ranges must cover the cloud's rows once, in order, each tile once")
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and np.all(lo <= hi)):
+        raise DataFormatError(index_path, "tile bounds must be finite with lo ≤ hi")
+    return CloudTiles(path, grid, index, first, count, lo, hi)

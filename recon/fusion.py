@@ -22,6 +22,9 @@ import numpy as np
 import open3d as o3d
 
 from core.fileio import load_npy, save_npy
+from core.tasks import executor_workers, ordered_results, run_tasks
+
+from .cloud_io import TileGrid
 
 logger = logging.getLogger(__name__)
 
@@ -113,6 +116,11 @@ class TileSpill:
         self.origin = np.asarray(origin, dtype=np.float64)
         self.cfg = cfg
         self.tile_voxels = max(1, int(round(cfg.tile_size / cfg.voxel_size)))
+
+    @property
+    def grid(self) -> TileGrid:
+        """The spill's tiles as a :class:`~recon.cloud_io.TileGrid` (a merged cloud's tile index)."""
+        return TileGrid(tuple(float(v) for v in self.origin), self.tile_voxels * self.cfg.voxel_size)
 
     def tile_of(self, keys: np.ndarray) -> np.ndarray:
         """(k,) keys → (k, 2) int64 tile xy index."""
@@ -232,24 +240,26 @@ def _reduce_tile(task: tuple[TileSpill, tuple[int, int]]) -> int:
 
 
 def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
-                sink: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None],
-                executor: Executor | None = None) -> int:
+                sink: Callable[..., None], executor: Executor | None = None) -> int:
     """Finish the fusion tile by tile: reduce, filter with neighbour context,
     estimate normals, and hand each tile's points, in tile order, to
-    ``sink(points (k, 3) float64 world, colours (k, 3) uint8, normals (k, 3) float64 or None)``.
+    ``sink(points (k, 3) float64 world, colours (k, 3) uint8, normals (k, 3) float64 or None,
+    tile=(i, j))`` (the tile's index in :meth:`TileSpill.grid`).
     camera_centres: (c, 3) float64 world (orients normals). executor: tiles run
     in parallel (all are reduced before any is filtered, since filtering reads
-    the neighbours). Returns the points written. Memory per worker is bounded
-    by a 3×3 block of tiles.
+    the neighbours), a few ahead of the sink. Returns the points written. Memory per
+    worker is bounded by a 3×3 block of tiles, in this process by the tiles in flight.
     """
     tiles = spill.tiles()
     present = set(tiles)
     cams_rel = np.asarray(camera_centres, dtype=np.float64) - spill.origin
-    run = map if executor is None else executor.map
-    list(run(_reduce_tile, [(spill, t) for t in tiles]))
+    run_tasks(_reduce_tile, [(spill, t) for t in tiles], executor, desc="reduce", progress=False)
     total = 0
-    for p, c, n in run(_finish_tile, [(spill, t, present, cams_rel) for t in tiles]):
-        sink(p, c, n)
+    window = 2 * executor_workers(executor)
+    finished = ordered_results(_finish_tile, [(spill, t, present, cams_rel) for t in tiles], executor,
+                               window=window, desc="merge", progress=False)
+    for tile, (p, c, n) in zip(tiles, finished):
+        sink(p, c, n, tile=tile)
         total += len(p)
     return total
 
@@ -257,7 +267,7 @@ def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
 def merge_to_cloud(spill: TileSpill, camera_centres: np.ndarray) -> o3d.geometry.PointCloud:
     """:func:`merge_tiles` into one in-memory Open3D cloud (tests, small scenes)."""
     parts: list = []
-    merge_tiles(spill, camera_centres, lambda p, c, n: parts.append((p, c, n)))
+    merge_tiles(spill, camera_centres, lambda p, c, n, tile: parts.append((p, c, n)))
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate([p for p, _, _ in parts])))
     pcd.colors = o3d.utility.Vector3dVector(np.concatenate([c for _, c, _ in parts]) / 255.0)
     if spill.cfg.normals:

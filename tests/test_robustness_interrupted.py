@@ -140,8 +140,8 @@ def test_recon_interrupted_keeps_the_previous_run_or_leaves_no_report(tiny_datas
     real_merge = recon_pipeline.merge_tiles
 
     def dying_merge(spill, centres, append, executor=None):
-        def append_then_die(*args):
-            append(*args)
+        def append_then_die(*args, **kwargs):
+            append(*args, **kwargs)
             raise KeyboardInterrupt("killed while writing cloud.ply")
         return real_merge(spill, centres, append_then_die, executor)
 

@@ -1,0 +1,87 @@
+"""The cloud's tile index: written by recon's merge, read one tile at a time."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from core.fileio import DataFormatError
+from recon.cloud_io import PlyStreamWriter, TileGrid, read_cloud_arrays, read_cloud_tiles, tile_index_path
+from recon.pipeline import ReconConfig, main as recon_main
+
+
+@pytest.fixture(scope="module")
+def tiled_work(tiny_dataset, tmp_path_factory):
+    work = tmp_path_factory.mktemp("tiles") / "work"
+    from recon.fusion import FusionConfig
+
+    recon_main(ReconConfig(fusion=FusionConfig(tile_size=8.0), evaluate=False), tiny_dataset, work, progress=False)
+    return work
+
+
+def test_recon_writes_an_index_whose_tiles_are_the_cloud(tiled_work):
+    cloud = tiled_work / "cloud.ply"
+    tiles = read_cloud_tiles(cloud)
+    assert tiles is not None and len(tiles.index) >= 3  # a 30 m street in 8 m tiles
+    points, colours = read_cloud_arrays(cloud)
+    assert tiles.num_points == len(points)
+    every_p, every_c = tiles.read(np.arange(len(tiles.index)))
+    np.testing.assert_array_equal(every_p, points)
+    np.testing.assert_array_equal(every_c, colours)
+    for row in range(len(tiles.index)):
+        p, _ = tiles.read([row])
+        assert len(p) == tiles.count[row]
+        np.testing.assert_array_equal(p.min(axis=0), tiles.lo[row])
+        np.testing.assert_array_equal(p.max(axis=0), tiles.hi[row])
+        lo, hi = tiles.grid.box(tiles.index[row])
+        # voxel means lie in their voxels, hence in their tile (up to rounding at its edges)
+        assert np.all(p[:, :2] >= lo - 1e-6) and np.all(p[:, :2] <= hi + 1e-6)
+    x0 = float(tiles.lo[:, 0].min())
+    near = tiles.overlapping([x0, -1e9], [x0 + 1.0, 1e9])
+    assert 0 < len(near) < len(tiles.index)
+    assert np.all(tiles.lo[near, 0] <= x0 + 1.0)
+
+
+def test_a_stale_or_broken_index_is_refused_by_name(tiled_work, tmp_path):
+    cloud = tmp_path / "cloud.ply"
+    cloud.write_bytes((tiled_work / "cloud.ply").read_bytes())
+    index = tile_index_path(cloud)
+    doc = json.loads(tile_index_path(tiled_work / "cloud.ply").read_text())
+    index.write_text(json.dumps({**doc, "points": doc["points"] + 1}))
+    with pytest.raises(DataFormatError, match="cloud_tiles.json.*stale"):
+        read_cloud_tiles(cloud)
+    broken = dict(doc)
+    broken["tiles"] = doc["tiles"][1:] + doc["tiles"][:1]
+    index.write_text(json.dumps(broken))
+    with pytest.raises(DataFormatError, match="cover the cloud's rows once"):
+        read_cloud_tiles(cloud)
+    index.write_text("{}")
+    with pytest.raises(DataFormatError, match="cloud_tiles.json"):
+        read_cloud_tiles(cloud)
+    index.unlink()
+    assert read_cloud_tiles(cloud) is None
+
+
+def test_writer_tiles(tmp_path):
+    grid = TileGrid((0.0, 0.0, 0.0), 4.0)
+    path = tmp_path / "c.ply"
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(0, 4, (10, 3)), rng.uniform(4, 8, (5, 3))
+    colours = np.zeros((10, 3), np.uint8)
+    with PlyStreamWriter(path, normals=False, tiles=grid) as writer:
+        writer.append(a[:6], colours[:6], tile=(0, 0))
+        writer.append(a[6:], colours[6:], tile=(0, 0))
+        writer.append(b[:0], colours[:0], tile=(5, 5))  # an empty tile is left out
+        writer.append(b, colours[:5], tile=(1, 1))
+    tiles = read_cloud_tiles(path)
+    assert tiles.index.tolist() == [[0, 0], [1, 1]] and tiles.count.tolist() == [10, 5]
+    np.testing.assert_array_equal(tiles.read([1])[0], b)
+    assert grid.tile_of(b).tolist() == [[1, 1]] * 5
+    with pytest.raises(ValueError, match="one run"):
+        with PlyStreamWriter(tmp_path / "d.ply", normals=False, tiles=grid) as writer:
+            writer.append(a, colours, tile=(0, 0))
+            writer.append(b, colours[:5], tile=(1, 1))
+            writer.append(a, colours, tile=(0, 0))
+    assert not (tmp_path / "d.ply").exists() and not tile_index_path(tmp_path / "d.ply").exists()
