@@ -63,6 +63,9 @@ class BuildConfig:
     layer: LayerConfig | None = field(default_factory=LayerConfig)  # the facade layer (None: billboards only)
     photometry: PhotometryConfig | None = field(default_factory=PhotometryConfig)  # per-image gains divided out
                                                                                   # before sampling (None: off)
+    tile_metres: float | None = None  # build a model set of square tiles this wide (m, whole voxels; None: one model)
+    tile_margin: float = 8.0          # a tile's context: its neighbours' points this near (m; layer, occlusion)
+    sample_points: int = 2_000_000    # a tiled build estimates gains and sky from at most this many cloud points
 
     def __post_init__(self):
         if self.source not in SOURCES:
@@ -71,6 +74,10 @@ class BuildConfig:
             raise ValueError("holdout must be 0 (none) or ≥ 2 (every n-th frame left out)")
         if self.chunk < 1 or self.task_chunks < 1 or self.error_stride < 1:
             raise ValueError("chunk, task_chunks and error_stride must be ≥ 1")
+        if self.tile_metres is not None and not (np.isfinite(self.tile_metres) and self.tile_metres > 0):
+            raise ValueError(f"tile_metres must be a finite number > 0 or None, got {self.tile_metres!r}")
+        if not (np.isfinite(self.tile_margin) and self.tile_margin >= 0) or self.sample_points < 1:
+            raise ValueError("tile_margin must be finite and ≥ 0, sample_points ≥ 1")
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,20 +132,21 @@ def place_billboards(points: np.ndarray, octree: Octree, viewpoints: np.ndarray 
 
 
 def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarray, layer: Layer,
-                 block_size: float | None = None) -> Billboards:
+                 block_size: float | None = None, grid_origin: np.ndarray | None = None) -> Billboards:
     """Billboards where the cloud departs from the facade ``layer``, and the layer's blocks.
 
     points (N, 3) float64 world; viewpoints (v, 3) float64 camera centres; block_size: edge of
     the layer's blocks (m; None: the voxel size). The octree is
     built over the points the layer does not explain plus each block's centre (counted
-    ``min_points`` times, so every block's cell is a leaf); a leaf gets a billboard when
+    ``min_points`` times, so every block's cell is a leaf; on the voxel grid from ``grid_origin``
+    when given, see :func:`~billboards.octree.build_octree`); a leaf gets a billboard when
     at least ``min_points`` unexplained points fall in it. Billboards are ordered by leaf
     (Morton order), a leaf's billboard before its blocks.
     """
     points = np.asarray(points, np.float64)
     free = np.flatnonzero(~layer.explained)
     anchors = np.concatenate([points[free], np.repeat(layer.centres, config.min_points, axis=0)])
-    octree = build_octree(anchors, config)
+    octree = build_octree(anchors, config, grid_origin)
     n_leaves = octree.num_voxels
     free_leaf = octree.leaves_of_points(points[free])
     counts = np.bincount(free_leaf[free_leaf >= 0], minlength=n_leaves)
@@ -153,7 +161,7 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     item_leaf, item_kind, source = item_leaf[order], item_kind[order], source[order]
     is_board = item_kind == BILLBOARD
     # Each point's billboard: unexplained points of a billboard leaf, and points on a block.
-    item_of_board_leaf = np.full(n_leaves, -1, np.int64)
+    item_of_board_leaf = np.full(max(n_leaves, 1), -1, np.int64)  # (a tile's part may have no leaf)
     item_of_board_leaf[source[is_board]] = np.flatnonzero(is_board)
     item_of_block = np.full(len(layer.centres), -1, np.int64)
     item_of_block[source[~is_board]] = np.flatnonzero(~is_board)
@@ -189,6 +197,40 @@ class _Task:
 _WORKER: dict = {}
 
 
+def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views: Views | None,
+                      colours: np.ndarray | None = None, occluders: VoxelPoints | None = None) -> None:
+    """Write what the texture tasks read into ``state``: the billboards, the views (paths, not
+    images) and the settings; ``colours`` (N, 3) uint8 of the cloud for ``source="points"``;
+    ``occluders``: the points the z-buffers are made of when more than the billboards' own."""
+    grouped = placed.voxels
+    np.save(state / "quads.npy", placed.quads)
+    np.save(state / "points.npy", grouped.points)
+    np.save(state / "begin.npy", grouped.begin)
+    np.save(state / "centres.npy", grouped.centres)
+    np.save(state / "base_yaw.npy", placed.base_yaw)
+    np.save(state / "kind.npy", placed.kind)
+    if conf.source == "points":
+        np.save(state / "colours.npy", placed.voxel_colours(colours))
+    meta = {"config": _config_to_json(conf), "origin": placed.octree.origin.tolist(),
+            "voxel_size": placed.octree.voxel_size, "block_size": placed.block_size, "reach": grouped.reach}
+    if occluders is not None:
+        np.save(state / "occluder_points.npy", occluders.points)
+        np.save(state / "occluder_begin.npy", occluders.begin)
+        np.save(state / "occluder_centres.npy", occluders.centres)
+        meta["occluders"] = {"origin": occluders.origin.tolist(), "reach": occluders.reach}
+    if views is not None:
+        np.save(state / "K.npy", views.K)
+        np.save(state / "world_from_cam.npy", views.world_from_cam)
+        np.save(state / "sizes.npy", views.sizes)
+        if views.gains is not None:
+            np.save(state / "gains.npy", views.gains)
+        if views.rig is not None:
+            views.rig.save(state / "rig.json")
+            np.save(state / "cams.npy", views.cams)
+        meta["paths"] = [str(p) for p in views.paths]
+    (state / "meta.json").write_text(json.dumps(meta))
+
+
 def _worker_state(state_dir: str):
     """Load (once per process) the sampler and settings saved in ``state_dir``."""
     if _WORKER.get("dir") == state_dir:
@@ -211,8 +253,14 @@ def _worker_state(state_dir: str):
             lens = dict(rig=Rig.load(root / "rig.json"), cams=np.load(root / "cams.npy"))
         views = Views(np.load(root / "K.npy"), np.load(root / "world_from_cam.npy"), np.load(root / "sizes.npy"),
                       tuple(Path(p) for p in meta["paths"]), gains, **lens)
+        occluders = None
+        if "occluders" in meta:
+            occluders = VoxelPoints(np.asarray(meta["occluders"]["origin"], dtype=np.float64),
+                                    np.load(root / "occluder_points.npy", mmap_mode="r"),
+                                    np.load(root / "occluder_begin.npy"), np.load(root / "occluder_centres.npy"),
+                                    meta["voxel_size"], meta["occluders"]["reach"])
         sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres,
-                               kind=kind, block_size=meta["block_size"])
+                               kind=kind, block_size=meta["block_size"], occluders=occluders)
     else:
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)
@@ -329,12 +377,18 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
          poses: os.PathLike | str | None = None) -> BuildResult:
     """Build ``model_dir`` from a cloud and (for ``source="images"``) a dataset's images and poses.
 
-    Writes ``model_dir/build_report.json`` too. ``executor`` runs the texture tasks (None:
+    With ``conf.tile_metres`` the model is a set of tiles built one by one
+    (:func:`billboards.build_tiles.build_tiled`). Writes ``model_dir/build_report.json``
+    too. ``executor`` runs the texture tasks (None:
     this process), twice its worker count kept in flight so none idles. ``poses``: a
     ``poses.json`` used instead of the dataset's own (``WORK/poses.json`` of a recon whose
     poses came from SfM or a COLMAP model), recorded in the model's info so that eval and
     render use it too; frames without a pose are left out.
     """
+    if conf.tile_metres is not None:  # a model set, tile by tile
+        from .build_tiles import build_tiled
+
+        return build_tiled(conf, cloud_path, dataset_dir, model_dir, executor, progress, poses)
     model_dir = Path(model_dir)
     stages: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -420,35 +474,15 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     try:
         if placed is None:
             placed = place_billboards(points, octree, views.centres if views is not None else None)
-        grouped, base_yaw, quads, kind = placed.voxels, placed.base_yaw, placed.quads, placed.kind
+        base_yaw, quads, kind = placed.base_yaw, placed.quads, placed.kind
         node_range = placed.node_range
-        np.save(state / "quads.npy", quads)
-        np.save(state / "points.npy", grouped.points)
-        np.save(state / "begin.npy", grouped.begin)
-        np.save(state / "centres.npy", grouped.centres)
-        np.save(state / "base_yaw.npy", base_yaw)
-        np.save(state / "kind.npy", kind)
-        if conf.source == "points":
-            np.save(state / "colours.npy", placed.voxel_colours(colours))
-        meta = {"config": _config_to_json(conf), "origin": octree.origin.tolist(), "voxel_size": octree.voxel_size,
-                "block_size": block_size, "reach": grouped.reach}
-        if views is not None:
-            np.save(state / "K.npy", views.K)
-            np.save(state / "world_from_cam.npy", views.world_from_cam)
-            np.save(state / "sizes.npy", views.sizes)
-            if views.gains is not None:
-                np.save(state / "gains.npy", views.gains)
-            if views.rig is not None:
-                views.rig.save(state / "rig.json")
-                np.save(state / "cams.npy", views.cams)
-            meta["paths"] = [str(p) for p in views.paths]
-        (state / "meta.json").write_text(json.dumps(meta))
+        save_worker_state(state, conf, placed, views, colours)
         stages["prepare_s"] = time.perf_counter() - t2
         t1 = time.perf_counter()
         # The sky behind the model, from the capture's own sky pixels (the whole cloud marks what is not sky).
         sky = estimate_sky(views, points) if views is not None and conf.source == "images" else None
         stages["sky_s"] = time.perf_counter() - t1
-        del points, colours, grouped, placed, layer
+        del points, colours, placed, layer
 
         n = len(kind)
         step = conf.chunk * conf.task_chunks

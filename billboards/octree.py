@@ -358,11 +358,14 @@ def _empty_octree(origin: np.ndarray, voxel: float, depth: int) -> Octree:
                   node_children=np.zeros((0, 8), np.int32), node_range=np.zeros((0, 2), np.int64))
 
 
-def build_octree(points: np.ndarray, config: OctreeConfig = OctreeConfig()) -> Octree:
+def build_octree(points: np.ndarray, config: OctreeConfig = OctreeConfig(),
+                 grid_origin: np.ndarray | None = None) -> Octree:
     """Octree of a point cloud; cells with at least ``config.min_points`` points become voxels.
 
     points: (N, 3) float64 world (float32 and integers are converted). The root
-    cube's min corner is the cloud's per-axis minimum. With ``config.voxel_size``
+    cube's min corner is the cloud's per-axis minimum, or with ``grid_origin`` (3,) float64
+    (``config.voxel_size`` only) the corner of the voxel grid from there that holds it, so
+    that octrees of neighbouring parts of a cloud share one grid. With ``config.voxel_size``
     the depth is the smallest d with voxel_size·2**d > the largest extent; with
     ``config.depth`` the voxel is the largest extent·(1 + 1e-9) / 2**depth (1 m
     / 2**depth for a single point). Non-finite points, or a depth past
@@ -377,6 +380,11 @@ def build_octree(points: np.ndarray, config: OctreeConfig = OctreeConfig()) -> O
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
         bad = np.flatnonzero(~np.isfinite(p).all(axis=1))
         raise ValueError(f"points contain NaN or infinite coordinates ({len(bad)} rows, the first is row {bad[0]})")
+    if grid_origin is not None:
+        if config.voxel_size is None:
+            raise ValueError("build_octree: a grid origin needs OctreeConfig.voxel_size")
+        g = np.asarray(grid_origin, dtype=np.float64).reshape(3)
+        lo = g + np.floor((lo - g) / float(config.voxel_size)) * float(config.voxel_size)
     origin, voxel, depth = _root_cube(lo, hi, config)
 
     # Occupied bounding box of cells. floor((p − origin) / voxel) is monotonic in p, so the max

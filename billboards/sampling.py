@@ -309,13 +309,14 @@ class ImageSampler:
     (:data:`geometry.KINDS`, default all billboards). A layer block (kind ≠ BILLBOARD)
     is a surface: every texel shows what the camera sees through it unless something
     stands in front of its cube (then the next camera is tried), never see-through;
-    its edge is ``block_size`` (default: ``size``).
+    its edge is ``block_size`` (default: ``size``). occluders: the points the z-buffers
+    are made of, when more than ``voxels`` (a tile of a street with its neighbours' points).
     """
 
     def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,
                  voxels: VoxelPoints, config: SamplingConfig = SamplingConfig(),
                  box_centres: np.ndarray | None = None, kind: np.ndarray | None = None,
-                 block_size: float | None = None):
+                 block_size: float | None = None, occluders: VoxelPoints | None = None):
         self.views, self.config = views, config
         self.centres = np.asarray(centres, dtype=np.float64)
         # The voxel cubes (the slab of each billboard); the quads may sit off their centres.
@@ -326,7 +327,8 @@ class ImageSampler:
                      else np.asarray(kind, dtype=np.uint8))
         # Quad edge per billboard (m): the voxel's, or the layer block's.
         self.sizes = np.where(self.kind == BILLBOARD, self.size, self.size if block_size is None else float(block_size))
-        self.cache = _ViewCache(views, voxels, config)
+        self.voxels = voxels
+        self.cache = _ViewCache(views, voxels if occluders is None else occluders, config)
 
     # -- choosing cameras ------------------------------------------------------------
     def _candidates(self, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
@@ -530,7 +532,7 @@ class ImageSampler:
         inf where the ray meets nothing.
         """
         t, m = self.config.tile, len(ids)
-        vox = self.cache.voxels
+        vox = self.voxels
         starts, ends = vox.begin[ids], vox.begin[ids + 1]
         lengths = ends - starts
         s = np.repeat(self.sizes[ids].astype(np.float32), lengths)   # quad edge, per point

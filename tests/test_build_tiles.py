@@ -1,0 +1,113 @@
+"""The build tile by tile: a model set whose tiles hold the same billboards as one model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import billboards.build_tiles as build_tiles
+from billboards.build import BuildConfig, main as build_main
+from billboards.build_tiles import own_layer
+from billboards.layer import Layer
+from billboards.model_reader import load
+from billboards.model_set import load_model_set
+from billboards.octree import OctreeConfig, build_octree
+from recon.cloud_io import PlyStreamWriter, read_cloud_arrays, read_cloud_tiles
+from recon.fusion import FusionConfig
+from recon.pipeline import ReconConfig, main as recon_main
+
+
+@pytest.fixture(scope="module")
+def tiled_cloud(tiny_dataset, tmp_path_factory):
+    work = tmp_path_factory.mktemp("build_tiles") / "work"
+    recon_main(ReconConfig(fusion=FusionConfig(tile_size=8.0), evaluate=False), tiny_dataset, work, progress=False)
+    return work / "cloud.ply"
+
+
+def world_quads(model) -> np.ndarray:
+    """(n, 3) float64 world quad centres of a model, sorted by row."""
+    q = model.centres.astype(np.float64) + model.origin
+    return q[np.lexsort(q.T[::-1])]
+
+
+def test_octrees_on_one_grid_share_their_voxels():
+    rng = np.random.default_rng(1)
+    points = rng.uniform([0, 0, 0], [20, 6, 4], (20000, 3))
+    conf = OctreeConfig(voxel_size=0.5, min_points=2)
+    whole = build_octree(points, conf)
+    left = points[:, 0] < 8.0
+    parts = [build_octree(points[m], conf, grid_origin=points.min(axis=0)) for m in (left, ~left)]
+    centres = np.concatenate([p.centres() for p in parts])
+    a, b = whole.centres(), centres[np.lexsort(centres.T[::-1])]
+    np.testing.assert_allclose(b, a[np.lexsort(a.T[::-1])], atol=1e-9)
+    with pytest.raises(ValueError, match="voxel_size"):
+        build_octree(points, OctreeConfig(voxel_size=None, depth=3), grid_origin=np.zeros(3))
+
+
+def test_own_layer_keeps_the_tile_blocks_and_drops_points_of_foreign_ones():
+    layer = Layer(np.arange(12.0).reshape(4, 3), np.zeros(4), np.array([1, 1, 2, 2], np.uint8),
+                  np.array([-1, 0, 1, 2, 3, 3, -1]), [])
+    own_block = np.array([True, False, True, False])
+    own_point = np.array([True, True, True, True, True, False, False])
+    mine, keep = own_layer(layer, own_block, own_point)
+    assert keep.tolist() == [True, True, False, True, False, False, False]
+    assert mine.point_block.tolist() == [-1, 0, 1]
+    np.testing.assert_array_equal(mine.centres, layer.centres[[0, 2]])
+
+
+def test_tiled_build_matches_one_model(tiny_dataset, tiled_cloud, tmp_path):
+    one = build_main(BuildConfig(), tiled_cloud, tiny_dataset, tmp_path / "one", progress=False)
+    tiled = build_main(BuildConfig(tile_metres=8.0), tiled_cloud, tiny_dataset, tmp_path / "set", progress=False)
+    model_set = load_model_set(tmp_path / "set")
+    assert model_set.tiled and len(model_set) >= 3
+    assert tiled.report["tiles"] == len(model_set)
+    single = load(tmp_path / "one")
+    parts = [model_set.load_tile(i) for i in range(len(model_set))]
+    assert sum(p.num_billboards for p in parts) == single.num_billboards
+    # the same voxels, on one grid, with their quads in the same places (float32 storage)
+    q = np.concatenate([world_quads(p) for p in parts])
+    np.testing.assert_allclose(q[np.lexsort(q.T[::-1])], world_quads(single), atol=2e-5)
+    for tile, part in zip(model_set.tiles, parts):  # each tile's quads lie in its own square
+        q = part.centres.astype(np.float64) + part.origin
+        assert np.all(q >= tile.lo - 1e-4) and np.all(q <= tile.hi + 1e-4)
+    assert not list(tmp_path.glob(".set.*"))  # work and scratch directories gone
+    assert tiled.report["psnr"]["decoded_rgb_opaque_db"] == pytest.approx(
+        one.report["psnr"]["decoded_rgb_opaque_db"], abs=1.0)
+
+
+def test_a_killed_tiled_build_resumes_its_unfinished_tiles(tiny_dataset, tiled_cloud, tmp_path, monkeypatch):
+    conf = BuildConfig(tile_metres=8.0)
+    clean = build_main(conf, tiled_cloud, tiny_dataset, tmp_path / "clean", progress=False)
+    real = build_tiles.build_tile
+    built = []
+
+    def dies_after_two(shared, index, out, *args):
+        if len(built) == 2:
+            raise KeyboardInterrupt("killed")
+        built.append(index)
+        return real(shared, index, out, *args)
+
+    monkeypatch.setattr(build_tiles, "build_tile", dies_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        build_main(conf, tiled_cloud, tiny_dataset, tmp_path / "set", progress=False)
+    assert not (tmp_path / "set").exists()
+    monkeypatch.setattr(build_tiles, "build_tile", real)
+    resumed = build_main(conf, tiled_cloud, tiny_dataset, tmp_path / "set", progress=False)
+    assert resumed.report["resumed_tiles"] == 2
+    a, b = load_model_set(tmp_path / "clean"), load_model_set(tmp_path / "set")
+    assert [t.name for t in a.tiles] == [t.name for t in b.tiles]
+    for ta, tb in zip(a.tiles, b.tiles):
+        for f in sorted(ta.path.glob("*.npy")):
+            assert f.read_bytes() == (tb.path / f.name).read_bytes(), f.name
+    assert clean.report["billboards"] == resumed.report["billboards"]
+
+
+def test_a_cloud_without_index_is_tiled_once(tiny_dataset, tiled_cloud, tmp_path):
+    points, colours = read_cloud_arrays(tiled_cloud)
+    plain = tmp_path / "plain.ply"
+    with PlyStreamWriter(plain, normals=False) as writer:
+        writer.append(points, colours)
+    assert read_cloud_tiles(plain) is None
+    result = build_main(BuildConfig(tile_metres=8.0), plain, tiny_dataset, tmp_path / "set", progress=False)
+    assert result.report["billboards"] == load(
+        build_main(BuildConfig(), plain, tiny_dataset, tmp_path / "one", progress=False).model).num_billboards
