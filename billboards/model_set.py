@@ -394,3 +394,116 @@ def write_model_set(root: os.PathLike | str, origin, tile_size: float, tiles: li
            "tile_size": tile_size, "tiles": entries, "info": info}
     write_json(root / TILES_FILE, doc)
     return root
+
+
+# ----------------------------------------------------------------------------------------------
+# splitting a model into tiles
+
+
+def tile_indices(model: BillboardModel, tile_size: float, grid_origin) -> np.ndarray:
+    """(n, 2) int64 grid cell (tx, ty) of each billboard's world centre."""
+    world = np.asarray(model.origin, np.float64) + np.asarray(model.centres, np.float64)
+    return np.floor((world[:, :2] - np.asarray(grid_origin, np.float64)[:2]) / float(tile_size)).astype(np.int64)
+
+
+def sub_model(model: BillboardModel, keep: np.ndarray, origin, info: dict | None = None) -> BillboardModel:
+    """The billboards ``keep`` (b,) int, ascending, of ``model`` as a model of their own on
+    ``origin`` (3,) float64: their slots' tiles and coefficient rows repacked into pages, centres
+    and node bounds moved onto the new origin (in float64, then float32), the octree's nodes
+    that hold any of them with their ranges renumbered (the order of the billboards is kept,
+    so every node's billboards stay a contiguous range)."""
+    from .atlas import pack_rows, pack_tiles, read_rows, read_tiles
+
+    keep = np.asarray(keep, np.int64)
+    origin = np.asarray(origin, np.float64).reshape(3)
+    shift = np.asarray(model.origin, np.float64) - origin
+    rank = np.asarray(model.rank)[keep].astype(np.int64)
+    first = np.asarray(model.first_slot)[keep].astype(np.int64)
+    counts = rank + 1
+    new_first = np.zeros(len(keep), np.int64)
+    if len(keep):
+        np.cumsum(counts[:-1], out=new_first[1:])
+    slots = np.repeat(first - new_first, counts) + np.arange(int(counts.sum()))
+    tiles = read_tiles(model.pages, slots, model.tile, model.page_size)
+    rows = read_rows(model.coef_pages, slots, model.num_directions, model.page_size)
+    node_range = np.asarray(model.node_range, np.int64)
+    begin = np.searchsorted(keep, node_range[:, 0], side="left")
+    end = np.searchsorted(keep, node_range[:, 1], side="left")
+    kept_nodes = np.flatnonzero(end > begin)
+    renumber = np.full(model.num_nodes + 1, -1, np.int64)  # index −1 maps to −1
+    renumber[kept_nodes] = np.arange(len(kept_nodes))
+    children = renumber[np.asarray(model.node_children, np.int64)[kept_nodes]]
+    bounds = np.asarray(model.node_bounds, np.float64)[kept_nodes] + shift
+    sub = BillboardModel(
+        origin=origin, voxel_size=model.voxel_size, block_size=model.block_size, tile=model.tile,
+        page_size=model.page_size, yaw_offsets=model.yaw_offsets, pitches=model.pitches,
+        pitched_quads=model.pitched_quads, tile_mode=model.tile_mode, coef_mode=model.coef_mode,
+        centres=(np.asarray(model.centres, np.float64)[keep] + shift).astype(np.float32),
+        base_yaw=np.asarray(model.base_yaw)[keep], kind=np.asarray(model.kind)[keep],
+        rank=rank.astype(np.uint8), first_slot=new_first.astype(np.int32),
+        slot_scale=np.asarray(model.slot_scale)[slots], slot_offset=np.asarray(model.slot_offset)[slots],
+        coef_scale=np.asarray(model.coef_scale)[slots], coef_offset=np.asarray(model.coef_offset)[slots],
+        pages=pack_tiles(tiles, model.page_size), coef_pages=pack_rows(rows, model.page_size),
+        node_level=np.asarray(model.node_level)[kept_nodes], node_bounds=bounds.astype(np.float32),
+        node_children=children.astype(np.int32),
+        node_range=np.stack([begin[kept_nodes], end[kept_nodes]], 1).astype(np.int32).reshape(-1, 2),
+        info=dict(model.info if info is None else info))
+    sub.check()
+    return sub
+
+
+def split_tiles(model: BillboardModel, root: os.PathLike | str, tile_size: float, grid_origin=None,
+                info: dict | None = None) -> list[dict]:
+    """Write ``model``'s billboards as one model directory per grid cell of ``tile_size`` metres
+    (cells from ``grid_origin``, default the model's origin) under ``root``, each on its cell's
+    corner as origin (at the grid origin's height); returns the entries for
+    :func:`write_model_set` (name, index, lo, hi). Layer columns stay whole (their blocks share
+    an xy)."""
+    from .model_writer import save
+
+    root = Path(root)
+    tile_size = float(tile_size)
+    if not (math.isfinite(tile_size) and tile_size > 0):
+        raise ValueError(f"tile_size must be a finite number > 0, got {tile_size}")
+    grid = np.asarray(model.origin if grid_origin is None else grid_origin, np.float64).reshape(3)
+    cells = tile_indices(model, tile_size, grid)
+    entries = []
+    if model.num_billboards == 0:
+        return entries
+    unique, inverse = np.unique(cells, axis=0, return_inverse=True)
+    order = np.argsort(inverse.reshape(-1), kind="stable")
+    starts = np.searchsorted(inverse.reshape(-1)[order], np.arange(len(unique)))
+    ends = np.r_[starts[1:], len(order)]
+    for (tx, ty), s, e in zip(unique.tolist(), starts, ends):
+        keep = np.sort(order[s:e])
+        origin = grid + [tx * tile_size, ty * tile_size, 0.0]
+        tile_info = dict(model.info if info is None else info)
+        tile_info["tile"] = [int(tx), int(ty)]
+        sub = sub_model(model, keep, origin, tile_info)
+        name = tile_name((tx, ty))
+        save(sub, root / name)
+        lo, hi = quad_bounds(sub)
+        entries.append({"name": name, "index": (int(tx), int(ty)), "lo": lo, "hi": hi})
+    return entries
+
+
+def split_model(model_dir: os.PathLike | str, out_dir: os.PathLike | str, tile_size: float,
+                grid_origin=None) -> Path:
+    """Split the plain model in ``model_dir`` into a tiled model at ``out_dir`` (written beside it
+    and renamed into place; its sky, if any, becomes the set's). Returns ``out_dir``."""
+    from core.fileio import atomic_dir
+
+    from .sky import read_sky, write_sky
+
+    model = load(model_dir, mmap=True)
+    sky = read_sky(model_dir)
+    out_dir = Path(out_dir)
+    with atomic_dir(out_dir) as tmp:
+        grid = np.asarray(model.origin if grid_origin is None else grid_origin, np.float64)
+        entries = split_tiles(model, tmp, tile_size, grid)
+        if sky is not None:
+            write_sky(tmp, sky)
+        info = dict(model.info)
+        info["split_from"] = str(Path(model_dir).resolve())
+        write_model_set(tmp, grid, tile_size, entries, info)
+    return out_dir

@@ -1,0 +1,413 @@
+"""Out-of-core paging of a tiled model (:class:`billboards.model_set.ModelSet`): which tiles to
+load, upload and release as the eye moves, and an exact account of their GPU bytes.
+
+Two stages per tile, each with its own place:
+
+- **Loaded** (disk → numpy): :func:`billboards.model_set.ModelSet.load_tile` with the atlas and
+  coefficient pages memory-mapped, then the page files read once so that they are in the page
+  cache (the upload later reads memory, not disk), and the tile's GPU bound computed
+  (:func:`tile_gpu_bound`). Done by :class:`TileLoader` in a background thread, nearest first.
+- **Resident** (on the GPU): a :class:`~render.renderer.BillboardRenderer` of the tile, made on
+  the GL thread by :class:`~render.tiled_renderer.TiledRenderer`, at most
+  ``PagingConfig.uploads_per_frame`` tiles and ``upload_bytes_per_frame`` bytes a frame (a
+  frame's upload is bounded by that or by one tile, whichever is larger), so no frame stalls
+  on the city.
+
+Priorities (:func:`tile_priorities`, numpy over the tiles): a tile is *wanted* when its bounds
+come within ``load_radius`` of the eye or of the point ``prefetch`` metres ahead along the
+direction of travel (the view direction while standing); wanted tiles in the view frustum come
+first, then the rest, each nearest first (distance to the nearer of the two points).
+
+GPU bytes. Every texture, renderbuffer and buffer a tile's renderer allocates is counted
+(:func:`renderer_gpu_bytes`: atlas and coefficient pages, slot table, decoded atlas, view atlas,
+impostor atlas and its depth, instance buffers, occlusion-query buffers, the CPU decode's frame
+atlas). Instance buffers grow with what a frame draws, so admission uses a bound computed from
+the model before upload (:func:`tile_gpu_bound`: the fixed textures exactly, every buffer at the
+largest capacity it can grow to); a tile is uploaded only when the bounds of the resident tiles
+plus its own stay within the budget, releasing the farthest tiles (lowest priority) first.
+Hence the measured bytes never exceed the budget. The frame's own target and the sky pass are
+not tiles' and are not counted.
+
+The decoded atlas (every billboard's storage slots in RGBA16F), the view atlas (a tile per
+block in RGBA8) and the impostor atlas (a ``texels``² RGBA8 tile plus depth per far-node
+candidate) are sized for the whole model a renderer draws; for a tile that is the tile, which
+is what makes the account per tile. On the default street (one tile) they are 134 MB and
+138 MB beside 40 MB of pages.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from billboards.atlas import atlas_layout as page_layout
+from billboards.model import BillboardModel
+from billboards.model_set import ModelSet
+
+logger = logging.getLogger(__name__)
+
+MB = 1 << 20
+
+
+@dataclass(frozen=True)
+class PagingConfig:
+    """How a tiled model is paged (:mod:`render.paging`)."""
+
+    gpu_budget: int | None = None  # bytes of GPU memory the resident tiles may hold (None: no limit)
+    load_radius: float = 120.0  # tiles within this many metres of the eye (or the prefetch point) are wanted
+    prefetch: float = 60.0  # metres ahead along the direction of travel that are prefetched like the eye's
+    drop_radius: float = 200.0  # resident tiles farther than this from both points are released
+    wait_radius: float = 40.0  # a frame that waits for "near" tiles waits for visible ones within this
+    uploads_per_frame: int = 2  # tiles uploaded per frame at most (beyond those waited for)
+    upload_bytes_per_frame: int = 96 * MB  # … and bytes, by their bounds (one tile at least, if any is due)
+    loads_in_flight: int = 2  # tiles queued on the background loader at a time
+
+    def __post_init__(self):
+        if self.gpu_budget is not None and (isinstance(self.gpu_budget, bool) or int(self.gpu_budget) != self.gpu_budget
+                                            or self.gpu_budget <= 0):
+            raise ValueError(f"gpu_budget must be a positive number of bytes or None, got {self.gpu_budget!r}")
+        for name in ("load_radius", "prefetch", "drop_radius", "wait_radius"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not math.isnan(v) and v >= 0):
+                raise ValueError(f"{name} must be a length ≥ 0 (inf allowed), got {v!r}")
+        if self.drop_radius < self.load_radius:
+            raise ValueError(f"drop_radius ({self.drop_radius}) must be ≥ load_radius ({self.load_radius})")
+        if self.uploads_per_frame < 1 or self.upload_bytes_per_frame < 1 or self.loads_in_flight < 1:
+            raise ValueError("uploads_per_frame, upload_bytes_per_frame and loads_in_flight must be ≥ 1")
+
+
+# ----------------------------------------------------------------------------------------------
+# GPU bytes
+
+
+_DTYPE_BYTES = {"f1": 1, "u1": 1, "i1": 1, "f2": 2, "u2": 2, "i2": 2, "f4": 4, "u4": 4, "i4": 4, "d2": 2,
+                "d3": 4, "d4": 4, "d24": 4, "d32": 4}
+
+
+def object_bytes(obj) -> int:
+    """Bytes of one moderngl object: a Texture, TextureArray or Renderbuffer (texels × components
+    × bytes per component; a depth attachment 4 bytes a texel) or a Buffer (its size); 0 for
+    anything else or a released object."""
+    if obj is None:
+        return 0
+    try:
+        if hasattr(obj, "size") and isinstance(getattr(obj, "size"), int) and hasattr(obj, "orphan"):
+            return int(obj.size)  # Buffer
+        if hasattr(obj, "width") and hasattr(obj, "height"):
+            layers = int(getattr(obj, "layers", 1) or 1)
+            if getattr(obj, "depth", False):
+                per = 4
+            else:
+                per = int(obj.components) * _DTYPE_BYTES.get(str(obj.dtype), 4)
+            return int(obj.width) * int(obj.height) * layers * per
+    except Exception:  # a released object may refuse its attributes
+        return 0
+    return 0
+
+
+def _streams_bytes(streams) -> int:
+    return sum(object_bytes(s.buffer) for s in streams if s is not None and s.buffer is not None)
+
+
+def renderer_gpu_bytes(renderer) -> dict[str, int]:
+    """Bytes of every texture, renderbuffer and buffer a :class:`~render.renderer.BillboardRenderer`
+    holds, by part, and their ``total``: pages (atlas and coefficient arrays), slot_table,
+    decoded_atlas, view_atlas, impostor_atlas (colour and depth), cpu_atlas (the CPU decode's
+    frame atlas), instance_buffers, culling (occlusion-query buffers), targets (its own
+    framebuffers, unused when a :class:`~render.tiled_renderer.TiledRenderer` draws it)."""
+    out = dict.fromkeys(("pages", "slot_table", "decoded_atlas", "view_atlas", "impostor_atlas", "cpu_atlas",
+                         "instance_buffers", "culling", "targets"), 0)
+    res = renderer.resources
+    if res is not None and not res.released:
+        out["pages"] = object_bytes(res.tiles) + object_bytes(res.coefs)
+        out["slot_table"] = object_bytes(res.slot_table)
+    dec = renderer.decoder
+    if dec is not None:
+        if hasattr(dec, "decoded"):  # GpuDecoder
+            if not dec.released:
+                out["decoded_atlas"] = object_bytes(dec.decoded)
+                out["view_atlas"] = object_bytes(dec.view_tiles)
+                out["instance_buffers"] += _streams_bytes([*dec.quads.values(), dec.tiles, dec.blends])
+        elif getattr(dec, "_objects", None) is not None:  # CpuDecoder
+            out["cpu_atlas"] = object_bytes(dec.atlas)
+            out["instance_buffers"] += _streams_bytes([dec.stream])
+    imp = renderer.impostors
+    if imp is not None and not imp.released:
+        out["impostor_atlas"] = object_bytes(imp.atlas) + object_bytes(imp.depth)
+        out["instance_buffers"] += _streams_bytes([imp.stream, imp.clear_stream])
+    for culler in getattr(renderer, "_cullers", {}).values():
+        out["culling"] += object_bytes(getattr(culler, "_buffer", None))
+    for fbo in getattr(renderer.targets, "_targets", {}).values():
+        out["targets"] += sum(object_bytes(a) for a in (*fbo.color_attachments, fbo.depth_attachment))
+    out["total"] = sum(out.values())
+    return out
+
+
+def _stream_bound(records: int, record_size: int) -> int:
+    """Largest buffer an :class:`~render.resources.InstanceStream` (first capacity 1024, then
+    max(n, 2·capacity)) reaches when no write exceeds ``records`` records."""
+    return max(1024, 2 * int(records)) * int(record_size)
+
+
+def tile_gpu_bound(model: BillboardModel, decode: str = "gpu", lod=None, max_texture: int = 8192,
+                   cull: str = "frustum") -> int:
+    """Bytes a :class:`~render.renderer.BillboardRenderer` of ``model`` can ever hold on the GPU
+    (numpy, no GL; what :func:`renderer_gpu_bytes` measures never exceeds it, without its own
+    framebuffers): the page arrays, slot table, decoded and view atlases and impostor atlas
+    exactly as they are allocated, every instance buffer at the largest capacity it can grow
+    to (2× the most records one draw can write), an occlusion culler's query buffer likewise.
+    ``max_texture``: GL_MAX_TEXTURE_SIZE of the context."""
+    from .gpu_decode import BAND_ROWS, BLEND_DTYPE, DECODE_DTYPE, QUAD_DTYPE, atlas_layout
+    from .impostors import IMPOSTOR_DTYPE, impostor_nodes, ATLAS_WIDTH
+    from .resources import _COEF_DTYPE, _TILE_DTYPE
+    from .slits import build_slits, pack_columns
+    from .view_brackets import storage_slots
+
+    n, m = model.num_billboards, model.num_slots
+    total = 0
+    if cull == "occlusion":  # the query rectangles' vertex buffer: a power of two of at most every node
+        total += max(64, 1 << max(int(model.num_nodes) - 1, 0).bit_length()) * 48 * 2
+    if decode == "cpu":
+        from .cpu_decode import CPU_INSTANCE_DTYPE
+
+        page = min(4096, max_texture)
+        if n:
+            lay = page_layout(n, model.tile, page)
+            total += lay.num_pages * lay.page_shapes[0][0] * (page // model.tile * model.tile) * 4
+        return total + _stream_bound(n, CPU_INSTANCE_DTYPE.itemsize)
+    tiles, rows = model.tile_layout(), model.coef_layout()
+    tile_bytes = _DTYPE_BYTES[_TILE_DTYPE[model.tile_mode]]
+    coef_bytes = _DTYPE_BYTES[_COEF_DTYPE[model.coef_mode]]
+    if model.pages:
+        total += tiles.tiles_per_row * model.tile * max(int(p.shape[0]) for p in model.pages) * len(model.pages) \
+            * 4 * tile_bytes
+    else:
+        total += 4 * tile_bytes
+    if model.coef_pages:
+        total += rows.tiles_per_row * rows.cell_width * max(int(p.shape[0]) for p in model.coef_pages) \
+            * len(model.coef_pages) * coef_bytes
+    else:
+        total += coef_bytes
+    spr = 1 << int(np.log2(max_texture // 3))
+    total += max(-(-m // spr), 1) * spr * 3 * 16
+    slits = build_slits(model.centres, model.kind, model.base_yaw, model.block_size, merge=len(model.pitches) == 1,
+                        max_blocks=BAND_ROWS)
+    s = storage_slots(len(model.pitches))
+    counts = slits.column_count
+    first = pack_columns(counts, BAND_ROWS)
+    within = np.arange(len(slits.order)) - np.repeat(slits.column_start, counts)
+    place = np.repeat(first, counts) + within
+    _, size = atlas_layout(place, s, model.tile, max_texture)
+    _, view_size = atlas_layout(place, 1, model.tile, max_texture)
+    total += size[0] * size[1] * 8 + view_size[0] * view_size[1] * 4
+    total += 2 * _stream_bound(n, QUAD_DTYPE.itemsize) + _stream_bound(n * s, DECODE_DTYPE.itemsize) \
+        + _stream_bound(n, BLEND_DTYPE.itemsize)
+    if lod is not None and lod.impostors is not None:
+        k = len(impostor_nodes(model, lod.impostors.node_edge)[0])
+        t = lod.impostors.texels
+        per_row = max(ATLAS_WIDTH // t, 1)
+        total += min(max(k, 1), per_row) * t * max(-(-k // per_row), 1) * t * 8
+        total += _stream_bound(k, IMPOSTOR_DTYPE.itemsize) + _stream_bound(k, 16)
+    return int(total)
+
+
+# ----------------------------------------------------------------------------------------------
+# priorities
+
+
+def box_distances(lo: np.ndarray, hi: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(t,) float64 distance from ``point`` (3,) to each box lo, hi (t, 3) (0 inside)."""
+    gap = np.maximum(np.maximum(lo - point, point - hi), 0.0)
+    return np.sqrt(np.sum(gap * gap, axis=1))
+
+
+def tile_priorities(lo: np.ndarray, hi: np.ndarray, eye: np.ndarray, ahead: np.ndarray, visible: np.ndarray,
+                    config: PagingConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Paging order of tiles with world bounds lo, hi (t, 3) float64 for an ``eye`` (3,) moving
+    toward ``ahead`` (3,) (the prefetch point), ``visible`` (t,) bool in the view frustum.
+
+    Returns (distance (t,) float64 to the nearer of eye and ahead, wanted (t,) bool within
+    ``load_radius``, order (t,) int64: wanted visible tiles, then wanted others, then the rest,
+    each nearest first)."""
+    d = np.minimum(box_distances(lo, hi, eye), box_distances(lo, hi, ahead))
+    wanted = d <= config.load_radius
+    group = np.where(wanted & visible, 0, np.where(wanted, 1, 2))
+    order = np.lexsort((np.arange(len(d)), d, group)).astype(np.int64)
+    return d, wanted, order
+
+
+class Motion:
+    """The direction of travel from successive eye positions (smoothed), for prefetching; the
+    view direction while the eye stands still."""
+
+    def __init__(self, smoothing: float = 0.5):
+        self.smoothing = float(smoothing)
+        self.last: np.ndarray | None = None
+        self.direction = np.zeros(3)
+
+    def update(self, eye: np.ndarray, forward: np.ndarray) -> np.ndarray:
+        """Take the new ``eye`` (3,) and viewing direction ``forward`` (3,); returns the unit
+        direction of travel (horizontal)."""
+        eye = np.asarray(eye, np.float64)
+        if self.last is not None:
+            step = eye - self.last
+            step[2] = 0.0
+            n = float(np.linalg.norm(step))
+            if n > 1e-3:
+                d = self.smoothing * self.direction + (1 - self.smoothing) * step / n
+                if np.linalg.norm(d) > 1e-9:
+                    self.direction = d / np.linalg.norm(d)
+        self.last = eye.copy()
+        if np.linalg.norm(self.direction) > 0:
+            return self.direction
+        f = np.asarray(forward, np.float64).copy()
+        f[2] = 0.0
+        n = float(np.linalg.norm(f))
+        return f / n if n > 1e-9 else np.zeros(3)
+
+
+# ----------------------------------------------------------------------------------------------
+# loading
+
+
+@dataclass
+class LoadedTile:
+    """A tile in host memory: its model (pages memory-mapped) and its GPU bound (bytes)."""
+
+    index: int
+    model: BillboardModel
+    bound: int
+    load_s: float
+
+
+def warm_pages(model: BillboardModel, chunk: int = 8 * MB) -> None:
+    """Read every memory-mapped page of ``model`` once, so an upload reads the page cache, not
+    the disk (nothing is kept: the bytes are only touched)."""
+    for page in (*model.pages, *model.coef_pages):
+        mm = getattr(page, "_mmap", None)
+        flat = page.reshape(-1).view(np.uint8) if page.flags.c_contiguous else None
+        if mm is None or flat is None:
+            continue
+        step = max(chunk, 1)
+        for start in range(0, len(flat), step):
+            int(flat[start:start + step:4096].sum())  # one byte a page of memory
+
+
+class TileLoader:
+    """Loads tiles of a set in a background thread (:meth:`request`), or now (:meth:`get` with
+    ``wait``); holds them until :meth:`drop`. Thread-safe; :meth:`close` is idempotent.
+
+    ``preloaded``: tiles already in memory by index (an in-memory model as a one-tile set).
+    """
+
+    def __init__(self, model_set: ModelSet, bound_of, preloaded: dict[int, BillboardModel] | None = None,
+                 threads: int = 1):
+        self.model_set = model_set
+        self._bound_of = bound_of
+        self._lock = threading.Lock()
+        self._done: dict[int, LoadedTile] = {}
+        self._pending: dict[int, concurrent.futures.Future] = {}
+        self._preloaded = dict(preloaded or {})
+        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="bbcity-tiles")
+        self.loads = 0
+        self.load_s = 0.0
+
+    def _load(self, i: int) -> LoadedTile:
+        t0 = time.perf_counter()
+        model = self._preloaded.get(i)
+        if model is None:
+            model = self.model_set.load_tile(i, mmap=True)
+            warm_pages(model)
+        tile = LoadedTile(i, model, int(self._bound_of(model)), 0.0)
+        tile.load_s = time.perf_counter() - t0
+        return tile
+
+    def _finish(self, i: int, future: concurrent.futures.Future) -> None:
+        with self._lock:
+            if self._pending.get(i) is future:
+                del self._pending[i]
+                if future.exception() is None:
+                    tile = future.result()
+                    self._done[i] = tile
+                    self.loads += 1
+                    self.load_s += tile.load_s
+
+    def request(self, i: int) -> bool:
+        """Queue tile ``i`` for loading unless it is loaded or queued; True if queued now."""
+        with self._lock:
+            if i in self._done or i in self._pending:
+                return False
+            future = self._pool.submit(self._load, i)
+            self._pending[i] = future
+        future.add_done_callback(lambda f, i=i: self._finish(i, f))
+        return True
+
+    @property
+    def in_flight(self) -> int:
+        with self._lock:
+            return len(self._pending)
+
+    def loaded(self, i: int) -> LoadedTile | None:
+        """Tile ``i`` if loaded (a failed load raises its error here)."""
+        with self._lock:
+            tile = self._done.get(i)
+            future = self._pending.get(i)
+        if tile is None and future is not None and future.done() and future.exception() is not None:
+            raise future.exception()
+        return tile
+
+    def get(self, i: int) -> LoadedTile:
+        """Tile ``i``, loading it now (or waiting for its queued load) if need be."""
+        tile = self.loaded(i)
+        if tile is not None:
+            return tile
+        with self._lock:
+            future = self._pending.get(i)
+        if future is not None:
+            tile = future.result()
+        else:
+            tile = self._load(i)
+            with self._lock:
+                if i not in self._done:
+                    self.loads += 1
+                    self.load_s += tile.load_s
+        with self._lock:
+            self._done.setdefault(i, tile)
+            return self._done[i]
+
+    def wait_idle(self, timeout: float | None = None) -> None:
+        """Wait until every queued load has finished (for tests and benchmarks that model a slow
+        frame; a viewer never waits)."""
+        with self._lock:
+            pending = list(self._pending.values())
+        concurrent.futures.wait(pending, timeout=timeout)
+        for f in pending:  # the done-callbacks run in the loader thread: let them file the tiles
+            if f.done():
+                with self._lock:
+                    idx = [i for i, g in self._pending.items() if g is f]
+                for i in idx:
+                    self._finish(i, f)
+
+    def indices(self) -> list[int]:
+        with self._lock:
+            return list(self._done)
+
+    def drop(self, i: int) -> None:
+        """Forget tile ``i`` (its memory goes once no renderer holds its model)."""
+        with self._lock:
+            self._done.pop(i, None)
+
+    def close(self) -> None:
+        with self._lock:
+            pending = list(self._pending.values())
+            self._pending.clear()
+            self._done.clear()
+        for f in pending:
+            f.cancel()
+        self._pool.shutdown(wait=True, cancel_futures=True)

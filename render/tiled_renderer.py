@@ -1,0 +1,362 @@
+"""A tiled model drawn out of core: :class:`TiledRenderer`.
+
+One frame, one clear, one sky pass, one depth buffer: each resident tile whose bounds meet the
+view frustum is drawn by its own :class:`~render.renderer.BillboardRenderer` into the bound
+framebuffer, with camera matrices relative to that tile's origin (float64 on the CPU, float32
+relative positions on the GPU, as for one model), nearest tile first. Nothing is cleared between
+tiles, so a set draws the image its billboards would draw as one model, up to each tile's
+float32 origin (and the order of exactly coincident quads of different tiles).
+
+Which tiles are resident follows the eye (:mod:`render.paging`): tiles are loaded in a
+background thread (memory-mapped, nearest and visible first, prefetching along the direction of
+travel), uploaded on the GL thread a bounded amount per frame, and released, farthest first,
+when the GPU budget would be exceeded or they fall behind ``drop_radius``. A frame draws what
+is resident; ``wait`` decides what it waits for first: ``"none"``, ``"near"`` (the visible tiles
+within ``wait_radius`` of the eye: what the first frame waits for by default, not the city) or
+``"all"`` (every visible tile: offline rendering, exact).
+
+A plain model (a directory, or a :class:`~billboards.model.BillboardModel` in memory) is a set
+of one tile, so every front end takes either.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import moderngl
+import numpy as np
+
+from billboards.model import BillboardModel
+from billboards.model_set import ModelSet, ModelTile, quad_bounds
+
+from .camera import ClipPlanes, gl_camera
+from .context import max_texture_size
+from .culling import boxes_outside, frustum_planes
+from .paging import Motion, PagingConfig, TileLoader, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
+from .renderer import DECODE_MODES, BillboardRenderer
+from .sky import SkyPass
+from .target import OffscreenTargets, background_rgb
+
+logger = logging.getLogger(__name__)
+
+WAIT_MODES = ("auto", "none", "near", "all")
+
+
+def as_model_set(source) -> tuple[ModelSet, dict[int, BillboardModel]]:
+    """(set, tiles already in memory) of ``source``: a :class:`ModelSet` (nothing in memory) or a
+    :class:`BillboardModel` (a set of one tile, that model)."""
+    if isinstance(source, ModelSet):
+        return source, {}
+    if isinstance(source, BillboardModel):
+        lo, hi = quad_bounds(source)
+        tile = ModelTile("model", (0, 0), lo, hi, source.num_billboards, int(source.nbytes()["total"]), Path("."))
+        size = float(np.max(hi[:2] - lo[:2])) if source.num_billboards else 0.0
+        info = source.info if isinstance(source.info, dict) else {}
+        return ModelSet(Path("."), np.asarray(source.origin, np.float64).copy(), size if size > 0 else 1.0, (tile,),
+                        False, info), {0: source}
+    raise TypeError(f"a TiledRenderer draws a ModelSet or a BillboardModel, got {type(source).__name__}")
+
+
+def merge_stats(totals: dict, part: dict) -> None:
+    """Add one tile's renderer stats to ``totals``: numbers summed, flags or-ed, lists
+    (LOD counts) element-wise."""
+    for key, value in part.items():
+        if isinstance(value, bool):
+            totals[key] = bool(totals.get(key, False)) or value
+        elif isinstance(value, (int, float, np.integer, np.floating)):
+            totals[key] = totals.get(key, 0) + value
+        elif isinstance(value, list):
+            old = totals.get(key, [0] * len(value))
+            totals[key] = [a + b for a, b in zip(old, value)]
+
+
+class _Resident:
+    __slots__ = ("renderer", "bound", "bytes")
+
+    def __init__(self, renderer: BillboardRenderer, bound: int):
+        self.renderer = renderer
+        self.bound = bound
+        self.bytes = 0
+
+
+class TiledRenderer:
+    """Draws a :class:`~billboards.model_set.ModelSet` (or a plain model) from OpenCV cameras,
+    paging its tiles under ``paging.gpu_budget``.
+
+    decode, spherical, interpolate, linear, clip, cull, lod: as for
+    :class:`~render.renderer.BillboardRenderer` (each tile's renderer gets them). background:
+    the clear colour; sky: a :class:`billboards.sky.Sky` drawn behind the model by
+    :meth:`render` (e.g. :func:`billboards.sky.read_sky` of the set's root).
+
+    After each :meth:`draw` / :meth:`render`, ``stats`` holds the tiles' renderer stats summed
+    (billboards drawn, quads, tiles decoded, LOD counts, timings) and the paging figures: tiles
+    (in the set), tiles_visible (in the frustum), tiles_drawn, tiles_missing (visible within
+    ``load_radius`` of the eye, not resident), tiles_resident, tiles_loaded (in host memory), loads_in_flight, uploads and
+    releases (this frame), upload_s, wait_s, gpu_bytes (measured, resident tiles), gpu_reserved
+    (their bounds), gpu_budget (None: no limit), billboards (of the set).
+    """
+
+    def __init__(self, ctx: moderngl.Context, source, decode: str = "gpu", *, paging: PagingConfig = PagingConfig(),
+                 sky=None, spherical: bool | None = None, interpolate: bool = True, linear: bool = True,
+                 background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "frustum", lod=None):
+        if decode not in DECODE_MODES:
+            raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
+        self.ctx = ctx
+        self.model_set, preloaded = as_model_set(source)
+        self.decode = decode
+        self.paging = paging
+        self.clip = clip
+        self.cull = cull
+        self.lod = lod
+        self.background = background_rgb(background)
+        self._interpolate, self._linear = bool(interpolate), bool(linear)
+        self._options = dict(spherical=spherical, background=self.background, clip=clip, cull=cull, lod=lod)
+        self.lo, self.hi = self.model_set.lo, self.model_set.hi
+        self.origin = np.asarray(self.model_set.origin, np.float64)
+        self.resident: dict[int, _Resident] = {}
+        self.stats: dict = {}
+        self.frames = 0
+        self.uploads = self.releases = 0
+        self.peak_bytes = self.peak_reserved = 0
+        self._too_big: set[int] = set()
+        self._frame_uploads = self._frame_releases = 0
+        self._paging_stats: dict = {}
+        self._released = False
+        self.motion = Motion()
+        self.targets = OffscreenTargets(ctx)
+        self.sky_pass: SkyPass | None = None
+        limit = max_texture_size(ctx)
+
+        def bound(model, decode=decode, lod=lod, cull=cull, limit=limit):
+            return tile_gpu_bound(model, decode, lod, limit, cull)
+
+        self.loader = TileLoader(self.model_set, bound, preloaded)
+        try:
+            if sky is not None:
+                self.sky_pass = SkyPass(ctx, sky)
+        except BaseException:
+            self.release()
+            raise
+
+    # -- settings shared by every tile
+    @property
+    def interpolate(self) -> bool:
+        return self._interpolate
+
+    @interpolate.setter
+    def interpolate(self, value: bool) -> None:
+        self._interpolate = bool(value)
+        for r in self.resident.values():
+            r.renderer.interpolate = self._interpolate
+
+    @property
+    def linear(self) -> bool:
+        return self._linear
+
+    @linear.setter
+    def linear(self, value: bool) -> None:
+        self._linear = bool(value)
+        for r in self.resident.values():
+            r.renderer.linear = self._linear
+
+    @property
+    def num_billboards(self) -> int:
+        return self.model_set.num_billboards
+
+    # -- GPU account
+    def gpu_bytes(self) -> int:
+        """Bytes the resident tiles' renderers hold on the GPU now (measured)."""
+        return sum(r.bytes for r in self.resident.values())
+
+    def gpu_reserved(self) -> int:
+        """Sum of the resident tiles' bounds (:func:`render.paging.tile_gpu_bound`)."""
+        return sum(r.bound for r in self.resident.values())
+
+    def _measure(self, i: int) -> int:
+        r = self.resident[i]
+        parts = renderer_gpu_bytes(r.renderer)
+        r.bytes = parts["total"] - parts["targets"]
+        return r.bytes
+
+    # -- paging
+    def _upload(self, i: int, rank: np.ndarray, protected: set[int], sync: bool) -> int | None:
+        """Make tile ``i`` resident, releasing lower-priority tiles (larger ``rank``, not
+        ``protected``) while the budget needs room; returns its bound, or None when it does not
+        fit (or, unless ``sync``, is not loaded yet)."""
+        tile = self.loader.get(i) if sync else self.loader.loaded(i)
+        if tile is None:
+            return None
+        budget = self.paging.gpu_budget
+        if budget is not None:
+            if tile.bound > budget:
+                if i not in self._too_big:
+                    self._too_big.add(i)
+                    logger.warning("tile %s needs up to %.1f MB of GPU memory, more than the budget of %.1f MB; "
+                                   "it is not drawn", self.model_set.tiles[i].name, tile.bound / 2**20, budget / 2**20)
+                return None
+            reserved = self.gpu_reserved()
+            if reserved + tile.bound > budget:
+                victims = sorted((j for j in self.resident if j not in protected and rank[j] > rank[i]),
+                                 key=lambda j: -rank[j])
+                freed, chosen = 0, []
+                for j in victims:
+                    if reserved - freed + tile.bound <= budget:
+                        break
+                    chosen.append(j)
+                    freed += self.resident[j].bound
+                if reserved - freed + tile.bound > budget:
+                    return None
+                for j in chosen:
+                    self._release_tile(j)
+        renderer = BillboardRenderer(self.ctx, tile.model, self.decode, interpolate=self._interpolate,
+                                     linear=self._linear, **self._options)
+        self.resident[i] = _Resident(renderer, tile.bound)
+        self._measure(i)
+        self.uploads += 1
+        self._frame_uploads += 1
+        return tile.bound
+
+    def _release_tile(self, i: int) -> None:
+        r = self.resident.pop(i)
+        r.renderer.release()
+        self.releases += 1
+        self._frame_releases += 1
+
+    def prepare(self, K, world_from_cam, size, wait: str = "auto") -> np.ndarray:
+        """Page for a view: release, wait for, upload and queue tiles. Returns the tiles to draw
+        (resident and in the frustum), nearest first. ``wait``: see the module notes ("auto":
+        "near" on the first frame, "none" after)."""
+        if self._released:
+            raise RuntimeError("TiledRenderer used after release()")
+        if wait not in WAIT_MODES:
+            raise ValueError(f"wait must be one of {WAIT_MODES}, got {wait!r}")
+        if wait == "auto":
+            wait = "near" if self.frames == 0 else "none"
+        self._frame_uploads = self._frame_releases = 0
+        cfg = self.paging
+        t0 = time.perf_counter()
+        camera = gl_camera(K, world_from_cam, size, self.origin, self.clip)
+        view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
+        visible = ~boxes_outside(frustum_planes(view_proj), self.lo - self.origin, self.hi - self.origin)
+        pose = np.asarray(world_from_cam, np.float64)
+        eye = pose[:3, 3]
+        direction = self.motion.update(eye, pose[:3, 2])
+        ahead = eye + cfg.prefetch * direction
+        dist, wanted, order = tile_priorities(self.lo, self.hi, eye, ahead, visible, cfg)
+        rank = np.empty(len(order), np.int64)
+        rank[order] = np.arange(len(order))
+        eye_dist = np.sqrt(np.sum(np.maximum(np.maximum(self.lo - eye, eye - self.hi), 0.0) ** 2, axis=1))
+
+        for i in [j for j in self.resident if dist[j] > cfg.drop_radius and not visible[j]]:
+            self._release_tile(i)
+        if wait == "all":
+            must = [int(j) for j in order if visible[j]]
+        elif wait == "near":
+            must = [int(j) for j in order if visible[j] and eye_dist[j] <= cfg.wait_radius]
+        else:
+            must = []
+        protected = set(must)
+        t1 = time.perf_counter()
+        for i in must:
+            if i not in self.resident and i not in self._too_big:
+                self._upload(i, rank, protected, sync=True)
+        wait_s = time.perf_counter() - t1
+        budget_bytes = 0
+        for i in (int(j) for j in order):
+            if not wanted[i]:
+                break  # the order puts wanted tiles first
+            if i in self.resident or i in self._too_big:
+                continue
+            if self._frame_uploads >= cfg.uploads_per_frame + len(must):
+                break
+            tile = self.loader.loaded(i)
+            if tile is None:
+                continue
+            if budget_bytes > 0 and budget_bytes + tile.bound > cfg.upload_bytes_per_frame:
+                break
+            bound = self._upload(i, rank, protected, sync=False)
+            if bound is None:
+                break  # no room for the most important tile left: the rest wait
+            budget_bytes += bound
+        for i in (int(j) for j in order):
+            if not wanted[i] or self.loader.in_flight >= cfg.loads_in_flight:
+                break
+            if i not in self.resident and i not in self._too_big:
+                self.loader.request(i)
+        for i in self.loader.indices():
+            if i not in self.resident and not wanted[i]:
+                self.loader.drop(i)
+        draw = [i for i in self.resident if visible[i]]
+        draw.sort(key=lambda i: (eye_dist[i], i))
+        self._paging_stats = {
+            "tiles": len(self.lo), "tiles_visible": int(visible.sum()), "tiles_drawn": len(draw),
+            "tiles_missing": int(sum(1 for i in np.flatnonzero(visible & (eye_dist <= cfg.load_radius))
+                                     if i not in self.resident)),
+            "tiles_wanted": int(wanted.sum()), "tiles_resident": len(self.resident),
+            "tiles_loaded": len(self.loader.indices()), "loads_in_flight": self.loader.in_flight,
+            "uploads": self._frame_uploads, "releases": self._frame_releases, "wait_s": wait_s,
+            "page_s": time.perf_counter() - t0 - wait_s}
+        return np.array(draw, np.int64)
+
+    def draw(self, K, world_from_cam, size, wait: str = "auto") -> dict:
+        """Page (:meth:`prepare`), then draw every resident visible tile into the bound framebuffer
+        (cleared by the caller, depth to 1; the viewport the camera's size). Returns the stats."""
+        t0 = time.perf_counter()
+        tiles = self.prepare(K, world_from_cam, size, wait)
+        totals: dict = {}
+        t1 = time.perf_counter()
+        for i in tiles:
+            r = self.resident[int(i)].renderer
+            merge_stats(totals, r.draw(r.camera(K, world_from_cam, size)))
+        for i in tiles:
+            self._measure(int(i))  # instance buffers grow with what is drawn
+        totals["draw_s"] = time.perf_counter() - t1
+        used, reserved = self.gpu_bytes(), self.gpu_reserved()
+        self.peak_bytes = max(self.peak_bytes, used)
+        self.peak_reserved = max(self.peak_reserved, reserved)
+        totals.update(self._paging_stats)
+        totals.update(gpu_bytes=used, gpu_reserved=reserved, gpu_budget=self.paging.gpu_budget,
+                      billboards=self.num_billboards, frame_s=time.perf_counter() - t0)
+        totals.setdefault("billboards_drawn", totals.get("instances", 0))
+        self.frames += 1
+        self.stats = totals
+        return totals
+
+    def render(self, K, world_from_cam, size, wait: str = "auto") -> np.ndarray:
+        """(h, w, 3) uint8 image of the set from the OpenCV camera K (3, 3), world_from_cam (4, 4)
+        float64, size = (w, h): one clear, the sky (if any), every resident visible tile."""
+        size = (int(size[0]), int(size[1]))
+        self.targets.begin(size, self.background)
+        if self.sky_pass is not None:
+            self.sky_pass.draw(K, world_from_cam, size)
+        self.draw(K, world_from_cam, size, wait)
+        t0 = time.perf_counter()
+        image = self.targets.read(size)
+        self.stats["read_s"] = time.perf_counter() - t0
+        return image
+
+    def finish(self) -> None:
+        self.ctx.finish()
+
+    def release(self) -> None:
+        """Release every resident tile, the sky pass and the framebuffers, stop the loader
+        (idempotent)."""
+        if self._released:
+            return
+        self._released = True
+        for i in list(self.resident):
+            self.resident.pop(i).renderer.release()
+        if self.sky_pass is not None:
+            self.sky_pass.release()
+        self.targets.release()
+        self.loader.close()
+
+    def __enter__(self) -> TiledRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+

@@ -1,0 +1,274 @@
+"""Out-of-core rendering of a tiled model (render.tiled_renderer, render.paging): a set draws what
+its tiles draw one after another into one frame, a one-tile set what the single-model renderer
+draws, a split model what the whole model draws; paging under a small GPU budget keeps the
+measured bytes within it along a walk, loads tiles before they are needed, releases the far
+ones, and a view whose tiles are all resident equals the unlimited-budget image."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from billboards.model_set import load_model_set, split_tiles, write_model_set
+from billboards.model_writer import save
+from billboards.sky import Sky
+from render.camera import ClipPlanes, look_at
+from render.context import max_texture_size
+from render.lod import LodConfig
+from render.paging import (PagingConfig, renderer_gpu_bytes, tile_gpu_bound, tile_priorities)
+from render.renderer import BillboardRenderer
+from render.sky import SkyPass, render_over_sky
+from render.target import OffscreenTargets
+from render.tiled_renderer import TiledRenderer
+
+from .test_render_cull_draw import octree_model
+from .test_render_gpu import intrinsics
+
+SIZE = (200, 150)
+K = intrinsics(120.0, *SIZE)
+WORLD = np.array([5e5 + 0.3, 4e6 + 0.7, 12.0])
+TILE = 15.0
+BG = (0.3, 0.5, 0.8)
+
+
+def street_points(length: float = 59.0, seed: int = 1) -> np.ndarray:
+    """World points of two facades (y = ±6) along x in [0, length) and a few things between."""
+    gx, gz = np.meshgrid(np.arange(0.25, length, 0.5), np.arange(0.25, 4.5, 0.5))
+    walls = [np.stack([gx.ravel(), np.full(gx.size, y), gz.ravel()], 1) for y in (-6.0, 6.0)]
+    rng = np.random.default_rng(seed)
+    things = np.stack([rng.uniform(0, length, 150), rng.uniform(-4, 4, 150), rng.uniform(0.3, 3, 150)], 1)
+    return WORLD + np.concatenate([*walls, things])
+
+
+@pytest.fixture(scope="module")
+def street():
+    """(whole model, tiled set root) of a 60 m street in 4 tiles of 15 m."""
+    return octree_model(street_points(), base_yaw=lambda c: np.where(c[:, 1] > WORLD[1], -np.pi / 2, np.pi / 2),
+                        d_yaw=3, yaw_span_deg=60.0, page_size=256, rank=1, seed=4)
+
+
+@pytest.fixture(scope="module")
+def street_set(street, tmp_path_factory):
+    root = tmp_path_factory.mktemp("set") / "street"
+    grid = WORLD - [0.0, TILE / 2, 0.0]  # one row of tiles along the street
+    entries = split_tiles(street, root, TILE, grid)
+    write_model_set(root, grid, TILE, entries)
+    return load_model_set(root)
+
+
+def views() -> list[np.ndarray]:
+    return [look_at(WORLD + [5.0, 0.0, 2.0], WORLD + [40.0, 0.0, 2.0]),  # along the street: every tile
+            look_at(WORLD + [22.0, -2.0, 2.0], WORLD + [22.0, 6.0, 2.5]),  # one facade, across a tile border
+            look_at(WORLD + [52.0, 3.0, 6.0], WORLD + [20.0, -4.0, 0.0])]  # back down the street, from above
+
+
+def test_the_split_set(street, street_set):
+    assert street_set.tiled and len(street_set) == 4
+    assert street_set.num_billboards == street.num_billboards
+    assert [t.index for t in street_set.tiles] == [(0, 0), (1, 0), (2, 0), (3, 0)]
+    for i, t in enumerate(street_set.tiles):
+        model = street_set.load_tile(i)
+        world = model.origin + model.centres.astype(np.float64)
+        cell = np.floor((world[:, :2] - street_set.origin[:2]) / TILE)
+        assert np.all(cell == t.index)
+        assert np.all(world >= t.lo) and np.all(world <= t.hi)
+
+
+def test_set_draws_like_its_tiles_one_after_another(ctx, street_set):
+    """The tiled renderer's frame equals each visible tile's own renderer drawing into one cleared
+    frame, nearest tile first, no clear between: exactly."""
+    models = [street_set.load_tile(i) for i in range(len(street_set))]
+    tiles = [BillboardRenderer(ctx, m, "gpu", background=BG, cull="frustum") for m in models]
+    targets = OffscreenTargets(ctx)
+    try:
+        with TiledRenderer(ctx, street_set, "gpu", background=BG) as tiled:
+            for pose in views():
+                image = tiled.render(K, pose, SIZE, wait="all")
+                eye = pose[:3, 3]
+                order = np.argsort([np.linalg.norm(np.maximum(np.maximum(t.lo - eye, eye - t.hi), 0))
+                                    for t in street_set.tiles], kind="stable")
+                targets.begin(SIZE, BG)
+                drawn = 0
+                visible = _drawn_tiles(tiled, pose)
+                for i in order:
+                    if i in visible:
+                        r = tiles[i]
+                        r.draw(r.camera(K, pose, SIZE))
+                        drawn += 1
+                ref = targets.read(SIZE)
+                assert drawn == tiled.stats["tiles_drawn"] >= 1
+                np.testing.assert_array_equal(image, ref)
+                assert np.mean(np.any(image != np.rint(np.array(BG) * 255), axis=-1)) > 0.05
+            assert tiled.stats["tiles_drawn"] >= 1
+    finally:
+        targets.release()
+        for r in tiles:
+            r.release()
+
+
+def _drawn_tiles(tiled: TiledRenderer, pose) -> set[int]:
+    """Tiles whose bounds meet the frustum of ``pose`` (what the tiled renderer draws when resident)."""
+    from render.camera import gl_camera
+    from render.culling import boxes_outside, frustum_planes
+
+    cam = gl_camera(K, pose, SIZE, tiled.origin, tiled.clip)
+    planes = frustum_planes(cam.projection.astype(np.float64) @ cam.view.astype(np.float64))
+    return set(np.flatnonzero(~boxes_outside(planes, tiled.lo - tiled.origin, tiled.hi - tiled.origin)).tolist())
+
+
+def test_one_tile_set_is_the_single_model_renderer(ctx, street, tmp_path):
+    """A plain model (a directory read as a set of one tile, or the model in memory) draws
+    exactly what the single-model renderer draws, over the plain background and over a sky."""
+    save(street, tmp_path / "plain")
+    plain = load_model_set(tmp_path / "plain")
+    assert not plain.tiled and len(plain) == 1
+    sky = Sky(np.linspace(0.2, 0.9, 24, dtype=np.float32).reshape(8, 3))
+    single = BillboardRenderer(ctx, street, "gpu", background=BG, cull="frustum")
+    sky_pass = SkyPass(ctx, sky)
+    try:
+        for source in (plain, street):
+            for with_sky in (False, True):
+                with TiledRenderer(ctx, source, "gpu", background=BG, sky=sky if with_sky else None) as tiled:
+                    for pose in views():
+                        got = tiled.render(K, pose, SIZE)
+                        want = render_over_sky(single, sky_pass if with_sky else None, K, pose, SIZE)
+                        np.testing.assert_array_equal(got, want)
+                        assert tiled.stats["tiles"] == 1
+                        assert tiled.stats["billboards_drawn"] == single.stats["billboards_drawn"]
+    finally:
+        single.release()
+        sky_pass.release()
+
+
+def test_split_set_draws_like_the_whole_model(ctx, street, street_set):
+    """Split into tiles on their own origins, the street draws the whole model's image up to the
+    tiles' float32 origins: a handful of edge pixels."""
+    with BillboardRenderer(ctx, street, "gpu", background=BG, cull="frustum") as whole, \
+            TiledRenderer(ctx, street_set, "gpu", background=BG) as tiled:
+        for pose in views():
+            a = whole.render(K, pose, SIZE)
+            b = tiled.render(K, pose, SIZE, wait="all")
+            differ = np.any(a != b, axis=-1)
+            assert differ.mean() < 0.003, f"{differ.mean():.2%} of the pixels differ"
+            assert tiled.stats["billboards_drawn"] >= whole.stats["billboards_drawn"] * 0.9
+
+
+def test_gpu_account_and_bound(ctx, street_set):
+    """Every texture and buffer of a tile's renderer is counted, and never more than its bound,
+    with and without level of detail (impostors) and with the CPU decode."""
+    limit = max_texture_size(ctx)
+    model = street_set.load_tile(1)
+    for decode, lod in (("gpu", None), ("gpu", LodConfig()), ("cpu", None)):
+        bound = tile_gpu_bound(model, decode, lod, limit)
+        with BillboardRenderer(ctx, model, decode, lod=lod, cull="frustum") as r:
+            for pose in views():
+                r.render(K, pose, SIZE)
+            parts = renderer_gpu_bytes(r)
+            counted = parts["total"] - parts["targets"]
+            assert 0 < counted <= bound, (decode, lod, parts, bound)
+            if decode == "gpu":
+                assert parts["pages"] > 0 and parts["decoded_atlas"] > 0 and parts["view_atlas"] > 0
+                assert (parts["impostor_atlas"] > 0) == (lod is not None)
+            else:
+                assert parts["cpu_atlas"] > 0
+        r.release()
+        assert renderer_gpu_bytes(r)["total"] == 0  # released: nothing left
+
+
+def _walk(start, end, steps):
+    """Poses along the street from ``start`` to ``end`` (world offsets), looking ahead and a
+    little sideways."""
+    out = []
+    for a in np.linspace(0, 1, steps):
+        eye = WORLD + np.asarray(start) * (1 - a) + np.asarray(end) * a
+        out.append(look_at(eye, eye + [8.0, 3.0 * np.sin(7 * a), 0.0]))
+    return out
+
+
+@pytest.mark.parametrize("tiles_in_budget", [2.2, 3.2])
+def test_paging_walk_under_a_small_budget(ctx, street_set, tiles_in_budget):
+    """Along the street under a budget of 2.2 or 3.2 tiles (of 4): the measured GPU bytes and the
+    reserved bounds stay within the budget every frame, far tiles are released, every image of a
+    view whose tiles are all resident equals the unlimited-budget image; with room for the tiles
+    a view sees (3 at most here), tiles ahead are resident before they come within the load
+    radius (the loader given each frame's time)."""
+    limit = max_texture_size(ctx)
+    bounds = [tile_gpu_bound(street_set.load_tile(i), "gpu", None, limit) for i in range(len(street_set))]
+    budget = int(tiles_in_budget * max(bounds))
+    paging = PagingConfig(gpu_budget=budget, load_radius=10.0, prefetch=12.0, drop_radius=12.0, wait_radius=5.0)
+    clip_far = dict(clip=ClipPlanes(far=14.0))
+    poses = _walk([-3.0, 0.0, 2.0], [65.0, 0.0, 2.0], 36)
+    with TiledRenderer(ctx, street_set, "gpu", background=BG, paging=paging, **clip_far) as small, \
+            TiledRenderer(ctx, street_set, "gpu", background=BG, **clip_far) as free:
+        missing, releases, uploads, compared = [], 0, 0, 0
+        for k, pose in enumerate(poses):
+            image = small.render(K, pose, SIZE)
+            s = small.stats
+            assert s["gpu_bytes"] <= s["gpu_reserved"] <= budget, s
+            for r in small.resident.values():
+                assert r.bytes <= r.bound
+            missing.append(s["tiles_missing"])
+            releases += s["releases"]
+            uploads += s["uploads"]
+            ref = free.render(K, pose, SIZE, wait="all")
+            if s["tiles_drawn"] == s["tiles_visible"]:
+                np.testing.assert_array_equal(image, ref, err_msg=f"frame {k}")
+                compared += 1
+            small.loader.wait_idle()  # the frame's time: the loads queued this frame finish
+        assert missing[0] == 0  # the first frame waited for the tiles around the eye
+        if tiles_in_budget > 3:
+            assert sum(missing) == 0, missing  # prefetched: nothing near was ever missing
+        assert compared >= 0.8 * len(poses)
+        assert releases >= 2 and uploads >= 4  # walked through all four tiles, dropping those behind
+        assert small.peak_bytes <= budget < free.peak_bytes  # the budget bound
+        # at the end of the walk, the first tiles are gone
+        assert 0 not in small.resident and (len(street_set) - 1) in small.resident
+
+
+def test_first_frame_waits_only_for_the_tiles_around_the_eye(ctx, street_set):
+    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, uploads_per_frame=1)
+    pose = look_at(WORLD + [7.0, 0.0, 2.0], WORLD + [7.0, 6.0, 2.0])  # inside tile 0, facing its facade
+    with TiledRenderer(ctx, street_set, "gpu", paging=paging) as tiled:
+        tiled.render(K, pose, SIZE)
+        s = tiled.stats
+        assert s["tiles_resident"] <= 1 + paging.uploads_per_frame and s["tiles_drawn"] >= 1
+        assert s["tiles_resident"] < len(street_set)
+        for _ in range(len(street_set) + 2):  # then the rest arrive, a bounded number per frame
+            tiled.loader.wait_idle()
+            tiled.render(K, pose, SIZE)
+            assert tiled.stats["uploads"] <= paging.uploads_per_frame
+        assert tiled.stats["tiles_resident"] == len(street_set)
+
+
+def test_priorities_prefer_visible_then_near_and_prefetch_ahead():
+    lo = np.array([[0, 0, 0], [10, 0, 0], [20, 0, 0], [-10, 0, 0], [100, 0, 0]], float)
+    hi = lo + [10, 10, 5]
+    eye = np.array([5.0, 5, 1])
+    visible = np.array([True, False, True, False, False])
+    config = PagingConfig(load_radius=16.0)
+    d, wanted, order = tile_priorities(lo, hi, eye, eye, visible, config)
+    assert wanted.tolist() == [True, True, True, True, False]
+    assert order.tolist() == [0, 2, 1, 3, 4]
+    ahead = eye + [20.0, 0, 0]  # moving along +x: the tile 15 m ahead is wanted too, not those 5 m aside
+    d, wanted, order = tile_priorities(lo, hi, eye, ahead, np.zeros(5, bool), PagingConfig(load_radius=4.0))
+    assert wanted.tolist() == [True, False, True, False, False] and order[:2].tolist() == [0, 2]
+
+
+def test_paging_config_is_validated():
+    for bad in (dict(gpu_budget=0), dict(gpu_budget=1.5), dict(load_radius=-1.0), dict(load_radius=float("nan")),
+                dict(drop_radius=10.0, load_radius=20.0), dict(uploads_per_frame=0), dict(loads_in_flight=0)):
+        with pytest.raises(ValueError):
+            PagingConfig(**bad)
+    PagingConfig(gpu_budget=1 << 20, load_radius=float("inf"), drop_radius=float("inf"))
+
+
+def test_release_is_idempotent(ctx, street_set):
+    tiled = TiledRenderer(ctx, street_set, "gpu")
+    tiled.render(K, views()[0], SIZE, wait="all")
+    assert tiled.gpu_bytes() > 0
+    renderers = [r.renderer for r in tiled.resident.values()]
+    tiled.release()
+    tiled.release()
+    assert tiled.gpu_bytes() == 0 and all(renderer_gpu_bytes(r)["total"] == 0 for r in renderers)
+    with pytest.raises(RuntimeError):
+        tiled.render(K, views()[0], SIZE)
