@@ -16,11 +16,12 @@ import time
 from pathlib import Path
 
 from . import __version__
+from .executor import DEFAULT_RETRIES, EXECUTORS
 from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH,
                       MAX_REPEATS, MAX_SPP, MAX_TILE, MIN_LENGTH, RENDER_BYTES_PER_PIXEL, CommandParser, UsageError,
                       build_bytes, check_memory, dimension, float_range, holdout, int_range, length,
-                      nonnegative_float, nonnegative_int, positive_float, positive_int, size_action, synth_bytes,
-                      worker_count)
+                      nonnegative_float, nonnegative_int, positive_float, positive_int, scheduler_address,
+                      size_action, synth_bytes, worker_count)
 
 logger = logging.getLogger("bbcity")
 
@@ -29,9 +30,53 @@ logger = logging.getLogger("bbcity")
 # definition each, so the commands cannot drift apart in type, check or help.
 
 def _workers_parent() -> argparse.ArgumentParser:
-    """``--workers`` of the commands that run a process pool (synth, recon, build)."""
+    """``--workers``, ``--executor``, ``--scheduler`` and ``--retries`` of the commands that run
+    their tasks in parallel (synth, recon, build): see :func:`_executor_options`."""
     p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("--workers", type=worker_count, default=None, help="parallel processes (default: one per core)")
+    p.add_argument("--workers", type=worker_count, default=None,
+                   help="parallel processes of the local pool or of the Dask cluster started here (default: one "
+                        "per core)")
+    p.add_argument("--executor", choices=EXECUTORS, default=None,
+                   help="where tasks run: local (a process pool, the default) or dask (a Dask cluster: the one at "
+                        "--scheduler, else one started on this machine)")
+    p.add_argument("--scheduler", type=scheduler_address, default=None, metavar="ADDRESS",
+                   help="a running Dask scheduler, tcp://host:8786 (implies --executor dask; the dataset, work and "
+                        "model directories must be at the same path on every worker's machine)")
+    p.add_argument("--retries", type=nonnegative_int, default=None,
+                   help=f"dask: times a failed task runs again (default {DEFAULT_RETRIES}); a task failing on bad "
+                        f"input fails at once")
+    return p
+
+
+def _executor_options(args) -> dict:
+    """``executor_scope``'s keywords from ``--executor``, ``--scheduler`` and ``--retries``
+    (UsageError for a contradiction)."""
+    kind = args.executor or ("dask" if args.scheduler is not None else "local")
+    if kind == "local" and args.scheduler is not None:
+        raise UsageError("--scheduler needs --executor dask")
+    if kind == "local" and args.retries is not None:
+        raise UsageError("--retries applies to --executor dask")
+    if args.scheduler is not None and args.workers is not None:
+        raise UsageError("--workers sizes a cluster started here; the cluster at --scheduler has the workers "
+                         "started on its machines")
+    return dict(kind=kind, scheduler=args.scheduler,
+                retries=DEFAULT_RETRIES if args.retries is None else args.retries)
+
+
+def _absolute_paths(args) -> None:
+    """Make the path options absolute: Dask tasks carry paths, and a worker elsewhere resolves a
+    relative one from its own directory."""
+    for name, value in vars(args).items():
+        if isinstance(value, Path):
+            setattr(args, name, Path(os.path.abspath(value)))
+
+
+def _size_parent(default: tuple[int, int] | None, bytes_per_pixel: int, help: str) -> argparse.ArgumentParser:
+    """``--size W H`` of the commands that render (render, view, eval, fps): each edge within
+    the OpenGL limit, W·H·``bytes_per_pixel`` within the available memory."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--size", type=dimension, nargs=2, default=default, metavar=("W", "H"),
+                   action=size_action(bytes_per_pixel), help=help)
     return p
 
 
@@ -125,7 +170,7 @@ def _run_synth(args) -> int:
 
     cfg = _synth_config(args)
     start = time.perf_counter()
-    with executor_scope(args.workers) as executor:
+    with executor_scope(args.workers, **_executor_options(args)) as executor:
         out = write_dataset(cfg, args.out, executor=executor)
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     logger.info("wrote %s: %.1f MB in %.1f s", out, size / 1e6, time.perf_counter() - start)
@@ -275,7 +320,7 @@ def _run_recon(args) -> int:
     from .executor import executor_scope
 
     conf = _recon_config(args)
-    with executor_scope(args.workers) as executor:
+    with executor_scope(args.workers, **_executor_options(args)) as executor:
         cloud = recon_main(conf, args.dataset, args.out, executor=executor)
     logger.info("wrote %s and %s", cloud, cloud.with_name("recon_report.json"))
     return 0
@@ -411,7 +456,7 @@ def _run_build(args) -> int:
     if poses is None and args.work is not None and args.cloud is None and dataset is not None:
         poses = _work_poses(args.work)  # WORK's cloud lies in the frame of the poses its recon used
     conf = build_config_from_args(args)
-    with executor_scope(args.workers) as executor:
+    with executor_scope(args.workers, **_executor_options(args)) as executor:
         result = build_main(conf, cloud, dataset, args.out, executor=executor, poses=poses)
     r = result.report
     psnr = r["psnr"]["decoded_rgb_opaque_db"]  # None: no opaque texel measured
@@ -990,6 +1035,8 @@ def _main(argv: list[str] | None) -> int:
     # SIGTERM unwinds like Ctrl-C: atomic writers clean up and pool workers are killed
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     try:
+        if hasattr(args, "executor") and _executor_options(args)["kind"] == "dask":  # a contradiction: one line
+            _absolute_paths(args)
         # every writing command names its output --out: one live run at a time writes it
         out = getattr(args, "out", None)
         if out is not None:

@@ -1,8 +1,8 @@
 """The one executor interface every parallel stage runs through.
 
-Stages take a ``concurrent.futures.Executor`` and use only ``submit``; a
-process pool today, and tomorrow any other implementation of the same
-interface (a Dask ``Client.get_executor()``), runs the same code.
+Stages take a ``concurrent.futures.Executor`` and use only ``submit``: a process
+pool on this machine (``local``) or a Dask distributed cluster (``dask``,
+:mod:`bbcity.dask_executor`) runs the same code.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import pickle
 import signal
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Iterator
 
 
@@ -132,15 +133,57 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def make_executor(workers: int | None = None) -> Executor:
-    """A process pool of ``workers`` (default: one per core), or serial for 1.
+#: What runs the tasks: ``local``, a process pool here; ``dask``, a Dask distributed cluster.
+EXECUTORS = ("local", "dask")
 
-    Workers are spawned, not forked: Open3D and OpenCV keep thread pools that
-    do not survive a fork.
+#: Times the Dask executor runs a failed task again (a task failing on bad input is not retried).
+DEFAULT_RETRIES = 2
+
+
+@dataclass(frozen=True)
+class ExecutorConfig:
+    """Where a stage's tasks run."""
+
+    kind: str = "local"                 # local: a process pool here; dask: a Dask distributed cluster
+    workers: int | None = None          # processes of the pool or the embedded Dask cluster (None: one per core)
+    scheduler: str | None = None        # dask: a running scheduler's address (tcp://host:8786); None: embedded cluster
+    retries: int = DEFAULT_RETRIES      # dask: runs again a task that failed other than on bad input
+
+    def __post_init__(self):
+        if self.kind not in EXECUTORS:
+            raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {self.kind!r}")
+        if self.workers is not None and (isinstance(self.workers, bool) or not isinstance(self.workers, int)
+                                         or self.workers < 1):
+            raise ValueError(f"workers must be at least 1, got {self.workers}")
+        if self.scheduler is not None:
+            if self.kind != "dask":
+                raise ValueError("a scheduler address needs the dask executor")
+            if not self.scheduler.strip():
+                raise ValueError("the scheduler address is empty")
+            if self.workers is not None:
+                raise ValueError("workers sizes a cluster started here; a running scheduler's cluster has the "
+                                 "workers started on its machines")
+        if isinstance(self.retries, bool) or not isinstance(self.retries, int) or self.retries < 0:
+            raise ValueError(f"retries must be at least 0, got {self.retries}")
+
+
+def make_executor(workers: int | None = None, *, kind: str = "local", scheduler: str | None = None,
+                  retries: int = DEFAULT_RETRIES) -> Executor:
+    """The executor :class:`ExecutorConfig` describes (``kind``, ``workers``, ``scheduler``, ``retries``).
+
+    local: a process pool of ``workers`` (default: one per core), or serial for 1. Workers
+    are spawned, not forked: Open3D and OpenCV keep thread pools that do not survive a fork.
+    dask: a :class:`bbcity.dask_executor.DaskExecutor` on an embedded cluster of ``workers``
+    processes, or on the cluster of the running ``scheduler``.
     """
+    config = ExecutorConfig(kind, workers, scheduler, retries)
     workers = default_workers() if workers is None else workers
-    if workers < 1:
-        raise ValueError(f"workers must be at least 1, got {workers}")
+    if config.kind == "dask":  # its nannies start each worker with one BLAS/OpenMP thread
+        from .dask_executor import DaskExecutor
+
+        if config.scheduler is not None:
+            return DaskExecutor.connect(config.scheduler, config.retries)
+        return DaskExecutor.embedded(workers, config.retries)
     if workers == 1:
         return SerialExecutor()
     # One BLAS/OpenMP thread per worker: the pool already fills the cores, and
@@ -151,19 +194,22 @@ def make_executor(workers: int | None = None) -> Executor:
 
 
 @contextmanager
-def executor_scope(workers: int | None = None) -> Iterator[Executor]:
+def executor_scope(workers: int | None = None, *, kind: str = "local", scheduler: str | None = None,
+                   retries: int = DEFAULT_RETRIES) -> Iterator[Executor]:
     """:func:`make_executor` for a ``with`` block that cleans up after failures too.
 
     On an error queued tasks are cancelled and the running ones finish; on Ctrl-C
-    or SIGTERM (turned into SystemExit by the CLI) the workers are killed at once.
-    Either way no pool process outlives the command.
+    or SIGTERM (turned into SystemExit by the CLI) the workers are killed at once
+    (a running Dask scheduler's workers finish the tasks they run). Either way no
+    pool or embedded cluster process outlives the command.
     """
-    executor = make_executor(workers)
+    executor = make_executor(workers, kind=kind, scheduler=scheduler, retries=retries)
     try:
         yield executor
     except (KeyboardInterrupt, SystemExit):
-        if isinstance(executor, WorkerPool):
-            executor.stop()
+        stop = getattr(executor, "stop", None)
+        if stop is not None:
+            stop()
         raise
     except BaseException:
         executor.shutdown(wait=True, cancel_futures=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 
 #: Largest texture and renderbuffer edge the renderers rely on (pixels, texels): the
 #: GL_MAX_TEXTURE_SIZE / GL_MAX_RENDERBUFFER_SIZE of current desktop GPUs.
@@ -148,6 +149,28 @@ def max_workers() -> int:
 def worker_count(text: str) -> int:
     """An argparse type: parallel processes, an integer in [1, :func:`max_workers`]."""
     return int_range(1, max_workers(), "4 × the usable cores")(text)
+
+
+#: A Dask scheduler address: [scheme://]host:port, the host a name, an IPv4 address or a
+#: bracketed IPv6 address.
+_SCHEDULER_ADDRESS = re.compile(r"^(?:(?P<scheme>[a-z]+)://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+)"
+                                r":(?P<port>[0-9]+)$")
+
+#: Transports a Dask scheduler listens on.
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
+
+
+def scheduler_address(text: str) -> str:
+    """An argparse type: the address of a running Dask scheduler, ``tcp://host:8786`` (the
+    transport optional, tcp by default; the port required, so that a stray word is no host)."""
+    m = _SCHEDULER_ADDRESS.match(text.strip())
+    if m is None:
+        _fail(f"expected a scheduler address such as tcp://host:8786, got {text!r}")
+    if m["scheme"] is not None and m["scheme"] not in SCHEDULER_SCHEMES:
+        _fail(f"unknown transport {m['scheme']!r}; choose from {', '.join(SCHEDULER_SCHEMES)}")
+    if not 1 <= int(m["port"]) <= 65535:
+        _fail(f"port must lie in [1, 65535], got {m['port']}")
+    return text.strip()
 
 
 def available_memory() -> int | None:

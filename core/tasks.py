@@ -19,11 +19,16 @@ R = TypeVar("R")
 
 
 def executor_workers(executor: Executor | None) -> int:
-    """Tasks ``executor`` runs at once, for sizing how many to keep in flight: a process or
-    thread pool's ``max_workers``; 1 for None (this process), a serial executor, or one that
-    does not say (the ``concurrent.futures`` interface has no public way to ask)."""
-    n = getattr(executor, "_max_workers", None)
-    return n if isinstance(n, int) and not isinstance(n, bool) and n >= 1 else 1
+    """Tasks ``executor`` runs at once, for sizing how many to keep in flight. The
+    ``concurrent.futures`` interface has no public way to ask, so an executor says it with a
+    ``max_workers`` attribute or property (an int ≥ 1: the Dask executor's count of worker
+    threads); else a process or thread pool's ``_max_workers``; else 1 (None: this process,
+    a serial executor, or one that does not say)."""
+    for name in ("max_workers", "_max_workers"):
+        n = getattr(executor, name, None)
+        if isinstance(n, int) and not isinstance(n, bool) and n >= 1:
+            return n
+    return 1
 
 
 def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: Executor | None = None,
