@@ -80,13 +80,32 @@ def _size_parent(default: tuple[int, int] | None, bytes_per_pixel: int, help: st
     return p
 
 
-def _size_parent(default: tuple[int, int] | None, bytes_per_pixel: int, help: str) -> argparse.ArgumentParser:
-    """``--size W H`` of the commands that render (render, view, eval, fps): each edge within
-    the OpenGL limit, W·H·``bytes_per_pixel`` within the available memory."""
+def _gpu_budget_parent() -> argparse.ArgumentParser:
+    """``--gpu-budget MB`` of the commands that draw a model (render, view, fps)."""
     p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("--size", type=dimension, nargs=2, default=default, metavar=("W", "H"),
-                   action=size_action(bytes_per_pixel), help=help)
+    p.add_argument("--gpu-budget", type=positive_float, default=None, metavar="MB",
+                   help="GPU memory the model's tiles may hold, MB: a tiled model's tiles are loaded in the "
+                        "background and uploaded and released as the eye moves (default: no limit; a plain "
+                        "model is then paged as one tile)")
     return p
+
+
+def _paging(args):
+    """The PagingConfig of ``--gpu-budget`` (None without it)."""
+    from render.paging import MB, PagingConfig
+
+    return None if args.gpu_budget is None else PagingConfig(gpu_budget=int(args.gpu_budget * MB))
+
+
+def _load_drawable(path: Path, paged: bool):
+    """What render, view and fps draw from the model directory ``path``: a tiled model as its
+    ModelSet, a plain one as its BillboardModel (as a ModelSet too when ``paged``)."""
+    from billboards.model_reader import load
+    from billboards.model_set import is_model_set, load_model_set
+
+    if is_model_set(path) or paged:
+        return load_model_set(path)
+    return load(path)
 
 
 def _draw_modes_parent() -> argparse.ArgumentParser:
@@ -640,10 +659,13 @@ def _add_fps(sub) -> None:
                     "view, fragments per pixel (overdraw); GPU decode with level of detail (--exact: every eigen "
                     "image) against CPU decode, the baseline, with their ratio measured in the same run; with "
                     "--cull also each culling mode's frame rate and drawn billboards (GPU decode); with --town "
-                    "the culling modes on the town scene's meshes along its capture path.",
-        parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "default 1280 720")])
+                    "the culling modes on the town scene's meshes along its capture path. A tiled model "
+                    "(tiles.json), or any model with --gpu-budget, is walked along its drive path paging its "
+                    "tiles: the first frame's time, the frame times while paging, the GPU MB peak against the "
+                    "budget, tiles uploaded and released.",
+        parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "default 1280 720"), _gpu_budget_parent()])
     p.add_argument("model", type=Path, nargs="?", default=None,
-                   help="billboard model directory (optional with --town)")
+                   help="billboard model directory, plain or tiled (optional with --town)")
     p.add_argument("--gpu-frames", type=positive_int, default=10, metavar="N",
                    help="timed frames per view with GPU decode, and per culling mode (default 10)")
     p.add_argument("--cpu-frames", type=positive_int, default=3, metavar="N",
@@ -665,6 +687,10 @@ def _add_fps(sub) -> None:
     p.add_argument("--cull", action="store_true", help="also compare the culling modes (GPU decode)")
     p.add_argument("--town", action="store_true",
                    help="culling on the town scene's meshes along its capture path (default TownConfig)")
+    p.add_argument("--walk-step", type=positive_float, default=1.0, metavar="M",
+                   help="paging walk: metres the eye moves per frame along the drive path (default 1)")
+    p.add_argument("--walk-frames", type=int_range(0, MAX_FRAMES), default=0, metavar="N",
+                   help="paging walk: frames (default 0: the whole drive path once)")
     p.set_defaults(func=_run_fps, check_options=_check_fps)
 
 
@@ -675,11 +701,15 @@ def _check_fps(args) -> None:
 
 def _run_fps(args) -> int:
     from billboards.model_reader import load
+    from billboards.model_set import ModelSet
     from render.benchmark import town_cull_fps
     from render.paths import town_views
     from render.context import create_context, describe
 
-    model = None if args.model is None else load(args.model)  # a bad model fails before any GL work
+    drawable = None if args.model is None else _load_drawable(args.model, args.gpu_budget is not None)
+    tiled = isinstance(drawable, ModelSet) and drawable.tiled  # a bad model fails before any GL work
+    model = (None if drawable is None or tiled else
+             drawable if not isinstance(drawable, ModelSet) else load(args.model))
     size = tuple(args.size)
     ctx = create_context()
     try:
@@ -700,12 +730,48 @@ def _run_fps(args) -> int:
                       f"(median; {r['fps_p5']:.2f} at the 95th-percentile frame time), "
                       f"{r['after_frustum']:.0f} of {r['objects']} objects after frustum, {r['drawn']:.0f} drawn, "
                       f"{r['queries']:.0f} queries, {r['depth_reads']:.0f} depth reads{ratios}")
-        if model is None:
-            return 0
-        _print_model_fps(ctx, model, args, size)
+        if model is not None:
+            _print_model_fps(ctx, model, args, size)
+        if isinstance(drawable, ModelSet):
+            _print_paging_walk(ctx, drawable, args, size)
         return 0
     finally:
         ctx.release()
+
+
+def _print_paging_walk(ctx, model_set, args, size) -> None:
+    """The paging part of ``bbcity fps``: the set walked along its drive path under the budget
+    (and, for comparison, without one)."""
+    import numpy as np
+
+    from render.benchmark import paging_walk
+    from render.lod import LodConfig
+    from render.paging import PagingConfig
+    from render.paths import drive_path_for
+    from render.tiled_renderer import path_model
+
+    path = drive_path_for(path_model(model_set))
+    along = np.arange(0.0, path.length, args.walk_step)
+    if args.walk_frames:
+        along = along[:args.walk_frames]
+    poses = np.stack([path.pose(s) for s in along])
+    lo, hi = model_set.bounds
+    print(f"{'tiled' if model_set.tiled else 'plain'} model: {len(model_set)} tiles of {model_set.tile_size:g} m, "
+          f"{model_set.num_billboards} billboards, {model_set.bytes / 2**20:.0f} MB on disk, "
+          f"{(hi - lo)[0]:.0f} × {(hi - lo)[1]:.0f} m; walk: {len(poses)} frames {args.walk_step:g} m apart "
+          f"along the drive path ({along[-1]:.0f} m)")
+    lod = None if args.exact else LodConfig()
+    budgets = [_paging(args), PagingConfig()] if args.gpu_budget is not None else [PagingConfig()]
+    for paging in budgets:
+        r = paging_walk(ctx, model_set, poses, size, paging, lod=lod, cull=args.cull_mode)
+        budget = "no budget" if r["budget_mb"] is None else f"budget {r['budget_mb']:.0f} MB"
+        print(f"paging walk, {budget}: first frame {r['first_ms']:.0f} ms (renderer made in {r['open_ms']:.0f} ms), "
+              f"then {r['fps']:.1f} fps median, {r['fps_p5']:.1f} p5 ({r['ms']:.1f} ms, p95 {r['ms_p95']:.1f} ms, "
+              f"max {r['ms_max']:.0f} ms); GPU peak {r['peak_mb']:.0f} MB (bounds {r['peak_reserved_mb']:.0f} MB); "
+              f"{r['uploads']} uploads, {r['releases']} releases, {r['loads']} loads ({r['load_s']:.1f} s in the "
+              f"loader); uploading at most {r['upload_ms_max']:.0f} ms of a frame, frames that upload "
+              f"{r['ms_upload_frames']:.0f} ms median; {r['resident']:.1f} tiles resident, {r['drawn']:.1f} drawn on average; "
+              f"{r['missing_frames']} of {r['frames']} frames missing a near tile")
 
 
 def _fps_row(label: str, r: dict) -> str:
@@ -778,8 +844,8 @@ def _add_render(sub) -> None:
                                    "(a circle above the model) or FILE (a dataset directory, or a JSON list of 4×4 "
                                    "world_from_cam matrices) into PNG frames (--out DIR) or a video (--out X.mp4).",
                        parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "default 1280 720"),
-                                _draw_modes_parent()])
-    p.add_argument("model", type=Path, help="billboard model directory")
+                                _draw_modes_parent(), _gpu_budget_parent()])
+    p.add_argument("model", type=Path, help="billboard model directory, plain or tiled (tiles.json)")
     p.add_argument("--path", default="capture", help="capture, orbit or a FILE (default capture)")
     p.add_argument("--out", type=Path, required=True, help="frames directory, or a video file (.mp4, .mkv, ...)")
     p.add_argument("--frames", type=int_range(1, MAX_FRAMES), default=300,
@@ -789,15 +855,15 @@ def _add_render(sub) -> None:
 
 
 def _run_render(args) -> int:
-    from billboards.model_reader import load
     from billboards.sky import read_sky
     from render.fly_through import render_path
     from render.paths import camera_path
+    from render.tiled_renderer import path_model
 
-    model = load(args.model)
-    poses = camera_path(model, args.path, args.frames)
+    model = _load_drawable(args.model, args.gpu_budget is not None)
+    poses = camera_path(path_model(model), args.path, args.frames)
     render_path(model, poses, args.out, tuple(args.size), decode=args.decode, cull=args.cull, fps=args.fps,
-                sky=read_sky(args.model))
+                sky=read_sky(args.model), paging=_paging(args))
     logger.info("wrote %s", args.out)
     return 0
 
@@ -934,8 +1000,8 @@ def _add_view(sub) -> None:
                     "frames along the drive path, saves a screenshot and exits (runs under xvfb-run).",
         epilog=KEYS_HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
         parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "window size (default 1280 720)"),
-                 _draw_modes_parent()])
-    p.add_argument("model", type=Path, help="billboard model directory")
+                 _draw_modes_parent(), _gpu_budget_parent()])
+    p.add_argument("model", type=Path, help="billboard model directory, plain or tiled (tiles.json)")
     p.add_argument("--mode", choices=("drive", "fly"), default="drive", help="camera mode at start")
     p.add_argument("--exact", action="store_true",
                    help="start with level of detail off (GPU decode of every eigen image everywhere; key L toggles)")
@@ -957,16 +1023,18 @@ def _check_view(args) -> None:
 
 
 def _run_view(args) -> int:
-    from billboards.model_reader import load
+    from billboards.model_set import ModelSet
     from billboards.sky import read_sky
+    from render.paging import PagingConfig
     from render.viewer import run_viewer
 
-    model = load(args.model)
+    model = _load_drawable(args.model, args.gpu_budget is not None)
+    paging = _paging(args) or (PagingConfig() if isinstance(model, ModelSet) else None)
     out = run_viewer(model, size=tuple(args.size), decode=args.decode, cull=args.cull, window=args.window,
                      screenshot_dir=args.screenshot_dir, script_frames=args.script_frames,
                      screenshot=args.screenshot, mode=args.mode,
                      script_keys=[k for k in args.script_keys.split(",") if k.strip()], sky=read_sky(args.model),
-                     lod=not args.exact)
+                     lod=not args.exact, paging=paging)
     if out is not None:
         logger.info("screenshot %s", out)
     return 0

@@ -9,6 +9,8 @@ has a reconstructed point within τ. Restricted to facades as well as overall.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import open3d as o3d
 
@@ -33,31 +35,42 @@ def distances_to_mesh(points: np.ndarray, scene: Scene, origin: np.ndarray, chun
     return out
 
 
-def seen_surface(dataset: Dataset, scene: Scene, voxel: float = 0.05, stride: int = 4,
-                 max_depth: float = np.inf, frames: list[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def seen_surface(dataset: Dataset, scene: Scene | np.ndarray, voxel: float = 0.05, stride: int = 4,
+                 max_depth: float = np.inf, frames: list[int] | None = None, views: list | None = None,
+                 box: tuple | None = None, grid_origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth surface samples seen by the rig.
 
     Back-projects every camera's ground-truth depth (every ``stride``-th pixel,
-    up to ``max_depth``) and keeps one sample per ``voxel``.
+    up to ``max_depth``) and keeps one sample per ``voxel``: of every camera of ``frames``
+    (default all), or of the (frame, camera) pairs ``views``; within the xy ``box`` (lo, hi)
+    when given; on the voxel grid from ``grid_origin`` (3,) (default the samples' minimum).
+    scene: the ground truth, or its object kind table (o,) int16 alone.
     Returns points (m, 3) float64 world and their object kind (m,) int16.
     """
+    object_kind = scene if isinstance(scene, np.ndarray) else scene.object_kind
+    if views is None:
+        views = [(f, c) for f in (range(dataset.num_frames) if frames is None else frames)
+                 for c in range(dataset.rig.num_cameras)]
     pts, kinds = [], []
-    for f in (range(dataset.num_frames) if frames is None else frames):
-        for c in range(dataset.rig.num_cameras):
-            depth = dataset.gt_depth(f, c).copy()
-            depth[depth > max_depth] = np.nan
-            ids = dataset.gt_ids(f, c)
-            p, _, _ = depth_to_points(depth, dataset.rig.intrinsics[c], dataset.world_from_cam(f, c),
-                                      np.zeros(depth.shape + (3,), np.uint8), stride=stride)
-            d = depth[::stride, ::stride]
-            obj = ids[::stride, ::stride][np.isfinite(d) & (d > 0)]  # same pixels, same row-major order
-            pts.append(p)
-            kinds.append(scene.object_kind[obj])
+    for f, c in views:
+        depth = dataset.gt_depth(f, c).copy()
+        depth[depth > max_depth] = np.nan
+        ids = dataset.gt_ids(f, c)
+        p, _, _ = depth_to_points(depth, dataset.rig.intrinsics[c], dataset.world_from_cam(f, c),
+                                  np.zeros(depth.shape + (3,), np.uint8), stride=stride)
+        d = depth[::stride, ::stride]
+        obj = ids[::stride, ::stride][np.isfinite(d) & (d > 0)]  # same pixels, same row-major order
+        k = object_kind[obj]
+        if box is not None:
+            inside = np.all((p[:, :2] >= box[0]) & (p[:, :2] < box[1]), axis=1)
+            p, k = p[inside], k[inside]
+        pts.append(p)
+        kinds.append(k)
     points = np.concatenate(pts) if pts else np.zeros((0, 3))
     kind = np.concatenate(kinds) if kinds else np.zeros(0, np.int16)
     if not len(points):
         return points, kind
-    origin = points.min(axis=0)
+    origin = points.min(axis=0) if grid_origin is None else np.asarray(grid_origin, np.float64)
     cell = np.floor((points - origin) / voxel).astype(np.int64)
     _, first = np.unique(cell, axis=0, return_index=True)
     return points[first], kind[first]
@@ -100,4 +113,114 @@ def evaluate_cloud(points: np.ndarray, dataset: Dataset, scene: Scene, threshold
         key = f"{int(round(tau * 100))}cm"
         result[f"completeness_{key}"] = share(np.ones(len(surface), bool), tau)
         result[f"facade_completeness_{key}"] = share(facade, tau)
+    return result
+
+
+#: Accuracy is binned at this resolution (m) up to ACCURACY_RANGE: percentiles within a bin, memory flat.
+ACCURACY_BIN = 1e-4
+ACCURACY_RANGE = 4.0
+
+
+class _MeshDistances:
+    """Distances to a ground-truth mesh, one ray-casting scene per mesh (kept while it is the same)."""
+
+    def __init__(self):
+        self._scene: Scene | None = None
+        self._rc = None
+        self._origin = np.zeros(3)
+
+    def __call__(self, points: np.ndarray, scene: Scene, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """(n,) float64 distances of points (n, 3) float64 world within [lo, hi] to ``scene``."""
+        if scene is not self._scene:
+            self._scene, self._origin = scene, (lo + hi) / 2
+            self._rc = o3d.t.geometry.RaycastingScene()
+            self._rc.add_triangles(o3d.core.Tensor((scene.vertices - self._origin).astype(np.float32)),
+                                   o3d.core.Tensor(scene.triangles.astype(np.uint32)))
+        q = (points - self._origin).astype(np.float32)
+        return self._rc.compute_distance(o3d.core.Tensor(q)).numpy().astype(np.float64)
+
+
+def _percentile_of_histogram(counts: np.ndarray, beyond: np.ndarray, q: float) -> float | None:
+    """The q-th percentile of values binned by ACCURACY_BIN (bin centres) plus the exact ones
+    past the range (``beyond``); None when there are none."""
+    total = int(counts.sum()) + len(beyond)
+    if total == 0:
+        return None
+    rank = q / 100 * (total - 1)
+    cumulative = np.cumsum(counts)
+    if rank < cumulative[-1]:
+        b = int(np.searchsorted(cumulative, rank, side="right"))
+        return float((b + 0.5) * ACCURACY_BIN)
+    return float(np.sort(beyond)[min(len(beyond) - 1, int(round(rank - cumulative[-1])))])
+
+
+def evaluate_cloud_tiles(tiles, dataset: Dataset, scene_for: Callable[[np.ndarray, np.ndarray], Scene],
+                         thresholds=(0.05, 0.20), max_depth: float = np.inf, stride: int = 4,
+                         voxel: float = 0.05) -> dict:
+    """:func:`evaluate_cloud` one square of the cloud's tile grid at a time, with memory flat in
+    the street's length.
+
+    tiles: the cloud's :class:`~recon.cloud_io.CloudTiles`; scene_for(lo, hi) → the
+    ground-truth :class:`Scene` covering the world box [lo, hi] (3,) (a section of a long
+    street, or the whole scene). Accuracy: each cloud tile's distances to the mesh, binned at
+    ACCURACY_BIN. Completeness: per square of the grid within reach of a camera, the surface
+    the rig saw there (ground-truth depth of the cameras within reach, thinned to ``voxel`` on
+    one world grid) against the cloud points of the square and its neighbours. Returns the
+    dict of :func:`evaluate_cloud`.
+    """
+    counts = np.zeros(int(round(ACCURACY_RANGE / ACCURACY_BIN)), np.int64)
+    beyond: list[np.ndarray] = []
+    distances = _MeshDistances()
+    near_range = 60.0 if not np.isfinite(max_depth) else float(max_depth)
+    kinds = None
+    for row in range(len(tiles.index)):
+        points, _ = tiles.read([row], require_colours=False)
+        lo, hi = tiles.lo[row], tiles.hi[row]
+        scene = scene_for(lo - 1.0, hi + 1.0)
+        kinds = scene.object_kind
+        d = distances(points, scene, lo, hi)
+        inside = d < ACCURACY_RANGE
+        counts += np.bincount((d[inside] / ACCURACY_BIN).astype(np.int64), minlength=len(counts))[:len(counts)]
+        beyond.append(d[~inside])
+
+    grid, reach = tiles.grid, max(thresholds)
+    cams = [(f, c) for f in range(dataset.num_frames) if dataset.posed[f] for c in range(dataset.rig.num_cameras)]
+    centres = np.array([dataset.world_from_cam(f, c)[:3, 3] for f, c in cams]).reshape(-1, 3)
+    squares = set()
+    for a, b in zip(grid.tile_of(centres - near_range), grid.tile_of(centres + near_range)):
+        squares.update((i, j) for i in range(a[0], b[0] + 1) for j in range(a[1], b[1] + 1))
+    if kinds is None:
+        kinds = scene_for(centres.min(axis=0), centres.min(axis=0)).object_kind
+    surface_total = facade_total = 0
+    hits = {tau: [0, 0] for tau in thresholds}
+    for square in sorted(squares):
+        box_lo, box_hi = grid.box(square)
+        near = np.flatnonzero(np.all((centres[:, :2] >= box_lo - near_range) & (centres[:, :2] <= box_hi + near_range),
+                                     axis=1))
+        surface, kind = seen_surface(dataset, kinds, voxel=voxel, stride=stride, max_depth=max_depth,
+                                     views=[cams[i] for i in near], box=(box_lo, box_hi),
+                                     grid_origin=np.asarray(grid.origin))
+        if not len(surface):
+            continue
+        cloud, _ = tiles.read(tiles.overlapping(box_lo - reach, box_hi + reach), require_colours=False)
+        dist = nearest_distances(surface, cloud, np.r_[box_lo, 0.0])
+        facade = kind == Kind.BUILDING
+        surface_total += len(surface)
+        facade_total += int(facade.sum())
+        for tau in thresholds:
+            hits[tau][0] += int((dist <= tau).sum())
+            hits[tau][1] += int((dist[facade] <= tau).sum())
+    over = np.concatenate(beyond) if beyond else np.zeros(0)
+    result = {
+        "points": int(tiles.num_points),
+        "accuracy_median_m": _percentile_of_histogram(counts, over, 50),
+        "accuracy_p90_m": _percentile_of_histogram(counts, over, 90),
+        "surface_samples": int(surface_total), "facade_samples": int(facade_total),
+        "surface_max_depth_m": None if not np.isfinite(max_depth) else float(max_depth),
+        "accuracy_bin_m": ACCURACY_BIN,
+    }
+    for tau in thresholds:
+        key = f"{int(round(tau * 100))}cm"
+        result[f"completeness_{key}"] = hits[tau][0] / surface_total if surface_total else None
+        result[f"facade_completeness_{key}"] = hits[tau][1] / facade_total if facade_total else None
     return result

@@ -85,3 +85,20 @@ def test_writer_tiles(tmp_path):
             writer.append(b, colours[:5], tile=(1, 1))
             writer.append(a, colours, tile=(0, 0))
     assert not (tmp_path / "d.ply").exists() and not tile_index_path(tmp_path / "d.ply").exists()
+
+
+def test_evaluation_tile_by_tile_matches_the_whole_cloud(tiled_work, tiny_dataset):
+    from data_synth import load_dataset, load_scene
+    from recon.evaluate import ACCURACY_BIN, evaluate_cloud, evaluate_cloud_tiles
+
+    ds, scene = load_dataset(tiny_dataset), load_scene(tiny_dataset)
+    points, _ = read_cloud_arrays(tiled_work / "cloud.ply")
+    whole = evaluate_cloud(points, ds, scene)
+    tiles = evaluate_cloud_tiles(read_cloud_tiles(tiled_work / "cloud.ply"), ds, lambda lo, hi: scene)
+    assert tiles["points"] == whole["points"]
+    for key in ("accuracy_median_m", "accuracy_p90_m"):
+        assert tiles[key] == pytest.approx(whole[key], abs=ACCURACY_BIN)
+    # the same seen surface, thinned on another grid: about as many samples, the same shares
+    assert tiles["surface_samples"] == pytest.approx(whole["surface_samples"], rel=0.1)
+    for key in ("completeness_5cm", "completeness_20cm", "facade_completeness_5cm"):
+        assert tiles[key] == pytest.approx(whole[key], abs=0.02)

@@ -158,6 +158,7 @@ def test_recon_interrupted_keeps_the_previous_run_or_leaves_no_report(tiny_datas
         raise KeyboardInterrupt("killed during the evaluation")
 
     monkeypatch.setattr(recon_pipeline, "evaluate_cloud", dying_evaluation)
+    monkeypatch.setattr(recon_pipeline, "evaluate_cloud_tiles", dying_evaluation)
     with pytest.raises(KeyboardInterrupt):
         recon_main(dataclasses.replace(other, evaluate=True), tiny_dataset, work, progress=False)
     monkeypatch.undo()
