@@ -128,8 +128,12 @@ def _add_synth(sub) -> None:
         parents=[_workers_parent()])
     p.add_argument("scene", choices=["street", "town"], help="scene to generate")
     p.add_argument("--out", type=Path, required=True, help="output dataset directory (new, or one to resume)")
-    p.add_argument("--frames", type=int_range(1, MAX_FRAMES), default=100,
-                   help="frames per pass (default 100); a return pass doubles it")
+    frames = p.add_mutually_exclusive_group()
+    frames.add_argument("--frames", type=int_range(1, MAX_FRAMES), default=100,
+                        help="frames per pass (default 100); a return pass doubles it")
+    frames.add_argument("--frame-spacing", type=float_range(0.0, MAX_LENGTH), default=None, metavar="M",
+                        help="instead of --frames: at most M metres between neighbouring frames of a pass "
+                             "(frames per pass = ceil(length / M) + 1)")
     p.add_argument("--length", type=float_range(0.0, MAX_LENGTH), default=300.0,
                    help="street length, or the town drive's length, in metres (default 300)")
     p.add_argument("--width", type=int_range(8, GL_MAX_SIZE, "the OpenGL texture limit"), default=None,
@@ -151,6 +155,10 @@ def _add_synth(sub) -> None:
                    help="anti-aliasing: spp×spp rays per pixel (default 2)")
     p.add_argument("--no-return", action="store_true", help="drive one pass only (one side of the street)")
     p.add_argument("--no-gt-depth", action="store_true", help="skip per-image ground-truth depth and ids")
+    p.add_argument("--lazy", action="store_true",
+                   help="write no images (nor ground-truth depth and ids): each frame is ray cast from a section "
+                        "of the street when a later stage reads it, the same bytes a stored dataset holds; "
+                        "kilobytes on disk whatever --length")
     p.set_defaults(func=_run_synth, check_options=_synth_config)
 
 
@@ -161,10 +169,16 @@ _CAMERA_BASELINES = {1: (0.0,), 2: (0.0, 0.8), 3: (0.0, 0.4, 0.8)}
 def _synth_config(args):
     """The SynthConfig the ``synth`` options describe; UsageError when the images its
     workers render at once would not fit in the available memory."""
-    from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig
+    from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig, frames_for_spacing
 
     from .executor import default_workers
 
+    frames = args.frames
+    if args.frame_spacing is not None:
+        frames = frames_for_spacing(args.length, args.frame_spacing)
+        if frames > MAX_FRAMES:
+            raise UsageError(f"--frame-spacing {args.frame_spacing:g} over {args.length:g} m makes {frames} frames "
+                             f"per pass, more than {MAX_FRAMES}")
     cfg = SynthConfig(
         scene=args.scene,
         street=StreetConfig(length=args.length, seed=args.seed),
@@ -173,8 +187,8 @@ def _synth_config(args):
                                            ("hfov_deg", args.hfov), ("pitch_deg", args.pitch),
                                            ("distortion", args.distortion),
                                            ("baselines", _CAMERA_BASELINES.get(args.cameras))) if v is not None}),
-        frames=args.frames, return_pass=not args.no_return, town_path_length=args.length,
-        spp=args.spp, ground_truth_depth=not args.no_gt_depth)
+        frames=frames, return_pass=not args.no_return, town_path_length=args.length,
+        spp=args.spp, ground_truth_depth=not args.no_gt_depth, lazy=args.lazy)
     rig, frames = cfg.rig, cfg.frames * (2 if cfg.return_pass else 1)
     concurrent = min(args.workers or default_workers(), frames)  # each worker renders one frame at a time
     check_memory(synth_bytes(rig.width, rig.height, cfg.spp, rig.distortion != "none", concurrent),

@@ -107,8 +107,14 @@ class Views:
         return self.world_from_cam[:, :3, 3]
 
     def image(self, i: int) -> np.ndarray:
-        """(h, w, 3) uint8 RGB, divided by the view's gains; a bad file raises DataFormatError naming it."""
-        image = read_png(self.paths[i], tuple(int(s) for s in self.sizes[i]))
+        """(h, w, 3) uint8 RGB, divided by the view's gains; a bad file raises DataFormatError naming it.
+        The path of a lazy synthetic dataset's image names a frame it casts on demand."""
+        size = tuple(int(s) for s in self.sizes[i])
+        if Path(self.paths[i]).is_file():
+            image = read_png(self.paths[i], size)
+        else:  # a lazy dataset's frame, or the missing file's DataFormatError
+            from data_synth import read_image
+            image = read_image(self.paths[i], size)
         if self.rig is not None:  # a distorted camera's raw image → the pinhole image K describes
             image = self.rig.undistort(image, int(self.cams[i]))
         if self.gains is None:

@@ -21,6 +21,12 @@ rig.json gives a lens); :class:`Dataset` returns them undistorted, lined up with
 ``rig.intrinsics``.
 
 A user's own capture needs only ``rig.json``, ``poses.json`` and ``images/``.
+
+A *lazy* dataset (``SynthConfig(lazy=True)``, :mod:`data_synth.lazy`) has no ``images/`` and no
+``gt/`` files but ``gt/scene.json``: ``dataset.json`` says ``"images": "lazy"`` and
+:meth:`Dataset.image`, :meth:`Dataset.gt_depth`, :meth:`Dataset.gt_ids` and
+:func:`data_synth.read_image` cast each frame when it is read, the bytes the stored dataset of
+the same settings holds. It is written in well under a second whatever the street's length.
 """
 
 from __future__ import annotations
@@ -43,9 +49,10 @@ from core.workdir import sweep_temporaries, temporary
 
 from .colmap_export import write_colmap_text
 from .coverage import street_coverage
-from .raycast import Renderer
+from .lazy import LAZY_IMAGES, TILE_M, LazyImages, check_frame_names, lazy_source, view_reach
 from .rig import Rig, RigConfig, drive_path, load_poses, make_rig, save_poses
 from .scene import Scene
+from .section import object_table, scene_digest
 from .street import StreetConfig, build_street
 from .town import TownConfig, build_town, street_centres
 
@@ -69,6 +76,7 @@ class SynthConfig:
     town_path_length: float = 300.0  # town: length of the drive along its middle street, metres
     spp: int = 2  # supersampling per pixel axis (spp² colour rays per pixel)
     ground_truth_depth: bool = True  # write gt/depth and gt/ids for every image
+    lazy: bool = False  # write no images: cast each frame when it is read (data_synth.lazy)
 
     def __post_init__(self):
         if self.scene not in SCENES:
@@ -83,6 +91,22 @@ class SynthConfig:
                 raise ValueError(f"SynthConfig.{name} must be a finite number, got {value!r}")
         if self.town_path_length <= 0:
             raise ValueError(f"SynthConfig.town_path_length must be positive, got {self.town_path_length}")
+        for name in ("return_pass", "ground_truth_depth", "lazy"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"SynthConfig.{name} must be true or false, got {getattr(self, name)!r}")
+
+    @property
+    def path_length(self) -> float:
+        """Metres the rig drives per pass: the street's length, or the town drive's."""
+        return float(self.street.length if self.scene == "street" else self.town_path_length)
+
+
+def frames_for_spacing(path_length: float, spacing: float) -> int:
+    """Frames per pass that put neighbouring frames at most ``spacing`` metres apart along a
+    pass of ``path_length`` metres (both ends included): ⌈length / spacing⌉ + 1."""
+    if not (math.isfinite(path_length) and path_length > 0 and math.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"path length and frame spacing must be positive metres, got {path_length}, {spacing}")
+    return int(math.ceil(path_length / spacing - 1e-9)) + 1
 
 
 def _from_dict(cls, data: dict):
@@ -118,6 +142,8 @@ def _config_json(cfg: SynthConfig) -> dict:
     data = json.loads(json.dumps(asdict(cfg)))
     if data["rig"].get("distortion") == "none":  # pinhole datasets keep the bytes they had before lenses
         del data["rig"]["distortion"]
+    if not data["lazy"]:  # stored datasets keep the bytes they had before lazy ones
+        del data["lazy"]
     return data
 
 
@@ -133,19 +159,6 @@ def config_from_json(data: dict) -> SynthConfig:
 
 # --------------------------------------------------------------------------- writing
 
-_WORKER_STATE: dict[str, tuple[Renderer, Rig]] = {}
-
-
-def _worker_state(cfg_json: str) -> tuple[Renderer, Rig]:
-    """Scene renderer and rig, built once per worker process and configuration."""
-    if cfg_json not in _WORKER_STATE:
-        cfg = config_from_json(json.loads(cfg_json))
-        scene = build_scene(cfg.scene, asdict(cfg.street if cfg.scene == "street" else cfg.town))
-        _WORKER_STATE.clear()
-        _WORKER_STATE[cfg_json] = (Renderer(scene), make_rig(cfg.rig))
-    return _WORKER_STATE[cfg_json]
-
-
 def _frame_files(root: Path, name: str, cams: int, gt: bool) -> list[Path]:
     files = [root / "images" / f"cam{c}" / f"{name}.png" for c in range(cams)]
     if gt:
@@ -153,17 +166,16 @@ def _frame_files(root: Path, name: str, cams: int, gt: bool) -> list[Path]:
     return files
 
 
-def _render_frame(task: tuple[str, str, str, list, bool, int]) -> float:
+def _render_frame(task: tuple[str, LazyImages, int, int, bool]) -> float:
     """Render and write one frame's images (and ground truth). Returns seconds spent."""
-    root_str, cfg_json, name, world_from_rig, gt, spp = task
+    root_str, source, frame, cameras, gt = task
     start = time.perf_counter()
-    renderer, rig = _worker_state(cfg_json)
     root = Path(root_str)
-    pose = np.asarray(world_from_rig, dtype=np.float64)
-    for c in range(rig.num_cameras):
-        # the raw camera: distorted images (and ground truth in raw pixels) for a lens
-        result = renderer.render(rig.raw_K(c), rig.world_from_cam(pose, c), rig.sizes[c], spp=spp,
-                                 distortion=rig.distortion(c))
+    name = f"{frame:06d}"
+    for c in range(cameras):
+        # the raw camera: distorted images (and ground truth in raw pixels) for a lens; cast from
+        # the frame's section, as a lazy dataset of the same settings casts it
+        result = source.render(frame, c, keep=False)
         if gt:
             save_npy(root / "gt" / "depth" / f"cam{c}" / f"{name}.npy", result.depth)
             save_npy(root / "gt" / "ids" / f"cam{c}" / f"{name}.npy", result.ids)
@@ -223,6 +235,8 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
     elif root.exists() and any(p.is_file() and not any(temporary(part) for part in p.relative_to(root).parts) for p in root.rglob("*")):
         raise FileExistsError(f"{root} exists and is not an empty directory or a bbcity dataset")
     sweep_temporaries(root, locked=True)  # this writer owns the dataset directory
+    if cfg.lazy:
+        return _write_lazy(cfg, root)
 
     t0 = time.perf_counter()
     scene = build_scene(cfg.scene, asdict(cfg.street if cfg.scene == "street" else cfg.town))
@@ -247,9 +261,10 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
                       [[f"cam{c}/{n}.png" for c in range(rig.num_cameras)] for n in names],
                       distortions=[rig.distortion(c) for c in range(rig.num_cameras)])
 
-    cfg_json = json.dumps(cfg_dict, sort_keys=True)
-    todo = [(str(root), cfg_json, n, T.tolist(), cfg.ground_truth_depth, cfg.spp)
-            for n, T in zip(names, world_from_rig)
+    # the frames are cast as a lazy dataset of these settings casts them (data_synth.lazy)
+    source = LazyImages(root, json.dumps(cfg_dict, sort_keys=True), scene.digest(), view_reach(cfg), TILE_M)
+    todo = [(str(root), source, i, rig.num_cameras, cfg.ground_truth_depth)
+            for i, n in enumerate(names)
             if not all(p.exists() for p in _frame_files(root, n, rig.num_cameras, cfg.ground_truth_depth))]
     logger.info("rendering %d of %d frames × %d cameras", len(todo), len(names), rig.num_cameras)
     t1 = time.perf_counter()
@@ -280,17 +295,56 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
     return root
 
 
+def _write_lazy(cfg: SynthConfig, root: Path) -> Path:
+    """:func:`write_dataset` of a lazy dataset: settings, rig, poses, COLMAP model and
+    ``gt/scene.json``; the scene is walked (object table, digest, reach), never held whole."""
+    t0 = time.perf_counter()
+    cfg_dict = _config_json(cfg)
+    name = cfg.scene
+    config = asdict(cfg.street if name == "street" else cfg.town)
+    kinds, _, _, num_triangles = object_table(name, config)
+    digest = scene_digest(name, config)
+    reach = view_reach(cfg)
+    rig = make_rig(cfg.rig)
+    world_from_rig, passes = capture_path(cfg)
+    t_scene = time.perf_counter() - t0
+    logger.info("%s scene: %d objects, %d triangles, sections of %s m around each %g m tile (%.2f s)", name,
+                len(kinds), num_triangles, "the whole scene" if reach is None else f"± {reach:g}", TILE_M, t_scene)
+    write_json(root / "gt" / "scene.json", {"format": SCENE_FORMAT, "version": FORMAT_VERSION, "scene": name,
+                                            "config": config, "digest": digest, "synth": cfg_dict})
+    rig.save(root / "rig.json")
+    save_poses(root / "poses.json", world_from_rig, passes)
+    names = [f"{i:06d}" for i in range(len(world_from_rig))]
+    write_colmap_text(root / "colmap", np.array([rig.raw_K(c) for c in range(rig.num_cameras)]), list(rig.sizes),
+                      rig.cam_from_rig, world_from_rig,
+                      [[f"cam{c}/{n}.png" for c in range(rig.num_cameras)] for n in names],
+                      distortions=[rig.distortion(c) for c in range(rig.num_cameras)])
+    write_json(root / "dataset.json", {
+        "format": DATASET_FORMAT, "version": FORMAT_VERSION, "scene": name,
+        "frames": len(names), "cameras": rig.num_cameras, "image_size": list(rig.sizes[0]),
+        "objects": int(len(kinds)), "triangles": int(num_triangles), "ground_truth": True,
+        "images": LAZY_IMAGES, "lazy": {"reach_m": reach, "tile_m": TILE_M}, "synth": cfg_dict,
+    })
+    write_json(root / "synth_report.json", {
+        "scene_seconds": t_scene, "render_seconds": 0.0, "frames_rendered": 0, "median_frame_seconds": None,
+        "coverage_seconds": 0.0, "coverage": None,
+    })
+    return root
+
+
 # --------------------------------------------------------------------------- reading
 
 
 @dataclass(frozen=True)
 class Dataset:
-    """A validated dataset. world_from_rig: (n, 4, 4) float64; frame_names: n stems."""
+    """A validated dataset. world_from_rig: (n, 4, 4) float64; frame_names: n stems;
+    lazy: how a lazy dataset's frames are cast (None: stored images)."""
 
     root: Path
     rig: Rig
     world_from_rig: np.ndarray
     frame_names: tuple[str, ...]
+    lazy: LazyImages | None = None
 
     def __fspath__(self) -> str:  # a dataset stands for its directory (load_dataset returns it as it is)
         return str(self.root)
@@ -312,12 +366,18 @@ class Dataset:
         return (self.root / "gt" / "scene.json").is_file()
 
     def image_path(self, frame: int, cam: int) -> Path:
+        """Where the raw image is; a lazy dataset's is not there: :func:`data_synth.read_image`
+        reads both (as :meth:`image` does)."""
         return self.root / "images" / f"cam{cam}" / f"{self.frame_names[frame]}.png"
 
     def image(self, frame: int, cam: int) -> np.ndarray:
         """(h, w, 3) uint8 RGB, undistorted when the camera has a lens (pinhole ``rig.intrinsics``);
-        a missing, truncated or wrongly sized file raises DataFormatError."""
-        return self.rig.undistort(read_png(self.image_path(frame, cam), self.rig.sizes[cam]), cam)
+        a missing, truncated or wrongly sized file raises DataFormatError. A lazy dataset casts it."""
+        if self.lazy is not None:
+            raw = self.lazy.image(int(self.frame_names[frame]), cam)
+        else:
+            raw = read_png(self.image_path(frame, cam), self.rig.sizes[cam])
+        return self.rig.undistort(raw, cam)
 
     def world_from_cam(self, frame: int, cam: int) -> np.ndarray:
         """(4, 4) float64 camera pose."""
@@ -326,8 +386,12 @@ class Dataset:
     def _gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
         w, h = self.rig.sizes[cam]
         path = self.root / "gt" / kind / f"cam{cam}" / f"{self.frame_names[frame]}.npy"
+        if self.lazy is not None:
+            raw = self.lazy.ground_truth(kind, int(self.frame_names[frame]), cam)
+        else:
+            raw = load_npy(path, dtype=dtype, shape=(h, w))
         # nearest raw pixel: no blending across depth edges or between object ids
-        return self.rig.undistort(load_npy(path, dtype=dtype, shape=(h, w)), cam, nearest=True)
+        return self.rig.undistort(raw, cam, nearest=True)
 
     def gt_depth(self, frame: int, cam: int) -> np.ndarray:
         """(h, w) float32 ground-truth z-depth, NaN where nothing is hit; undistorted like
@@ -339,7 +403,8 @@ class Dataset:
         return self._gt("ids", frame, cam, np.int32)
 
     def verify(self) -> None:
-        """Decode every image (slow, thorough); the first bad file raises DataFormatError."""
+        """Decode every image (slow, thorough; a lazy dataset casts every frame); the first bad
+        file raises DataFormatError."""
         for f in range(self.num_frames):
             for c in range(self.rig.num_cameras):
                 self.image(f, c)
@@ -364,15 +429,28 @@ def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None
     world_from_rig, names = load_poses(root / "poses.json")
     if not names:
         raise DataFormatError(root / "poses.json", "has no frames")
-    dataset = Dataset(root, rig, world_from_rig, tuple(names))
+    lazy = lazy_source(root)
+    dataset = Dataset(root, rig, world_from_rig, tuple(names), lazy)
+    if lazy is not None:  # no image files: the frames must be the capture's
+        _check_lazy_poses(lazy, names, world_from_rig, root / "poses.json")
     if poses is not None:
         dataset = replace(dataset, world_from_rig=_replacement_poses(dataset, poses))
-    for f in range(dataset.num_frames):
+    for f in range(0 if lazy is not None else dataset.num_frames):
         for c in range(rig.num_cameras):
             p = dataset.image_path(f, c)
             if not p.is_file():
                 raise DataFormatError(p, f"image of frame {names[f]} camera {c} is missing")
     return dataset
+
+
+def _check_lazy_poses(lazy: LazyImages, names, world_from_rig: np.ndarray, path: Path) -> None:
+    """A lazy dataset's frames and poses are those of the capture its settings make (the
+    images follow the settings); DataFormatError naming ``path`` otherwise."""
+    capture, _ = capture_path(config_from_json(json.loads(lazy.config_json)))
+    check_frame_names(names, path, len(capture))
+    if not np.array_equal(world_from_rig, capture):
+        raise DataFormatError(path, "differs from the capture path of the lazy dataset's settings (its images "
+                                    "are cast from those): restore it, or write the dataset again")
 
 
 def _replacement_poses(dataset: Dataset, path: os.PathLike | str) -> np.ndarray:

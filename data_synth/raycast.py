@@ -92,8 +92,20 @@ class Renderer:
         are those of the raw pixels' centre rays; raw pixels that no ray reaches (outside a
         fisheye's image circle) are black, NaN and −1.
         """
+        return self._render(K, world_from_cam, size, spp, distortion, colour=True)
+
+    def depth_ids(self, K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int], spp: int = 2,
+                  distortion: Distortion | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The depth (h, w) float32 and ids (h, w) int32 that :meth:`render` with the same
+        arguments returns, bit for bit (``spp`` sets the same row chunks), without the colour:
+        one centre ray per pixel and no shading, several times cheaper."""
+        result = self._render(K, world_from_cam, size, spp, distortion, colour=False)
+        return result.depth, result.ids
+
+    def _render(self, K, world_from_cam, size, spp: int, distortion, colour: bool) -> RenderResult:
+        """:meth:`render`; ``colour`` False leaves rgb zero (depth and ids only)."""
         if distortion is not None:
-            return self._render_distorted(K, world_from_cam, size, spp, distortion)
+            return self._render_distorted(K, world_from_cam, size, spp, distortion, colour)
         K, world_from_cam, (w, h) = _checked_view(K, world_from_cam, size, spp)
         R = world_from_cam[:3, :3]
         origin = world_from_cam[:3, 3]
@@ -101,7 +113,7 @@ class Renderer:
         # Camera-frame directions with z = 1, so t_hit is the z-depth.
         ray_matrix = R @ K_inv  # (3, 3): pixel (u, v, 1) → world direction
         offsets = (np.arange(spp) + 0.5) / spp - 0.5
-        rgb = np.empty((h, w, 3), dtype=np.uint8)
+        rgb = (np.empty if colour else np.zeros)((h, w, 3), dtype=np.uint8)
         depth = np.empty((h, w), dtype=np.float32)
         ids = np.empty((h, w), dtype=np.int32)
         rows_per_chunk = max(1, MAX_RAYS_PER_CHUNK // (w * spp * spp))
@@ -117,6 +129,8 @@ class Renderer:
             obj = np.full(t.shape, -1, dtype=np.int32)
             obj[hit] = self.scene.triangle_object[prim[hit]]
             ids[r0:r1] = obj.reshape(r1 - r0, w)
+            if not colour:
+                continue
             acc = np.zeros((uu.size, 3))
             for dv in offsets:
                 for du in offsets:
@@ -148,7 +162,7 @@ class Renderer:
             self._rays[key] = grid
         return grid
 
-    def _render_distorted(self, K, world_from_cam, size, spp, distortion) -> RenderResult:
+    def _render_distorted(self, K, world_from_cam, size, spp, distortion, colour: bool = True) -> RenderResult:
         """:meth:`render` of a raw, distorted image (same chunking, same shading)."""
         K, world_from_cam, (w, h) = _checked_view(K, world_from_cam, size, spp)
         grid = self._undistorted_grid(K, (w, h), spp, distortion)
@@ -159,7 +173,7 @@ class Renderer:
             # camera-frame directions with z = 1 (t_hit is the z-depth); NaN rows become 0 below
             return np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ R.T
 
-        rgb = np.empty((h, w, 3), dtype=np.uint8)
+        rgb = (np.empty if colour else np.zeros)((h, w, 3), dtype=np.uint8)
         depth = np.empty((h, w), dtype=np.float32)
         ids = np.empty((h, w), dtype=np.int32)
         rows_per_chunk = max(1, MAX_RAYS_PER_CHUNK // (w * spp * spp))
@@ -178,6 +192,8 @@ class Renderer:
                 obj[valid] = obj_v
             depth[r0:r1] = t.reshape(r1 - r0, w)
             ids[r0:r1] = obj.reshape(r1 - r0, w)
+            if not colour:
+                continue
             acc = np.zeros((len(centre), 3))
             for s in range(1, spp * spp + 1):
                 xy = grid[s, r0:r1].reshape(-1, 2)

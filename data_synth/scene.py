@@ -44,6 +44,10 @@ class Scene:
     object_kind: (k,) int16 :class:`Kind` of each object.
     object_seed: (k,) uint32 texture seed of each object.
     object_bounds: (k, 2, 3) float64 axis-aligned box [min, max] of each object.
+    section: None for a whole scene; for a section (:func:`data_synth.scene_section`) the
+        world box ((3,) min, (3,) max) it was cut to: it holds the triangles of the objects
+        whose bounds meet that box, while the object table (kind, seed, bounds) stays the whole
+        scene's, so object ids are the whole scene's ids.
     """
 
     name: str
@@ -54,6 +58,7 @@ class Scene:
     object_kind: np.ndarray
     object_seed: np.ndarray
     object_bounds: np.ndarray
+    section: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     @property
     def num_objects(self) -> int:
@@ -175,26 +180,133 @@ class MeshBuilder:
         tris = np.array([[0, 1, 5], [0, 5, 4], [2, 3, 4], [2, 4, 5], [0, 4, 3], [1, 2, 5]], np.int32)
         self._add(verts, tris, np.asarray(objects))
 
-    def build(self, name: str, config: dict) -> Scene:
-        """Finish: concatenate and compute each object's bounding box."""
-        vertices = np.concatenate(self._vertices)
+    def _arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """vertices (n, 3) float64, triangles (m, 3) int32 and triangle_object (m,) int32 so far."""
+        if not self._triangles:
+            return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), np.zeros(0, dtype=np.int32)
         triangles = np.concatenate(self._triangles)
         if triangles.max() >= 2**31:
             raise ValueError("mesh too large for int32 indices")
-        triangle_object = np.concatenate(self._triangle_object)
+        return np.concatenate(self._vertices), triangles.astype(np.int32), np.concatenate(self._triangle_object)
+
+    def _tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """object_kind (k,) int16 and object_seed (k,) uint32 of every object registered."""
+        if not self._kinds:
+            return np.zeros(0, dtype=np.int16), np.zeros(0, dtype=np.uint32)
+        return np.concatenate(self._kinds), np.concatenate(self._seeds)
+
+    def build(self, name: str, config: dict) -> Scene:
+        """Finish: concatenate and compute each object's bounding box."""
+        vertices, triangles, triangle_object = self._arrays()
         k = self._num_objects
         tri_pts = vertices[triangles]  # (m, 3, 3)
         lo = np.full((k, 3), np.inf)
         hi = np.full((k, 3), -np.inf)
         np.minimum.at(lo, triangle_object, tri_pts.min(axis=1))
         np.maximum.at(hi, triangle_object, tri_pts.max(axis=1))
+        kinds, seeds = self._tables()
         return Scene(
             name=name,
             config=config,
             vertices=vertices,
-            triangles=triangles.astype(np.int32),
+            triangles=triangles,
             triangle_object=triangle_object,
-            object_kind=np.concatenate(self._kinds),
-            object_seed=np.concatenate(self._seeds),
+            object_kind=kinds,
+            object_seed=seeds,
             object_bounds=np.stack([lo, hi], axis=1),
         )
+
+
+# ---------------------------------------------------------------- builders that keep less
+# A generator (``street.generate_street``, ``town.generate_town``) fills any MeshBuilder, so the
+# same random sequence, objects and triangles can be walked again keeping only part of them:
+# the object table (bounds pass), the triangles of objects in a box (a section), or one of
+# the mesh's arrays fed to a hash (the digest of a scene that is never held whole).
+
+
+class BoundsBuilder(MeshBuilder):
+    """Keeps the object table only: kinds, seeds and bounding boxes (exactly those of
+    :meth:`MeshBuilder.build`), and counts vertices and triangles; no geometry is kept."""
+
+    def __init__(self):
+        super().__init__()
+        self._lo = np.empty((0, 3))
+        self._hi = np.empty((0, 3))
+        self.num_triangles = 0
+
+    def new_objects(self, kind: Kind, seeds: np.ndarray) -> np.ndarray:
+        ids = super().new_objects(kind, seeds)
+        if self._num_objects > len(self._lo):  # amortised growth
+            cap = max(self._num_objects, 2 * len(self._lo), 64)
+            lo, hi = np.full((cap, 3), np.inf), np.full((cap, 3), -np.inf)
+            lo[:len(self._lo)], hi[:len(self._hi)] = self._lo, self._hi
+            self._lo, self._hi = lo, hi
+        return ids
+
+    def _add(self, verts: np.ndarray, tris: np.ndarray, objects: np.ndarray) -> None:
+        b, nv, _ = verts.shape
+        pts = verts[:, tris.reshape(-1)]  # (b, 3·nt, 3): the vertices of each primitive's triangles
+        objects = np.asarray(objects).astype(np.int64)
+        np.minimum.at(self._lo, objects, pts.min(axis=1))
+        np.maximum.at(self._hi, objects, pts.max(axis=1))
+        self._num_vertices += b * nv
+        self.num_triangles += b * len(tris)
+
+    def tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """object_kind (k,) int16, object_seed (k,) uint32, object_bounds (k, 2, 3) float64."""
+        kinds, seeds = self._tables()
+        k = self._num_objects
+        return kinds, seeds, np.stack([self._lo[:k], self._hi[:k]], axis=1)
+
+
+class SectionBuilder(MeshBuilder):
+    """Keeps the triangles of the objects ``keep`` (k,) bool selects (in generation order,
+    vertices renumbered); registers every object, so ids are the whole scene's."""
+
+    def __init__(self, keep: np.ndarray):
+        super().__init__()
+        self._keep = np.asarray(keep, dtype=bool)
+
+    def _add(self, verts: np.ndarray, tris: np.ndarray, objects: np.ndarray) -> None:
+        objects = np.asarray(objects)
+        sel = self._keep[objects]
+        if sel.any():
+            super()._add(verts[sel], tris, objects[sel])
+
+    def build_section(self, name: str, config: dict, bounds: np.ndarray, box) -> Scene:
+        """The section: kept triangles; the whole scene's object table (``bounds`` (k, 2, 3)
+        from a :class:`BoundsBuilder` pass); ``box`` the world box it was cut to."""
+        vertices, triangles, triangle_object = self._arrays()
+        kinds, seeds = self._tables()
+        if len(bounds) != len(kinds):
+            raise ValueError(f"{len(bounds)} bounds for {len(kinds)} objects")
+        return Scene(name, config, vertices, triangles, triangle_object, kinds, seeds,
+                     np.asarray(bounds, dtype=np.float64), section=box)
+
+
+class DigestBuilder(MeshBuilder):
+    """Feeds one of the mesh's arrays (``part``: "vertices", "triangles" or "triangle_object")
+    to ``hasher`` in the bytes :meth:`MeshBuilder.build` would concatenate; keeps none of it."""
+
+    PARTS = ("vertices", "triangles", "triangle_object")
+
+    def __init__(self, part: str, hasher):
+        super().__init__()
+        if part not in self.PARTS:
+            raise ValueError(f"part must be one of {self.PARTS}, got {part!r}")
+        self._part = part
+        self._hasher = hasher
+
+    def _add(self, verts: np.ndarray, tris: np.ndarray, objects: np.ndarray) -> None:
+        b, nv, _ = verts.shape
+        if self._part == "vertices":
+            self._hasher.update(np.ascontiguousarray(verts.reshape(-1, 3), dtype=np.float64).tobytes())
+        elif self._part == "triangles":
+            offsets = self._num_vertices + nv * np.arange(b, dtype=np.int64)
+            all_tris = tris[None, :, :].astype(np.int64) + offsets[:, None, None]
+            if b and all_tris.max() >= 2**31:
+                raise ValueError("mesh too large for int32 indices")
+            self._hasher.update(np.ascontiguousarray(all_tris.reshape(-1, 3).astype(np.int32)).tobytes())
+        else:
+            self._hasher.update(np.repeat(np.asarray(objects).astype(np.int32), len(tris)).tobytes())
+        self._num_vertices += b * nv

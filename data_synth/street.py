@@ -59,8 +59,13 @@ def _layout_side(rng: np.random.Generator, cfg: StreetConfig):
 
 def build_street(cfg: StreetConfig) -> Scene:
     """Generate the street scene for ``cfg`` (deterministic in ``cfg.seed``)."""
+    return generate_street(cfg, MeshBuilder()).build("street", asdict(cfg))
+
+
+def generate_street(cfg: StreetConfig, mb: MeshBuilder) -> MeshBuilder:
+    """Walk the street's random sequence, adding its objects to ``mb`` in a fixed order (any
+    :class:`MeshBuilder`: one that keeps all, a section's, a digest's); returns ``mb``."""
     rng = np.random.default_rng(cfg.seed)
-    mb = MeshBuilder()
     half_road = cfg.lane_width
     front0 = half_road + cfg.sidewalk_width  # facade line with zero setback
     x0, x1 = -cfg.margin - 40.0, cfg.length + cfg.margin + 40.0
@@ -121,4 +126,4 @@ def build_street(cfg: StreetConfig) -> Scene:
         py = np.full_like(px, side * (half_road + 0.45))
         mb.add_prisms(np.stack([px, py], -1), 0.09, cfg.kerb_height, 6.0, pid)
 
-    return mb.build("street", asdict(cfg))
+    return mb

@@ -41,8 +41,12 @@ def street_centres(cfg: TownConfig) -> np.ndarray:
 
 def build_town(cfg: TownConfig) -> Scene:
     """Generate the town for ``cfg``: ground, then four rows of houses per block."""
+    return generate_town(cfg, MeshBuilder()).build("town", asdict(cfg))
+
+
+def generate_town(cfg: TownConfig, mb: MeshBuilder) -> MeshBuilder:
+    """Walk the town's random sequence into ``mb`` (any :class:`MeshBuilder`); returns ``mb``."""
     rng = np.random.default_rng(cfg.seed)
-    mb = MeshBuilder()
     pitch = cfg.block_size + cfg.street_width
     n_blocks = int(cfg.size // pitch)
     half = cfg.size / 2
@@ -86,4 +90,4 @@ def build_town(cfg: TownConfig) -> Scene:
     mb.add_boxes(lo3, hi3, ids)
     # Roofs share the house's object id: one object per house, as the culling paper counts them.
     mb.add_gable_roofs(lo3, hi3, ridge, ids)
-    return mb.build("town", asdict(cfg))
+    return mb

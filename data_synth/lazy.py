@@ -1,0 +1,327 @@
+"""Lazy datasets: images ray cast when they are read, from a section of the street.
+
+A lazy dataset (``bbcity synth --lazy``, ``SynthConfig(lazy=True)``) holds what a stored one
+holds except the pixels: ``dataset.json`` (with ``"images": "lazy"`` and the section
+settings), ``rig.json``, ``poses.json``, ``colmap/`` and ``gt/scene.json`` (settings and
+digest), a few hundred bytes per frame. Reading an image (:meth:`data_synth.Dataset.image`,
+or :func:`read_image` with the path it would have) ray casts the frame from the capture pose
+its settings make, with the renderer and settings that would have stored it; ground-truth
+depth and ids (unless the settings say ``ground_truth_depth=False``) are cast the same way,
+without colour.
+
+**Sections.** A frame, lazy or stored (:func:`data_synth.write_dataset` casts the frames it
+stores the same way, so both hold the same bytes), is cast against :func:`data_synth.scene_section` of the x-window
+``[k·tile − reach − s, (k + 1)·tile + reach + s]``, where k = ⌊x_rig / tile⌋ is the frame's
+tile (``tile`` = 50 m), s the farthest camera from the rig's origin and ``reach``
+(:func:`view_reach`) the farthest along the street, from any camera of the capture, that any
+of its rays (every 4th pixel corner and the image's edges, distorted ones undistorted) can meet a building, pillar,
+pole or beam: the ray's run inside the slab of y and z those objects occupy, plus 5 % and
+2 m. Beyond the slab a ray meets only the ground, road and sidewalks, which span the whole
+street and are in every section whole. So a frame cast from its section shows what the
+whole street shows: every ray meets the same triangle at the same float32 distance (Embree's
+hit distance depends on the ray and the triangle, not on the other triangles), but for rays
+that meet two objects at one distance exactly (the shared edge of two neighbouring, flush
+facades: about one ray in a million), where which one wins depends on the ray-casting
+structure; casting stored frames from the same sections makes those agree too. The default 115° portrait rig needs about 50 m (a section of 150 m of street).
+A lens that sees along the street (a ray parallel to it, where no slab bounds it) is capped
+at ``MAX_REACH_M`` (1 km): objects farther along than that are not drawn there (the long
+surfaces and the sky are), so such a frame can differ from a stored one in those pixels.
+The town is cast whole (its size does not depend on the drive's length).
+
+**Per process.** The few most recent sections (``SECTIONS_KEPT``) and frames
+(``RESULTS_KEPT``, so that a frame's cameras, its ground truth and neighbouring frames that
+motion stereo reads again are cast once) are kept; nothing grows with the street but the
+object table a section keeps (about 30 bytes per metre). The first read in a process checks
+the generator against the stored digest (a streamed digest: about 60 ms per kilometre).
+The bytes do not depend on the process, the order of reads or what is kept.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+from collections import OrderedDict
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from core.fileio import DataFormatError, read_json, read_png
+
+from .distortion import undistort
+from .raycast import Renderer, RenderResult
+from .rig import Rig, make_rig
+from .section import object_table, scene_section, verify_digest
+
+logger = logging.getLogger(__name__)
+
+#: The sections' grid along the street, metres: frames whose rig lies in one tile share a section.
+TILE_M = 50.0
+#: The longest reach a section is given, metres (lenses that see along the street).
+MAX_REACH_M = 1000.0
+#: Sections (each a ray-casting structure of about 150–300 m of street) and cast frames kept per process.
+SECTIONS_KEPT = 3
+RESULTS_KEPT = 6
+
+LAZY_IMAGES = "lazy"  # dataset.json "images" of a lazy dataset
+_FRAME_NAME = re.compile(r"\d{6}")
+
+
+def view_reach(cfg) -> float | None:
+    """How far along the street (|Δx|, metres, rounded up) from a camera of the capture of
+    ``cfg`` (a :class:`data_synth.SynthConfig`) a ray of it can meet an object that is not
+    in every section; None for a town (cast whole). See the module's docstring."""
+    from .dataset import capture_path  # (dataset imports this module)
+
+    if cfg.scene != "street":
+        return None
+    _, _, bounds, _ = object_table("street", asdict(cfg.street))
+    poses, passes = capture_path(cfg)
+    x = poses[:, 0, 3]
+    spans = (bounds[:, 0, 0] <= x.min()) & (bounds[:, 1, 0] >= x.max())  # ground, road, sidewalks
+    other = bounds[~spans]
+    if not len(other):
+        return 0.0
+    lo, hi = other[:, 0].min(axis=0), other[:, 1].max(axis=0)  # the slab (y and z) they occupy
+    rig = make_rig(cfg.rig)
+    reach = 0.0
+    for p in np.unique(passes):  # the frames of a pass differ only in x
+        pose = poses[np.flatnonzero(passes == p)[0]]
+        for c in range(rig.num_cameras):
+            reach = max(reach, _camera_reach(rig, c, rig.world_from_cam(pose, c), lo, hi))
+    if not math.isfinite(reach) or reach > MAX_REACH_M:
+        logger.warning("the rig sees along the street: sections reach %.0f m, objects beyond are not drawn",
+                       MAX_REACH_M)
+        return MAX_REACH_M
+    return float(math.ceil(reach * 1.05 + 2.0))
+
+
+def _camera_reach(rig: Rig, cam: int, world_from_cam: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+    """max |Δx| over camera ``cam``'s rays through every 4th pixel corner (and the image's
+    edges) of their run inside the slab lo[1] ≤ y ≤ hi[1], lo[2] ≤ z ≤ hi[2] (inf when a ray
+    runs in it without end)."""
+    w, h = rig.sizes[cam]
+    u, v = np.meshgrid(np.union1d(np.arange(0, w + 1, 4), [w]) - 0.5, np.union1d(np.arange(0, h + 1, 4), [h]) - 0.5)
+    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], -1) @ np.linalg.inv(rig.raw_K(cam)).T
+    xy = pix[:, :2]
+    if rig.distortion(cam) is not None:
+        xy = undistort(xy, rig.distortion(cam))
+        xy = xy[np.isfinite(xy).all(axis=1)]
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ world_from_cam[:3, :3].T
+    C = world_from_cam[:3, 3]
+    t_in = np.zeros(len(d))
+    t_out = np.full(len(d), np.inf)
+    for axis in (1, 2):
+        da = d[:, axis]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo[axis] - C[axis]) / da, (hi[axis] - C[axis]) / da
+        moving = da != 0
+        inside = (lo[axis] <= C[axis]) & (C[axis] <= hi[axis])
+        t_in = np.where(moving, np.maximum(t_in, np.minimum(t1, t2)), np.where(inside, t_in, np.inf))
+        t_out = np.where(moving, np.minimum(t_out, np.maximum(t1, t2)), np.where(inside, t_out, -np.inf))
+    runs = t_out >= t_in
+    if not runs.any():
+        return 0.0
+    dx = np.abs(d[runs, 0])
+    with np.errstate(invalid="ignore"):
+        far = np.where(dx > 0, dx * t_out[runs], 0.0)
+    return float(far.max())
+
+
+@dataclass(frozen=True)
+class LazyImages:
+    """What a lazy dataset's images are cast from: small and picklable (a worker process
+    casts its own). root: the dataset directory (errors name its files); config_json: the
+    canonical JSON of its :class:`data_synth.SynthConfig`; digest: ``gt/scene.json``'s;
+    reach: metres (None: the whole scene); tile: metres."""
+
+    root: Path
+    config_json: str
+    digest: str
+    reach: float | None
+    tile: float
+
+    @classmethod
+    def from_manifest(cls, root: os.PathLike | str, manifest: dict) -> "LazyImages":
+        """From a lazy dataset's parsed ``dataset.json`` (and its ``gt/scene.json``);
+        DataFormatError naming the file that is malformed."""
+        from .dataset import _config_json, config_from_json
+
+        root = Path(root)
+        path = root / "dataset.json"
+        try:
+            cfg = config_from_json(manifest["synth"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise DataFormatError(path, f"a lazy dataset needs its \"synth\" settings ({e})") from None
+        lazy = manifest.get("lazy")
+        reach = lazy.get("reach_m", "?") if isinstance(lazy, dict) else "?"
+        tile = lazy.get("tile_m") if isinstance(lazy, dict) else None
+        if not (reach is None or _positive(reach, zero=True)) or not _positive(tile):
+            raise DataFormatError(path, "\"lazy\" needs \"reach_m\" (metres ≥ 0, or null) and \"tile_m\" (metres > 0)")
+        if not cfg.lazy:
+            raise DataFormatError(path, "\"images\" is \"lazy\" but its settings are not (\"synth\".\"lazy\")")
+        scene_path = root / "gt" / "scene.json"
+        scene = read_json(scene_path)
+        if not isinstance(scene, dict) or not isinstance(scene.get("digest"), str):
+            raise DataFormatError(scene_path, "needs the scene's \"digest\"")
+        return cls(root, json.dumps(_config_json(cfg), sort_keys=True), scene["digest"],
+                   None if reach is None else float(reach), float(tile))
+
+    # ------------------------------------------------------------------ casting
+
+    def _state(self) -> "_State":
+        state = _STATES.get(self.config_json)
+        if state is None:
+            from .dataset import capture_path, config_from_json
+
+            cfg = config_from_json(json.loads(self.config_json))
+            name = cfg.scene
+            config = asdict(cfg.street if name == "street" else cfg.town)
+            verify_digest(name, config, self.digest, self.root / "gt" / "scene.json")
+            rig = make_rig(cfg.rig)
+            poses, _ = capture_path(cfg)
+            offset = float(np.linalg.norm(np.linalg.inv(rig.cam_from_rig)[:, :2, 3], axis=1).max())
+            state = _State(cfg, name, config, rig, poses, offset)
+            _STATES[self.config_json] = state
+            while len(_STATES) > 2:
+                _STATES.popitem(last=False)
+        return state
+
+    def section_box(self, frame: int) -> tuple[int | None, tuple, tuple]:
+        """(tile index or None, lo (3,), hi (3,)): the section frame ``frame`` is cast from."""
+        state = self._state()
+        if self.reach is None:
+            return None, (-np.inf,) * 3, (np.inf,) * 3
+        k = math.floor(state.poses[frame][0, 3] / self.tile)
+        margin = self.reach + state.offset
+        return k, (k * self.tile - margin, -np.inf, -np.inf), ((k + 1) * self.tile + margin, np.inf, np.inf)
+
+    def _renderer(self, frame: int) -> Renderer:
+        k, lo, hi = self.section_box(frame)
+        key = (self.config_json, k, self.reach, self.tile)
+        renderer = _RENDERERS.get(key)
+        if renderer is None:
+            state = self._state()
+            renderer = Renderer(scene_section((state.name, state.config), lo, hi))
+            _RENDERERS[key] = renderer
+            while len(_RENDERERS) > SECTIONS_KEPT:
+                _RENDERERS.popitem(last=False)
+        else:
+            _RENDERERS.move_to_end(key)
+        return renderer
+
+    def _check(self, frame: int, cam: int) -> None:
+        state = self._state()
+        if not (0 <= frame < len(state.poses)) or not (0 <= cam < state.rig.num_cameras):
+            raise DataFormatError(self.root / "images" / f"cam{cam}" / f"{frame:06d}.png",
+                                  f"a lazy dataset of {len(state.poses)} frames × {state.rig.num_cameras} "
+                                  f"cameras has no frame {frame} camera {cam}")
+
+    def render(self, frame: int, cam: int, colour: bool = True, keep: bool = True) -> RenderResult:
+        """The raw frame ``frame`` (capture index) of camera ``cam``, as the stored dataset holds it
+        (rgb, depth, ids); ``colour`` False may leave rgb zero (depth and ids only, cheaper);
+        ``keep`` False does not keep it for the next read (the writer's single reads)."""
+        self._check(frame, cam)
+        key = (self.config_json, frame, cam)
+        cached = _RESULTS.get(key)
+        if cached is not None and (cached[1] or not colour):
+            _RESULTS.move_to_end(key)
+            return cached[0]
+        state = self._state()
+        renderer = self._renderer(frame)
+        rig, cfg = state.rig, state.cfg
+        args = (rig.raw_K(cam), rig.world_from_cam(state.poses[frame], cam), rig.sizes[cam])
+        if colour:
+            result = renderer.render(*args, spp=cfg.spp, distortion=rig.distortion(cam))
+        else:
+            depth, ids = renderer.depth_ids(*args, spp=cfg.spp, distortion=rig.distortion(cam))
+            result = RenderResult(np.zeros((*depth.shape, 3), np.uint8), depth, ids)
+        if not keep:
+            return result
+        _RESULTS[key] = (result, colour)
+        _RESULTS.move_to_end(key)
+        while len(_RESULTS) > RESULTS_KEPT:
+            _RESULTS.popitem(last=False)
+        return result
+
+    def image(self, frame: int, cam: int) -> np.ndarray:
+        """(h, w, 3) uint8 raw (distorted, where the camera has a lens) RGB of a frame (a new array)."""
+        return self.render(frame, cam).rgb.copy()
+
+    def ground_truth(self, kind: str, frame: int, cam: int) -> np.ndarray:
+        """Raw ``kind`` ("depth": (h, w) float32 NaN = sky; "ids": (h, w) int32, −1 = sky) of a frame;
+        DataFormatError naming the file a stored dataset would hold when the settings leave it out."""
+        if not self._state().cfg.ground_truth_depth:
+            raise DataFormatError(self.root / "gt" / kind / f"cam{cam}" / f"{frame:06d}.npy",
+                                  "this lazy dataset was made without ground-truth depth (--no-gt-depth)")
+        result = self.render(frame, cam, colour=False)
+        return (result.depth if kind == "depth" else result.ids).copy()
+
+
+def _positive(value, zero: bool = False) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            and (value >= 0 if zero else value > 0))
+
+
+@dataclass(frozen=True)
+class _State:
+    """A lazy dataset's settings made ready in this process."""
+
+    cfg: object
+    name: str
+    config: dict
+    rig: Rig
+    poses: np.ndarray  # (n, 4, 4) float64 capture poses (the images follow these, not poses.json)
+    offset: float  # metres: the farthest camera from the rig's origin
+
+
+_STATES: OrderedDict = OrderedDict()
+_RENDERERS: OrderedDict = OrderedDict()
+_RESULTS: OrderedDict = OrderedDict()
+_SOURCES: OrderedDict = OrderedDict()  # dataset directory → LazyImages or None (stored)
+
+
+def lazy_source(root: os.PathLike | str) -> LazyImages | None:
+    """The :class:`LazyImages` of the dataset at ``root`` when it is lazy, else None (read from
+    its ``dataset.json`` once per process)."""
+    key = str(Path(root).resolve())
+    if key in _SOURCES:
+        return _SOURCES[key]
+    path = Path(root) / "dataset.json"
+    source = None
+    if path.is_file():
+        manifest = read_json(path)
+        if isinstance(manifest, dict) and manifest.get("images") == LAZY_IMAGES:
+            source = LazyImages.from_manifest(root, manifest)
+    _SOURCES[key] = source
+    while len(_SOURCES) > 8:
+        _SOURCES.popitem(last=False)
+    return source
+
+
+def read_image(path: os.PathLike | str, size: tuple[int, int] | None = None) -> np.ndarray:
+    """The raw image a dataset holds at ``path`` (``DATASET/images/cam{c}/NNNNNN.png``): the PNG
+    file, or, for a lazy dataset, the frame cast on demand. (h, w, 3) uint8 RGB; ``size``
+    (width, height) is checked. What :func:`core.fileio.read_png` does for files, errors
+    naming the file alike."""
+    p = Path(path)
+    if not p.is_file() and p.parent.parent.name == "images" and _FRAME_NAME.fullmatch(p.stem) \
+            and p.suffix == ".png" and p.parent.name.startswith("cam") and p.parent.name[3:].isdigit():
+        source = lazy_source(p.parent.parent.parent)
+        if source is not None:
+            rgb = source.image(int(p.stem), int(p.parent.name[3:]))
+            if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(int(s) for s in size):
+                raise DataFormatError(p, f"is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]}")
+            return rgb
+    return read_png(p, size)
+
+
+def check_frame_names(names, path: os.PathLike | str, frames: int) -> None:
+    """A lazy dataset's frames are its capture's, in order, named ``000000``, ``000001`` …;
+    DataFormatError naming ``path`` (its poses.json) otherwise."""
+    if len(names) != frames or any(n != f"{i:06d}" for i, n in enumerate(names)):
+        raise DataFormatError(path, f"a lazy dataset's frames are the {frames} frames of its capture, named "
+                                    f"000000, 000001, … in order")
