@@ -14,7 +14,11 @@ per-frame counts averaged over the frames (:func:`frame_time_stats`, :func:`mean
 - :func:`path_fps`: along a sequence of poses (the capture path, :func:`render.paths.capture_walk`),
   so the decoded atlas is reused from frame to frame as in a walkthrough;
 - :func:`cull_fps`: per culling mode and view, with the billboards left after each step;
-- :func:`lod_psnr`: the quality cost of level of detail, PSNR of its image against the exact one.
+- :func:`lod_psnr`: the quality cost of level of detail, PSNR of its image against the exact one;
+- :func:`paging_walk`: a tiled model (:class:`billboards.model_set.ModelSet`) walked under a GPU
+  budget as a viewer walks it (tiles loaded in the background while frames are drawn): the first
+  frame's time, the median, 95th-percentile and longest frame while paging, the GPU bytes peak
+  against the budget, tiles uploaded and released, frames missing a near tile.
 """
 
 from __future__ import annotations
@@ -135,6 +139,61 @@ def path_fps(ctx, model: BillboardModel, poses, size=(1280, 720), decode: str = 
         times, stats = timed_frames(renderer, K, poses, size)
     return {"decode": decode, "lod": decode == "gpu" and lod is not None, "cull": cull,
             **frame_time_stats(times), **mean_counts(stats)}
+
+
+def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str = "gpu",
+                lod: LodConfig | None = LodConfig(), cull: str = "frustum", K=None) -> dict:
+    """Walk ``poses`` (n, 4, 4) world_from_cam through ``source`` (a ModelSet or a BillboardModel)
+    with a :class:`~render.tiled_renderer.TiledRenderer` under ``paging`` (a
+    :class:`~render.paging.PagingConfig`; None: no budget), every frame timed (draw, paging and
+    read-back) with the loader running beside it, as in the viewer. Returns {frames, open_ms
+    (making the renderer), first_ms (the first frame: it waits for the tiles around the eye),
+    ms, ms_p95, ms_max (every later frame), fps, fps_p5, budget_mb, peak_mb (measured GPU bytes of
+    the tiles, highest), peak_reserved_mb (their bounds), uploads, releases, loads, load_s (in
+    the loader thread), wait_ms (the first frame's wait), missing_frames (frames where a visible
+    tile near the eye was not resident), upload_ms_max (the most a later frame spent uploading),
+    upload_frames (later frames that uploaded), ms_upload_frames (their median time), tiles (in
+    the set), drawn, resident (means)}."""
+    from .paging import MB, PagingConfig
+    from .tiled_renderer import TiledRenderer
+
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    if len(poses) < 2:
+        raise ValueError("paging_walk needs at least two poses")
+    paging = PagingConfig() if paging is None else paging
+    K = default_intrinsics(*size) if K is None else K
+    t0 = time.perf_counter()
+    renderer = TiledRenderer(ctx, source, decode, paging=paging, cull=cull, lod=lod if decode == "gpu" else None)
+    open_s = time.perf_counter() - t0
+    times, stats = [], []
+    try:
+        for pose in poses:
+            t1 = time.perf_counter()
+            renderer.render(K, pose, size)
+            times.append(time.perf_counter() - t1)
+            stats.append(dict(renderer.stats))
+        loads, load_s = renderer.loader.loads, renderer.loader.load_s
+        peak, peak_reserved = renderer.peak_bytes, renderer.peak_reserved
+        uploads, releases = renderer.uploads, renderer.releases
+    finally:
+        renderer.release()
+    later = frame_time_stats(times[1:])
+    budget = paging.gpu_budget
+    return {"frames": len(times), "open_ms": 1000.0 * open_s, "first_ms": 1000.0 * times[0],
+            "ms": later["ms"], "ms_p95": later["ms_p95"], "ms_max": 1000.0 * max(times[1:]),
+            "fps": later["fps"], "fps_p5": later["fps_p5"],
+            "budget_mb": None if budget is None else budget / MB, "peak_mb": peak / MB,
+            "peak_reserved_mb": peak_reserved / MB, "uploads": uploads, "releases": releases, "loads": loads,
+            "load_s": load_s, "wait_ms": 1000.0 * stats[0].get("wait_s", 0.0),
+            "missing_frames": int(sum(1 for s in stats if s.get("tiles_missing", 0) > 0)),
+            "upload_ms_max": 1000.0 * max(s.get("upload_s", 0.0) for s in stats[1:]),
+            "upload_frames": int(sum(1 for s in stats[1:] if s.get("uploads", 0) > 0)),
+            "ms_upload_frames": (1000.0 * float(np.median([t for t, s in zip(times[1:], stats[1:]) if s.get("uploads")]))
+                                 if any(s.get("uploads") for s in stats[1:]) else 0.0),
+            "tiles": int(stats[0].get("tiles", 0)),
+            "drawn": float(np.mean([s.get("tiles_drawn", 0) for s in stats])),
+            "resident": float(np.mean([s.get("tiles_resident", 0) for s in stats])),
+            **{k: v for k, v in mean_counts(stats).items() if k in ("instances", "quads", "decoded_tiles")}}
 
 
 def lod_psnr(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720), K=None,

@@ -23,6 +23,7 @@ from .camera import default_intrinsics
 from .context import create_context
 from .renderer import BillboardRenderer
 from .sky import SkyPass, render_over_sky
+from .tiled_renderer import TiledRenderer
 
 logger = logging.getLogger(__name__)
 
@@ -31,9 +32,12 @@ VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov")
 
 def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 720), *, K=None,
                 decode: str = "gpu", cull: str = "frustum", fps: float = 30.0,
-                progress: bool | None = None, sky=None) -> Path:
+                progress: bool | None = None, sky=None, paging=None) -> Path:
     """Render ``poses`` (n, 4, 4) into ``out``: a video when it ends in a video suffix,
-    else a directory of PNG frames (``frame_NNNNNN.png``). ``sky``: a
+    else a directory of PNG frames (``frame_NNNNNN.png``). ``model``: a BillboardModel, or a
+    :class:`billboards.model_set.ModelSet` drawn by a :class:`~render.tiled_renderer.TiledRenderer`
+    under ``paging`` (a :class:`~render.paging.PagingConfig`; with it a BillboardModel is paged as
+    a set of one tile), every frame waiting for the tiles it sees. ``sky``: a
     :class:`billboards.sky.Sky` drawn behind the model (None: a plain light-blue
     background). Written atomically: a
     video appears under its name only when complete, and the frames replace those of
@@ -43,10 +47,19 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
     K = default_intrinsics(*size) if K is None else np.asarray(K, np.float64)
     ctx = create_context()
     sky_pass = None
+    tiled = paging is not None or not hasattr(model, "centres")
     try:
-        with BillboardRenderer(ctx, model, decode, cull=cull, background=(0.55, 0.7, 0.9)) as renderer:
-            sky_pass = SkyPass(ctx, sky) if sky is not None else None
-            frames = (render_over_sky(renderer, sky_pass, K, pose, size) for pose in poses)
+        if tiled:
+            from .paging import PagingConfig
+
+            renderer = TiledRenderer(ctx, model, decode, cull=cull, background=(0.55, 0.7, 0.9), sky=sky,
+                                     paging=paging or PagingConfig())
+        else:
+            renderer = BillboardRenderer(ctx, model, decode, cull=cull, background=(0.55, 0.7, 0.9))
+        with renderer:
+            sky_pass = SkyPass(ctx, sky) if sky is not None and not tiled else None
+            frames = (renderer.render(K, pose, size, wait="all") if tiled
+                      else render_over_sky(renderer, sky_pass, K, pose, size) for pose in poses)
             bar = tqdm(frames, total=len(poses), desc="render", unit="frame",
                        disable=None if progress is None else not progress)
             if out.suffix.lower() in VIDEO_SUFFIXES:

@@ -35,12 +35,13 @@ from billboards.sky import Sky
 from .context import create_context
 from .renderer import BillboardRenderer
 from .sky import SkyPass, render_over_sky
+from .tiled_renderer import TiledRenderer
 
 CACHE_SIZE = 2  # renderers (uploaded models) kept between calls
 
 _lock = threading.RLock()
 _ctx: moderngl.Context | None = None
-_cache: OrderedDict[tuple[int, str, tuple], tuple[BillboardModel, BillboardRenderer]] = OrderedDict()
+_cache: OrderedDict[tuple[int, str, tuple], tuple[object, BillboardRenderer | TiledRenderer]] = OrderedDict()
 _sky_pass: SkyPass | None = None
 
 
@@ -121,7 +122,10 @@ def _renderer_for(model: BillboardModel, decode: str = "gpu", **options) -> Bill
             return hit[1]
         if hit is not None:  # an id reused by a new object
             _cache.pop(key)[1].release()
-        renderer = BillboardRenderer(shared_context(), model, decode, **options)
+        if isinstance(model, BillboardModel):
+            renderer = BillboardRenderer(shared_context(), model, decode, **options)
+        else:  # a ModelSet: its tiles paged (PagingConfig in options["paging"], else no budget)
+            renderer = TiledRenderer(shared_context(), model, decode, **options)
         _cache[key] = (model, renderer)
         while len(_cache) > CACHE_SIZE:
             _, (_, old) = _cache.popitem(last=False)
@@ -163,8 +167,21 @@ def render_view(model: BillboardModel, K, world_from_cam, size, decode: str = "g
     billboard indices (or an (n,) bool mask, e.g. ``model.kind == BILLBOARD``); sky:
     drawn behind the model (None: the plain background); options:
     :class:`~render.renderer.BillboardRenderer` keywords (spherical, background, clip).
-    Returns (height, width, 3) uint8, row 0 at the top.
+    Returns (height, width, 3) uint8, row 0 at the top. ``model`` may also be a
+    :class:`billboards.model_set.ModelSet` (its tiles drawn by a cached
+    :class:`~render.tiled_renderer.TiledRenderer`, waiting for every tile the view sees;
+    ``visible`` is then not taken; options may hold ``paging``).
     """
     with _current():
         renderer = _renderer_for(model, decode, **options)
+        if isinstance(renderer, TiledRenderer):
+            if visible is not None:
+                raise ValueError("visible selects billboards of one model, not of a tiled set")
+            size = (int(size[0]), int(size[1]))
+            renderer.targets.begin(size, renderer.background)
+            sky_pass = _sky_pass_for(sky)
+            if sky_pass is not None:
+                sky_pass.draw(K, world_from_cam, size)
+            renderer.draw(K, world_from_cam, size, wait="all")
+            return renderer.targets.read(size)
         return render_over_sky(renderer, _sky_pass_for(sky), K, world_from_cam, size, visible)

@@ -59,6 +59,37 @@ def as_model_set(source) -> tuple[ModelSet, dict[int, BillboardModel]]:
     raise TypeError(f"a TiledRenderer draws a ModelSet or a BillboardModel, got {type(source).__name__}")
 
 
+class _SetExtent:
+    """What the camera paths (:mod:`render.paths`) read of a model, for a set: ``origin``, ``info``
+    and ``centres`` (the tiles' bound corners relative to the origin, (8t, 3) float32)."""
+
+    def __init__(self, model_set: ModelSet):
+        self.origin = np.asarray(model_set.origin, np.float64)
+        info = dict(model_set.info)
+        if "dataset" not in info and model_set.tiles:  # the build's record of its capture, from a tile
+            try:
+                from billboards.model_set import _read_manifest
+
+                tile_info = _read_manifest(model_set.tiles[0].path).info
+                info.update({k: tile_info[k] for k in ("dataset", "poses") if k in tile_info})
+            except (OSError, ValueError):
+                pass
+        self.info = info
+        lo, hi = model_set.lo, model_set.hi
+        corners = [np.where(np.array([i >> 2 & 1, i >> 1 & 1, i & 1], bool), hi, lo) for i in range(8)]
+        self.centres = (np.concatenate(corners) - self.origin).astype(np.float32).reshape(-1, 3)
+        self.num_billboards = model_set.num_billboards
+
+
+def path_model(source):
+    """``source`` (a BillboardModel or a ModelSet) as :mod:`render.paths` reads a model: the model
+    itself, or a set's origin, info (the first tile's capture when the set records none) and
+    extent."""
+    if isinstance(source, ModelSet):
+        return _SetExtent(source)
+    return source
+
+
 def merge_stats(totals: dict, part: dict) -> None:
     """Add one tile's renderer stats to ``totals``: numbers summed, flags or-ed, lists
     (LOD counts) element-wise."""
@@ -264,6 +295,7 @@ class TiledRenderer:
                 self._upload(i, rank, protected, sync=True)
         wait_s = time.perf_counter() - t1
         budget_bytes = 0
+        t2 = time.perf_counter()
         for i in (int(j) for j in order):
             if not wanted[i]:
                 break  # the order puts wanted tiles first
@@ -280,6 +312,7 @@ class TiledRenderer:
             if bound is None:
                 break  # no room for the most important tile left: the rest wait
             budget_bytes += bound
+        upload_s = time.perf_counter() - t2
         for i in (int(j) for j in order):
             if not wanted[i] or self.loader.in_flight >= cfg.loads_in_flight:
                 break
@@ -297,7 +330,7 @@ class TiledRenderer:
             "tiles_wanted": int(wanted.sum()), "tiles_resident": len(self.resident),
             "tiles_loaded": len(self.loader.indices()), "loads_in_flight": self.loader.in_flight,
             "uploads": self._frame_uploads, "releases": self._frame_releases, "wait_s": wait_s,
-            "page_s": time.perf_counter() - t0 - wait_s}
+            "upload_s": upload_s, "page_s": time.perf_counter() - t0 - wait_s - upload_s}
         return np.array(draw, np.int64)
 
     def draw(self, K, world_from_cam, size, wait: str = "auto") -> dict:

@@ -4,8 +4,10 @@ Fly with the mouse and WASD/QE, or drive along the capture path; toggle GPU/CPU
 decode, level of detail (on by default), cycle the culling modes, view interpolation,
 wireframe; a HUD over the frame (and the title bar) shows the frame time and fps, the
 draw and cull times, quads and billboards drawn (and culled), quads per level of detail,
-tiles decoded, and the decode and cull modes (:meth:`ViewerApp.hud_lines`). F12 or P
-saves a screenshot.
+tiles decoded, and the decode and cull modes (:meth:`ViewerApp.hud_lines`), and the GPU memory
+the model holds; a tiled model (:class:`billboards.model_set.ModelSet`) is paged by a
+:class:`~render.tiled_renderer.TiledRenderer` under a GPU budget, and the HUD shows its tiles
+drawn, visible and loaded and the GPU MB used of the budget. F12 or P saves a screenshot.
 
 :class:`FlyCamera` is pure numpy (world coordinates, z up, float64) so it can be tested
 without a window; the drive path is :class:`render.paths.DrivePath`. ``run_viewer(..., script_frames=N)``
@@ -28,9 +30,11 @@ from .hud import HudOverlay
 from .paths import drive_path_for
 from .culling import CULL_MODES
 from .lod import LodConfig
+from .paging import MB, PagingConfig, renderer_gpu_bytes
 from .renderer import DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
 from .target import OffscreenTargets
+from .tiled_renderer import TiledRenderer, path_model
 
 logger = logging.getLogger(__name__)
 
@@ -159,18 +163,21 @@ class ViewerApp(_WindowConfig):
     gl_version = (3, 3)
 
     def __init__(self, model, decode: str = "gpu", cull: str = "frustum", background=(0.55, 0.7, 0.9),
-                 screenshot_dir: Path = Path("."), mode: str = "drive", sky=None, lod: bool = True, **kwargs):
+                 screenshot_dir: Path = Path("."), mode: str = "drive", sky=None, lod: bool = True,
+                 paging: PagingConfig | None = None, **kwargs):
         super().__init__(**kwargs)
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}")
         if cull not in CULL_MODES:
             raise ValueError(f"cull must be one of {CULL_MODES}")
-        self.model = model
+        self.model = model  # a BillboardModel, or a ModelSet (paged)
+        self.paging = paging
+        self.tiled = paging is not None or not hasattr(model, "centres")
         self.decode = decode
         self.cull = cull
         self.background = background
         self.screenshot_dir = Path(screenshot_dir)
-        self.path = drive_path_for(model)
+        self.path = drive_path_for(path_model(model))
         self.fly = FlyCamera()
         self.fly.look_from(self.path.pose())
         self.mode = mode
@@ -182,7 +189,7 @@ class ViewerApp(_WindowConfig):
         self.overlay = HudOverlay(self.ctx)
         self.targets = OffscreenTargets(self.ctx)
         self.sky_pass = SkyPass(self.ctx, sky) if sky is not None else None  # drawn behind the model
-        self.renderer: BillboardRenderer | None = None
+        self.renderer: BillboardRenderer | TiledRenderer | None = None
         self._rebuild()
         self.fps = 0.0
         self._fps_frames, self._fps_t0 = 0, time.perf_counter()
@@ -194,9 +201,13 @@ class ViewerApp(_WindowConfig):
     def _rebuild(self) -> None:
         if self.renderer is not None:
             self.renderer.release()
-        self.renderer = BillboardRenderer(self.ctx, self.model, self.decode, cull=self.cull,
-                                          background=self.background, interpolate=self.interpolate,
-                                          lod=LodConfig() if self.lod else None)
+        options = dict(cull=self.cull, background=self.background, interpolate=self.interpolate,
+                       lod=LodConfig() if self.lod else None)
+        if self.tiled:
+            self.renderer = TiledRenderer(self.ctx, self.model, self.decode, paging=self.paging or PagingConfig(),
+                                          **options)
+        else:
+            self.renderer = BillboardRenderer(self.ctx, self.model, self.decode, **options)
 
     def pose(self, dt: float) -> np.ndarray:
         if self.mode == "drive":
@@ -217,12 +228,14 @@ class ViewerApp(_WindowConfig):
         target = self.targets.begin((w, h), r.background)
         self.ctx.wireframe = False
         K = default_intrinsics(w, h)
-        camera = r.camera(K, pose, (w, h))
         if self.sky_pass is not None:
             self.sky_pass.draw(K, pose, (w, h))
         self.ctx.wireframe = self.wireframe
         try:
-            stats = r.draw(camera)
+            if self.tiled:  # paged: what is resident (the first frame waits for the tiles around the eye)
+                stats = r.draw(K, pose, (w, h))
+            else:
+                stats = r.draw(r.camera(K, pose, (w, h)))
         finally:
             self.ctx.wireframe = False
         self.ctx.copy_framebuffer(wnd.fbo, target)
@@ -245,7 +258,8 @@ class ViewerApp(_WindowConfig):
         """The HUD's lines from a frame's renderer stats (missing keys count 0): frame time and
         fps (over the last half second), draw and cull time (frustum plus occlusion) of the
         frame; quads and billboards drawn; quads per level of detail and tiles decoded (GPU
-        decode) and impostors drawn and remade; the modes."""
+        decode) and impostors drawn and remade; the modes; the GPU memory held (a tiled model:
+        tiles drawn / visible, loaded, and MB used of the budget)."""
         s = self.renderer.stats if stats is None else stats
         total = self.model.num_billboards
         drawn = int(s.get("billboards_drawn", s.get("instances", total)))
@@ -263,11 +277,28 @@ class ViewerApp(_WindowConfig):
             decoded = ""
         extra = f" speed {self.path.speed:.0f} m/s" if self.mode == "drive" else ""
         draw_ms = 1000.0 * s.get("draw_s", 0.0)
+        if self.tiled:
+            budget = s.get("gpu_budget")
+            memory = (f" | tiles {int(s.get('tiles_drawn', 0))}/{int(s.get('tiles_visible', 0))} drawn, "
+                      f"{int(s.get('tiles_resident', 0))} loaded | GPU {s.get('gpu_bytes', 0) / MB:.0f}/"
+                      + ("-" if budget is None else f"{budget / MB:.0f}") + " MB")
+        else:
+            memory = f" | GPU {self.gpu_bytes() / MB:.0f} MB"
         return [f"bbcity | {self.fps:5.1f} fps, {frame_ms:5.1f} ms/frame | draw {draw_ms:.1f} ms, cull {cull_ms:.1f} ms",
                 f"quads {quads} | drawn {drawn}/{total} culled {total - drawn}{decoded}",
                 detail,
                 f"decode {self.decode} | cull {self.cull} | interpolation {'on' if self.interpolate else 'off'}",
-                f"{self.mode}{extra}" + (" | wireframe" if self.wireframe else "")]
+                f"{self.mode}{extra}" + (" | wireframe" if self.wireframe else "") + memory]
+
+    def gpu_bytes(self) -> int:
+        """Bytes the model holds on the GPU (every texture and buffer of its renderer or tiles)."""
+        r = self.renderer
+        if r is None:
+            return 0
+        if isinstance(r, TiledRenderer):
+            return r.gpu_bytes()
+        parts = renderer_gpu_bytes(r)
+        return parts["total"] - parts["targets"]
 
     def hud(self, stats: dict | None = None) -> str:
         """The HUD's lines as one line (the title bar and the log)."""
@@ -404,9 +435,11 @@ def save_image(path: Path | str, rgb: np.ndarray) -> Path:
 def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "frustum", window: str = "auto",
                screenshot_dir: Path = Path("."), script_frames: int = 0, screenshot: Path | None = None,
                script_dt: float = 1 / 30, mode: str = "drive", script_keys=(), sky=None,
-               lod: bool = True) -> Path | None:
-    """Open the viewer (over ``sky``, a :class:`billboards.sky.Sky`, when given; else a plain
-    background), GPU decode with level of detail unless ``lod`` is False. With
+               lod: bool = True, paging: PagingConfig | None = None) -> Path | None:
+    """Open the viewer on ``model`` (a BillboardModel, or a ModelSet paged under ``paging``; a
+    BillboardModel with ``paging`` is paged as a set of one tile) over ``sky``, a
+    :class:`billboards.sky.Sky`, when given (else a plain background), GPU decode with level of
+    detail unless ``lod`` is False. With
     ``script_frames`` > 0: render that many frames along the drive path with a fixed ``script_dt``, pressing the moderngl-window key names in
     ``script_keys`` (e.g. "C", "I") one per frame from the first, through the window's
     key-event handler; save the last frame to ``screenshot`` (in the format its suffix
@@ -419,7 +452,7 @@ def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "fru
     logger.info("window %s, %s", type(wnd).__module__, wnd.ctx.info["GL_RENDERER"])
     timer = Timer()
     app = ViewerApp(model, decode=decode, cull=cull, screenshot_dir=screenshot_dir, mode=mode, sky=sky, lod=lod,
-                    ctx=wnd.ctx, wnd=wnd, timer=timer)
+                    paging=paging, ctx=wnd.ctx, wnd=wnd, timer=timer)
     wnd.config = app
     out = None
     try:

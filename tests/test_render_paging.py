@@ -272,3 +272,107 @@ def test_release_is_idempotent(ctx, street_set):
     assert tiled.gpu_bytes() == 0 and all(renderer_gpu_bytes(r)["total"] == 0 for r in renderers)
     with pytest.raises(RuntimeError):
         tiled.render(K, views()[0], SIZE)
+
+
+# ----------------------------------------------------------------------------------------------
+# front ends: render_view, bbcity render / fps, the viewer
+
+
+def test_render_view_of_a_set(street_set):
+    from render.offscreen import clear_cache, render_view, shared_context
+
+    with shared_context():
+        pass
+    pose = views()[1]
+    got = render_view(street_set, K, pose, SIZE, background=BG)
+    with TiledRenderer(shared_context(), street_set, "gpu", background=BG) as tiled:
+        from render.offscreen import _current
+
+        with _current():
+            want = tiled.render(K, pose, SIZE, wait="all")
+    np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError):
+        render_view(street_set, K, pose, SIZE, visible=[0])
+    clear_cache()
+
+
+def test_bbcity_render_and_fps_of_a_set(street_set, tmp_path, capsys):
+    from bbcity.cli import main as cli_main
+    from core.fileio import read_png
+
+    root = str(street_set.root)
+    assert cli_main(["-q", "render", root, "--path", "orbit", "--frames", "2", "--size", "160", "120",
+                     "--out", str(tmp_path / "frames"), "--gpu-budget", "64"]) == 0
+    frames = sorted((tmp_path / "frames").glob("frame_*.png"))
+    assert len(frames) == 2
+    image = read_png(frames[0])
+    assert len(np.unique(image.reshape(-1, 3), axis=0)) > 20  # the street, not a blank frame
+    capsys.readouterr()
+    assert cli_main(["fps", root, "--size", "160", "120", "--gpu-budget", "8", "--walk-step", "4",
+                     "--walk-frames", "12"]) == 0
+    out = capsys.readouterr().out
+    assert "tiled model: 4 tiles of 15 m" in out and "12 frames 4 m apart" in out
+    assert "paging walk, budget 8 MB: first frame" in out and "paging walk, no budget:" in out
+    with pytest.raises(SystemExit) as exit_:  # a budget must be positive: a usage error
+        cli_main(["fps", root, "--gpu-budget", "0"])
+    assert exit_.value.code == 2
+
+
+def test_viewer_pages_a_set_headless(street_set, tmp_path):
+    pytest.importorskip("moderngl_window")
+    from render.viewer import ViewerApp, _make_window
+
+    try:
+        wnd = _make_window("headless", (320, 240), "bbcity")
+    except Exception as e:  # no EGL/GL 3.3 here
+        pytest.skip(f"no headless moderngl-window context: {e}")
+    budget = 3 * max(tile_gpu_bound(street_set.load_tile(i), "gpu", LodConfig(), max_texture_size(wnd.ctx))
+                     for i in range(len(street_set)))
+    app = ViewerApp(street_set, ctx=wnd.ctx, wnd=wnd, screenshot_dir=tmp_path,
+                    paging=PagingConfig(gpu_budget=budget))
+    try:
+        assert isinstance(app.renderer, TiledRenderer)
+        for _ in range(4):
+            stats = app.render_frame(1 / 30)
+        assert stats["tiles_resident"] >= 1 and stats["gpu_bytes"] <= budget
+        lines = app.hud_lines(stats)
+        assert lines[1].startswith(f"quads {stats['quads']} | drawn {stats['billboards_drawn']}/"
+                                   f"{street_set.num_billboards}")
+        assert (f"tiles {stats['tiles_drawn']}/{stats['tiles_visible']} drawn, {stats['tiles_resident']} loaded | "
+                f"GPU {stats['gpu_bytes'] / 2**20:.0f}/{budget / 2**20:.0f} MB") in lines[4]
+        from render.hud import text_image
+
+        assert text_image(lines).shape[1] < 470  # the HUD fits a 480-pixel window
+        app.handle_command("I")
+        assert not app.renderer.interpolate
+        app.handle_command("L")  # rebuilt without level of detail: tiles paged again
+        assert app.render_frame(0.0)["tiles_drawn"] >= 1
+        assert len(app.renderer.model_set) == len(street_set)
+    finally:
+        app.on_close()
+        wnd.destroy()
+
+
+def test_bbcity_view_of_a_set_under_xvfb(street_set, tmp_path):
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from core.fileio import read_png
+
+    if shutil.which("xvfb-run") is None:
+        pytest.skip("xvfb-run not on PATH")
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "shot.png"
+    bbcity = Path(sys.executable).with_name("bbcity")
+    cmd = [str(bbcity)] if bbcity.exists() else [sys.executable, "-m", "bbcity.cli"]
+    res = subprocess.run(["xvfb-run", "-a", *cmd, "view", str(street_set.root), "--script-frames", "4",
+                          "--screenshot", str(out), "--size", "320", "240", "--gpu-budget", "64"],
+                         cwd=root, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(root)})
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "loaded | GPU" in res.stderr and "/64 MB" in res.stderr  # the HUD's paging figures
+    image = read_png(out)
+    assert image.shape[:2] == (240, 320) and len(np.unique(image.reshape(-1, 3), axis=0)) > 50
