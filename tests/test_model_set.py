@@ -9,8 +9,8 @@ import shutil
 import numpy as np
 import pytest
 
-from billboards.model_set import (TILES_FILE, ModelSet, is_model_set, load_model_set, quad_bounds, tile_name,
-                                  write_model_set)
+from billboards.model_set import (TILES_FILE, ModelSet, is_model_set, load_model_set, quad_bounds, split_model,
+                                  tile_name, write_model_set)
 from billboards.model_writer import save
 from billboards.sky import Sky, read_sky, write_sky
 from core.fileio import DataFormatError
@@ -220,3 +220,37 @@ def test_tile_without_manifest_and_bad_manifest(model_set):
     with pytest.raises(DataFormatError) as info:
         load_model_set(root)
     assert info.value.path == root / name / "manifest.json"
+
+
+def test_split_model_keeps_every_billboard_and_its_textures(tmp_path):
+    """split_model: every billboard in the tile of its centre, on the tile's origin, decoding to the
+    same textures in every direction; the octree's nodes renumbered consistently; the sky kept."""
+    from billboards.decode import decode_directions
+
+    from .test_render_cull_draw import octree_model
+
+    rng = np.random.default_rng(3)
+    points = ORIGIN + np.stack([rng.uniform(0, 37, 900), rng.uniform(-9, 9, 900), rng.uniform(0, 5, 900)], 1)
+    model = octree_model(points, d_yaw=3, yaw_span_deg=60.0, page_size=128, seed=2)
+    save(model, tmp_path / "whole")
+    sky = Sky(np.linspace(0, 1, 12, dtype=np.float32).reshape(4, 3))
+    write_sky(tmp_path / "whole", sky)
+    out = split_model(tmp_path / "whole", tmp_path / "tiles", TILE, grid_origin=ORIGIN)
+    s = load_model_set(out)
+    assert s.tiled and s.tile_size == TILE and len(s) > 4 and s.num_billboards == model.num_billboards
+    np.testing.assert_array_equal(read_sky(out).colours, sky.colours)
+    world = model.origin + model.centres.astype(np.float64)
+    cells = np.floor((world[:, :2] - ORIGIN[:2]) / TILE).astype(int)
+    textures = decode_directions(model, np.arange(model.num_billboards))
+    seen = 0
+    for i, tile in enumerate(s.tiles):
+        sub = s.load_tile(i)
+        mine = np.flatnonzero(np.all(cells == tile.index, axis=1))
+        np.testing.assert_array_equal(sub.origin, ORIGIN + [tile.index[0] * TILE, tile.index[1] * TILE, 0])
+        np.testing.assert_allclose(sub.origin + sub.centres.astype(np.float64), world[mine], atol=1e-5)
+        np.testing.assert_array_equal(decode_directions(sub, np.arange(sub.num_billboards)), textures[mine])
+        lo, hi = quad_bounds(sub)
+        np.testing.assert_array_equal(tile.lo, lo)
+        assert sub.node_range[:, 1].max() == sub.num_billboards and sub.info["tile"] == list(tile.index)
+        seen += len(mine)
+    assert seen == model.num_billboards
