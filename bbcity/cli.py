@@ -419,6 +419,10 @@ def _add_build(sub) -> None:
     p.add_argument("--photometry", choices=("on", "off"), default="on",
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
                         "out before sampling textures (default on)")
+    p.add_argument("--tile-metres", type=length, default=None,
+                   help="build a model set of square tiles this wide, one at a time, so that memory does not grow "
+                        "with the street (a whole number of voxels; the viewer pages them; a killed build resumes "
+                        "its unfinished tiles; default: one model)")
     p.set_defaults(func=_run_build, check_options=_check_build)
 
 
@@ -453,7 +457,8 @@ def build_config_from_args(args):
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,
-                       photometry=PhotometryConfig() if args.photometry == "on" else None)
+                       photometry=PhotometryConfig() if args.photometry == "on" else None,
+                       tile_metres=args.tile_metres)
 
 
 def _check_build(args) -> None:
@@ -463,6 +468,13 @@ def _check_build(args) -> None:
 
     if args.tile > args.page_size:
         raise UsageError(f"--tile {args.tile} is larger than the atlas page (--page-size {args.page_size})")
+    if args.tile_metres is not None:
+        if args.depth is not None:
+            raise UsageError("--tile-metres needs --voxel-size, not --depth (tiles share one voxel grid)")
+        voxels = args.tile_metres / args.voxel_size
+        if abs(voxels - round(voxels)) > 1e-9:
+            raise UsageError(f"--tile-metres {args.tile_metres:g} is not a whole number of voxels "
+                             f"(--voxel-size {args.voxel_size:g})")
     d = args.directions * len(args.pitches)
     if d > args.page_size:  # a billboard's coefficient row (d texels) fills one atlas page row at most
         raise UsageError(f"--directions × --pitches = {d} directions do not fit an atlas page row "

@@ -131,6 +131,15 @@ def _anchored(passes: list[EpiPass], anchor: np.ndarray) -> list[EpiPass]:
     return out
 
 
+def _cropped(passes: list[EpiPass], lo: np.ndarray, hi: np.ndarray) -> list[EpiPass]:
+    """Passes with only their points within the xy box [lo, hi] (2,)."""
+    out = []
+    for p in passes:
+        keep = np.all((p.points[:, :2] >= lo) & (p.points[:, :2] < hi), axis=1)
+        out.append(replace(p, points=p.points[keep], depth=p.depth[keep], votes=p.votes[keep]))
+    return out
+
+
 def inputs_digest(conf: BuildConfig, cloud_path: Path, dataset_dir, poses) -> str:
     """Names the work directory of a tiled build: the settings and what the inputs are."""
     h = hashlib.sha256(json.dumps(_config_to_json(conf), sort_keys=True).encode())
@@ -151,16 +160,11 @@ class _TileBuild:
         self.grid, self.grid_origin, self.block_size = grid, grid_origin, block_size
         self.cameras = dataset.rig.num_cameras if dataset is not None else 0
 
-    def reach(self) -> float:
-        """How far (m) outside a tile a camera can still sample it."""
-        return float(self.conf.sampling.max_distance)
-
-    def tile_views(self, lo: np.ndarray, hi: np.ndarray) -> tuple[Views | None, np.ndarray]:
-        """The views of the whole frames with a camera within reach of the xy box [lo, hi]
+    def tile_views(self, lo: np.ndarray, hi: np.ndarray, r: float) -> tuple[Views | None, np.ndarray]:
+        """The views of the whole frames with a camera within ``r`` metres of the xy box [lo, hi]
         (frame by frame, as EPIs need them), and their indices (k,) int64 into ``self.views``."""
         if self.views is None:
             return None, np.zeros(0, np.int64)
-        r = self.reach()
         c = self.views.centres[:, :2].reshape(len(self.frames), self.cameras, 2)
         near = np.any(np.all((c >= lo - r) & (c <= hi + r), axis=-1), axis=1)
         frames = np.flatnonzero(near)
@@ -186,13 +190,16 @@ class _TileBuild:
         own = np.all(self.grid.tile_of(points) == np.asarray(index), axis=1)
         if not own.any():
             return None
-        views, _ = self.tile_views(lo, hi)
+        views, _ = self.tile_views(lo, hi, conf.sampling.max_distance)  # every camera that may sample it
         viewpoints = views.centres if views is not None else None
         octree_conf = replace(conf.octree, depth=None)
         layer = None
         if conf.layer is not None and views is not None and conf.source == "images":
-            passes = _anchored(epi_points(views.K, views.world_from_cam, views.image, self.cameras, conf.layer.epi),
-                               self.grid_origin)
+            # the facades of the tile and its context, from the frames that pass them
+            near, _ = self.tile_views(lo, hi, 2 * margin)
+            passes = [] if near is None else epi_points(near.K, near.world_from_cam, near.image, self.cameras,
+                                                        conf.layer.epi)
+            passes = _cropped(_anchored(passes, self.grid_origin), lo - margin, hi + margin)
             layer = build_layer(points, passes, self.block_size, self.grid_origin, viewpoints, conf.layer,
                                 cameras=(views.K, views.world_from_cam, views.sizes))
         if layer is not None and len(layer.centres):
@@ -401,7 +408,10 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
         report.update(photometry=photometry_report, resumed_tiles=resumed, cloud=str(cloud_path),
                       dataset=None if dataset_dir is None else str(dataset_dir), stages=stages,
                       total_s=time.perf_counter() - t_start, peak_memory=peak_memory(),
-                      config=_config_to_json(conf), bytes={"model": load_model_set(work).bytes})
+                      config=_config_to_json(conf))
+        raw = int(sum(t["sums"].get("raw_values", 0) for t in reports))  # 8-bit samples: a byte each
+        report["bytes"] = {"raw_samples": raw, "model": load_model_set(work).bytes}
+        report["compression_ratio"] = raw / max(1, report["bytes"]["model"])
         write_json(work / "build_report.json", report)
         replace_dir(work, model_dir)
     finally:
