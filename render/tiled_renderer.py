@@ -3,7 +3,8 @@
 One frame, one clear, one sky pass, one depth buffer: each resident tile whose bounds meet the
 view frustum is drawn by its own :class:`~render.renderer.BillboardRenderer` into the bound
 framebuffer, with camera matrices relative to that tile's origin (float64 on the CPU, float32
-relative positions on the GPU, as for one model), nearest tile first. Nothing is cleared between
+relative positions on the GPU, as for one model), nearest tile first (with level of detail, the
+frame's impostor images shared among them, nearest first). Nothing is cleared between
 tiles, so a set draws the image its billboards would draw as one model, up to each tile's
 float32 origin (and the order of exactly coincident quads of different tiles).
 
@@ -21,6 +22,7 @@ of one tile, so every front end takes either.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -340,6 +342,7 @@ class TiledRenderer:
         tiles = self.prepare(K, world_from_cam, size, wait)
         totals: dict = {}
         t1 = time.perf_counter()
+        self._share_impostor_updates(tiles)
         for i in tiles:
             r = self.resident[int(i)].renderer
             merge_stats(totals, r.draw(r.camera(K, world_from_cam, size)))
@@ -356,6 +359,19 @@ class TiledRenderer:
         self.frames += 1
         self.stats = totals
         return totals
+
+    def _share_impostor_updates(self, tiles: np.ndarray) -> None:
+        """Share the frame's impostor images (``ImpostorConfig.updates_per_frame``) among the tiles
+        drawn, nearest first, as one model's renderer would make them: one tile does not make its
+        own quota while the rest of the frame waits."""
+        if self.lod is None or self.lod.impostors is None or len(tiles) == 0:
+            return
+        total = self.lod.impostors.updates_per_frame
+        share, extra = divmod(total, len(tiles))
+        for k, i in enumerate(tiles):
+            imp = self.resident[int(i)].renderer.impostors
+            if imp is not None:
+                imp.config = dataclasses.replace(self.lod.impostors, updates_per_frame=share + (k < extra))
 
     def render(self, K, world_from_cam, size, wait: str = "auto") -> np.ndarray:
         """(h, w, 3) uint8 image of the set from the OpenCV camera K (3, 3), world_from_cam (4, 4)

@@ -376,3 +376,12 @@ def test_bbcity_view_of_a_set_under_xvfb(street_set, tmp_path):
     assert "loaded | GPU" in res.stderr and "/64 MB" in res.stderr  # the HUD's paging figures
     image = read_png(out)
     assert image.shape[:2] == (240, 320) and len(np.unique(image.reshape(-1, 3), axis=0)) > 50
+
+
+def test_impostor_images_are_shared_among_the_tiles_drawn(ctx, street_set):
+    lod = LodConfig()
+    with TiledRenderer(ctx, street_set, "gpu", lod=lod) as tiled:
+        tiled.render(K, views()[0], SIZE, wait="all")
+        drawn = [r.renderer.impostors.config.updates_per_frame for r in tiled.resident.values()]
+        assert tiled.stats["tiles_drawn"] == len(drawn) >= 2
+        assert sum(drawn) == lod.impostors.updates_per_frame and max(drawn) - min(drawn) <= 1
