@@ -35,7 +35,7 @@ from billboards.model_set import ModelSet, ModelTile, quad_bounds
 
 from .camera import ClipPlanes, gl_camera
 from .context import max_texture_size
-from .culling import boxes_outside, frustum_planes
+from .culling import CULL_MODES, boxes_outside, frustum_planes
 from .paging import Motion, PagingConfig, TileLoader, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
 from .renderer import DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
@@ -119,7 +119,9 @@ class TiledRenderer:
     paging its tiles under ``paging.gpu_budget``.
 
     decode, spherical, interpolate, linear, clip, cull, lod: as for
-    :class:`~render.renderer.BillboardRenderer` (each tile's renderer gets them). background:
+    :class:`~render.renderer.BillboardRenderer` (each tile's renderer gets them; the occlusion
+    modes cull per tile against the frame's shared depth, so hzb reads it back once per tile
+    drawn; frustum culling, the default, is the set's natural mode). background:
     the clear colour; sky: a :class:`billboards.sky.Sky` drawn behind the model by
     :meth:`render` (e.g. :func:`billboards.sky.read_sky` of the set's root).
 
@@ -136,6 +138,8 @@ class TiledRenderer:
                  background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "frustum", lod=None):
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
+        if cull not in CULL_MODES:
+            raise ValueError(f"cull must be one of {CULL_MODES}, got {cull!r}")
         self.ctx = ctx
         self.model_set, preloaded = as_model_set(source)
         self.decode = decode
