@@ -30,18 +30,19 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
-SCENES = ("all", "street", "town")
+SCENES = ("all", "street", "town", "executor", "city")
 
 
 @dataclass(frozen=True)
 class BenchConfig:
     quick: bool = False  # small inputs for a smoke run (under 3 minutes)
-    scene: str = "all"  # "street" (the pipeline and everything on its model), "town" (culling) or "all"
+    scene: str = "all"  # "street" (the pipeline and everything on its model), "town" (culling), "executor" or "all"
     repeats: int = 3  # each timing is the median of this many runs
     workers: int = 2  # process pool size
     work: str | None = None  # a recon work directory (e.g. the default street's): the billboard sections use it
     street_length: float = 30.0  # metres: the 1× street of the pipeline runs
     scales: tuple[int, ...] = (1, 2, 4)  # street lengths of the scaling runs, in multiples of street_length
+    city_scales: tuple[int, ...] = (1, 4, 16)  # the city-scale runs (scene "city", tile by tile), likewise
 
     def __post_init__(self):
         if self.scene not in SCENES:
@@ -403,6 +404,14 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
         section("novel views", bench_novel_views, cfg, report, run.dataset, run.work, run.model, out, 4)
     if cfg.scene in ("all", "town"):
         section("town", bench_town, cfg, report)
+    if cfg.scene == "city":  # not in "all": an hour on this machine
+        from .bench_city import bench_city
+
+        section("city", bench_city, cfg, report, out, cfg.city_scales)
+    if cfg.scene in ("all", "executor"):
+        from .bench_executor import bench_executor
+
+        section("executor", bench_executor, cfg, report, out)
     report.settings["total_seconds"] = time.perf_counter() - start
     report.write(out)
     logger.info("wrote %s", out / "report.md")

@@ -43,8 +43,9 @@ def _rss_mb(pid: int | str = "self") -> float:
     return rss_bytes(pid) / 1e6
 
 
-def _run_stage(stage: str, args: tuple) -> dict:
-    """In a fresh process: run one stage and return its resource use (and a small result).
+def _run_stage(stage, args: tuple) -> dict:
+    """In a fresh process: run one stage (a name in _STAGES, or a module-level function) and
+    return its resource use (and a small result).
 
     Peak memory is sampled from /proc every 50 ms (this process, and each of its worker
     processes): ``ru_maxrss`` would not do, as Linux carries it over from the parent
@@ -63,7 +64,7 @@ def _run_stage(stage: str, args: tuple) -> dict:
     sampler.start()
     t0 = time.perf_counter()
     try:
-        result = _STAGES[stage](*args)
+        result = (_STAGES[stage] if isinstance(stage, str) else stage)(*args)
     finally:
         stop.set()
         sampler.join()
@@ -105,9 +106,9 @@ _STAGES = {"synthesis": _synthesis, "reconstruction": _reconstruction, "build": 
            "load": lambda model: model_load(model)}
 
 
-def stage_in_fresh_process(stage: str, *args) -> tuple[StageTime, object]:
-    """Run ``stage`` in a new (spawned) process; its StageTime (wall timed here, so the
-    process start-up is included) and its result."""
+def stage_in_fresh_process(stage, *args) -> tuple[StageTime, object]:
+    """Run ``stage`` (a name in _STAGES, or a module-level function) in a new (spawned)
+    process; its StageTime (wall timed here, so the process start-up is included) and its result."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 

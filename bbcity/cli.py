@@ -645,8 +645,12 @@ def _add_bench(sub) -> None:
                                    "(street and town culling), novel views and scaling (1×, 2×, 4× street length). "
                                    "Every speed is paired with a baseline measured in the same run.")
     p.add_argument("--out", type=Path, required=True, help="report directory")
-    p.add_argument("--scene", choices=("all", "street", "town"), default="all",
-                   help="street: the pipeline and everything measured on its model; town: culling on the town")
+    p.add_argument("--scene", choices=("all", "street", "town", "executor", "city"), default="all",
+                   help="street: the pipeline and everything measured on its model; town: culling on the town; "
+                        "executor: recon and build through the local pool and through Dask; city (not in all): "
+                        "streets of --city-scales × --street-length built tile by tile and paged by the viewer")
+    p.add_argument("--city-scales", type=positive_int, nargs="+", default=None,
+                   help="street lengths of the city runs in multiples of --street-length (default 1 4 16)")
     p.add_argument("--quick", action="store_true", help="small inputs, for a smoke run (under 3 minutes)")
     p.add_argument("--repeats", type=int_range(1, MAX_REPEATS), default=None,
                    help="timings are the median of this many runs (3; quick 1)")
@@ -666,6 +670,8 @@ def _run_bench(args) -> int:
         given["repeats"] = args.repeats
     if args.street_length is not None:
         given["street_length"] = args.street_length
+    if args.city_scales is not None:
+        given["city_scales"] = tuple(args.city_scales)
     run_bench(BenchConfig.quick_config(**given) if args.quick else BenchConfig(**given), args.out)
     return 0
 
