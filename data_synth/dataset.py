@@ -262,7 +262,8 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
                       distortions=[rig.distortion(c) for c in range(rig.num_cameras)])
 
     # the frames are cast as a lazy dataset of these settings casts them (data_synth.lazy)
-    source = LazyImages(root, json.dumps(cfg_dict, sort_keys=True), scene.digest(), view_reach(cfg), TILE_M)
+    source = LazyImages(root, json.dumps(cfg_dict, sort_keys=True), scene.digest(), view_reach(cfg), TILE_M,
+                        check_digest=False)  # the digest was just made from this generator
     todo = [(str(root), source, i, rig.num_cameras, cfg.ground_truth_depth)
             for i, n in enumerate(names)
             if not all(p.exists() for p in _frame_files(root, n, rig.num_cameras, cfg.ground_truth_depth))]

@@ -43,6 +43,7 @@ import logging
 import math
 import os
 import re
+import threading
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -136,13 +137,16 @@ class LazyImages:
     """What a lazy dataset's images are cast from: small and picklable (a worker process
     casts its own). root: the dataset directory (errors name its files); config_json: the
     canonical JSON of its :class:`data_synth.SynthConfig`; digest: ``gt/scene.json``'s;
-    reach: metres (None: the whole scene); tile: metres."""
+    reach: metres (None: the whole scene); tile: metres; check_digest: check the generator
+    against ``digest`` before the first cast in a process (the writer, which has just made
+    the digest, does not)."""
 
     root: Path
     config_json: str
     digest: str
     reach: float | None
     tile: float
+    check_digest: bool = True
 
     @classmethod
     def from_manifest(cls, root: os.PathLike | str, manifest: dict) -> "LazyImages":
@@ -173,21 +177,25 @@ class LazyImages:
     # ------------------------------------------------------------------ casting
 
     def _state(self) -> "_State":
-        state = _STATES.get(self.config_json)
+        key = (self.config_json, self.digest if self.check_digest else None)
+        with _LOCK:
+            state = _STATES.get(key)
         if state is None:
             from .dataset import capture_path, config_from_json
 
             cfg = config_from_json(json.loads(self.config_json))
             name = cfg.scene
             config = asdict(cfg.street if name == "street" else cfg.town)
-            verify_digest(name, config, self.digest, self.root / "gt" / "scene.json")
+            if self.check_digest:
+                verify_digest(name, config, self.digest, self.root / "gt" / "scene.json")
             rig = make_rig(cfg.rig)
             poses, _ = capture_path(cfg)
             offset = float(np.linalg.norm(np.linalg.inv(rig.cam_from_rig)[:, :2, 3], axis=1).max())
             state = _State(cfg, name, config, rig, poses, offset)
-            _STATES[self.config_json] = state
-            while len(_STATES) > 2:
-                _STATES.popitem(last=False)
+            with _LOCK:
+                _STATES[key] = state
+                while len(_STATES) > 2:
+                    _STATES.popitem(last=False)
         return state
 
     def section_box(self, frame: int) -> tuple[int | None, tuple, tuple]:
@@ -202,15 +210,17 @@ class LazyImages:
     def _renderer(self, frame: int) -> Renderer:
         k, lo, hi = self.section_box(frame)
         key = (self.config_json, k, self.reach, self.tile)
-        renderer = _RENDERERS.get(key)
-        if renderer is None:
-            state = self._state()
-            renderer = Renderer(scene_section((state.name, state.config), lo, hi))
+        with _LOCK:
+            renderer = _RENDERERS.get(key)
+            if renderer is not None:
+                _RENDERERS.move_to_end(key)
+                return renderer
+        state = self._state()
+        renderer = Renderer(scene_section((state.name, state.config), lo, hi))
+        with _LOCK:
             _RENDERERS[key] = renderer
             while len(_RENDERERS) > SECTIONS_KEPT:
                 _RENDERERS.popitem(last=False)
-        else:
-            _RENDERERS.move_to_end(key)
         return renderer
 
     def _check(self, frame: int, cam: int) -> None:
@@ -225,11 +235,12 @@ class LazyImages:
         (rgb, depth, ids); ``colour`` False may leave rgb zero (depth and ids only, cheaper);
         ``keep`` False does not keep it for the next read (the writer's single reads)."""
         self._check(frame, cam)
-        key = (self.config_json, frame, cam)
-        cached = _RESULTS.get(key)
-        if cached is not None and (cached[1] or not colour):
-            _RESULTS.move_to_end(key)
-            return cached[0]
+        key = (self.config_json, self.reach, self.tile, frame, cam)
+        with _LOCK:
+            cached = _RESULTS.get(key)
+            if cached is not None and (cached[1] or not colour):
+                _RESULTS.move_to_end(key)
+                return cached[0]
         state = self._state()
         renderer = self._renderer(frame)
         rig, cfg = state.rig, state.cfg
@@ -241,10 +252,11 @@ class LazyImages:
             result = RenderResult(np.zeros((*depth.shape, 3), np.uint8), depth, ids)
         if not keep:
             return result
-        _RESULTS[key] = (result, colour)
-        _RESULTS.move_to_end(key)
-        while len(_RESULTS) > RESULTS_KEPT:
-            _RESULTS.popitem(last=False)
+        with _LOCK:
+            _RESULTS[key] = (result, colour)
+            _RESULTS.move_to_end(key)
+            while len(_RESULTS) > RESULTS_KEPT:
+                _RESULTS.popitem(last=False)
         return result
 
     def image(self, frame: int, cam: int) -> np.ndarray:
@@ -278,6 +290,7 @@ class _State:
     offset: float  # metres: the farthest camera from the rig's origin
 
 
+_LOCK = threading.RLock()  # the caches below may be read from several threads
 _STATES: OrderedDict = OrderedDict()
 _RENDERERS: OrderedDict = OrderedDict()
 _RESULTS: OrderedDict = OrderedDict()
@@ -286,19 +299,24 @@ _SOURCES: OrderedDict = OrderedDict()  # dataset directory → LazyImages or Non
 
 def lazy_source(root: os.PathLike | str) -> LazyImages | None:
     """The :class:`LazyImages` of the dataset at ``root`` when it is lazy, else None (read from
-    its ``dataset.json`` once per process)."""
-    key = str(Path(root).resolve())
-    if key in _SOURCES:
-        return _SOURCES[key]
+    its ``dataset.json`` once per process while that file is unchanged)."""
     path = Path(root) / "dataset.json"
+    try:
+        stat = path.stat()
+        key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    except OSError:
+        return None  # no manifest: a capture of images
+    with _LOCK:
+        if key in _SOURCES:
+            return _SOURCES[key]
     source = None
-    if path.is_file():
-        manifest = read_json(path)
-        if isinstance(manifest, dict) and manifest.get("images") == LAZY_IMAGES:
-            source = LazyImages.from_manifest(root, manifest)
-    _SOURCES[key] = source
-    while len(_SOURCES) > 8:
-        _SOURCES.popitem(last=False)
+    manifest = read_json(path)
+    if isinstance(manifest, dict) and manifest.get("images") == LAZY_IMAGES:
+        source = LazyImages.from_manifest(root, manifest)
+    with _LOCK:
+        _SOURCES[key] = source
+        while len(_SOURCES) > 8:
+            _SOURCES.popitem(last=False)
     return source
 
 

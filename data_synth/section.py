@@ -25,14 +25,14 @@ import hashlib
 import json
 import os
 from collections import OrderedDict
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 
 from core.fileio import DataFormatError, read_json
 
-from .scene import BoundsBuilder, DigestBuilder, Scene, SectionBuilder
+from .scene import BoundsBuilder, DigestBuilder, MeshBuilder, Scene, SectionBuilder
 from .street import StreetConfig, generate_street
 from .town import TownConfig, generate_town
 
@@ -169,10 +169,13 @@ def scene_section(source, lo, hi) -> Scene:
     lo, hi = _box(lo, hi)
     if digest is not None:
         verify_digest(name, config, digest, Path(os.fspath(source)) / "gt" / "scene.json")
+    box = (tuple(float(v) for v in lo), tuple(float(v) for v in hi))
+    generate = GENERATORS[name][1]
+    if np.all(lo == -np.inf) and np.all(hi == np.inf):  # everything: one walk
+        return replace(generate(_config_object(name, config), MeshBuilder()).build(name, config), section=box)
     kind, seed, bounds, _ = object_table(name, config)
     keep = objects_in_box(bounds, lo, hi)
-    builder = GENERATORS[name][1](_config_object(name, config), SectionBuilder(keep))
-    box = (tuple(float(v) for v in lo), tuple(float(v) for v in hi))
+    builder = generate(_config_object(name, config), SectionBuilder(keep))
     return builder.build_section(name, config, bounds, box)
 
 
