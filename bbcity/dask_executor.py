@@ -120,7 +120,8 @@ class _TaskFuture(Future):
     def __init__(self, executor: "DaskExecutor", task: distributed.Future):
         super().__init__()
         self._executor = executor
-        self.task = task
+        self.task: distributed.Future | None = task  # dropped once settled: the worker then frees the result
+        self.key = task.key
 
     def cancel(self) -> bool:
         with self._condition:
@@ -157,6 +158,8 @@ class _TaskFuture(Future):
             # cancelled here: the executor's drain ends it once no worker runs it
         except BaseException as e:  # a lost connection while fetching the result
             self._set(exception=e)
+        if self.done():
+            self.task = None
 
     def _set(self, result=None, exception: BaseException | None = None) -> None:
         with self._condition:
@@ -203,9 +206,13 @@ class DaskExecutor(Executor):
         scratch = tempfile.mkdtemp(prefix="bbcity-dask-")
         blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:  # the cluster's threads, and so the worker processes they start, inherit the mask
+            # no dashboard; the scheduler's HTTP routes (health, metrics) on a free port, not on 8787,
+            # which another cluster may hold; no memory limit (a pool has none: build checks memory)
             cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                               host="127.0.0.1", dashboard_address=None, memory_limit=0,
-                                               silence_logs=logging.WARNING, local_directory=scratch)
+                                               host="127.0.0.1", dashboard_address=None,
+                                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                                               memory_limit=0, silence_logs=logging.WARNING,
+                                               local_directory=scratch)
             try:
                 client = distributed.Client(cluster, set_as_default=False)
             except BaseException:
@@ -286,7 +293,7 @@ class DaskExecutor(Executor):
         self._shutdown = True
         if self.cluster is None:
             with self._lock:
-                tasks = [f.task for f in self._live]
+                tasks = [f.task for f in self._live if f.task is not None]
             try:
                 self.client.cancel(tasks)
             except Exception:
@@ -328,9 +335,9 @@ class DaskExecutor(Executor):
                     return
             try:
                 if untold:
-                    self.client.cancel([f.task for f in untold])
+                    self.client.cancel([f.task for f in untold if f.task is not None])
                 time.sleep(_POLL_S)
-                keys = [f.task.key for f in watched]
+                keys = [f.key for f in watched]
                 busy: set | None = set()
                 for found in self.client.run(_busy_keys, keys, on_error="ignore").values():
                     busy.update(found)
@@ -341,7 +348,7 @@ class DaskExecutor(Executor):
                 for f in watched:
                     if f not in self._draining:
                         continue
-                    n = 2 if busy is None else 0 if f.task.key in busy else self._draining[f] + 1
+                    n = 2 if busy is None else 0 if f.key in busy else self._draining[f] + 1
                     self._draining[f] = n
                     if n >= 2:
                         stopped.append(f)
