@@ -8,6 +8,7 @@ runs on any ``concurrent.futures.Executor``. The merge then fuses the tiles
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -99,8 +100,9 @@ def _process_frame(task: _FrameTask) -> dict:
                                             fd.confidence, stride=task.pixel_stride)
     spill = TileSpill(Path(task.spill_root), np.asarray(task.origin), task.fusion)
     voxels = spill.add_frame(ds.frame_names[task.frame], points, colours, conf)
-    return {"frame": task.frame, "points": int(len(points)), "voxels": voxels,
-            "read_s": t_read - t0, "stereo_s": t_stereo - t_read, "total_s": time.perf_counter() - t0}
+    return _frame_finished(task, {"frame": task.frame, "points": int(len(points)), "voxels": voxels,
+                                  "read_s": t_read - t0, "stereo_s": t_stereo - t_read,
+                                  "total_s": time.perf_counter() - t0})
 
 
 def _process_frame_motion(task: _FrameTask, ds, t0: float) -> dict:
@@ -118,8 +120,45 @@ def _process_frame_motion(task: _FrameTask, ds, t0: float) -> dict:
                                             fd.confidence, stride=task.pixel_stride)
     spill = TileSpill(Path(task.spill_root), np.asarray(task.origin), task.fusion)
     voxels = spill.add_frame(ds.frame_names[task.frame], points, colours, conf)
-    return {"frame": task.frame, "points": int(len(points)), "voxels": voxels, "partners": frames[1:],
-            "read_s": t_read - t0, "stereo_s": t_stereo - t_read, "total_s": time.perf_counter() - t0}
+    return _frame_finished(task, {"frame": task.frame, "points": int(len(points)), "voxels": voxels,
+                                  "partners": frames[1:], "read_s": t_read - t0, "stereo_s": t_stereo - t_read,
+                                  "total_s": time.perf_counter() - t0})
+
+
+#: Beside the spilled frames: what they were made from (a later run resumes only from the same).
+SPILL_INPUTS = "inputs.json"
+
+
+def _frame_done(spill_root, frame: int) -> Path:
+    """The marker of a frame whose voxels are all spilled (its statistics, JSON)."""
+    return Path(spill_root) / "done" / f"{frame:06d}.json"
+
+
+def _frame_finished(task: _FrameTask, stats: dict) -> dict:
+    """Mark the task's frame spilled (after every tile file of it is written) and return its statistics."""
+    write_json(_frame_done(task.spill_root, task.frame), stats)
+    return stats
+
+
+def _spill_inputs(conf: ReconConfig, dataset_dir: Path, world_from_rig: np.ndarray, frames: list[int],
+                  origin: np.ndarray) -> dict:
+    """What the spilled frames depend on: the stereo and fusion settings, the dataset, the poses
+    and frames used, the origin (JSON; equal inputs, equal dict)."""
+    settings = {k: v for k, v in json.loads(json.dumps(asdict(conf), default=str)).items()
+                if k in ("trinocular", "fusion", "pixel_stride", "motion", "poses", "colmap_model", "sfm")}
+    manifest = Path(dataset_dir) / "dataset.json"
+    return {"settings": settings, "dataset": str(Path(dataset_dir).resolve()),
+            "dataset_json": hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.is_file() else None,
+            "poses": hashlib.sha256(np.ascontiguousarray(world_from_rig[frames]).tobytes()).hexdigest(),
+            "frames": [int(f) for f in frames], "origin": origin.tolist()}
+
+
+def _spilled_inputs(spill_root: Path) -> dict | None:
+    """The inputs an existing spill was made from (None: unknown or unreadable)."""
+    try:
+        return read_json(spill_root / SPILL_INPUTS)
+    except (DataFormatError, OSError):
+        return None
 
 
 def _with_motion_partners(tasks: list, ds, world_from_rig: np.ndarray, excluded, config: MotionStereoConfig) -> list:
@@ -252,17 +291,24 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     # stored in voxels is relative to it (a city's UTM coordinates survive).
     origin = np.round(world_from_rig[frames, :3, 3].mean(axis=0), 3)
     spill_root = work / "spill"
-    if spill_root.exists():
-        TileSpill(spill_root, origin, conf.fusion).cleanup()  # never mix with an earlier run
+    inputs = _spill_inputs(conf, dataset_dir, world_from_rig, frames, origin)
+    if spill_root.exists() and _spilled_inputs(spill_root) != inputs:
+        TileSpill(spill_root, origin, conf.fusion).cleanup()  # never mix with another run's frames
+    write_json(spill_root / SPILL_INPUTS, inputs)
     tasks = [_FrameTask(str(dataset_dir), f, world_from_rig[f].tolist(), str(spill_root), origin.tolist(),
                         conf.trinocular, conf.fusion, conf.pixel_stride) for f in frames]
     if ds.rig.num_cameras == 1:  # one camera: each frame's stereo partners are neighbouring frames
         tasks = _with_motion_partners(tasks, ds, world_from_rig, held_out, conf.motion)
+    # a run killed before its merge left the frames it finished: they are not done again
+    resumed = [read_json(p) for t in tasks if (p := _frame_done(spill_root, t.frame)).is_file()]
+    tasks = [t for t in tasks if not _frame_done(spill_root, t.frame).is_file()]
 
+    finished = False
     try:
-        logger.info("stereo on %d frames × %d cameras, poses: %s", len(tasks), ds.rig.num_cameras, conf.poses)
+        logger.info("stereo on %d frames × %d cameras, poses: %s%s", len(tasks), ds.rig.num_cameras, conf.poses,
+                    f" ({len(resumed)} frames done by an earlier run)" if resumed else "")
         t1 = time.perf_counter()
-        frame_stats = run_tasks(_process_frame, tasks, executor, desc="stereo", progress=progress)
+        frame_stats = resumed + run_tasks(_process_frame, tasks, executor, desc="stereo", progress=progress)
         stages["frames_s"] = time.perf_counter() - t1
 
         logger.info("merging %d frames (%.1f s of stereo)", len(frame_stats), stages["frames_s"])
@@ -277,15 +323,22 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         if num_points == 0:
             logger.warning("no points reconstructed (nothing textured in view?); %s holds an empty cloud", cloud_path)
         stages["merge_s"] = time.perf_counter() - t2
-    finally:  # the voxel tiles are temporaries, also when the run fails (a full disk)
+        finished = True
+    except (KeyboardInterrupt, SystemExit):  # killed: the next run resumes from the frames spilled
+        raise
+    except BaseException:  # an error (bad input, a full disk): the voxel tiles are temporaries
         if not conf.keep_spill:
             TileSpill(spill_root, origin, conf.fusion).cleanup()
+        raise
+    if finished and not conf.keep_spill:
+        TileSpill(spill_root, origin, conf.fusion).cleanup()
 
     report = {
         "dataset": str(dataset_dir.resolve()),
         "dataset_from_work": os.path.relpath(dataset_dir.resolve(), work.resolve()),
         "config": json.loads(json.dumps(asdict(conf), default=str)),
-        "frames": len(frames), "held_out_frames": held_out, "points": num_points, "origin": origin.tolist(),
+        "frames": len(frames), "resumed_frames": len(resumed), "held_out_frames": held_out, "points": num_points,
+        "origin": origin.tolist(),
         "poses": pose_report, "poses_file": None if poses_file is None else str(poses_file.resolve()), "stages": stages,
         "seconds_per_frame": float(np.median([s["total_s"] for s in frame_stats])) if frame_stats else None,
         "stereo_seconds_per_frame": float(np.median([s["stereo_s"] for s in frame_stats])) if frame_stats else None,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -9,14 +10,13 @@ import pytest
 
 from core.fileio import DataFormatError
 from recon.cloud_io import PlyStreamWriter, TileGrid, read_cloud_arrays, read_cloud_tiles, tile_index_path
+from recon.fusion import FusionConfig
 from recon.pipeline import ReconConfig, main as recon_main
 
 
 @pytest.fixture(scope="module")
 def tiled_work(tiny_dataset, tmp_path_factory):
     work = tmp_path_factory.mktemp("tiles") / "work"
-    from recon.fusion import FusionConfig
-
     recon_main(ReconConfig(fusion=FusionConfig(tile_size=8.0), evaluate=False), tiny_dataset, work, progress=False)
     return work
 
@@ -102,3 +102,36 @@ def test_evaluation_tile_by_tile_matches_the_whole_cloud(tiled_work, tiny_datase
     assert tiles["surface_samples"] == pytest.approx(whole["surface_samples"], rel=0.1)
     for key in ("completeness_5cm", "completeness_20cm", "facade_completeness_5cm"):
         assert tiles[key] == pytest.approx(whole[key], abs=0.02)
+
+
+def test_a_killed_recon_resumes_from_its_spilled_frames(tiny_dataset, tiled_work, tmp_path, monkeypatch):
+    import recon.pipeline as recon_pipeline
+
+    conf = ReconConfig(fusion=FusionConfig(tile_size=8.0), evaluate=False)
+    real = recon_pipeline._process_frame
+    calls = []
+
+    def dies_at_the_third_frame(task):
+        if len(calls) == 2:
+            raise KeyboardInterrupt("killed")
+        calls.append(task.frame)
+        return real(task)
+
+    work = tmp_path / "work"
+    monkeypatch.setattr(recon_pipeline, "_process_frame", dies_at_the_third_frame)
+    with pytest.raises(KeyboardInterrupt):
+        recon_main(conf, tiny_dataset, work, progress=False)
+    monkeypatch.undo()
+    assert (work / "spill" / "done").is_dir() and not (work / "cloud.ply").exists()
+    recon_main(conf, tiny_dataset, work, progress=False)
+    report = json.loads((work / "recon_report.json").read_text())
+    assert report["resumed_frames"] == 2 and not (work / "spill").exists()
+    assert (work / "cloud.ply").read_bytes() == (tiled_work / "cloud.ply").read_bytes()
+    # other settings do not resume from the frames of these
+    monkeypatch.setattr(recon_pipeline, "_process_frame", dies_at_the_third_frame)
+    calls.clear()
+    with pytest.raises(KeyboardInterrupt):
+        recon_main(conf, tiny_dataset, work, progress=False)
+    monkeypatch.undo()
+    recon_main(dataclasses.replace(conf, pixel_stride=2), tiny_dataset, work, progress=False)
+    assert json.loads((work / "recon_report.json").read_text())["resumed_frames"] == 0
