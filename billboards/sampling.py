@@ -258,6 +258,8 @@ def _transform(points: np.ndarray, M: np.ndarray, offset: np.ndarray | None = No
         affine[:, 3] = offset
     points = np.ascontiguousarray(points)
     dtype = points.dtype if points.dtype in (np.float32, np.float64) else np.float64
+    if len(points) == 0:  # OpenCV returns None for no points (a view that sees none of a tile's)
+        return np.zeros((0, 3), dtype)
     return cv2.transform(points.astype(dtype, copy=False).reshape(1, -1, 3), affine.astype(dtype))[0]
 
 

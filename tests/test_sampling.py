@@ -209,3 +209,12 @@ def test_zbuffer_of_a_plane_and_its_margins():
     assert finite.mean() > 0.5
     np.testing.assert_allclose(filled[finite], 5.0, atol=1e-3)
     assert np.all(nearest <= filled)
+
+
+def test_a_view_that_sees_no_point_has_an_empty_zbuffer():
+    """A tile's view may see none of the tile's points: its z-buffer is empty, not an error."""
+    from billboards.sampling import zbuffer
+
+    K = np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]])
+    filled, nearest = zbuffer(np.zeros((0, 3), np.float32), np.zeros(3), K, np.eye(4), (100, 80), 2)
+    assert np.all(np.isinf(filled)) and np.all(np.isinf(nearest)) and filled.shape == (40, 50)
