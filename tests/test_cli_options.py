@@ -240,11 +240,12 @@ def _commands(tmp):
         ("stereo-sweep", nx, "--out", out): {"--frames": 1},
         ("check", nx): {},
         ("bench", "--out", str(bench_out)): {"--repeats": 1, "--street-length": 1},
-        ("view", nx): {"--size": 2, "--script-frames": 1},
-        ("render", nx, "--out", out): {"--size": 2, "--frames": 1, "--fps": 1},
+        ("view", nx): {"--size": 2, "--script-frames": 1, "--gpu-budget": 1},
+        ("render", nx, "--out", out): {"--size": 2, "--frames": 1, "--fps": 1, "--gpu-budget": 1},
         ("eval", nx, nx, "--out", out): {"--views": 1, "--size": 2, "--poisson-depth": 1,
                                          "--workprecision-depths": "+", "--panel-width": 1},
-        ("fps", nx): {"--size": 2, "--gpu-frames": 1, "--cpu-frames": 1, "--path-step": 1, "--path-frames": 1},
+        ("fps", nx): {"--size": 2, "--gpu-frames": 1, "--cpu-frames": 1, "--path-step": 1, "--path-frames": 1,
+                      "--gpu-budget": 1, "--walk-step": 1, "--walk-frames": 1},
     }
 
 
