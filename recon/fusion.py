@@ -205,7 +205,7 @@ def _nearest_camera(points: np.ndarray, cameras: np.ndarray, chunk: int = 65536)
     return out
 
 
-def _tile_with_context(spill: TileSpill, tile: tuple[int, int], present: set) -> tuple[np.ndarray, np.ndarray]:
+def _tile_with_context(spill: TileSpill, tile: tuple[int, int], present) -> tuple[np.ndarray, np.ndarray]:
     """A tile's reduced voxels (k, 7) followed by its neighbours' within a margin,
     and a mask (n,) bool of the tile's own rows."""
     cfg = spill.cfg
@@ -226,12 +226,24 @@ def _tile_with_context(spill: TileSpill, tile: tuple[int, int], present: set) ->
     return block, is_own
 
 
-def _finish_tile(task: tuple[TileSpill, tuple[int, int], set, np.ndarray]):
-    """Filter one tile with context and estimate its normals (runs in a worker)."""
-    spill, tile, present, cams_rel = task
-    block, is_own = _tile_with_context(spill, tile, present)
+def _finish_tile(task: tuple[TileSpill, tuple[int, int], tuple]):
+    """Filter one tile with context and estimate its normals (runs in a worker). The task carries
+    its neighbours present and reads the camera centres from the spill: a task is the same
+    size whatever the street's length."""
+    spill, tile, neighbours = task
+    cams_rel = load_npy(spill.root / CAMERAS, dtype=np.float64, shape=(None, 3))
+    block, is_own = _tile_with_context(spill, tile, set(neighbours))
     p, c, n = _filter_and_normals(block[:, :3], block[:, 3:6], is_own, spill.cfg, cams_rel)
     return p + spill.origin, np.clip(np.rint(c), 0, 255).astype(np.uint8), n
+
+
+#: The camera centres (c, 3) float64 relative to the origin, beside the spilled tiles for the merge's tasks.
+CAMERAS = "cameras.npy"
+
+
+def _neighbours(tile: tuple[int, int]) -> list[tuple[int, int]]:
+    """The eight tiles around ``tile``."""
+    return [(tile[0] + dx, tile[1] + dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
 
 
 def _reduce_tile(task: tuple[TileSpill, tuple[int, int]]) -> int:
@@ -252,12 +264,12 @@ def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
     """
     tiles = spill.tiles()
     present = set(tiles)
-    cams_rel = np.asarray(camera_centres, dtype=np.float64) - spill.origin
+    save_npy(spill.root / CAMERAS, np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3) - spill.origin)
     run_tasks(_reduce_tile, [(spill, t) for t in tiles], executor, desc="reduce", progress=False)
     total = 0
     window = 2 * executor_workers(executor)
-    finished = ordered_results(_finish_tile, [(spill, t, present, cams_rel) for t in tiles], executor,
-                               window=window, desc="merge", progress=False)
+    tasks = [(spill, t, tuple(n for n in _neighbours(t) if n in present)) for t in tiles]
+    finished = ordered_results(_finish_tile, tasks, executor, window=window, desc="merge", progress=False)
     for tile, (p, c, n) in zip(tiles, finished):
         sink(p, c, n, tile=tile)
         total += len(p)

@@ -77,7 +77,7 @@ class _FrameTask:
     partners: tuple = ()  # one-camera rigs: (frame, world_from_rig as a list) of each partner frame
 
 
-_PAIRS_CACHE: dict[str, dict] = {}
+_PAIRS_CACHE: dict = {}
 
 
 def _process_frame(task: _FrameTask) -> dict:
@@ -86,10 +86,14 @@ def _process_frame(task: _FrameTask) -> dict:
     ds = load_dataset(task.dataset)
     if ds.rig.num_cameras == 1:  # one camera: stereo with neighbouring frames
         return _process_frame_motion(task, ds, t0)
-    if task.dataset not in _PAIRS_CACHE:  # rectification maps: once per rig and worker
+    # rectification maps: once per rig and worker (a long-lived cluster worker may see a dataset
+    # rewritten at the same path: its rig.json's size and time tell)
+    rig_file = Path(task.dataset) / "rig.json"
+    key = (task.dataset, rig_file.stat().st_mtime_ns, rig_file.stat().st_size) if rig_file.is_file() else task.dataset
+    if key not in _PAIRS_CACHE:
         _PAIRS_CACHE.clear()
-        _PAIRS_CACHE[task.dataset] = rectify_rig(ds.rig)
-    pairs = _PAIRS_CACHE[task.dataset]
+        _PAIRS_CACHE[key] = rectify_rig(ds.rig)
+    pairs = _PAIRS_CACHE[key]
     images = [ds.image(task.frame, c) for c in range(ds.rig.num_cameras)]
     t_read = time.perf_counter()
     fd = frame_depth(images, pairs, task.trinocular)
