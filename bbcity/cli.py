@@ -1153,6 +1153,20 @@ def _main(argv: list[str] | None) -> int:
     except KeyboardInterrupt:
         logger.error("interrupted")
         return 130
+    except Exception as e:
+        if not worker_died(e):
+            raise
+        logger.error("a worker process died (killed, or out of memory: try fewer --workers); what finished is kept, "
+                     "and running the command again resumes (%s)", type(e).__name__, exc_info=args.verbose)
+        return 1
+
+
+def worker_died(error: BaseException) -> bool:
+    """Whether ``error`` says a worker process died under a task: the local pool's
+    BrokenProcessPool, Dask's KilledWorker (named, not imported: Dask loads only with --executor dask)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    return isinstance(error, BrokenProcessPool) or type(error).__name__ == "KilledWorker"
 
 
 def _check_output(command: str, out: Path) -> None:

@@ -392,3 +392,15 @@ def test_a_background_job_ignores_ctrl_c_as_it_was_started_to(street, tmp_path):
     _, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 0, stderr
     assert (tmp_path / "w" / "cloud.ply").is_file()
+
+
+def test_a_dead_worker_is_told_apart_from_other_errors():
+    from concurrent.futures.process import BrokenProcessPool
+
+    from bbcity.cli import worker_died
+
+    class KilledWorker(Exception):  # Dask's, by name
+        pass
+
+    assert worker_died(BrokenProcessPool("a worker died")) and worker_died(KilledWorker("task", "worker"))
+    assert not worker_died(RuntimeError("a bug")) and not worker_died(ValueError("bad input"))
