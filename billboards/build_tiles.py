@@ -45,7 +45,7 @@ from recon.cloud_io import CloudTiles, PlyStreamWriter, TileGrid, read_cloud_arr
 from recon.epi import EpiPass, epi_points
 
 from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table, _psnr_db, _run_task, _Task,
-                    place_billboards, place_hybrid, save_worker_state)
+                    _Totals, place_billboards, place_hybrid, save_worker_state)
 from .geometry import FACADE, GROUND
 from .layer import Layer, build_layer
 from .model_reader import load
@@ -160,21 +160,20 @@ class _TileBuild:
         self.grid, self.grid_origin, self.block_size = grid, grid_origin, block_size
         self.cameras = dataset.rig.num_cameras if dataset is not None else 0
 
-    def tile_views(self, lo: np.ndarray, hi: np.ndarray, r: float) -> tuple[Views | None, np.ndarray]:
+    def tile_views(self, lo: np.ndarray, hi: np.ndarray, r: float) -> Views | None:
         """The views of the whole frames with a camera within ``r`` metres of the xy box [lo, hi]
-        (frame by frame, as EPIs need them), and their indices (k,) int64 into ``self.views``."""
+        (frame by frame, as EPIs need them), with their gains; None when there are none."""
         if self.views is None:
-            return None, np.zeros(0, np.int64)
+            return None
         c = self.views.centres[:, :2].reshape(len(self.frames), self.cameras, 2)
-        near = np.any(np.all((c >= lo - r) & (c <= hi + r), axis=-1), axis=1)
-        frames = np.flatnonzero(near)
-        views = np.repeat(frames * self.cameras, self.cameras) + np.tile(np.arange(self.cameras), len(frames))
-        if not len(views):
-            return None, views
+        frames = np.flatnonzero(np.any(np.all((c >= lo - r) & (c <= hi + r), axis=-1), axis=1))
+        if not len(frames):
+            return None
         sub = views_from_dataset(self.dataset, [self.frames[f] for f in frames])
         if self.views.gains is not None:
+            views = (frames[:, None] * self.cameras + np.arange(self.cameras)).reshape(-1)
             sub = replace(sub, gains=self.views.gains[views])
-        return sub, views
+        return sub
 
     def place(self, index: tuple[int, int]):
         """The tile's billboards (:class:`~billboards.build.Billboards`), the occluders
@@ -190,13 +189,13 @@ class _TileBuild:
         own = np.all(self.grid.tile_of(points) == np.asarray(index), axis=1)
         if not own.any():
             return None
-        views, _ = self.tile_views(lo, hi, conf.sampling.max_distance)  # every camera that may sample it
+        views = self.tile_views(lo, hi, conf.sampling.max_distance)  # every camera that may sample it
         viewpoints = views.centres if views is not None else None
         octree_conf = replace(conf.octree, depth=None)
         layer = None
         if conf.layer is not None and views is not None and conf.source == "images":
             # the facades of the tile and its context, from the frames that pass them
-            near, _ = self.tile_views(lo, hi, 2 * margin)
+            near = self.tile_views(lo, hi, 2 * margin)
             passes = [] if near is None else epi_points(near.K, near.world_from_cam, near.image, self.cameras,
                                                         conf.layer.epi)
             passes = _cropped(_anchored(passes, self.grid_origin), lo - margin, hi + margin)
@@ -207,7 +206,8 @@ class _TileBuild:
             mine, keep = own_layer(layer, own_block, own)
             placed = place_hybrid(points[keep], octree_conf, viewpoints, mine, self.block_size, self.grid_origin)
             context = place_hybrid(points, octree_conf, viewpoints, layer, self.block_size, self.grid_origin)
-            counts = {"facade_blocks": int((mine.kind == FACADE).sum()), "ground_blocks": int((mine.kind == GROUND).sum())}
+            counts = {"facade_blocks": int((mine.kind == FACADE).sum()),
+                      "ground_blocks": int((mine.kind == GROUND).sum())}
         else:
             mine_points = points[own]
             octree = build_octree(mine_points, octree_conf, self.grid_origin)
@@ -222,19 +222,10 @@ class _TileBuild:
 
 def _tile_totals(stats: list[dict], d: int) -> dict:
     """The chunk statistics of a tile summed: sums, rank histogram, sampling counts (JSON)."""
-    sums: dict[str, float] = {}
-    ranks = np.zeros(d + 1, np.int64)
-    sampling: dict[str, int] = {}
-    for s in stats:
-        for key, value in s.items():
-            if key == "ranks":
-                ranks += np.asarray(value, np.int64)
-            elif key == "sampling":
-                for k, v in value.items():
-                    sampling[k] = sampling.get(k, 0) + int(v)
-            else:
-                sums[key] = sums.get(key, 0.0) + float(value)
-    return {"sums": sums, "ranks": ranks.tolist(), "sampling": sampling}
+    totals = _Totals(d)
+    for chunk in stats:
+        totals.add(chunk)
+    return {"sums": totals.sums, "ranks": totals.ranks.tolist(), "sampling": totals.sampling}
 
 
 def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root: Path,
