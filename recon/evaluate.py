@@ -37,14 +37,15 @@ def distances_to_mesh(points: np.ndarray, scene: Scene, origin: np.ndarray, chun
 
 def seen_surface(dataset: Dataset, scene: Scene | np.ndarray, voxel: float = 0.05, stride: int = 4,
                  max_depth: float = np.inf, frames: list[int] | None = None, views: list | None = None,
-                 box: tuple | None = None, grid_origin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 box: tuple | None = None, grid_origin: np.ndarray | None = None,
+                 thin: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth surface samples seen by the rig.
 
     Back-projects every camera's ground-truth depth (every ``stride``-th pixel,
     up to ``max_depth``) and keeps one sample per ``voxel``: of every camera of ``frames``
     (default all), or of the (frame, camera) pairs ``views``; within the xy ``box`` (lo, hi)
     when given; on the voxel grid from ``grid_origin`` (3,) (default the samples' minimum).
-    scene: the ground truth, or its object kind table (o,) int16 alone.
+    scene: the ground truth, or its object kind table (o,) int16 alone. thin=False keeps every sample.
     Returns points (m, 3) float64 world and their object kind (m,) int16.
     """
     object_kind = scene if isinstance(scene, np.ndarray) else scene.object_kind
@@ -68,7 +69,7 @@ def seen_surface(dataset: Dataset, scene: Scene | np.ndarray, voxel: float = 0.0
         kinds.append(k)
     points = np.concatenate(pts) if pts else np.zeros((0, 3))
     kind = np.concatenate(kinds) if kinds else np.zeros(0, np.int16)
-    if not len(points):
+    if not len(points) or not thin:
         return points, kind
     origin = points.min(axis=0) if grid_origin is None else np.asarray(grid_origin, np.float64)
     cell = np.floor((points - origin) / voxel).astype(np.int64)
@@ -140,6 +141,60 @@ class _MeshDistances:
         return self._rc.compute_distance(o3d.core.Tensor(q)).numpy().astype(np.float64)
 
 
+#: Without a depth limit, ground truth counts as seen up to this depth (m).
+UNLIMITED_DEPTH = 60.0
+
+
+def _seen_surface_by_square(dataset: Dataset, kinds: np.ndarray, grid, max_depth: float, stride: int,
+                            voxel: float):
+    """Yield (points (m, 3) float64, kinds (m,) int16, square (i, j)) of the ground-truth surface
+    the rig saw, square by square of ``grid``, thinned to ``voxel`` on the grid's origin.
+
+    A sweep along x: the views in order of their camera's x, each read once; a square is
+    finished (yielded) once no later view can reach it — a sample lies at most its depth
+    times the image's widest ray factor from its camera — so only the squares within a view's
+    reach of the sweep are held, whatever the street's length.
+    """
+    depth_limit = float(max_depth) if np.isfinite(max_depth) else UNLIMITED_DEPTH
+    views = [(f, c) for f in range(dataset.num_frames) if dataset.posed[f] for c in range(dataset.rig.num_cameras)]
+    if not views:
+        return
+    centres = np.array([dataset.world_from_cam(f, c)[:3, 3] for f, c in views])
+    widest = 1.0
+    for c in range(dataset.rig.num_cameras):  # |ray| / z at the image corners
+        (w, h), K = dataset.rig.sizes[c], np.asarray(dataset.rig.intrinsics[c], np.float64)
+        corners = np.array([[0, 0], [w, 0], [0, h], [w, h]], np.float64)
+        xy = (corners - K[:2, 2]) / np.diag(K)[:2]
+        widest = max(widest, float(np.sqrt(1 + (xy ** 2).sum(axis=1)).max()))
+    reach = depth_limit * widest
+    origin = np.asarray(grid.origin, np.float64)
+    held: dict[tuple[int, int], list] = {}
+
+    def finished(square):
+        parts = held.pop(square)
+        points = np.concatenate([p for p, _ in parts])
+        kind = np.concatenate([k for _, k in parts])
+        _, first = np.unique(np.floor((points - origin) / voxel).astype(np.int64), axis=0, return_index=True)
+        return points[first], kind[first], square
+
+    for v in np.argsort(centres[:, 0], kind="stable"):
+        sweep = centres[v, 0] - reach  # no view from here on reaches below this x
+        for square in sorted(sq for sq in held if grid.box(sq)[1][0] <= sweep):
+            yield finished(square)
+        points, kind = seen_surface(dataset, kinds, voxel=voxel, stride=stride, max_depth=depth_limit,
+                                    views=[views[v]], thin=False)
+        if not len(points):
+            continue
+        squares = grid.tile_of(points)
+        order = np.lexsort((squares[:, 1], squares[:, 0]))
+        squares, points, kind = squares[order], points[order], kind[order]
+        starts = np.flatnonzero(np.r_[True, np.any(squares[1:] != squares[:-1], axis=1)])
+        for a, b in zip(starts, np.r_[starts[1:], len(points)]):
+            held.setdefault((int(squares[a, 0]), int(squares[a, 1])), []).append((points[a:b], kind[a:b]))
+    for square in sorted(held):
+        yield finished(square)
+
+
 def _percentile_of_histogram(counts: np.ndarray, beyond: np.ndarray, q: float) -> float | None:
     """The q-th percentile of values binned by ACCURACY_BIN (bin centres) plus the exact ones
     past the range (``beyond``); None when there are none."""
@@ -163,15 +218,14 @@ def evaluate_cloud_tiles(tiles, dataset: Dataset, scene_for: Callable[[np.ndarra
     tiles: the cloud's :class:`~recon.cloud_io.CloudTiles`; scene_for(lo, hi) → the
     ground-truth :class:`Scene` covering the world box [lo, hi] (3,) (a section of a long
     street, or the whole scene). Accuracy: each cloud tile's distances to the mesh, binned at
-    ACCURACY_BIN. Completeness: per square of the grid within reach of a camera, the surface
-    the rig saw there (ground-truth depth of the cameras within reach, thinned to ``voxel`` on
-    one world grid) against the cloud points of the square and its neighbours. Returns the
-    dict of :func:`evaluate_cloud`.
+    ACCURACY_BIN. Completeness: per square of the tile grid, the surface the rig saw there
+    (:func:`_seen_surface_by_square`: every view's ground-truth depth read once, thinned to
+    ``voxel`` on one world grid) against the cloud points of the square and its neighbours.
+    Returns the dict of :func:`evaluate_cloud`.
     """
     counts = np.zeros(int(round(ACCURACY_RANGE / ACCURACY_BIN)), np.int64)
     beyond: list[np.ndarray] = []
     distances = _MeshDistances()
-    near_range = 60.0 if not np.isfinite(max_depth) else float(max_depth)
     kinds = None
     for row in range(len(tiles.index)):
         points, _ = tiles.read([row], require_colours=False)
@@ -183,25 +237,13 @@ def evaluate_cloud_tiles(tiles, dataset: Dataset, scene_for: Callable[[np.ndarra
         counts += np.bincount((d[inside] / ACCURACY_BIN).astype(np.int64), minlength=len(counts))[:len(counts)]
         beyond.append(d[~inside])
 
-    grid, reach = tiles.grid, max(thresholds)
-    cams = [(f, c) for f in range(dataset.num_frames) if dataset.posed[f] for c in range(dataset.rig.num_cameras)]
-    centres = np.array([dataset.world_from_cam(f, c)[:3, 3] for f, c in cams]).reshape(-1, 3)
-    squares = set()
-    for a, b in zip(grid.tile_of(centres - near_range), grid.tile_of(centres + near_range)):
-        squares.update((i, j) for i in range(a[0], b[0] + 1) for j in range(a[1], b[1] + 1))
     if kinds is None:
-        kinds = scene_for(centres.min(axis=0), centres.min(axis=0)).object_kind
+        kinds = scene_for(np.zeros(3), np.zeros(3)).object_kind
     surface_total = facade_total = 0
     hits = {tau: [0, 0] for tau in thresholds}
-    for square in sorted(squares):
-        box_lo, box_hi = grid.box(square)
-        near = np.flatnonzero(np.all((centres[:, :2] >= box_lo - near_range) & (centres[:, :2] <= box_hi + near_range),
-                                     axis=1))
-        surface, kind = seen_surface(dataset, kinds, voxel=voxel, stride=stride, max_depth=max_depth,
-                                     views=[cams[i] for i in near], box=(box_lo, box_hi),
-                                     grid_origin=np.asarray(grid.origin))
-        if not len(surface):
-            continue
+    for surface, kind, square in _seen_surface_by_square(dataset, kinds, tiles.grid, max_depth, stride, voxel):
+        box_lo, box_hi = tiles.grid.box(square)
+        reach = max(thresholds)
         cloud, _ = tiles.read(tiles.overlapping(box_lo - reach, box_hi + reach), require_colours=False)
         dist = nearest_distances(surface, cloud, np.r_[box_lo, 0.0])
         facade = kind == Kind.BUILDING

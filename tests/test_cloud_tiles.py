@@ -87,14 +87,19 @@ def test_writer_tiles(tmp_path):
     assert not (tmp_path / "d.ply").exists() and not tile_index_path(tmp_path / "d.ply").exists()
 
 
-def test_evaluation_tile_by_tile_matches_the_whole_cloud(tiled_work, tiny_dataset):
+def test_evaluation_tile_by_tile_matches_the_whole_cloud(tiled_work, tiny_dataset, monkeypatch):
     from data_synth import load_dataset, load_scene
     from recon.evaluate import ACCURACY_BIN, evaluate_cloud, evaluate_cloud_tiles
 
     ds, scene = load_dataset(tiny_dataset), load_scene(tiny_dataset)
     points, _ = read_cloud_arrays(tiled_work / "cloud.ply")
     whole = evaluate_cloud(points, ds, scene)
+    reads = []
+    real = type(ds).gt_depth
+    monkeypatch.setattr(type(ds), "gt_depth",  # each view read once (a lazy one is cast)
+                        lambda self, f, c: reads.append((f, c)) or real(self, f, c))
     tiles = evaluate_cloud_tiles(read_cloud_tiles(tiled_work / "cloud.ply"), ds, lambda lo, hi: scene)
+    assert sorted(reads) == [(f, c) for f in range(ds.num_frames) for c in range(ds.rig.num_cameras)]
     assert tiles["points"] == whole["points"]
     for key in ("accuracy_median_m", "accuracy_p90_m"):
         assert tiles[key] == pytest.approx(whole[key], abs=ACCURACY_BIN)
