@@ -58,14 +58,9 @@ def _load_array(path: Path, dtype: np.dtype, shape: tuple, mmap: bool, hint: str
     return load_npy(path, dtype=dtype, shape=shape, finite=True, max_bytes=nbytes)
 
 
-def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
-    """Read and validate the model in directory ``path``.
-
-    mmap: memory-map the atlas and coefficient pages read-only (their headers, shapes,
-    dtypes and file sizes are checked; with ``mmap=False`` they are read and checked
-    finite too). Every other array is read and checked in full. Any problem raises
-    DataFormatError naming manifest.json or the offending ``.npy``.
-    """
+def read_manifest(path: os.PathLike | str):
+    """The checked manifest of the model directory ``path`` (what it says on its own: counts,
+    files, settings); DataFormatError naming it when missing, too large or malformed."""
     path = Path(path)
     mpath = path / MANIFEST
     if not mpath.is_file():
@@ -76,7 +71,20 @@ def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
         doc = json.loads(mpath.read_bytes(), parse_constant=reject_json_constant)
     except (ValueError, UnicodeDecodeError, RecursionError) as e:
         raise DataFormatError(mpath, f"not valid JSON ({e})") from None
-    meta = _parse_manifest(doc, mpath)
+    return _parse_manifest(doc, mpath)
+
+
+def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
+    """Read and validate the model in directory ``path``.
+
+    mmap: memory-map the atlas and coefficient pages read-only (their headers, shapes,
+    dtypes and file sizes are checked; with ``mmap=False`` they are read and checked
+    finite too). Every other array is read and checked in full. Any problem raises
+    DataFormatError naming manifest.json or the offending ``.npy``.
+    """
+    path = Path(path)
+    mpath = path / MANIFEST
+    meta = read_manifest(path)
     r = _Doc(mpath)
 
     arrays = {}

@@ -33,8 +33,8 @@ import numpy as np
 from core.fileio import DataFormatError, reject_json_constant, write_json
 
 from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP
-from .model import MANIFEST, BillboardModel, _parse_manifest
-from .model_reader import load
+from .model import MANIFEST, BillboardModel, _Doc as ManifestDoc
+from .model_reader import load, read_manifest
 
 SET_FORMAT = "bbcity-model-set"
 SET_VERSION = 1
@@ -42,7 +42,6 @@ TILES_FILE = "tiles.json"
 UNITS = "metre"
 
 _MAX_TILES_BYTES = 64 << 20
-_MAX_MANIFEST_BYTES = 64 << 20
 #: a tile's sub-directory: one plain path component (no separators, not "." or "..")
 _TILE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+\-]{0,200}")
 
@@ -179,19 +178,6 @@ def directory_bytes(path: os.PathLike | str) -> int:
     return total
 
 
-def _read_manifest(path: Path) -> Any:
-    mpath = path / MANIFEST
-    if not mpath.is_file():
-        raise DataFormatError(mpath, "file is missing" + ("" if path.is_dir() else f" (no model directory {path})"))
-    if mpath.stat().st_size > _MAX_MANIFEST_BYTES:
-        raise DataFormatError(mpath, f"is larger than {_MAX_MANIFEST_BYTES} bytes")
-    try:
-        doc = json.loads(mpath.read_bytes(), parse_constant=reject_json_constant)
-    except (ValueError, UnicodeDecodeError, RecursionError) as e:
-        raise DataFormatError(mpath, f"not valid JSON ({e})") from None
-    return _parse_manifest(doc, mpath)
-
-
 def _inside(child: Path, root: Path) -> bool:
     try:
         child.resolve().relative_to(root.resolve())
@@ -209,12 +195,8 @@ def is_model_set(path: os.PathLike | str) -> bool:
     return (Path(path) / TILES_FILE).is_file()
 
 
-class _Doc:
-    def __init__(self, path: Path):
-        self.path = path
-
-    def fail(self, problem: str) -> DataFormatError:
-        return DataFormatError(self.path, problem)
+class _Doc(ManifestDoc):
+    """The manifest's typed access, with keys looked up and 3-vectors (tiles.json)."""
 
     def get(self, obj: dict, key: str, where: str = "") -> Any:
         if not isinstance(obj, dict):
@@ -222,24 +204,6 @@ class _Doc:
         if key not in obj:
             raise self.fail(f"{where}{key} is missing")
         return obj[key]
-
-    def int(self, value, what: str, lo: int | None = None) -> int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(f"{what} must be an integer, got {value!r}")
-        if lo is not None and value < lo:
-            raise self.fail(f"{what} must be ≥ {lo}, got {value}")
-        return value
-
-    def num(self, value, what: str) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(f"{what} must be a number, got {value!r}")
-        try:
-            value = float(value)
-        except OverflowError:
-            raise self.fail(f"{what} is too large") from None
-        if not math.isfinite(value):
-            raise self.fail(f"{what} must be finite, got {value}")
-        return value
 
     def vec3(self, value, what: str) -> np.ndarray:
         if not isinstance(value, list) or len(value) != 3:
@@ -302,7 +266,7 @@ def load_model_set(path: os.PathLike | str) -> ModelSet:
         index = r.get(e, "index", where)
         if not isinstance(index, list) or len(index) != 2:
             raise r.fail(f"{where}index must be a list of 2 integers, got {index!r}")
-        index = tuple(r.int(v, f"{where}index[{j}]") for j, v in enumerate(index))
+        index = tuple(r.int(v, f"{where}index[{j}]", lo=-(1 << 62)) for j, v in enumerate(index))
         if index in indices:
             raise r.fail(f"{where}index {list(index)} is listed twice")
         indices.add(index)
@@ -319,7 +283,7 @@ def load_model_set(path: os.PathLike | str) -> ModelSet:
             raise r.fail(f"tile {name!r}: its directory {tile_dir} is missing")
         if not (tile_dir / MANIFEST).is_file():
             raise r.fail(f"tile {name!r}: {tile_dir} holds no {MANIFEST}")
-        meta = _read_manifest(tile_dir)
+        meta = read_manifest(tile_dir)
         if meta.n != billboards:
             raise r.fail(f"tile {name!r} lists {billboards} billboards, its {MANIFEST} counts {meta.n}")
         tiles.append(ModelTile(name, index, lo, hi, billboards, nbytes, tile_dir))
@@ -387,7 +351,7 @@ def write_model_set(root: os.PathLike | str, origin, tile_size: float, tiles: li
         tile_dir = root / name
         if tile_dir.is_symlink() or not tile_dir.is_dir():
             raise ValueError(f"tiles[{i}]: {tile_dir} is not a directory")
-        meta = _read_manifest(tile_dir)
+        meta = read_manifest(tile_dir)
         entries.append({"name": name, "index": list(index), "lo": lo.tolist(), "hi": hi.tolist(),
                         "billboards": int(meta.n), "bytes": directory_bytes(tile_dir)})
     doc = {"format": SET_FORMAT, "version": SET_VERSION, "units": UNITS, "origin": o.tolist(),
