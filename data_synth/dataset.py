@@ -204,6 +204,18 @@ def _differences(a, b, prefix: str = "") -> list[str]:
     return [] if a == b else [prefix.rstrip(".") or "settings"]
 
 
+def _write_capture(root: Path, rig: Rig, world_from_rig: np.ndarray, passes) -> list[str]:
+    """rig.json, poses.json and the COLMAP model of the known poses; the frame names."""
+    rig.save(root / "rig.json")
+    save_poses(root / "poses.json", world_from_rig, passes)
+    names = [f"{i:06d}" for i in range(len(world_from_rig))]
+    write_colmap_text(root / "colmap", np.array([rig.raw_K(c) for c in range(rig.num_cameras)]), list(rig.sizes),
+                      rig.cam_from_rig, world_from_rig,
+                      [[f"cam{c}/{n}.png" for c in range(rig.num_cameras)] for n in names],
+                      distortions=[rig.distortion(c) for c in range(rig.num_cameras)])
+    return names
+
+
 def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Executor | None = None,
                   progress: bool | None = None) -> Path:
     """Generate the scene, render every frame and write the dataset to ``out_dir``.
@@ -253,13 +265,7 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
     save_npy(root / "gt" / "objects" / "bounds.npy", scene.object_bounds)
     save_npy(root / "gt" / "triangle_object.npy", scene.triangle_object)
     write_mesh_ply(root / "gt" / "mesh.ply", scene)
-    rig.save(root / "rig.json")
-    save_poses(root / "poses.json", world_from_rig, passes)
-    names = [f"{i:06d}" for i in range(len(world_from_rig))]
-    write_colmap_text(root / "colmap", np.array([rig.raw_K(c) for c in range(rig.num_cameras)]), list(rig.sizes),
-                      rig.cam_from_rig, world_from_rig,
-                      [[f"cam{c}/{n}.png" for c in range(rig.num_cameras)] for n in names],
-                      distortions=[rig.distortion(c) for c in range(rig.num_cameras)])
+    names = _write_capture(root, rig, world_from_rig, passes)
 
     # the frames are cast as a lazy dataset of these settings casts them (data_synth.lazy)
     source = LazyImages(root, json.dumps(cfg_dict, sort_keys=True), scene.digest(), view_reach(cfg), TILE_M,
@@ -313,13 +319,7 @@ def _write_lazy(cfg: SynthConfig, root: Path) -> Path:
                 len(kinds), num_triangles, "the whole scene" if reach is None else f"± {reach:g}", TILE_M, t_scene)
     write_json(root / "gt" / "scene.json", {"format": SCENE_FORMAT, "version": FORMAT_VERSION, "scene": name,
                                             "config": config, "digest": digest, "synth": cfg_dict})
-    rig.save(root / "rig.json")
-    save_poses(root / "poses.json", world_from_rig, passes)
-    names = [f"{i:06d}" for i in range(len(world_from_rig))]
-    write_colmap_text(root / "colmap", np.array([rig.raw_K(c) for c in range(rig.num_cameras)]), list(rig.sizes),
-                      rig.cam_from_rig, world_from_rig,
-                      [[f"cam{c}/{n}.png" for c in range(rig.num_cameras)] for n in names],
-                      distortions=[rig.distortion(c) for c in range(rig.num_cameras)])
+    names = _write_capture(root, rig, world_from_rig, passes)
     write_json(root / "dataset.json", {
         "format": DATASET_FORMAT, "version": FORMAT_VERSION, "scene": name,
         "frames": len(names), "cameras": rig.num_cameras, "image_size": list(rig.sizes[0]),
