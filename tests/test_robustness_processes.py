@@ -105,6 +105,13 @@ def gone(pid: int) -> bool:
     return "\nState:\tZ" in status
 
 
+def wait_until(condition, timeout: float = 60.0) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.05)
+
+
 def wait_gone(pids: list[int], timeout: float = 30.0) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -212,6 +219,9 @@ def test_ctrl_c_is_one_line_and_exit_130(street, tmp_path):
     run = Run("recon", street, "--out", tmp_path / "w", "--workers", "2", "--no-eval")
     workers = run.workers(2)
     run.wait_for("stereo on")
+    # a frame done: both workers have started (a worker still starting when its parent is gone would
+    # say so on the shared stderr, a race of the test's making, not the command's)
+    wait_until(lambda: any((tmp_path / "w" / "spill" / "done").glob("*.json")))
     os.killpg(run.proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
     assert run.finish(60) == 130, run.stderr
     one_error_line(run.stderr, "interrupted")
@@ -223,12 +233,14 @@ def test_killed_run_takes_its_workers_along_and_the_next_run_sweeps_its_leftover
     out = tmp_path / "w"
     first = Run("recon", street, "--out", out, "--workers", "2", "--no-eval")
     workers = first.workers(2)
+    os.killpg(first.proc.pid, signal.SIGSTOP)  # it lives (and holds its lock) however slow the second starts
     # a second run into the same work directory is refused while the first lives
     second = bbcity("recon", street, "--out", out, "--workers", "2", "--no-eval")
     assert second.returncode == 2, second.stderr
     one_error_line(second.stderr, str(out), f"pid {first.proc.pid}", "another bbcity run")
 
     first.proc.kill()  # SIGKILL: no handler runs (the OOM killer is no gentler)
+    os.killpg(first.proc.pid, signal.SIGCONT)  # its stopped children see their parent gone
     first.finish(30)
     assert wait_gone(workers), "pool workers outlived their killed parent"
     # what killed runs leave: a PLY body and an atomic temporary of dead pids, a SfM folder
