@@ -189,14 +189,25 @@ def _filter_and_normals(points: np.ndarray, colours: np.ndarray, own: np.ndarray
         n_all = np.asarray(kept.normals)
         normals = n_all[own[keep]]
         p = points[sel]
-        nearest = _nearest_camera(p, cameras)
+        nearest = nearest_camera(p, cameras)
         flip = np.einsum("ij,ij->i", normals, nearest - p) < 0
         normals[flip] *= -1
     return points[sel], colours[sel], normals
 
 
-def _nearest_camera(points: np.ndarray, cameras: np.ndarray, chunk: int = 65536) -> np.ndarray:
-    """For points (n, 3), the nearest of cameras (c, 3) → (n, 3). Chunked brute force."""
+def nearest_camera(points: np.ndarray, cameras: np.ndarray) -> np.ndarray:
+    """For points (n, 3) float64, the nearest of cameras (c, 3) float64 → (n, 3): a k-d tree
+    query (memory and time in n log c; a street's tile meets hundreds of cameras)."""
+    if len(points) == 0 or len(cameras) == 0:
+        return np.zeros((len(points), 3))
+    search = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(np.ascontiguousarray(cameras, dtype=np.float64)))
+    search.knn_index()
+    index, _ = search.knn_search(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float64)), 1)
+    return cameras[index.numpy()[:, 0]]
+
+
+def nearest_camera_reference(points: np.ndarray, cameras: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """Brute force :func:`nearest_camera` (chunked) for tests."""
     out = np.empty_like(points)
     for i in range(0, len(points), chunk):
         p = points[i:i + chunk]

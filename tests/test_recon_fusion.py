@@ -121,3 +121,12 @@ def test_streamed_ply_leaves_nothing_when_interrupted(tmp_path):
             w.append(np.zeros((3, 3)), np.zeros((3, 3), np.uint8), np.zeros((3, 3)))
             raise RuntimeError("killed")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("n, c", [(0, 5), (1, 1), (1000, 3), (5000, 400)])
+def test_nearest_camera_matches_brute_force(n, c):
+    from recon.fusion import nearest_camera, nearest_camera_reference
+
+    rng = np.random.default_rng(n + c)
+    points, cameras = rng.uniform(-50, 50, (n, 3)), rng.uniform(-50, 50, (c, 3))
+    np.testing.assert_array_equal(nearest_camera(points, cameras), nearest_camera_reference(points, cameras))
