@@ -318,7 +318,7 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
         if other != work:
             shutil.rmtree(other, ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
-    scratch = temp_dir(model_dir.parent, f".{model_dir.name}.scratch-")
+    scratch = temp_dir(model_dir.parent, f".{model_dir.name}.build-")  # a killed run's is swept
     try:
         cloud = ensure_tiled(cloud_path, conf.tile_metres, scratch)
         grid_origin = cloud.bounds()[0]
