@@ -70,9 +70,9 @@ class _SetExtent:
         info = dict(model_set.info)
         if "dataset" not in info and model_set.tiles:  # the build's record of its capture, from a tile
             try:
-                from billboards.model_set import _read_manifest
+                from billboards.model_reader import read_manifest
 
-                tile_info = _read_manifest(model_set.tiles[0].path).info
+                tile_info = read_manifest(model_set.tiles[0].path).info
                 info.update({k: tile_info[k] for k in ("dataset", "poses") if k in tile_info})
             except (OSError, ValueError):
                 pass
