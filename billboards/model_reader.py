@@ -6,14 +6,13 @@ offending ``.npy``; nothing is allocated for an array before its header has been
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
 
 import numpy as np
 
-from core.fileio import DataFormatError, load_npy, read_npy_header, reject_json_constant
+from core.fileio import DataFormatError, load_npy, read_json, read_npy_header
 
 from .atlas import AtlasLayout, atlas_layout, row_layout
 from .model import (ARRAYS, COEF_MODES, MANIFEST, TILE_MODES, BillboardModel, _Doc, _array_problem, _parse_manifest,
@@ -65,13 +64,7 @@ def read_manifest(path: os.PathLike | str):
     mpath = path / MANIFEST
     if not mpath.is_file():
         raise DataFormatError(mpath, "file is missing" + ("" if path.is_dir() else f" (no model directory {path})"))
-    if mpath.stat().st_size > _MAX_MANIFEST_BYTES:
-        raise DataFormatError(mpath, f"is larger than {_MAX_MANIFEST_BYTES} bytes")
-    try:
-        doc = json.loads(mpath.read_bytes(), parse_constant=reject_json_constant)
-    except (ValueError, UnicodeDecodeError, RecursionError) as e:
-        raise DataFormatError(mpath, f"not valid JSON ({e})") from None
-    return _parse_manifest(doc, mpath)
+    return _parse_manifest(read_json(mpath, _MAX_MANIFEST_BYTES), mpath)
 
 
 def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from core.fileio import DataFormatError, reject_json_constant, write_json
+from core.fileio import DataFormatError, read_json, write_json
 
 from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP
 from .model import MANIFEST, BillboardModel, _Doc as ManifestDoc
@@ -228,12 +228,7 @@ def load_model_set(path: os.PathLike | str) -> ModelSet:
             return _plain_set(root)
         raise DataFormatError(tpath, "file is missing" + (f" and {root} holds no {MANIFEST} either"
                                                           if root.is_dir() else f" (no model directory {root})"))
-    if tpath.stat().st_size > _MAX_TILES_BYTES:
-        raise DataFormatError(tpath, f"is larger than {_MAX_TILES_BYTES} bytes")
-    try:
-        doc = json.loads(tpath.read_bytes(), parse_constant=reject_json_constant)
-    except (ValueError, UnicodeDecodeError, RecursionError) as e:
-        raise DataFormatError(tpath, f"not valid JSON ({e})") from None
+    doc = read_json(tpath, _MAX_TILES_BYTES)
     r = _Doc(tpath)
     fmt = r.get(doc, "format")
     if fmt != SET_FORMAT:

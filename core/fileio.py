@@ -141,14 +141,17 @@ def write_json(path: os.PathLike | str, obj: Any) -> Path:
     return write_bytes(path, (text + "\n").encode())
 
 
-def read_json(path: os.PathLike | str) -> Any:
-    """Read a JSON file; a missing or malformed file raises :class:`DataFormatError`."""
+def read_json(path: os.PathLike | str, max_bytes: int | None = None) -> Any:
+    """Read a JSON file; a missing or malformed file, or one over ``max_bytes``, raises
+    :class:`DataFormatError`."""
     path = Path(path)
     if not path.is_file():
         raise DataFormatError(path, "file is missing")
+    if max_bytes is not None and path.stat().st_size > max_bytes:
+        raise DataFormatError(path, f"is larger than {max_bytes} bytes")
     try:
-        return json.loads(path.read_text(), parse_constant=reject_json_constant)
-    except (json.JSONDecodeError, UnicodeDecodeError, ValueError) as e:
+        return json.loads(path.read_bytes(), parse_constant=reject_json_constant)
+    except (ValueError, UnicodeDecodeError, RecursionError) as e:  # JSONDecodeError is a ValueError
         raise DataFormatError(path, f"not valid JSON ({e})") from None
 
 
