@@ -33,7 +33,7 @@ import numpy as np
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
 from .lod import LodConfig, lod_levels, texel_pixels
-from .program import load_program
+from .program import ProgramCache
 from .resources import GpuOwner, InstanceStream, ModelResources, check_billboards, set_uniform, vertex_binding
 from .slits import build_slits, exact_runs, pack_columns, whole_runs
 from .view_brackets import storage_slots, view_brackets
@@ -109,13 +109,15 @@ class GpuDecoder(GpuOwner):
     eye too. ``interpolate``: blend the sampled directions around the view (else the
     nearest one); ``linear``: texels bilinear within each tile (else the nearest texel);
     both may be changed between draws. ``lod``: level of detail (None: every eigen image
-    everywhere, the exact decode).
+    everywhere, the exact decode). ``programs``: the :class:`~render.program.ProgramCache` to
+    compile from (the tiles of a tiled model share one; None: its own).
     """
 
     DECODED_UNIT = 6  # texture unit of the atlas drawn from (ModelResources uses 0…4)
 
     def __init__(self, ctx: moderngl.Context, resources: ModelResources, spherical: bool = False,
-                 interpolate: bool = True, linear: bool = True, lod: LodConfig | None = None):
+                 interpolate: bool = True, linear: bool = True, lod: LodConfig | None = None,
+                 programs: ProgramCache | None = None):
         self.ctx = ctx
         self.resources = resources
         self.spherical = bool(spherical)
@@ -137,17 +139,18 @@ class GpuDecoder(GpuOwner):
                                      + model.centres[self.slits.order[ends]])
         self._objects = []
         try:
-            self.programs = {(view, linear, multiview): self._keep(load_program(
-                ctx, "billboard.glsl", {"STORAGE_SLOTS": self.storage_slots, "VIEW": int(view), "LINEAR": int(linear),
-                                        "MULTIVIEW": int(multiview)}))
+            if programs is None:
+                programs = self._keep(ProgramCache(ctx))
+            self.programs = {(view, linear, multiview): programs.get(
+                "billboard.glsl", {"STORAGE_SLOTS": self.storage_slots, "VIEW": int(view), "LINEAR": int(linear),
+                                   "MULTIVIEW": int(multiview)})
                 for view in (False, True) for linear in (False, True) for multiview in (False, True)
                 if not (view and multiview)}
-            self.decode_program = self._keep(load_program(ctx, "billboard_decode.glsl"))
+            self.decode_program = programs.get("billboard_decode.glsl")
             self.quads = {view: self._keep(InstanceStream(ctx, QUAD_DTYPE.itemsize)) for view in (False, True)}
             self.tiles = self._keep(InstanceStream(ctx, DECODE_DTYPE.itemsize))
             self.blends = self._keep(InstanceStream(ctx, BLEND_DTYPE.itemsize))
-            self.blend_program = self._keep(load_program(ctx, "billboard_blend.glsl",
-                                                         {"STORAGE_SLOTS": self.storage_slots}))
+            self.blend_program = programs.get("billboard_blend.glsl", {"STORAGE_SLOTS": self.storage_slots})
             self.blend_vao = self._keep(ctx.vertex_array(
                 self.blend_program,
                 [vertex_binding(self.blend_program, self.blends.buffer, BLEND_FORMAT, BLEND_ATTRIBUTES)]))
@@ -224,10 +227,27 @@ class GpuDecoder(GpuOwner):
         if len(start) == 0:
             return stats
         plan = self._plan(camera, start, count)
-        stats["decoded_tiles"], stats["upload_bytes"] = self._decode(plan.positions, plan.block_direction,
-                                                                     plan.block_level)
+        stats["decoded_tiles"], stats["upload_bytes"], _ = self._decode(plan.positions, plan.block_direction,
+                                                                        plan.block_level)
         self._emit(camera, plan, True, stats)
         return stats
+
+    def predecode(self, camera: GLCamera, visible: np.ndarray, budget: int) -> tuple[int, int]:
+        """Decode what :meth:`draw` of ``visible`` (B,) int with ``whole_columns`` would decode from
+        ``camera``, at most ``budget`` tiles, drawing nothing (a tile made resident far away is
+        decoded over several frames before it is first drawn). Returns (tiles decoded, tiles
+        still to decode)."""
+        if self.released:
+            raise RuntimeError("GpuDecoder used after release()")
+        visible = check_billboards(visible, self.model.num_billboards)
+        if self.model.num_billboards == 0 or len(visible) == 0:
+            return 0, 0
+        start, count = self._runs(visible, True)
+        if len(start) == 0:
+            return 0, 0
+        plan = self._plan(camera, start, count)
+        decoded, _, pending = self._decode(plan.positions, plan.block_direction, plan.block_level, budget)
+        return decoded, pending
 
     def draw_views(self, camera: GLCamera, projections: np.ndarray, rects: np.ndarray, selections) -> dict:
         """Draw several views of ``camera``'s eye into the bound framebuffer in one pass per
@@ -245,7 +265,7 @@ class GpuDecoder(GpuOwner):
             count = np.concatenate([r[1] for r in runs])
             view = np.repeat(np.arange(len(runs)), [len(r[0]) for r in runs])
             plan = self._plan(camera, start, count)
-            decoded, nbytes = self._decode(plan.positions, plan.block_direction, plan.block_level)
+            decoded, nbytes, _ = self._decode(plan.positions, plan.block_direction, plan.block_level)
             stats["decoded_tiles"] += decoded
             stats["upload_bytes"] += nbytes
             self._emit(camera, plan, False, stats, (view, projections[first:first + MAX_VIEWS],
@@ -369,14 +389,20 @@ class GpuDecoder(GpuOwner):
         self.ctx.enable(moderngl.DEPTH_TEST)
         target.use()
 
-    def _decode(self, positions: np.ndarray, direction: np.ndarray, level: np.ndarray) -> tuple[int, int]:
+    def _decode(self, positions: np.ndarray, direction: np.ndarray, level: np.ndarray,
+                budget: int | None = None) -> tuple[int, int, int]:
         """Decode the tiles of ``positions`` (P,) whose storage slots do not hold ``direction`` (P, S)
-        at ``level`` (P,) yet; returns (tiles decoded, bytes uploaded). Restores the bound framebuffer."""
+        at ``level`` (P,) yet, the first ``budget`` of them (None: all); returns (tiles decoded,
+        bytes uploaded, tiles left for later). Restores the bound framebuffer."""
         held = self._held[positions]
         need = (direction >= 0) & ((held != direction) | (self._held_level[positions] != level[:, None]))
         rows, slots = np.nonzero(need)
+        left = 0
+        if budget is not None and len(rows) > budget:
+            left = len(rows) - max(int(budget), 0)
+            rows, slots = rows[:max(int(budget), 0)], slots[:max(int(budget), 0)]
         if len(rows) == 0:
-            return 0, 0
+            return 0, 0, left
         model = self.model
         pos = positions[rows]
         billboard = self.slits.order[pos]
@@ -394,7 +420,7 @@ class GpuDecoder(GpuOwner):
         self._offscreen(self.decoded_fbo, self.decode_vao, len(tiles))
         self._held[pos, slots] = tiles["direction"]
         self._held_level[pos, slots] = level[rows]
-        return len(tiles), nbytes
+        return len(tiles), nbytes, left
 
     def release(self) -> None:
         """Free the programs, vertex arrays, instance streams and the decoded atlas (idempotent)."""

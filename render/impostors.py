@@ -39,7 +39,7 @@ from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
 from .culling import model_quad_radius
 from .lod import ImpostorConfig
-from .program import load_program
+from .program import ProgramCache
 from .resources import GpuOwner, InstanceStream, set_uniform, vertex_binding
 
 #: Per-impostor record of the draw (impostor.glsl): the quad's corners (model coordinates; bottom
@@ -85,7 +85,8 @@ class Impostors(GpuOwner):
     draws the impostors.
     """
 
-    def __init__(self, ctx: moderngl.Context, model: BillboardModel, config: ImpostorConfig = ImpostorConfig()):
+    def __init__(self, ctx: moderngl.Context, model: BillboardModel, config: ImpostorConfig = ImpostorConfig(),
+                 programs: ProgramCache | None = None):
         self.ctx = ctx
         self.model = model
         self.config = config
@@ -120,13 +121,15 @@ class Impostors(GpuOwner):
                              f"GL_MAX_TEXTURE_SIZE is {limit} (fewer texels or a larger node_edge)")
         tiles = np.arange(k)
         self._origin = np.stack([(tiles % per_row) * t, (tiles // per_row) * t], 1).astype(np.int32)
+        self.atlas_size = size
+        # the atlas is allocated with the first image: a tile uploaded while paging does not pay
+        # for it in the frame that uploads the rest (llvmpipe fills new textures, ~15 ms)
+        self.atlas = self.depth = self.fbo = None
         try:
-            self.atlas = self._keep(ctx.texture(size, 4))
-            self.atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
-            self.depth = self._keep(ctx.depth_renderbuffer(size))
-            self.fbo = self._keep(ctx.framebuffer(color_attachments=[self.atlas], depth_attachment=self.depth))
-            self.program = self._keep(load_program(ctx, "impostor.glsl"))
-            self.clear_program = self._keep(load_program(ctx, "impostor_clear.glsl"))
+            if programs is None:
+                programs = self._keep(ProgramCache(ctx))
+            self.program = programs.get("impostor.glsl")
+            self.clear_program = programs.get("impostor_clear.glsl")
             self.clear_stream = self._keep(InstanceStream(ctx, 16))
             self.clear_vao = self._keep(ctx.vertex_array(self.clear_program,
                                                          [(self.clear_stream.buffer, "4f/i", "in_rect")]))
@@ -222,14 +225,12 @@ class Impostors(GpuOwner):
 
     def draw(self, camera: GLCamera, draw_quads) -> dict:
         """Draw the far nodes selected this frame into the bound framebuffer: as impostors where the
-        image is usable (made within twice ``max_angle_deg``: an image is remade at the start of a
-        frame once it is past the angle, but only so many per frame), else in full
-        (``draw_quads(camera, billboards)``). Returns stats {impostors, nodes_in_full}."""
-        wanted = np.flatnonzero(self._wanted)
+        image is usable (:meth:`_usable`), else in full (``draw_quads(camera, billboards)``).
+        Returns stats {impostors, nodes_in_full}."""
+        wanted, usable = self._usable(camera)
         stats = {"impostors": 0, "nodes_in_full": 0}
         if len(wanted) == 0:
             return stats
-        usable, _ = self._fresh(camera, wanted, 2 * self.config.max_angle_deg)
         if not usable.all():
             draw_quads(camera, self._billboards(wanted[~usable]))
         shown = wanted[usable]
@@ -252,6 +253,19 @@ class Impostors(GpuOwner):
         stats.update(impostors=len(shown), nodes_in_full=int(np.count_nonzero(~usable)))
         return stats
 
+    def _usable(self, camera: GLCamera) -> tuple[np.ndarray, np.ndarray]:
+        """The far nodes selected this frame (N,) int64 and whether each has a usable image (N,)
+        bool (made within twice ``max_angle_deg``: an image is remade at the start of a frame once
+        it is past the angle, but only so many per frame)."""
+        wanted = np.flatnonzero(self._wanted)
+        return wanted, self._fresh(camera, wanted, 2 * self.config.max_angle_deg)[0]
+
+    def in_full(self, camera: GLCamera) -> np.ndarray:
+        """(B,) int64 billboards of the far nodes selected this frame that :meth:`draw` would draw
+        in full (no usable image)."""
+        wanted, usable = self._usable(camera)
+        return self._billboards(wanted[~usable])
+
     def _make(self, camera: GLCamera, nodes: np.ndarray, draw_views) -> None:
         """Render the images of ``nodes`` (U,) from ``camera`` into their tiles: one clear pass and
         the views through ``draw_views(camera, projections, rects, selections)`` (the decoder's),
@@ -262,6 +276,11 @@ class Impostors(GpuOwner):
         inverse = np.linalg.inv(proj @ view)
         rects = self._screen_rects(camera, nodes)
         t = self.config.texels
+        if self.atlas is None:
+            self.atlas = self._keep(self.ctx.texture(self.atlas_size, 4))
+            self.atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            self.depth = self._keep(self.ctx.depth_renderbuffer(self.atlas_size))
+            self.fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.atlas], depth_attachment=self.depth))
         width, height = self.atlas.size
         # each image twice as fine as the node is on screen now (resampling a 1:1 image blurs it),
         # at least 2 texels and at most the tile

@@ -78,3 +78,35 @@ def load_program(ctx: moderngl.Context, name: str, defines: dict[str, object] | 
         return ctx.program(**stage_sources(name, defines))
     except moderngl.Error as e:
         raise ShaderError(f"render/shaders/{name}: {e}") from None
+
+
+class ProgramCache:
+    """Programs compiled once per (file, defines) and shared by every pass drawn with them.
+
+    Compiling and linking costs tens of milliseconds on llvmpipe, so the renderers of a tiled
+    model (one per resident tile) share one cache instead of compiling their own on upload.
+    Sharing is sound because every pass sets all the uniforms it uses before each draw. The
+    cache owns its programs: :meth:`release` frees them (idempotent); the passes do not.
+    """
+
+    def __init__(self, ctx: moderngl.Context):
+        self.ctx = ctx
+        self._programs: dict[tuple, moderngl.Program] | None = {}
+
+    def get(self, name: str, defines: dict[str, object] | None = None) -> moderngl.Program:
+        """The program of ``render/shaders/<name>`` with ``defines``, compiled on first use."""
+        if self._programs is None:
+            raise RuntimeError("ProgramCache used after release()")
+        key = (name, tuple(sorted((defines or {}).items())))
+        program = self._programs.get(key)
+        if program is None:
+            program = self._programs[key] = load_program(self.ctx, name, defines)
+        return program
+
+    def __len__(self) -> int:
+        return len(self._programs or {})
+
+    def release(self) -> None:
+        for program in (self._programs or {}).values():
+            program.release()
+        self._programs = None

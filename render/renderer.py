@@ -26,6 +26,7 @@ from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder, empty_stats
 from .impostors import Impostors
 from .lod import LodConfig
+from .program import ProgramCache
 from .resources import ModelResources
 from .target import OffscreenTargets, background_rgb
 
@@ -67,7 +68,8 @@ class BillboardRenderer:
     itself, measured per frame). lod: level of detail of the GPU decode
     (:class:`~render.lod.LodConfig`: fewer eigen images where a texel is below a pixel,
     far octree nodes as impostors, :mod:`render.impostors`); None, the default, draws
-    every quad with every eigen image (evaluation does).
+    every quad with every eigen image (evaluation does). programs: a
+    :class:`~render.program.ProgramCache` shared with other renderers (None: compiled anew).
 
     After each :meth:`render` / :meth:`draw`, ``stats`` holds that frame's
     draw_calls, instances, quads, tiles decoded and blended, LOD counts, upload_bytes and
@@ -78,7 +80,7 @@ class BillboardRenderer:
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, decode: str = "gpu", *,
                  spherical: bool | None = None, interpolate: bool = True, linear: bool = True,
                  background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "none",
-                 lod: LodConfig | None = None):
+                 lod: LodConfig | None = None, programs: ProgramCache | None = None):
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
         if cull not in CULL_MODES:
@@ -100,9 +102,9 @@ class BillboardRenderer:
         try:
             if decode == "gpu":
                 self.resources = ModelResources(ctx, model)
-                self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate, linear, lod)
+                self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate, linear, lod, programs)
                 if lod is not None and lod.impostors is not None:
-                    self.impostors = Impostors(ctx, model, lod.impostors)
+                    self.impostors = Impostors(ctx, model, lod.impostors, programs)
             else:
                 self.decoder = CpuDecoder(ctx, model, self.spherical, interpolate=interpolate, linear=linear)
         except BaseException:
@@ -182,9 +184,7 @@ class BillboardRenderer:
         # objects of a useful size for occlusion tests; frustum culling alone (or auto while off)
         # keeps inside nodes whole, which is cheaper
         split = 256 if culler is not None and culler.active else None
-        frustum = frustum_cull_nodes(frustum_planes(view_proj), model.node_bounds, model.node_children,
-                                     model.node_range, pad=pad, centres=model.centres, radius=pad,
-                                     split_inside_above=split)
+        frustum = self._frustum(view_proj, split)
         after_frustum = int(np.sum(np.diff(frustum.visible_ranges, axis=1))) if len(frustum.visible_ranges) else 0
         info = {"billboards": model.num_billboards, "nodes_tested": frustum.nodes_tested,
                 "billboards_after_frustum": after_frustum, "frustum_s": time.perf_counter() - t0}
@@ -201,6 +201,39 @@ class BillboardRenderer:
                         objects_drawn=int(cull.objects_drawn), queries=int(cull.queries),
                         occlusion_on=bool(cull.active), cull_s=float(cull.cull_s))
         return self._draw_impostors(camera, {**totals, **info})
+
+    def _frustum(self, view_proj: np.ndarray, split: int | None = None):
+        """The octree nodes in the frustum of ``view_proj`` (4, 4) float64 (:func:`frustum_cull_nodes`)."""
+        model = self.model
+        pad = model_quad_radius(model)
+        return frustum_cull_nodes(frustum_planes(view_proj), model.node_bounds, model.node_children,
+                                  model.node_range, pad=pad, centres=model.centres, radius=pad,
+                                  split_inside_above=split)
+
+    def warm(self, camera: GLCamera, budget: int) -> tuple[int, int]:
+        """Do the decoding a frustum-culled :meth:`draw` from ``camera`` would do — impostor images
+        of the far nodes selected by the last warm, then the tiles of what would be drawn in full —
+        decoding at most ``budget`` tiles and drawing nothing into the frame. A tiled model warms a
+        tile made resident far away over a few frames so no frame decodes a whole tile. Returns
+        (tiles decoded, tiles still to decode: 0 when a draw now decodes only what the eye's
+        motion needs); (0, 0) with the CPU decode, which keeps nothing between frames."""
+        if self._released:
+            raise RuntimeError("BillboardRenderer used after release()")
+        if self.decode != "gpu" or self.model.num_billboards == 0:
+            return 0, 0
+        self.ctx.enable_only(moderngl.DEPTH_TEST)
+        self.decoder.begin_frame()
+        if self.impostors is not None:
+            self.impostors.begin_frame(camera, self.decoder.draw_views)
+        view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
+        indices = ranges_to_indices(self._frustum(view_proj).visible_ranges)
+        if self.impostors is not None:
+            indices = self.impostors.split(indices)
+        decoded, pending = self.decoder.predecode(camera, indices, budget)
+        if self.impostors is not None:
+            more, rest = self.decoder.predecode(camera, self.impostors.in_full(camera), budget - decoded)
+            decoded, pending = decoded + more, pending + rest
+        return decoded, pending
 
     def _draw_blocks(self, camera: GLCamera, indices: np.ndarray, totals: dict) -> dict:
         """Draw billboards ``indices`` (B,) (those of impostor nodes go to the impostors), whole

@@ -11,8 +11,10 @@ float32 origin (and the order of exactly coincident quads of different tiles).
 Which tiles are resident follows the eye (:mod:`render.paging`): tiles are loaded in a
 background thread (memory-mapped, nearest and visible first, prefetching along the direction of
 travel), uploaded on the GL thread a bounded amount per frame, and released, farthest first,
-when the GPU budget would be exceeded or they fall behind ``drop_radius``. A frame draws what
-is resident; ``wait`` decides what it waits for first: ``"none"``, ``"near"`` (the visible tiles
+when the GPU budget would be exceeded or they fall behind ``drop_radius``; a tile uploaded far
+from the eye is decoded for the view over a few frames before it is first drawn (warm-up), so
+no frame decodes a whole tile. The renderers of the tiles share their shader programs (one
+:class:`~render.program.ProgramCache`). A frame draws what is resident; ``wait`` decides what it waits for first: ``"none"``, ``"near"`` (the visible tiles
 within ``wait_radius`` of the eye: what the first frame waits for by default, not the city) or
 ``"all"`` (every visible tile: offline rendering, exact).
 
@@ -37,6 +39,7 @@ from .camera import ClipPlanes, gl_camera
 from .context import max_texture_size
 from .culling import CULL_MODES, boxes_outside, frustum_planes
 from .paging import Motion, PagingConfig, TileLoader, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
+from .program import ProgramCache
 from .renderer import DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
 from .target import OffscreenTargets, background_rgb
@@ -128,9 +131,11 @@ class TiledRenderer:
     After each :meth:`draw` / :meth:`render`, ``stats`` holds the tiles' renderer stats summed
     (billboards drawn, quads, tiles decoded, LOD counts, timings) and the paging figures: tiles
     (in the set), tiles_visible (in the frustum), tiles_drawn, tiles_missing (visible within
-    ``load_radius`` of the eye, not resident), tiles_resident, tiles_loaded (in host memory), loads_in_flight, uploads and
-    releases (this frame), upload_s, wait_s, gpu_bytes (measured, resident tiles), gpu_reserved
-    (their bounds), gpu_budget (None: no limit), billboards (of the set).
+    ``load_radius`` of the eye, not resident), tiles_resident, tiles_warming (resident, decoded
+    for the view before they are drawn: :mod:`render.paging`), tiles_loaded (in host memory),
+    loads_in_flight, uploads and releases (this frame), upload_s, wait_s, warm_s,
+    warm_decoded_tiles, gpu_bytes (measured, resident tiles), gpu_reserved (their bounds),
+    gpu_budget (None: no limit), billboards (of the set).
     """
 
     def __init__(self, ctx: moderngl.Context, source, decode: str = "gpu", *, paging: PagingConfig = PagingConfig(),
@@ -153,6 +158,8 @@ class TiledRenderer:
         self.lo, self.hi = self.model_set.lo, self.model_set.hi
         self.origin = np.asarray(self.model_set.origin, np.float64)
         self.resident: dict[int, _Resident] = {}
+        self.warming: dict[int, int] = {}  # resident tiles not drawn yet → frames warmed
+        self.warm_decoded = 0  # texture tiles the last frame decoded for warming tiles
         self.stats: dict = {}
         self.frames = 0
         self.uploads = self.releases = 0
@@ -163,6 +170,7 @@ class TiledRenderer:
         self._released = False
         self.motion = Motion()
         self.targets = OffscreenTargets(ctx)
+        self.programs = ProgramCache(ctx)  # the tiles' renderers compile once, not on each upload
         self.sky_pass: SkyPass | None = None
         limit = max_texture_size(ctx)
 
@@ -248,8 +256,10 @@ class TiledRenderer:
                 for j in chosen:
                     self._release_tile(j)
         renderer = BillboardRenderer(self.ctx, tile.model, self.decode, interpolate=self._interpolate,
-                                     linear=self._linear, **self._options)
+                                     linear=self._linear, programs=self.programs, **self._options)
         self.resident[i] = _Resident(renderer, tile.bound)
+        if not sync and self.paging.warm_tiles_per_frame > 0:
+            self.warming[i] = 0
         self._measure(i)
         self.uploads += 1
         self._frame_uploads += 1
@@ -257,6 +267,7 @@ class TiledRenderer:
 
     def _release_tile(self, i: int) -> None:
         r = self.resident.pop(i)
+        self.warming.pop(i, None)
         r.renderer.release()
         self.releases += 1
         self._frame_releases += 1
@@ -327,13 +338,15 @@ class TiledRenderer:
         for i in self.loader.indices():
             if i not in self.resident and not wanted[i]:
                 self.loader.drop(i)
+        for i in [j for j in self.warming if visible[j] and eye_dist[j] <= cfg.wait_radius]:
+            del self.warming[i]  # near: drawn now, whatever it decodes
         draw = [i for i in self.resident if visible[i]]
         draw.sort(key=lambda i: (eye_dist[i], i))
         self._paging_stats = {
             "tiles": len(self.lo), "tiles_visible": int(visible.sum()), "tiles_drawn": len(draw),
             "tiles_missing": int(sum(1 for i in np.flatnonzero(visible & (eye_dist <= cfg.load_radius))
                                      if i not in self.resident)),
-            "tiles_wanted": int(wanted.sum()), "tiles_resident": len(self.resident),
+            "tiles_wanted": int(wanted.sum()), "tiles_resident": len(self.resident), "tiles_warming": len(self.warming),
             "tiles_loaded": len(self.loader.indices()), "loads_in_flight": self.loader.in_flight,
             "uploads": self._frame_uploads, "releases": self._frame_releases, "wait_s": wait_s,
             "upload_s": upload_s, "page_s": time.perf_counter() - t0 - wait_s - upload_s}
@@ -347,12 +360,16 @@ class TiledRenderer:
         totals: dict = {}
         t1 = time.perf_counter()
         self._share_impostor_updates(tiles)
+        tiles = self._warm([int(i) for i in tiles if int(i) in self.warming], K, world_from_cam, size, tiles)
+        self._paging_stats.update(tiles_drawn=len(tiles), tiles_warming=len(self.warming))
+        t2 = time.perf_counter()
         for i in tiles:
             r = self.resident[int(i)].renderer
             merge_stats(totals, r.draw(r.camera(K, world_from_cam, size)))
         for i in tiles:
             self._measure(int(i))  # instance buffers grow with what is drawn
-        totals["draw_s"] = time.perf_counter() - t1
+        totals["draw_s"] = time.perf_counter() - t2
+        totals.update(warm_s=t2 - t1, warm_decoded_tiles=self.warm_decoded)
         used, reserved = self.gpu_bytes(), self.gpu_reserved()
         self.peak_bytes = max(self.peak_bytes, used)
         self.peak_reserved = max(self.peak_reserved, reserved)
@@ -363,6 +380,21 @@ class TiledRenderer:
         self.frames += 1
         self.stats = totals
         return totals
+
+    def _warm(self, warming: list[int], K, world_from_cam, size, tiles: np.ndarray) -> np.ndarray:
+        """Warm the visible ``warming`` tiles (nearest first) within the frame's decode budget; of
+        ``tiles`` (nearest first), those to draw: every tile not warming, and those whose warm-up
+        left nothing to decode or ran ``warm_frames`` frames."""
+        budget = self.paging.warm_tiles_per_frame
+        self.warm_decoded = 0
+        for i in warming:
+            r = self.resident[i].renderer
+            decoded, left = r.warm(r.camera(K, world_from_cam, size), budget - self.warm_decoded)
+            self.warm_decoded += decoded
+            self.warming[i] += 1
+            if left == 0 or self.warming[i] >= self.paging.warm_frames:
+                del self.warming[i]
+        return np.array([i for i in tiles if int(i) not in self.warming], np.int64)
 
     def _share_impostor_updates(self, tiles: np.ndarray) -> None:
         """Share the frame's impostor images (``ImpostorConfig.updates_per_frame``) among the tiles
@@ -403,6 +435,7 @@ class TiledRenderer:
             self.resident.pop(i).renderer.release()
         if self.sky_pass is not None:
             self.sky_pass.release()
+        self.programs.release()
         self.targets.release()
         self.loader.close()
 

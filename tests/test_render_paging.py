@@ -256,7 +256,8 @@ def test_priorities_prefer_visible_then_near_and_prefetch_ahead():
 
 def test_paging_config_is_validated():
     for bad in (dict(gpu_budget=0), dict(gpu_budget=1.5), dict(load_radius=-1.0), dict(load_radius=float("nan")),
-                dict(drop_radius=10.0, load_radius=20.0), dict(uploads_per_frame=0), dict(loads_in_flight=0)):
+                dict(drop_radius=10.0, load_radius=20.0), dict(uploads_per_frame=0), dict(loads_in_flight=0),
+                dict(warm_tiles_per_frame=-1), dict(warm_frames=0)):
         with pytest.raises(ValueError):
             PagingConfig(**bad)
     PagingConfig(gpu_budget=1 << 20, load_radius=float("inf"), drop_radius=float("inf"))
@@ -385,3 +386,89 @@ def test_impostor_images_are_shared_among_the_tiles_drawn(ctx, street_set):
         drawn = [r.renderer.impostors.config.updates_per_frame for r in tiled.resident.values()]
         assert tiled.stats["tiles_drawn"] == len(drawn) >= 2
         assert sum(drawn) == lod.impostors.updates_per_frame and max(drawn) - min(drawn) <= 1
+
+
+def test_program_cache_compiles_once_per_file_and_defines(ctx):
+    from render.program import ProgramCache
+
+    cache = ProgramCache(ctx)
+    a = cache.get("billboard_blend.glsl", {"STORAGE_SLOTS": 2})
+    assert cache.get("billboard_blend.glsl", {"STORAGE_SLOTS": 2}) is a
+    assert cache.get("billboard_blend.glsl", {"STORAGE_SLOTS": 4}) is not a
+    assert len(cache) == 2
+    cache.release()
+    cache.release()
+    with pytest.raises(RuntimeError):
+        cache.get("billboard_blend.glsl")
+
+
+def test_tiles_share_their_programs(ctx, street_set):
+    """Every tile's renderer draws with the set's programs: uploading a tile compiles nothing."""
+    with TiledRenderer(ctx, street_set, "gpu", lod=LodConfig()) as tiled:
+        tiled.render(K, views()[0], SIZE, wait="all")
+        renderers = [r.renderer for r in tiled.resident.values()]
+        assert len(renderers) >= 2
+        compiled = len(tiled.programs)
+        first = renderers[0]
+        for r in renderers[1:]:
+            assert all(r.decoder.programs[key] is p for key, p in first.decoder.programs.items())
+            assert r.decoder.decode_program is first.decoder.decode_program
+            assert r.impostors.program is first.impostors.program
+        tiled._release_tile(next(iter(tiled.resident)))  # a released tile leaves the programs to the set
+        tiled.render(K, views()[0], SIZE, wait="all")
+        assert len(tiled.programs) == compiled
+
+
+def test_far_tiles_warm_before_they_are_drawn(ctx, street_set):
+    """A tile uploaded beyond ``wait_radius`` is decoded for the view at most
+    ``warm_tiles_per_frame`` texture tiles a frame and drawn only once nothing is left to decode;
+    then the frame equals the exact one. A warming tile the eye comes near is drawn at once."""
+    budget = 40
+    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, warm_tiles_per_frame=budget, warm_frames=1000)
+    pose = views()[0]  # along the street: every tile visible, tile 0 around the eye
+    with TiledRenderer(ctx, street_set, "gpu", background=BG, paging=paging) as tiled, \
+            TiledRenderer(ctx, street_set, "gpu", background=BG) as exact:
+        want = exact.render(K, pose, SIZE, wait="all")
+        warmed_frames = {}
+        for frame in range(200):
+            tiled.loader.wait_idle()
+            image = tiled.render(K, pose, SIZE)
+            s = tiled.stats
+            assert s["warm_decoded_tiles"] <= budget
+            assert s["tiles_drawn"] == s["tiles_resident"] - s["tiles_warming"]
+            for i in tiled.warming:
+                warmed_frames[i] = warmed_frames.get(i, 0) + 1
+            if s["tiles_resident"] == len(street_set) and s["tiles_warming"] == 0:
+                break
+        assert s["tiles_drawn"] == s["tiles_visible"] == len(street_set)
+        assert max(warmed_frames.values()) >= 3  # a tile took several frames of the budget
+        np.testing.assert_array_equal(tiled.render(K, pose, SIZE), want)
+
+    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, warm_tiles_per_frame=1, warm_frames=1000)
+    with TiledRenderer(ctx, street_set, "gpu", background=BG, paging=paging) as tiled:
+        for _ in range(len(street_set) + 2):
+            tiled.loader.wait_idle()
+            tiled.render(K, pose, SIZE)
+        assert 2 in tiled.warming  # one texture tile a frame: still warming
+        near = look_at(WORLD + [37.0, 0.0, 2.0], WORLD + [42.0, 0.5, 2.0])  # inside tile 2
+        tiled.render(K, near, SIZE)
+        assert 2 not in tiled.warming and tiled.stats["tiles_drawn"] >= 1
+
+
+def test_predecode_leaves_a_draw_only_the_rest(ctx, street):
+    """The decoder's bounded predecode decodes what the draw would, the first ``budget`` tiles,
+    and the draw after it decodes the rest; the image is the same."""
+    pose = views()[0]
+    with BillboardRenderer(ctx, street, "gpu", background=BG, cull="frustum") as plain, \
+            BillboardRenderer(ctx, street, "gpu", background=BG, cull="frustum") as warmed:
+        want = plain.render(K, pose, SIZE)
+        total = plain.stats["decoded_tiles"]
+        assert total > 100
+        camera = warmed.camera(K, pose, SIZE)
+        decoded, left = warmed.warm(camera, 100)
+        assert (decoded, left) == (100, total - 100)
+        assert warmed.warm(camera, 0) == (0, total - 100)
+        got = warmed.render(K, pose, SIZE)
+        assert warmed.stats["decoded_tiles"] == total - 100
+        np.testing.assert_array_equal(got, want)
+        assert warmed.warm(camera, 10) == (0, 0)
