@@ -15,12 +15,14 @@ its quads (a dynamic impostor, Schaufler 1995):
   The impostor quad lies on the plane through the box's centre facing the eye, cut to
   that rectangle; its fragments look the image up through the camera it was made with
   (projective texturing), so at that moment it shows what the quads would show.
-- **Reuse.** The image is kept while the direction from the node to the eye stays within
-  ``max_angle_deg`` of the one it was made from and the distance within 10 %. Images are
-  made at the start of a frame (leaving the frame's framebuffer would make llvmpipe finish
-  it), for nodes drawn far the frame before, at most ``updates_per_frame``, the stalest
-  first, all in one draw (:meth:`~render.gpu_decode.GpuDecoder.draw_views`). A far node
-  whose image is missing or more than twice the angle old is drawn in full, so quality
+- **Reuse.** The image is kept while the eye's motion moves it less than ``max_error_px`` on
+  screen (the parallax of the node's depth), the direction from the node to the eye stays
+  within ``max_angle_deg`` of the one it was made from (view-dependent texture) and the
+  distance within 25 %: a far node's image lasts many frames of a drive, a near one's few.
+  Images are made at the start of a frame (leaving the frame's framebuffer would make
+  llvmpipe finish it), for nodes drawn far the frame before, at most ``updates_per_frame``,
+  the stalest first, all in one draw (:meth:`~render.gpu_decode.GpuDecoder.draw_views`). A
+  far node whose image is missing or twice past those bounds is drawn in full, so quality
   never waits on the budget and no frame pays for every node at once.
 
 The split happens per selection of billboards (:meth:`Impostors.split`), so it works under
@@ -29,7 +31,6 @@ every culling mode: blocks of impostor nodes are replaced by their node's quad.
 
 from __future__ import annotations
 
-import math
 import moderngl
 import numpy as np
 
@@ -53,6 +54,9 @@ IMPOSTOR_ATTRIBUTES = ("in_corner0", "in_corner1", "in_corner2", "in_corner3", "
                        "in_image_w", "in_origin", "in_extent")
 
 ATLAS_WIDTH = 4096  # texels per row of the impostor atlas (at most)
+#: Change of distance an image survives: made twice as fine as the node is on screen, a texel
+#: stays under 0.7 pixels 25 % nearer (and under-sampling 25 % farther is what the quads do).
+MAX_SCALE_CHANGE = 0.25
 
 
 def impostor_nodes(model: BillboardModel, node_edge: float) -> tuple[np.ndarray, np.ndarray]:
@@ -156,25 +160,35 @@ class Impostors(GpuOwner):
         self._far = np.where(self._far, side < t * (1 + h), side < t * (1 - h))
         candidates = np.flatnonzero(self._far & self._wanted)
         self._wanted[:] = False
-        fresh, cosine = self._fresh(camera, candidates, self.config.max_angle_deg)
-        stale = candidates[~fresh]
-        made = self._made_dist[stale] > 0
-        staleness = np.where(made, 1 - cosine[~fresh], np.inf)  # missing images first
-        update = stale[np.argsort(-staleness, kind="stable")[:self.config.updates_per_frame]]
+        age = self._age(camera, candidates)
+        stale = candidates[age > 1]
+        update = stale[np.argsort(-age[age > 1], kind="stable")[:self.config.updates_per_frame]]  # missing first
         if len(update):
             self._make(camera, update, draw_views)
         return {"impostor_updates": len(update)}
 
-    def _fresh(self, camera: GLCamera, nodes: np.ndarray, max_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
-        """Whether each node's image (N,) is usable from ``camera``: made within ``max_angle_deg`` of
-        the direction to the eye and 10 % of its distance; and the cosine of that angle (N,)."""
+    def _age(self, camera: GLCamera, nodes: np.ndarray) -> np.ndarray:
+        """(N,) float64 how far each node's image is from ``camera``'s view, in units of what an
+        image may drift before it is remade (≤ 1: fresh; inf: no image): the largest of its
+        parallax error on screen over ``max_error_px``, the turn of the direction to the eye over
+        ``max_angle_deg`` and the change of distance over MAX_SCALE_CHANGE. The parallax of a point ``δ``
+        off the image's plane when the direction turns by θ is ``δ·sin θ`` (at most half the
+        box's extent along the view), ``f/d`` pixels a metre at distance d: the same turn is
+        far more visible on a near node than on a far one."""
+        cfg = self.config
         to_eye = np.asarray(camera.eye, np.float64) - self.centre[nodes]
         dist = np.linalg.norm(to_eye, axis=1)
-        cosine = np.einsum("ij,ij->i", to_eye / dist[:, None], self._made_dir[nodes])
+        unit = to_eye / np.maximum(dist, 1e-9)[:, None]
+        cosine = np.clip(np.einsum("ij,ij->i", unit, self._made_dir[nodes]), -1.0, 1.0)
+        sine = np.sqrt(1.0 - cosine * cosine)
+        depth = 0.5 * np.einsum("ij,ij->i", self.box[nodes, 1] - self.box[nodes, 0], np.abs(unit))
+        focal_px = 0.5 * float(camera.projection[0, 0]) * camera.size[0]
+        parallax_px = depth * sine * focal_px / np.maximum(dist, 1e-9)
         made = self._made_dist[nodes] > 0
         ratio = dist / np.where(made, self._made_dist[nodes], 1.0)
-        fresh = made & (cosine >= math.cos(math.radians(max_angle_deg))) & (np.abs(ratio - 1) <= 0.1)
-        return fresh, cosine
+        age = np.maximum.reduce([parallax_px / cfg.max_error_px,
+                                 np.degrees(np.arccos(cosine)) / cfg.max_angle_deg, np.abs(ratio - 1) / MAX_SCALE_CHANGE])
+        return np.where(made, age, np.inf)
 
     def _screen_sides(self, camera: GLCamera, small: float) -> np.ndarray:
         """(k,) the larger side in pixels of each node's box on screen (inf reaching behind the near
@@ -255,10 +269,10 @@ class Impostors(GpuOwner):
 
     def _usable(self, camera: GLCamera) -> tuple[np.ndarray, np.ndarray]:
         """The far nodes selected this frame (N,) int64 and whether each has a usable image (N,)
-        bool (made within twice ``max_angle_deg``: an image is remade at the start of a frame once
-        it is past the angle, but only so many per frame)."""
+        bool (:meth:`_age` at most 2: an image is remade at the start of a frame once its age
+        passes 1, but only so many per frame)."""
         wanted = np.flatnonzero(self._wanted)
-        return wanted, self._fresh(camera, wanted, 2 * self.config.max_angle_deg)[0]
+        return wanted, self._age(camera, wanted) <= 2.0
 
     def in_full(self, camera: GLCamera) -> np.ndarray:
         """(B,) int64 billboards of the far nodes selected this frame that :meth:`draw` would draw

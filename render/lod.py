@@ -26,13 +26,15 @@ LEVEL_NAMES = ("full", "reduced", "mean")
 @dataclass(frozen=True)
 class ImpostorConfig:
     """Far nodes as impostors (:mod:`render.impostors`). node_edge (m): the octree level used;
-    texels: tile side; max_angle_deg: view change an image survives; updates_per_frame: images
-    made per frame at most; hysteresis: fraction of the switching distance within which a node
-    keeps its state."""
+    texels: tile side; max_error_px: parallax (pixels) an image survives; max_angle_deg: turn of
+    the direction to the eye an image survives (view-dependent texture); updates_per_frame:
+    images made per frame at most; hysteresis: fraction of the switching distance within which
+    a node keeps its state."""
 
     node_edge: float = 4.0
     texels: int = 128
-    max_angle_deg: float = 1.0
+    max_error_px: float = 1.0
+    max_angle_deg: float = 4.0
     updates_per_frame: int = 24
     hysteresis: float = 0.1
 
@@ -41,6 +43,8 @@ class ImpostorConfig:
             raise ValueError(f"node_edge must be a positive length, got {self.node_edge}")
         if not 8 <= self.texels <= 1024:
             raise ValueError(f"texels must lie in [8, 1024], got {self.texels}")
+        if not (np.isfinite(self.max_error_px) and self.max_error_px > 0):
+            raise ValueError(f"max_error_px must be a positive number of pixels, got {self.max_error_px}")
         if not 0 < self.max_angle_deg <= 30:
             raise ValueError(f"max_angle_deg must lie in (0, 30], got {self.max_angle_deg}")
         if self.updates_per_frame < 0:

@@ -79,6 +79,7 @@ def test_an_image_is_remade_once_the_view_turns_past_the_angle(ctx, long_street)
 
 def test_impostor_config_is_validated():
     for bad in (dict(node_edge=0.0), dict(texels=4), dict(max_angle_deg=0.0), dict(updates_per_frame=-1),
+                dict(max_error_px=0.0), dict(max_error_px=float("nan")),
                 dict(hysteresis=1.0)):
         with pytest.raises(ValueError):
             ImpostorConfig(**bad)
@@ -99,3 +100,41 @@ def test_changing_the_decode_settings_drops_the_images(ctx, long_street):
         renderer.interpolate = False
         renderer.render(K, pose, SIZE)  # every image made again, the nearest direction's
         assert renderer.stats["impostor_updates"] == renderer.stats["impostors"] > 0
+
+
+def test_image_age_is_the_parallax_on_screen(ctx, long_street):
+    """An image's age from the parallax term is its depth's shift on screen: the point half the
+    box's extent in front of the image's plane, projected by the new camera, lies that many
+    pixels from the node's centre (where the image shows it); a far node's image ages more
+    slowly than a near one's for the same step of the eye."""
+    model = long_street
+    K = intrinsics(200.0, *SIZE)
+    eye = model.origin + [1.0, 0.0, 1.6]
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_error_px=1.0, max_angle_deg=30.0, updates_per_frame=1000))
+    with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
+        pose = look_at(eye, eye + [60.0, 0.0, 1.0])
+        for _ in range(2):
+            renderer.render(K, pose, SIZE)
+        imp = renderer.impostors
+        made = np.flatnonzero(imp._made_dist > 0)
+        assert len(made) > 20
+        camera = renderer.camera(K, pose, SIZE)
+        assert np.all(imp._age(camera, made) < 1e-6)
+        assert np.all(np.isinf(imp._age(camera, np.flatnonzero(imp._made_dist == 0))))
+        moved = eye + [0.0, 0.6, 0.0]
+        camera = renderer.camera(K, look_at(moved, moved + [60.0, 0.0, 1.0]), SIZE)
+        age = imp._age(camera, made)
+        m = (camera.projection.astype(np.float64) @ camera.view.astype(np.float64))
+        extent = imp.box[made, 1] - imp.box[made, 0]
+        direction = imp._made_dir[made]
+        front = imp.centre[made] + 0.5 * np.abs(extent @ np.eye(3) * direction).sum(1)[:, None] * direction
+
+        def pixels(points):  # model coordinates → pixels
+            clip = np.c_[points, np.ones(len(points))] @ m.T
+            return clip[:, :2] / clip[:, 3:] * np.asarray(SIZE) / 2
+
+        shift = np.linalg.norm(pixels(front) - pixels(imp.centre[made]), axis=1)
+        dist = np.linalg.norm(imp.centre[made] - (moved - model.origin), axis=1)
+        np.testing.assert_allclose(age, shift, rtol=0.15, atol=0.02)
+        near, far = dist < np.percentile(dist, 25), dist > np.percentile(dist, 75)
+        assert age[near].mean() > 3 * age[far].mean()
