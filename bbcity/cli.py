@@ -931,7 +931,7 @@ def _add_eval(sub) -> None:
                                    "Writes eval.json, eval.md, workprecision.png (bytes against seen-pixel PSNR: "
                                    "Poisson depths, the model(s), the points) and one side-by-side PNG per view.",
                        parents=[_size_parent(None, EVAL_BYTES_PER_PIXEL, "default: the camera's")])
-    p.add_argument("model", type=Path, help="billboard model directory")
+    p.add_argument("model", type=Path, help="billboard model directory (or a tiled model's: every tile a view sees)")
     p.add_argument("dataset", type=Path,
                    help="the dataset: synthetic with gt/, or a real capture (scored against its held-out images)")
     p.add_argument("--out", type=Path, required=True,
@@ -984,7 +984,6 @@ def _eval_config(args):
 
 
 def _run_eval(args) -> int:
-    from billboards.model_reader import load
     from billboards.sky import read_sky
     from render.eval_report import write_report
     from render.evaluate import evaluate_views
@@ -993,9 +992,10 @@ def _run_eval(args) -> int:
 
     config = _eval_config(args)
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]
-    extra = {label: (load(m), read_sky(m)) for label, m in zip(labels, args.models)}
-    only = None if args.billboards_only is None else (load(args.billboards_only), read_sky(args.billboards_only))
-    model = load(args.model)
+    extra = {label: (_load_drawable(m, False), read_sky(m)) for label, m in zip(labels, args.models)}
+    only = None if args.billboards_only is None else (_load_drawable(args.billboards_only, False),
+                                                      read_sky(args.billboards_only))
+    model = _load_drawable(args.model, False)
     with atomic_dir(args.out) as report_dir:  # a failed or interrupted run leaves no partial report
         report = evaluate_views(model, _eval_dataset(model, args.dataset), args.cloud, sky=read_sky(args.model),
                                 extra_models=extra, billboards_only=only, config=config, out_dir=report_dir)

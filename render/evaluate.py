@@ -46,6 +46,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from billboards.model_set import ModelSet
 from core.metrics import psnr, ssim
 from data_synth import load_dataset, load_scene, truth_view
 
@@ -230,9 +231,11 @@ def score(image: np.ndarray, view: EvalView, covered: np.ndarray | None = None, 
 # --------------------------------------------------------------------------- methods
 
 class ModelMethod:
-    """A billboard model as a method (GPU decode, offscreen), over ``sky`` when given.
+    """A billboard model (or a tiled one, a :class:`~billboards.model_set.ModelSet`, every tile a
+    view sees drawn) as a method (GPU decode, offscreen), over ``sky`` when given.
 
-    visible: None (every quad) or the indices drawn; nbytes: the model's bytes (+ the sky's);
+    visible: None (every quad) or the indices drawn; nbytes: the model's bytes (a set: its
+    tiles' bytes on disk; + the sky's);
     gains: frame → (3,) float64 exposure gain that :func:`evaluate_methods` applies to the
     view of that frame (see :func:`neighbour_gains`); renders: a dict shared by methods of the
     same model and settings, so that each view is drawn once (None: no caching)."""
@@ -242,8 +245,8 @@ class ModelMethod:
         self.model, self.sky, self.visible, self.decode = model, sky, visible, decode
         self.gains = gains or {}
         self.renders = renders
-        self.nbytes = int(model.nbytes()["total"] + (sky.colours.nbytes if sky is not None else 0)
-                          if nbytes is None else nbytes)
+        model_bytes = model.bytes if isinstance(model, ModelSet) else model.nbytes()["total"]
+        self.nbytes = int(model_bytes + (sky.colours.nbytes if sky is not None else 0) if nbytes is None else nbytes)
 
     def _draw(self, K, world_from_cam, size, sky, background) -> np.ndarray:
         from .offscreen import render_view
@@ -386,8 +389,8 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
                    views: int | None = None, size: tuple[int, int] | None = None, *, sky=None,
                    billboards_only=None, extra_models: dict | None = None, extra_methods: dict[str, Method] | None = None,
                    config: EvalConfig | None = None, out_dir: os.PathLike | str | None = None) -> dict:
-    """Novel-view scores of ``model`` (a :class:`billboards.model.BillboardModel`, drawn over
-    ``sky`` when given) and the baselines of the cloud at ``cloud_path`` (none without one);
+    """Novel-view scores of ``model`` (a :class:`billboards.model.BillboardModel` or a tiled
+    :class:`billboards.model_set.ModelSet`, drawn over ``sky`` when given) and the baselines of the cloud at ``cloud_path`` (none without one);
     a JSON-ready dict (NaN as None).
 
     views, size: override ``config``'s. billboards_only: the model (or (model, sky)) of the

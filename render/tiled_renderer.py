@@ -338,8 +338,8 @@ class TiledRenderer:
         for i in self.loader.indices():
             if i not in self.resident and not wanted[i]:
                 self.loader.drop(i)
-        for i in [j for j in self.warming if visible[j] and eye_dist[j] <= cfg.wait_radius]:
-            del self.warming[i]  # near: drawn now, whatever it decodes
+        for i in [j for j in self.warming if visible[j] and (wait == "all" or eye_dist[j] <= cfg.wait_radius)]:
+            del self.warming[i]  # near (or every tile waited for): drawn now, whatever it decodes
         draw = [i for i in self.resident if visible[i]]
         draw.sort(key=lambda i: (eye_dist[i], i))
         self._paging_stats = {

@@ -55,9 +55,17 @@ def test_own_layer_keeps_the_tile_blocks_and_drops_points_of_foreign_ones():
     np.testing.assert_array_equal(mine.centres, layer.centres[[0, 2]])
 
 
-def test_tiled_build_matches_one_model(tiny_dataset, tiled_cloud, tmp_path):
-    one = build_main(BuildConfig(), tiled_cloud, tiny_dataset, tmp_path / "one", progress=False)
-    tiled = build_main(BuildConfig(tile_metres=8.0), tiled_cloud, tiny_dataset, tmp_path / "set", progress=False)
+@pytest.fixture(scope="module")
+def built(tiny_dataset, tiled_cloud, tmp_path_factory):
+    """(one model's build result, the tiled build's (8 m tiles), their parent directory)."""
+    root = tmp_path_factory.mktemp("built")
+    one = build_main(BuildConfig(), tiled_cloud, tiny_dataset, root / "one", progress=False)
+    tiled = build_main(BuildConfig(tile_metres=8.0), tiled_cloud, tiny_dataset, root / "set", progress=False)
+    return one, tiled, root
+
+
+def test_tiled_build_matches_one_model(built):
+    one, tiled, tmp_path = built
     model_set = load_model_set(tmp_path / "set")
     assert model_set.tiled and len(model_set) >= 3
     assert tiled.report["tiles"] == len(model_set)
@@ -73,6 +81,31 @@ def test_tiled_build_matches_one_model(tiny_dataset, tiled_cloud, tmp_path):
     assert not list(tmp_path.glob(".set.*"))  # work and scratch directories gone
     assert tiled.report["psnr"]["decoded_rgb_opaque_db"] == pytest.approx(
         one.report["psnr"]["decoded_rgb_opaque_db"], abs=1.0)
+
+
+def test_eval_of_a_tiled_model(built, tiny_dataset, tmp_path):
+    """`bbcity eval` scores a tiled model like the one model it equals: every tile a view sees
+    drawn, the same PSNR within 0.5 dB (the tiles' float32 origins), its bytes those of its tiles."""
+    import json
+
+    from bbcity.cli import main as cli_main
+    from billboards.sky import read_sky
+
+    _, _, root = built
+    reports = {}
+    for name in ("one", "set"):
+        out = tmp_path / name
+        assert cli_main(["-q", "eval", str(root / name), str(tiny_dataset), "--views", "2", "--out", str(out),
+                         "--panel-width", "0"]) == 0
+        reports[name] = json.loads((out / "eval.json").read_text())
+    assert reports["set"]["frames"] == reports["one"]["frames"]
+    for key in ("model, on path", "model, off path"):
+        one, tiled = reports["one"]["summary"][key], reports["set"]["summary"][key]
+        assert 10 < one["psnr"] < 60
+        assert tiled["psnr"] == pytest.approx(one["psnr"], abs=0.5), key
+        assert tiled["psnr_seen"] == pytest.approx(one["psnr_seen"], abs=0.5), key
+    sky = read_sky(root / "set")
+    assert reports["set"]["bytes"]["model"] == load_model_set(root / "set").bytes + (sky.colours.nbytes if sky else 0)
 
 
 def test_a_killed_tiled_build_resumes_its_unfinished_tiles(tiny_dataset, tiled_cloud, tmp_path, monkeypatch):
