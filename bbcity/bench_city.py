@@ -129,7 +129,9 @@ def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, .
             row[f"{stage} peak MB (worker)"] = t.worker_peak_mb
         walk = run["walk"]
         row.update({"viewer peak MB": run["view"].peak_mb, "first frame ms": walk["first_ms"],
-                    "max frame ms": walk["ms_max"], "frame ms p95": walk["ms_p95"],
+                    "frame ms median": walk["ms"], "frame ms p95": walk["ms_p95"], "max frame ms": walk["ms_max"],
+                    "max paging frame ms": walk["paging_ms_max"], "paging frames": walk["paging_frames"],
+                    "paging frames over 100 ms": walk["paging_frames_over_100ms"],
                     "GPU peak MB": walk["peak_mb"], "GPU budget MB": walk["budget_mb"],
                     "frames missing a tile": walk["missing_frames"]})
         report.add("City scale", row)

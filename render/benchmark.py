@@ -152,8 +152,11 @@ def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str =
     the tiles, highest), peak_reserved_mb (their bounds), uploads, releases, loads, load_s (in
     the loader thread), wait_ms (the first frame's wait), missing_frames (frames where a visible
     tile near the eye was not resident), upload_ms_max (the most a later frame spent uploading),
-    upload_frames (later frames that uploaded), ms_upload_frames (their median time), tiles (in
-    the set), drawn, resident (means)}."""
+    upload_frames (later frames that uploaded), ms_upload_frames (their median time),
+    paging_frames (later frames that uploaded, released or warmed a tile), paging_ms_max (the
+    slowest of them), other_ms_max (the slowest later frame that did not page: a turn of the
+    eye decodes what comes into view), frames_over_100ms (later frames, and of them paging),
+    tiles (in the set), drawn, resident (means)}."""
     from .paging import MB, PagingConfig
     from .tiled_renderer import TiledRenderer
 
@@ -179,6 +182,9 @@ def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str =
         renderer.release()
     later = frame_time_stats(times[1:])
     budget = paging.gpu_budget
+    later_ms = 1000.0 * np.asarray(times[1:])
+    paged = np.array([bool(s.get("uploads") or s.get("releases") or s.get("tiles_warming")
+                           or s.get("warm_decoded_tiles")) for s in stats[1:]])
     return {"frames": len(times), "open_ms": 1000.0 * open_s, "first_ms": 1000.0 * times[0],
             "ms": later["ms"], "ms_p95": later["ms_p95"], "ms_max": 1000.0 * max(times[1:]),
             "fps": later["fps"], "fps_p5": later["fps_p5"],
@@ -190,6 +196,11 @@ def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str =
             "upload_frames": int(sum(1 for s in stats[1:] if s.get("uploads", 0) > 0)),
             "ms_upload_frames": (1000.0 * float(np.median([t for t, s in zip(times[1:], stats[1:]) if s.get("uploads")]))
                                  if any(s.get("uploads") for s in stats[1:]) else 0.0),
+            "paging_frames": int(paged.sum()),
+            "paging_ms_max": float(later_ms[paged].max()) if paged.any() else 0.0,
+            "other_ms_max": float(later_ms[~paged].max()) if (~paged).any() else 0.0,
+            "frames_over_100ms": int(np.sum(later_ms > 100.0)),
+            "paging_frames_over_100ms": int(np.sum(later_ms[paged] > 100.0)),
             "tiles": int(stats[0].get("tiles", 0)),
             "drawn": float(np.mean([s.get("tiles_drawn", 0) for s in stats])),
             "resident": float(np.mean([s.get("tiles_resident", 0) for s in stats])),

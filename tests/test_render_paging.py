@@ -472,3 +472,15 @@ def test_predecode_leaves_a_draw_only_the_rest(ctx, street):
         assert warmed.stats["decoded_tiles"] == total - 100
         np.testing.assert_array_equal(got, want)
         assert warmed.warm(camera, 10) == (0, 0)
+
+
+def test_paging_walk_reports_the_frames_that_page(ctx, street_set):
+    from render.benchmark import paging_walk
+
+    poses = _walk([-3.0, 0.0, 2.0], [65.0, 0.0, 2.0], 24)
+    paging = PagingConfig(load_radius=10.0, prefetch=12.0, drop_radius=12.0, wait_radius=5.0)
+    walk = paging_walk(ctx, street_set, poses, SIZE, paging, K=K)
+    assert walk["frames"] == len(poses) and walk["uploads"] >= 4
+    assert 1 <= walk["paging_frames"] <= len(poses) - 1
+    assert max(walk["paging_ms_max"], walk["other_ms_max"]) == pytest.approx(walk["ms_max"])
+    assert walk["paging_frames_over_100ms"] <= walk["frames_over_100ms"] <= len(poses) - 1
