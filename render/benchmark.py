@@ -153,7 +153,7 @@ def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str =
     the loader thread), wait_ms (the first frame's wait), missing_frames (frames where a visible
     tile near the eye was not resident), upload_ms_max (the most a later frame spent uploading),
     upload_frames (later frames that uploaded), ms_upload_frames (their median time),
-    paging_frames (later frames that uploaded, released or warmed a tile), paging_ms_max (the
+    paging_frames (later frames that uploaded, released or decoded a warming tile), paging_ms_max (the
     slowest of them), other_ms_max (the slowest later frame that did not page: a turn of the
     eye decodes what comes into view), frames_over_100ms (later frames, and of them paging),
     tiles (in the set), drawn, resident (means)}."""
@@ -183,8 +183,7 @@ def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str =
     later = frame_time_stats(times[1:])
     budget = paging.gpu_budget
     later_ms = 1000.0 * np.asarray(times[1:])
-    paged = np.array([bool(s.get("uploads") or s.get("releases") or s.get("tiles_warming")
-                           or s.get("warm_decoded_tiles")) for s in stats[1:]])
+    paged = np.array([bool(s.get("uploads") or s.get("releases") or s.get("warm_decoded_tiles")) for s in stats[1:]])
     return {"frames": len(times), "open_ms": 1000.0 * open_s, "first_ms": 1000.0 * times[0],
             "ms": later["ms"], "ms_p95": later["ms_p95"], "ms_max": 1000.0 * max(times[1:]),
             "fps": later["fps"], "fps_p5": later["fps_p5"],
