@@ -399,8 +399,9 @@ class GpuDecoder(GpuOwner):
         rows, slots = np.nonzero(need)
         left = 0
         if budget is not None and len(rows) > budget:
-            left = len(rows) - max(int(budget), 0)
-            rows, slots = rows[:max(int(budget), 0)], slots[:max(int(budget), 0)]
+            keep = max(int(budget), 0)
+            left = len(rows) - keep
+            rows, slots = rows[:keep], slots[:keep]
         if len(rows) == 0:
             return 0, 0, left
         model = self.model

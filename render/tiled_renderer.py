@@ -14,9 +14,10 @@ travel), uploaded on the GL thread a bounded amount per frame, and released, far
 when the GPU budget would be exceeded or they fall behind ``drop_radius``; a tile uploaded far
 from the eye is decoded for the view over a few frames before it is first drawn (warm-up), so
 no frame decodes a whole tile. The renderers of the tiles share their shader programs (one
-:class:`~render.program.ProgramCache`). A frame draws what is resident; ``wait`` decides what it waits for first: ``"none"``, ``"near"`` (the visible tiles
-within ``wait_radius`` of the eye: what the first frame waits for by default, not the city) or
-``"all"`` (every visible tile: offline rendering, exact).
+:class:`~render.program.ProgramCache`). A frame draws what is resident; ``wait`` decides what
+it waits for first: ``"none"``, ``"near"`` (the visible tiles within ``wait_radius`` of the
+eye: what the first frame waits for by default, not the city) or ``"all"`` (every visible
+tile: offline rendering, exact).
 
 A plain model (a directory, or a :class:`~billboards.model.BillboardModel` in memory) is a set
 of one tile, so every front end takes either.
