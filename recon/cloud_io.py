@@ -65,6 +65,49 @@ def write_cloud(path: os.PathLike | str, pcd: o3d.geometry.PointCloud) -> Path:
     return path
 
 
+def ply_vertex_dtype(normals: bool) -> np.dtype:
+    """Record of one point of a streamed PLY cloud: double x, y, z; float nx, ny, nz (if
+    ``normals``); uchar red, green, blue (what Open3D writes and reads)."""
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if normals:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    return np.dtype(fields + [("red", "u1"), ("green", "u1"), ("blue", "u1")])
+
+
+def ply_rows(points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None, dtype: np.dtype) -> np.ndarray:
+    """(n,) records of ``dtype`` (:func:`ply_vertex_dtype`) from points (n, 3) float64, colours
+    (n, 3) uint8 and normals (n, 3) float (read only when the records hold normals)."""
+    rows = np.empty(len(points), dtype)
+    for i, axis in enumerate("xyz"):
+        rows[axis] = points[:, i]
+        if "nx" in dtype.names:
+            rows["n" + axis] = normals[:, i]
+    for i, name in enumerate(("red", "green", "blue")):
+        rows[name] = colours[:, i]
+    return rows
+
+
+@dataclass(frozen=True)
+class RowsFile:
+    """A tile's PLY records written to a file of their own (no header) by a worker: path,
+    count, and the world bounds lo, hi (3,) float64 of its points."""
+
+    path: str
+    count: int
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+
+def write_rows_file(path: os.PathLike | str, rows: np.ndarray) -> RowsFile:
+    """Write ``rows`` (n,) PLY records (:func:`ply_rows`) to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        rows.tofile(tmp)
+    xyz = [rows[a] for a in "xyz"]
+    lo = tuple(float(v.min()) for v in xyz) if len(rows) else (0.0, 0.0, 0.0)
+    hi = tuple(float(v.max()) for v in xyz) if len(rows) else (0.0, 0.0, 0.0)
+    return RowsFile(str(path), len(rows), lo, hi)
+
+
 class PlyStreamWriter:
     """Write a binary PLY cloud chunk by chunk, so that memory is bounded by a chunk.
 
@@ -88,11 +131,7 @@ class PlyStreamWriter:
         self._ranges: list[tuple[tuple[int, int], int, int, np.ndarray, np.ndarray]] = []
         if self.path.suffix.lower() != ".ply":
             raise ValueError(f"{self.path}: streamed clouds are PLY")
-        fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-        if normals:
-            fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-        self.dtype = np.dtype(fields)
+        self.dtype = ply_vertex_dtype(normals)
         self.normals = normals
         self.count = 0
         self._body = None
@@ -107,17 +146,25 @@ class PlyStreamWriter:
                tile: tuple[int, int] | None = None) -> None:
         """points (n, 3) float64, colours (n, 3) uint8, normals (n, 3) float (if enabled);
         tile: the (x, y) tile index of these rows (required with ``tiles``)."""
-        if self.tiles is not None:
-            self._add_range(tile, points)
-        rows = np.empty(len(points), self.dtype)
-        for i, axis in enumerate("xyz"):
-            rows[axis] = points[:, i]
-            if self.normals:
-                rows["n" + axis] = normals[:, i]
-        for i, name in enumerate(("red", "green", "blue")):
-            rows[name] = colours[:, i]
+        if self.tiles is not None and len(points):
+            self._add_range(tile, len(points), points.min(axis=0), points.max(axis=0))
+        rows = ply_rows(points, colours, normals, self.dtype)
         self._body.write(rows.tobytes())
         self.count += len(rows)
+
+    def append_file(self, part: RowsFile, tile: tuple[int, int] | None = None) -> None:
+        """Append the records of ``part`` (written by :func:`write_rows_file` with this writer's
+        dtype), copied through a small buffer: a process streaming a city holds none of its
+        points. Raises DataFormatError naming the file if its size is not ``part.count`` records."""
+        path = Path(part.path)
+        size = path.stat().st_size
+        if size != part.count * self.dtype.itemsize:
+            raise DataFormatError(path, f"{size} bytes, expected {part.count} records of {self.dtype.itemsize} bytes")
+        if self.tiles is not None and part.count:
+            self._add_range(tile, part.count, np.asarray(part.lo, np.float64), np.asarray(part.hi, np.float64))
+        with open(path, "rb") as rows:
+            shutil.copyfileobj(rows, self._body, 16 << 20)
+        self.count += part.count
 
     def __exit__(self, exc_type, exc, tb) -> None:
         self._body.close()
@@ -136,20 +183,18 @@ class PlyStreamWriter:
         finally:
             self._body_path.unlink(missing_ok=True)
 
-    def _add_range(self, tile, points: np.ndarray) -> None:
+    def _add_range(self, tile, n: int, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Count ``n`` rows with bounds lo, hi (3,) to ``tile``'s range of the index."""
         if tile is None:
             raise ValueError(f"{self.path}: a tiled cloud's rows need their tile")
         tile = (int(tile[0]), int(tile[1]))
-        if not len(points):
-            return
-        lo, hi = points.min(axis=0), points.max(axis=0)
         if self._ranges and self._ranges[-1][0] == tile:
             _, first, count, lo0, hi0 = self._ranges[-1]
-            self._ranges[-1] = (tile, first, count + len(points), np.minimum(lo, lo0), np.maximum(hi, hi0))
+            self._ranges[-1] = (tile, first, count + n, np.minimum(lo, lo0), np.maximum(hi, hi0))
         elif any(r[0] == tile for r in self._ranges):
             raise ValueError(f"{self.path}: the rows of tile {tile} must be appended in one run")
         else:
-            self._ranges.append((tile, self.count, len(points), lo, hi))
+            self._ranges.append((tile, self.count, n, lo, hi))
 
     def _write_index(self, header_bytes: int) -> None:
         write_json(tile_index_path(self.path), {

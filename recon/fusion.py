@@ -24,7 +24,7 @@ import open3d as o3d
 from core.fileio import load_npy, save_npy
 from core.tasks import executor_workers, ordered_results, run_tasks
 
-from .cloud_io import TileGrid
+from .cloud_io import RowsFile, TileGrid, ply_rows, ply_vertex_dtype, write_rows_file
 
 logger = logging.getLogger(__name__)
 
@@ -237,19 +237,24 @@ def _tile_with_context(spill: TileSpill, tile: tuple[int, int], present) -> tupl
     return block, is_own
 
 
-def _finish_tile(task: tuple[TileSpill, tuple[int, int], tuple]):
-    """Filter one tile with context and estimate its normals (runs in a worker). The task carries
-    its neighbours present and reads the camera centres from the spill: a task is the same
-    size whatever the street's length."""
+def _finish_tile(task: tuple[TileSpill, tuple[int, int], tuple]) -> RowsFile:
+    """Filter one tile with context and estimate its normals (runs in a worker); its points go to
+    a file of PLY records under the spill (:data:`MERGED`), not back to the caller. The task
+    carries its neighbours present and reads the camera centres from the spill: a task is the
+    same size whatever the street's length, and so is what it returns."""
     spill, tile, neighbours = task
     cams_rel = load_npy(spill.root / CAMERAS, dtype=np.float64, shape=(None, 3))
     block, is_own = _tile_with_context(spill, tile, set(neighbours))
     p, c, n = _filter_and_normals(block[:, :3], block[:, 3:6], is_own, spill.cfg, cams_rel)
-    return p + spill.origin, np.clip(np.rint(c), 0, 255).astype(np.uint8), n
+    rows = ply_rows(p + spill.origin, np.clip(np.rint(c), 0, 255).astype(np.uint8), n,
+                    ply_vertex_dtype(spill.cfg.normals))
+    return write_rows_file(spill.root / MERGED / f"{tile[0]}_{tile[1]}.rows", rows)
 
 
 #: The camera centres (c, 3) float64 relative to the origin, beside the spilled tiles for the merge's tasks.
 CAMERAS = "cameras.npy"
+#: Where the merge's tasks leave each finished tile's PLY records (until the caller has taken them).
+MERGED = "merged"
 
 
 def _neighbours(tile: tuple[int, int]) -> list[tuple[int, int]]:
@@ -266,12 +271,14 @@ def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
                 sink: Callable[..., None], executor: Executor | None = None) -> int:
     """Finish the fusion tile by tile: reduce, filter with neighbour context,
     estimate normals, and hand each tile's points, in tile order, to
-    ``sink(points (k, 3) float64 world, colours (k, 3) uint8, normals (k, 3) float64 or None,
-    tile=(i, j))`` (the tile's index in :meth:`TileSpill.grid`).
-    camera_centres: (c, 3) float64 world (orients normals). executor: tiles run
-    in parallel (all are reduced before any is filtered, since filtering reads
-    the neighbours), a few ahead of the sink. Returns the points written. Memory per
-    worker is bounded by a 3×3 block of tiles, in this process by the tiles in flight.
+    ``sink(part, tile=(i, j))``: a :class:`~recon.cloud_io.RowsFile` of PLY records
+    (:func:`~recon.cloud_io.ply_vertex_dtype` with the spill's normals setting, world
+    coordinates), deleted once the sink returns (e.g. :meth:`PlyStreamWriter.append_file`), and
+    the tile's index in :meth:`TileSpill.grid`. camera_centres: (c, 3) float64 world (orients
+    normals). executor: tiles run in parallel (all are reduced before any is filtered, since
+    filtering reads the neighbours), a few ahead of the sink. Returns the points written.
+    Memory per worker is bounded by a 3×3 block of tiles; points never pass through this
+    process (a worker writes them, the sink copies the file).
     """
     tiles = spill.tiles()
     present = set(tiles)
@@ -281,18 +288,23 @@ def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
     window = 2 * executor_workers(executor)
     tasks = [(spill, t, tuple(n for n in _neighbours(t) if n in present)) for t in tiles]
     finished = ordered_results(_finish_tile, tasks, executor, window=window, desc="merge", progress=False)
-    for tile, (p, c, n) in zip(tiles, finished):
-        sink(p, c, n, tile=tile)
-        total += len(p)
+    for tile, part in zip(tiles, finished):
+        try:
+            sink(part, tile=tile)
+        finally:
+            Path(part.path).unlink(missing_ok=True)
+        total += part.count
     return total
 
 
 def merge_to_cloud(spill: TileSpill, camera_centres: np.ndarray) -> o3d.geometry.PointCloud:
     """:func:`merge_tiles` into one in-memory Open3D cloud (tests, small scenes)."""
+    dtype = ply_vertex_dtype(spill.cfg.normals)
     parts: list = []
-    merge_tiles(spill, camera_centres, lambda p, c, n, tile: parts.append((p, c, n)))
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate([p for p, _, _ in parts])))
-    pcd.colors = o3d.utility.Vector3dVector(np.concatenate([c for _, c, _ in parts]) / 255.0)
+    merge_tiles(spill, camera_centres, lambda part, tile: parts.append(np.fromfile(part.path, dtype)))
+    rows = np.concatenate(parts) if parts else np.zeros(0, dtype)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.stack([rows[a] for a in "xyz"], 1)))
+    pcd.colors = o3d.utility.Vector3dVector(np.stack([rows[c] for c in ("red", "green", "blue")], 1) / 255.0)
     if spill.cfg.normals:
-        pcd.normals = o3d.utility.Vector3dVector(np.concatenate([n for _, _, n in parts]))
+        pcd.normals = o3d.utility.Vector3dVector(np.stack([rows["n" + a] for a in "xyz"], 1).astype(np.float64))
     return pcd

@@ -321,7 +321,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         centres = np.array([(world_from_rig[f] @ np.linalg.inv(ds.rig.cam_from_rig[0]))[:3, 3] for f in frames])
         cloud_path = work / "cloud.ply"
         with PlyStreamWriter(cloud_path, normals=conf.fusion.normals, tiles=spill.grid) as writer:
-            num_points = merge_tiles(spill, centres, writer.append, executor)
+            num_points = merge_tiles(spill, centres, writer.append_file, executor)
             # the report, written last, marks a finished run: an earlier run's must not describe the new cloud
             (work / "recon_report.json").unlink(missing_ok=True)
         if num_points == 0:

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from core.fileio import DataFormatError
-from recon.cloud_io import PlyStreamWriter, TileGrid, read_cloud_arrays, read_cloud_tiles, tile_index_path
-from recon.fusion import FusionConfig
+from recon.cloud_io import (PlyStreamWriter, TileGrid, ply_rows, ply_vertex_dtype, read_cloud_arrays,
+                            read_cloud_tiles, tile_index_path, write_rows_file)
+from recon.fusion import MERGED, FusionConfig
 from recon.pipeline import ReconConfig, main as recon_main
 
 
@@ -85,6 +86,49 @@ def test_writer_tiles(tmp_path):
             writer.append(b, colours[:5], tile=(1, 1))
             writer.append(a, colours, tile=(0, 0))
     assert not (tmp_path / "d.ply").exists() and not tile_index_path(tmp_path / "d.ply").exists()
+
+
+@pytest.mark.parametrize("normals", [False, True])
+def test_tiles_from_row_files_are_the_tiles_appended_as_arrays(tmp_path, normals):
+    """A worker's file of records appended by the writer gives the same cloud and index, byte for
+    byte, as appending its arrays (the reference); a file of the wrong size is refused by name."""
+    grid = TileGrid((0.0, 0.0, 0.0), 4.0)
+    rng = np.random.default_rng(3)
+    tiles = {(0, 0): rng.uniform(0, 4, (40, 3)), (1, 0): rng.uniform([4, 0, 0], [8, 4, 3], (25, 3)),
+             (2, 0): np.zeros((0, 3))}
+    colours = {t: rng.integers(0, 256, (len(p), 3)).astype(np.uint8) for t, p in tiles.items()}
+    n = {t: rng.normal(size=(len(p), 3)) for t, p in tiles.items()}
+    with PlyStreamWriter(tmp_path / "arrays.ply", normals=normals, tiles=grid) as writer:
+        for t, p in tiles.items():
+            writer.append(p, colours[t], n[t] if normals else None, tile=t)
+    with PlyStreamWriter(tmp_path / "files.ply", normals=normals, tiles=grid) as writer:
+        for t, p in tiles.items():
+            part = write_rows_file(tmp_path / f"{t[0]}_{t[1]}.rows",
+                                   ply_rows(p, colours[t], n[t] if normals else None, writer.dtype))
+            assert part.count == len(p)
+            writer.append_file(part, tile=t)
+    assert (tmp_path / "files.ply").read_bytes() == (tmp_path / "arrays.ply").read_bytes()
+    index = {k: v for k, v in json.loads(tile_index_path(tmp_path / "files.ply").read_text()).items() if k != "cloud"}
+    assert index == {k: v for k, v in json.loads(tile_index_path(tmp_path / "arrays.ply").read_text()).items()
+                     if k != "cloud"}
+    part = write_rows_file(tmp_path / "short.rows", ply_rows(tiles[(0, 0)], colours[(0, 0)], n[(0, 0)],
+                                                            ply_vertex_dtype(normals)))
+    with open(part.path, "r+b") as f:
+        f.truncate(10)
+    with pytest.raises(DataFormatError, match="short.rows"):
+        with PlyStreamWriter(tmp_path / "bad.ply", normals=normals, tiles=grid) as writer:
+            writer.append_file(part, tile=(0, 0))
+    assert not (tmp_path / "bad.ply").exists()
+
+
+def test_the_merge_leaves_no_tile_files(tiny_dataset, tmp_path):
+    """The merge's workers hand over their tiles as files, which are gone with the spill (kept
+    here) once the cloud is written."""
+    work = tmp_path / "work"
+    recon_main(ReconConfig(fusion=FusionConfig(tile_size=8.0), evaluate=False, keep_spill=True), tiny_dataset,
+               work, progress=False)
+    assert (work / "spill" / MERGED).is_dir() and not list((work / "spill" / MERGED).iterdir())
+    assert read_cloud_tiles(work / "cloud.ply").num_points > 0
 
 
 def test_evaluation_tile_by_tile_matches_the_whole_cloud(tiled_work, tiny_dataset, monkeypatch):
