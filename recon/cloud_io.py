@@ -132,7 +132,6 @@ class PlyStreamWriter:
         if self.path.suffix.lower() != ".ply":
             raise ValueError(f"{self.path}: streamed clouds are PLY")
         self.dtype = ply_vertex_dtype(normals)
-        self.normals = normals
         self.count = 0
         self._body = None
 

@@ -216,17 +216,10 @@ class GpuDecoder(GpuOwner):
         ``whole_columns``: draw the whole slit of any facade block in ``visible``, each once per
         frame (:meth:`begin_frame`) — for culling, whose selections are conservative anyway.
         """
-        if self.released:
-            raise RuntimeError("GpuDecoder used after release()")
-        model = self.model
-        visible = check_billboards(visible, model.num_billboards)
         stats = empty_stats()
-        if model.num_billboards == 0 or (visible is not None and len(visible) == 0):
+        plan = self._selection_plan(camera, visible, whole_columns)
+        if plan is None:
             return stats
-        start, count = self._runs(visible, whole_columns)
-        if len(start) == 0:
-            return stats
-        plan = self._plan(camera, start, count)
         stats["decoded_tiles"], stats["upload_bytes"], _ = self._decode(plan.positions, plan.block_direction,
                                                                         plan.block_level)
         self._emit(camera, plan, True, stats)
@@ -237,17 +230,24 @@ class GpuDecoder(GpuOwner):
         ``camera``, at most ``budget`` tiles, drawing nothing (a tile made resident far away is
         decoded over several frames before it is first drawn). Returns (tiles decoded, tiles
         still to decode)."""
+        plan = self._selection_plan(camera, visible, True)
+        if plan is None:
+            return 0, 0
+        decoded, _, pending = self._decode(plan.positions, plan.block_direction, plan.block_level, budget)
+        return decoded, pending
+
+    def _selection_plan(self, camera: GLCamera, visible, whole_columns: bool) -> _Plan | None:
+        """The plan (:meth:`_plan`) of drawing ``visible`` (None, (B,) int or (n,) bool) as runs;
+        None when nothing is selected."""
         if self.released:
             raise RuntimeError("GpuDecoder used after release()")
         visible = check_billboards(visible, self.model.num_billboards)
-        if self.model.num_billboards == 0 or len(visible) == 0:
-            return 0, 0
-        start, count = self._runs(visible, True)
+        if self.model.num_billboards == 0 or (visible is not None and len(visible) == 0):
+            return None
+        start, count = self._runs(visible, whole_columns)
         if len(start) == 0:
-            return 0, 0
-        plan = self._plan(camera, start, count)
-        decoded, _, pending = self._decode(plan.positions, plan.block_direction, plan.block_level, budget)
-        return decoded, pending
+            return None
+        return self._plan(camera, start, count)
 
     def draw_views(self, camera: GLCamera, projections: np.ndarray, rects: np.ndarray, selections) -> dict:
         """Draw several views of ``camera``'s eye into the bound framebuffer in one pass per
