@@ -474,9 +474,18 @@ def test_predecode_leaves_a_draw_only_the_rest(ctx, street):
         assert warmed.warm(camera, 10) == (0, 0)
 
 
-def test_paging_walk_reports_the_frames_that_page(ctx, street_set):
+def test_paging_walk_reports_the_frames_that_page(ctx, street_set, monkeypatch):
     from render.benchmark import paging_walk
+    from render.paging import TileLoader
 
+    request = TileLoader.request
+
+    def request_and_wait(self, i):  # each load done before the next frame, whatever the machine's load
+        queued = request(self, i)
+        self.wait_idle()
+        return queued
+
+    monkeypatch.setattr(TileLoader, "request", request_and_wait)
     poses = _walk([-3.0, 0.0, 2.0], [65.0, 0.0, 2.0], 24)
     paging = PagingConfig(load_radius=10.0, prefetch=12.0, drop_radius=12.0, wait_radius=5.0)
     walk = paging_walk(ctx, street_set, poses, SIZE, paging, K=K)
