@@ -20,10 +20,14 @@ its quads (a dynamic impostor, Schaufler 1995):
   within ``max_angle_deg`` of the one it was made from (view-dependent texture) and the
   distance within 25 %: a far node's image lasts many frames of a drive, a near one's few.
   Images are made at the start of a frame (leaving the frame's framebuffer would make
-  llvmpipe finish it), for nodes drawn far the frame before, at most ``updates_per_frame``,
-  the stalest first, all in one draw (:meth:`~render.gpu_decode.GpuDecoder.draw_views`). A
-  far node whose image is missing or twice past those bounds is drawn in full, so quality
-  never waits on the budget and no frame pays for every node at once.
+  llvmpipe finish it), for nodes drawn far the frame before, all in one draw
+  (:meth:`~render.gpu_decode.GpuDecoder.draw_views`). A far node whose image is missing or
+  twice past those bounds is drawn in full, so quality never waits on the budget and no frame
+  pays for every node at once; such a node costs about as much every frame as making its image
+  once, so these get the larger budget, ``in_full_updates_per_frame`` (nearest first), and
+  images still usable are remade within ``updates_per_frame`` (the stalest first). At the end
+  of a street, turning round brings hundreds of far nodes into view whose images were made from
+  the other side.
 
 The split happens per selection of billboards (:meth:`Impostors.split`), so it works under
 every culling mode: blocks of impostor nodes are replaced by their node's quad.
@@ -57,6 +61,8 @@ ATLAS_WIDTH = 4096  # texels per row of the impostor atlas (at most)
 #: Change of distance an image survives: made twice as fine as the node is on screen, a texel
 #: stays under 0.7 pixels 25 % nearer (and under-sampling 25 % farther is what the quads do).
 MAX_SCALE_CHANGE = 0.25
+#: An image is remade once its age (:meth:`Impostors._age`) passes 1 and drawn until it passes this.
+USABLE_AGE = 2.0
 
 
 def impostor_nodes(model: BillboardModel, node_edge: float) -> tuple[np.ndarray, np.ndarray]:
@@ -161,8 +167,12 @@ class Impostors(GpuOwner):
         candidates = np.flatnonzero(self._far & self._wanted)
         self._wanted[:] = False
         age = self._age(camera, candidates)
-        stale = candidates[age > 1]
-        update = stale[np.argsort(-age[age > 1], kind="stable")[:self.config.updates_per_frame]]  # missing first
+        in_full = candidates[age > USABLE_AGE]
+        in_full = in_full[np.argsort(np.linalg.norm(self.centre[in_full] - camera.eye, axis=1),
+                                     kind="stable")[:self.config.in_full_updates_per_frame]]  # nearest first
+        stale = (age > 1) & (age <= USABLE_AGE)
+        remade = candidates[stale][np.argsort(-age[stale], kind="stable")[:self.config.updates_per_frame]]
+        update = np.concatenate([in_full, remade])
         if len(update):
             self._make(camera, update, draw_views)
         return {"impostor_updates": len(update)}
@@ -272,7 +282,7 @@ class Impostors(GpuOwner):
         bool (:meth:`_age` at most 2: an image is remade at the start of a frame once its age
         passes 1, but only so many per frame)."""
         wanted = np.flatnonzero(self._wanted)
-        return wanted, self._age(camera, wanted) <= 2.0
+        return wanted, self._age(camera, wanted) <= USABLE_AGE
 
     def in_full(self, camera: GLCamera) -> np.ndarray:
         """(B,) int64 billboards of the far nodes selected this frame that :meth:`draw` would draw

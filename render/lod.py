@@ -28,7 +28,10 @@ class ImpostorConfig:
     """Far nodes as impostors (:mod:`render.impostors`). node_edge (m): the octree level used;
     texels: tile side; max_error_px: parallax (pixels) an image survives; max_angle_deg: turn of
     the direction to the eye an image survives (view-dependent texture); updates_per_frame:
-    images made per frame at most; hysteresis: fraction of the switching distance within which
+    images remade per frame at most for nodes whose image is stale but still usable;
+    in_full_updates_per_frame: images made per frame at most for far nodes drawn in full (no
+    image, or one twice past the bounds), which cost about as much every frame as making the
+    image once; hysteresis: fraction of the switching distance within which
     a node keeps its state."""
 
     node_edge: float = 4.0
@@ -36,6 +39,7 @@ class ImpostorConfig:
     max_error_px: float = 1.0
     max_angle_deg: float = 4.0
     updates_per_frame: int = 24
+    in_full_updates_per_frame: int = 96
     hysteresis: float = 0.1
 
     def __post_init__(self):
@@ -49,6 +53,8 @@ class ImpostorConfig:
             raise ValueError(f"max_angle_deg must lie in (0, 30], got {self.max_angle_deg}")
         if self.updates_per_frame < 0:
             raise ValueError(f"updates_per_frame must be ≥ 0, got {self.updates_per_frame}")
+        if self.in_full_updates_per_frame < 0:
+            raise ValueError(f"in_full_updates_per_frame must be ≥ 0, got {self.in_full_updates_per_frame}")
         if not 0 <= self.hysteresis < 1:
             raise ValueError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
 

@@ -50,6 +50,12 @@ logger = logging.getLogger(__name__)
 WAIT_MODES = ("auto", "none", "near", "all")
 
 
+def _share(total: int, parts: int, k: int) -> int:
+    """Part ``k`` of ``total`` split as evenly as possible among ``parts``, the first ones larger."""
+    share, extra = divmod(total, parts)
+    return share + (k < extra)
+
+
 def as_model_set(source) -> tuple[ModelSet, dict[int, BillboardModel]]:
     """(set, tiles already in memory) of ``source``: a :class:`ModelSet` (nothing in memory) or a
     :class:`BillboardModel` (a set of one tile, that model)."""
@@ -398,17 +404,18 @@ class TiledRenderer:
         return np.array([i for i in tiles if int(i) not in self.warming], np.int64)
 
     def _share_impostor_updates(self, tiles: np.ndarray) -> None:
-        """Share the frame's impostor images (``ImpostorConfig.updates_per_frame``) among the tiles
-        drawn, nearest first, as one model's renderer would make them: one tile does not make its
-        own quota while the rest of the frame waits."""
-        if self.lod is None or self.lod.impostors is None or len(tiles) == 0:
+        """Share the frame's impostor images (``ImpostorConfig.updates_per_frame`` and
+        ``in_full_updates_per_frame``) among the tiles drawn, nearest first, as one model's renderer
+        would make them: one tile does not make its own quota while the rest of the frame waits."""
+        config = None if self.lod is None else self.lod.impostors
+        if config is None or len(tiles) == 0:
             return
-        total = self.lod.impostors.updates_per_frame
-        share, extra = divmod(total, len(tiles))
         for k, i in enumerate(tiles):
             imp = self.resident[int(i)].renderer.impostors
             if imp is not None:
-                imp.config = dataclasses.replace(self.lod.impostors, updates_per_frame=share + (k < extra))
+                imp.config = dataclasses.replace(
+                    config, updates_per_frame=_share(config.updates_per_frame, len(tiles), k),
+                    in_full_updates_per_frame=_share(config.in_full_updates_per_frame, len(tiles), k))
 
     def render(self, K, world_from_cam, size, wait: str = "auto") -> np.ndarray:
         """(h, w, 3) uint8 image of the set from the OpenCV camera K (3, 3), world_from_cam (4, 4)

@@ -46,7 +46,7 @@ def test_impostors_look_like_the_quads_and_replace_them(ctx, long_street, cull):
     K = intrinsics(200.0, *SIZE)
     eye = model.origin + [1.0, 0.0, 1.6]
     poses = [look_at(eye + [0.05 * i, 0.0, 0.0], eye + [60.0, 0.0, 1.0]) for i in range(4)]
-    lod = LodConfig(impostors=ImpostorConfig(texels=32, updates_per_frame=1000))
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, updates_per_frame=1000, in_full_updates_per_frame=1000))
     with BillboardRenderer(ctx, model, "gpu", background=SKY, cull=cull, lod=lod) as fast, \
             BillboardRenderer(ctx, model, "gpu", background=SKY, cull=cull, lod=LodConfig(impostors=None)) as full:
         first = fast.render(K, poses[0], SIZE)
@@ -65,7 +65,7 @@ def test_an_image_is_remade_once_the_view_turns_past_the_angle(ctx, long_street)
     model = long_street
     K = intrinsics(200.0, *SIZE)
     eye = model.origin + [1.0, 0.0, 1.6]
-    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_angle_deg=1.0, updates_per_frame=1000))
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_angle_deg=1.0, updates_per_frame=1000, in_full_updates_per_frame=1000))
     with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
         for step in range(2):
             renderer.render(K, look_at(eye, eye + [60.0, 0.0, 1.0]), SIZE)
@@ -77,9 +77,46 @@ def test_an_image_is_remade_once_the_view_turns_past_the_angle(ctx, long_street)
         assert renderer.stats["impostor_updates"] > 0
 
 
+def test_nodes_drawn_in_full_and_stale_images_have_their_own_quotas(ctx, long_street):
+    """Far nodes drawn in full (no image yet) get images from ``in_full_updates_per_frame``,
+    nearest first; images stale but still usable are remade within ``updates_per_frame``, so a
+    backlog of nodes in full does not wait behind remakes, nor remakes behind it."""
+    import dataclasses
+
+    model = long_street
+    K = intrinsics(200.0, *SIZE)
+    eye = model.origin + [1.0, 0.0, 1.6]
+    pose = look_at(eye, eye + [60.0, 0.0, 1.0])
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_angle_deg=1.0, updates_per_frame=0,
+                                             in_full_updates_per_frame=5))
+    with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
+        renderer.render(K, pose, SIZE)  # far nodes chosen; no image yet
+        imp = renderer.impostors
+        far = int(renderer.stats["nodes_in_full"])
+        assert far > 15
+        distance = np.linalg.norm(imp.centre - renderer.camera(K, pose, SIZE).eye, axis=1)
+        for frame in (1, 2):
+            renderer.render(K, pose, SIZE)
+            made = np.flatnonzero(imp._made_dist > 0)
+            assert renderer.stats["impostor_updates"] == 5 and len(made) == 5 * frame
+            assert renderer.stats["nodes_in_full"] == far - 5 * frame
+            waiting = np.flatnonzero(imp._wanted & (imp._made_dist == 0))
+            assert distance[made].max() <= distance[waiting].min()  # nearest first
+        imp.config = dataclasses.replace(imp.config, updates_per_frame=3, in_full_updates_per_frame=0)
+        moved = eye + [0.0, 1.0, 0.0]
+        camera = renderer.camera(K, look_at(moved, moved + [60.0, 0.0, 1.0]), SIZE)
+        age = imp._age(camera, made)
+        assert np.any((age > 1) & (age <= 2))  # some images stale but usable
+        before = imp._made_dist.copy()
+        renderer.render(K, look_at(moved, moved + [60.0, 0.0, 1.0]), SIZE)
+        remade = np.flatnonzero(imp._made_dist != before)
+        assert 0 < renderer.stats["impostor_updates"] == len(remade) <= 3
+        assert set(remade) <= set(made[(age > 1) & (age <= 2)])  # no node in full got an image
+
+
 def test_impostor_config_is_validated():
     for bad in (dict(node_edge=0.0), dict(texels=4), dict(max_angle_deg=0.0), dict(updates_per_frame=-1),
-                dict(max_error_px=0.0), dict(max_error_px=float("nan")),
+                dict(in_full_updates_per_frame=-1), dict(max_error_px=0.0), dict(max_error_px=float("nan")),
                 dict(hysteresis=1.0)):
         with pytest.raises(ValueError):
             ImpostorConfig(**bad)
@@ -90,7 +127,7 @@ def test_changing_the_decode_settings_drops_the_images(ctx, long_street):
     K = intrinsics(200.0, *SIZE)
     eye = model.origin + [1.0, 0.0, 1.6]
     pose = look_at(eye, eye + [60.0, 0.0, 1.0])
-    lod = LodConfig(impostors=ImpostorConfig(texels=32, updates_per_frame=1000))
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, updates_per_frame=1000, in_full_updates_per_frame=1000))
     with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
         for _ in range(2):
             renderer.render(K, pose, SIZE)
@@ -110,7 +147,7 @@ def test_image_age_is_the_parallax_on_screen(ctx, long_street):
     model = long_street
     K = intrinsics(200.0, *SIZE)
     eye = model.origin + [1.0, 0.0, 1.6]
-    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_error_px=1.0, max_angle_deg=30.0, updates_per_frame=1000))
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_error_px=1.0, max_angle_deg=30.0, updates_per_frame=1000, in_full_updates_per_frame=1000))
     with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
         pose = look_at(eye, eye + [60.0, 0.0, 1.0])
         for _ in range(2):

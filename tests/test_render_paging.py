@@ -383,9 +383,10 @@ def test_impostor_images_are_shared_among_the_tiles_drawn(ctx, street_set):
     lod = LodConfig()
     with TiledRenderer(ctx, street_set, "gpu", lod=lod) as tiled:
         tiled.render(K, views()[0], SIZE, wait="all")
-        drawn = [r.renderer.impostors.config.updates_per_frame for r in tiled.resident.values()]
-        assert tiled.stats["tiles_drawn"] == len(drawn) >= 2
-        assert sum(drawn) == lod.impostors.updates_per_frame and max(drawn) - min(drawn) <= 1
+        for quota in ("updates_per_frame", "in_full_updates_per_frame"):
+            drawn = [getattr(r.renderer.impostors.config, quota) for r in tiled.resident.values()]
+            assert tiled.stats["tiles_drawn"] == len(drawn) >= 2
+            assert sum(drawn) == getattr(lod.impostors, quota) and max(drawn) - min(drawn) <= 1
 
 
 def test_program_cache_compiles_once_per_file_and_defines(ctx):
