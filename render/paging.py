@@ -76,6 +76,8 @@ class PagingConfig:
     loads_in_flight: int = 2  # tiles queued on the background loader at a time
     warm_tiles_per_frame: int = 2048  # texture tiles a frame decodes for tiles not drawn yet (0: no warm-up)
     warm_frames: int = 30  # a tile warms at most this many frames before it is drawn
+    frame_ms: float | None = 80.0  # page only while the frame is expected to stay under this (None: always)
+    max_deferred_frames: int = 8  # … but after this many frames in a row without paging, page anyway
 
     def __post_init__(self):
         if self.gpu_budget is not None and (isinstance(self.gpu_budget, bool) or int(self.gpu_budget) != self.gpu_budget
@@ -92,6 +94,10 @@ class PagingConfig:
         if self.warm_tiles_per_frame < 0 or self.warm_frames < 1:
             raise ValueError(f"warm_tiles_per_frame must be ≥ 0 and warm_frames ≥ 1, got "
                              f"{self.warm_tiles_per_frame}, {self.warm_frames}")
+        if self.frame_ms is not None and not (isinstance(self.frame_ms, (int, float)) and self.frame_ms > 0):
+            raise ValueError(f"frame_ms must be a positive number of milliseconds or None, got {self.frame_ms!r}")
+        if self.max_deferred_frames < 0:
+            raise ValueError(f"max_deferred_frames must be ≥ 0, got {self.max_deferred_frames}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -282,6 +288,77 @@ class Motion:
         f[2] = 0.0
         n = float(np.linalg.norm(f))
         return f / n if n > 1e-9 else np.zeros(3)
+
+
+class FrameBudget:
+    """How much paging work (uploads beyond those a frame waits for, warm-up decoding) a frame
+    may do within ``PagingConfig.frame_ms``: the frame is expected to take as long to draw as the
+    last one did, and each kind of work as long as it took before (averaged), so work goes to
+    frames with room to spare. A frame that had to skip work counts as deferred; after
+    ``max_deferred_frames`` such frames in a row the next one does its work regardless, so paging
+    never starves when every frame is slow. Pure bookkeeping, no GL: times in seconds."""
+
+    SMOOTHING = 0.5  # weight of the older average in each update
+
+    def __init__(self, config: PagingConfig):
+        self.frame_s = None if config.frame_ms is None else config.frame_ms / 1000.0
+        self.max_deferred = config.max_deferred_frames
+        self.draw_s = 0.0  # the last frame's drawing, paging excluded
+        self.upload_s: float | None = None  # one upload (average); None: none measured yet
+        self.warm_tile_s: float | None = None  # one texture tile of warm-up (average)
+        self.deferred = 0  # frames in a row that skipped paging work
+        self._spent = 0.0
+        self._skipped = False
+
+    def begin_frame(self) -> None:
+        self._spent = 0.0
+        self._skipped = False
+
+    @property
+    def forced(self) -> bool:
+        """Whether this frame pages whatever it costs (no budget, or deferred long enough)."""
+        return self.frame_s is None or self.deferred >= self.max_deferred
+
+    def left(self) -> float:
+        """Seconds this frame may still spend paging (inf when forced)."""
+        if self.forced:
+            return math.inf
+        return self.frame_s - self.draw_s - self._spent
+
+    def allow_upload(self) -> bool:
+        """Whether an upload fits the frame (one not measured yet always does); a refusal counts."""
+        ok = self.upload_s is None or self.upload_s <= self.left()
+        self._skipped |= not ok
+        return ok
+
+    def warm_tiles(self, most: int) -> int:
+        """Texture tiles of warm-up the frame has room for, at most ``most`` (none where room is
+        left for less than an eighth of that: a warm-up step plans the tile's view whatever it
+        decodes); fewer than asked counts as a refusal."""
+        if most <= 0:
+            return 0
+        left = self.left()
+        tiles = most if self.warm_tile_s is None or math.isinf(left) else int(min(most, max(left, 0.0) / self.warm_tile_s))
+        if tiles < most // 8:
+            tiles = 0
+        self._skipped |= tiles < most
+        return tiles
+
+    def spent(self, seconds: float, uploads: int = 0, warm_tiles: int = 0) -> None:
+        """Record paging work done this frame and update the averages."""
+        self._spent += seconds
+        if uploads:
+            self.upload_s = self._average(self.upload_s, seconds / uploads)
+        if warm_tiles:
+            self.warm_tile_s = self._average(self.warm_tile_s, seconds / warm_tiles)
+
+    def end_frame(self, draw_s: float) -> None:
+        """The frame's drawing time (paging excluded); a frame that skipped work counts as deferred."""
+        self.draw_s = float(draw_s)
+        self.deferred = self.deferred + 1 if self._skipped else 0
+
+    def _average(self, old: float | None, new: float) -> float:
+        return new if old is None else self.SMOOTHING * old + (1 - self.SMOOTHING) * new
 
 
 # ----------------------------------------------------------------------------------------------

@@ -39,7 +39,7 @@ from billboards.model_set import ModelSet, ModelTile, quad_bounds
 from .camera import ClipPlanes, gl_camera
 from .context import max_texture_size
 from .culling import CULL_MODES, boxes_outside, frustum_planes
-from .paging import Motion, PagingConfig, TileLoader, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
+from .paging import FrameBudget, Motion, PagingConfig, TileLoader, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
 from .program import ProgramCache
 from .renderer import DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
@@ -176,6 +176,7 @@ class TiledRenderer:
         self._paging_stats: dict = {}
         self._released = False
         self.motion = Motion()
+        self.budget = FrameBudget(paging)
         self.targets = OffscreenTargets(ctx)
         self.programs = ProgramCache(ctx)  # the tiles' renderers compile once, not on each upload
         self.sky_pass: SkyPass | None = None
@@ -290,6 +291,7 @@ class TiledRenderer:
         if wait == "auto":
             wait = "near" if self.frames == 0 else "none"
         self._frame_uploads = self._frame_releases = 0
+        self.budget.begin_frame()
         cfg = self.paging
         t0 = time.perf_counter()
         camera = gl_camera(K, world_from_cam, size, self.origin, self.clip)
@@ -318,6 +320,7 @@ class TiledRenderer:
             if i not in self.resident and i not in self._too_big:
                 self._upload(i, rank, protected, sync=True)
         wait_s = time.perf_counter() - t1
+        waited = self._frame_uploads
         budget_bytes = 0
         t2 = time.perf_counter()
         for i in (int(j) for j in order):
@@ -332,11 +335,14 @@ class TiledRenderer:
                 continue
             if budget_bytes > 0 and budget_bytes + tile.bound > cfg.upload_bytes_per_frame:
                 break
+            if not self.budget.allow_upload():
+                break  # no room in this frame's time: a later frame uploads it
             bound = self._upload(i, rank, protected, sync=False)
             if bound is None:
                 break  # no room for the most important tile left: the rest wait
             budget_bytes += bound
         upload_s = time.perf_counter() - t2
+        self.budget.spent(upload_s, uploads=self._frame_uploads - waited)
         for i in (int(j) for j in order):
             if not wanted[i] or self.loader.in_flight >= cfg.loads_in_flight:
                 break
@@ -376,6 +382,7 @@ class TiledRenderer:
         for i in tiles:
             self._measure(int(i))  # instance buffers grow with what is drawn
         totals["draw_s"] = time.perf_counter() - t2
+        self.budget.end_frame(totals["draw_s"])
         totals.update(warm_s=t2 - t1, warm_decoded_tiles=self.warm_decoded)
         used, reserved = self.gpu_bytes(), self.gpu_reserved()
         self.peak_bytes = max(self.peak_bytes, used)
@@ -392,15 +399,21 @@ class TiledRenderer:
         """Warm the visible ``warming`` tiles (nearest first) within the frame's decode budget; of
         ``tiles`` (nearest first), those to draw: every tile not warming, and those whose warm-up
         left nothing to decode or ran ``warm_frames`` frames."""
-        budget = self.paging.warm_tiles_per_frame
         self.warm_decoded = 0
+        if not warming:
+            return tiles
+        t0 = time.perf_counter()
+        budget = self.budget.warm_tiles(self.paging.warm_tiles_per_frame)
         for i in warming:
+            if self.warm_decoded >= budget:
+                break  # the frame's budget is spent: the rest warm in later frames
             r = self.resident[i].renderer
             decoded, left = r.warm(r.camera(K, world_from_cam, size), budget - self.warm_decoded)
             self.warm_decoded += decoded
             self.warming[i] += 1
             if left == 0 or self.warming[i] >= self.paging.warm_frames:
                 del self.warming[i]
+        self.budget.spent(time.perf_counter() - t0, warm_tiles=self.warm_decoded)
         return np.array([i for i in tiles if int(i) not in self.warming], np.int64)
 
     def _share_impostor_updates(self, tiles: np.ndarray) -> None:

@@ -15,7 +15,7 @@ from billboards.sky import Sky
 from render.camera import ClipPlanes, look_at
 from render.context import max_texture_size
 from render.lod import LodConfig
-from render.paging import (PagingConfig, renderer_gpu_bytes, tile_gpu_bound, tile_priorities)
+from render.paging import FrameBudget, PagingConfig, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
 from render.renderer import BillboardRenderer
 from render.sky import SkyPass, render_over_sky
 from render.target import OffscreenTargets
@@ -454,6 +454,65 @@ def test_far_tiles_warm_before_they_are_drawn(ctx, street_set):
         near = look_at(WORLD + [37.0, 0.0, 2.0], WORLD + [42.0, 0.5, 2.0])  # inside tile 2
         tiled.render(K, near, SIZE)
         assert 2 not in tiled.warming and tiled.stats["tiles_drawn"] >= 1
+
+
+def test_the_frame_budget_gives_paging_the_time_a_frame_has_left():
+    """Uploads and warm-up go to frames expected to stay under ``frame_ms`` (the last frame's
+    drawing plus each kind of work's measured cost); a frame that skips work is deferred, and
+    after ``max_deferred_frames`` in a row the next pages whatever it costs. No budget: always."""
+    free = FrameBudget(PagingConfig(frame_ms=None))
+    free.begin_frame()
+    free.end_frame(10.0)
+    free.spent(1.0, uploads=1, warm_tiles=10)
+    assert free.forced and free.allow_upload() and free.warm_tiles(2048) == 2048
+
+    budget = FrameBudget(PagingConfig(frame_ms=80.0, max_deferred_frames=2))
+    budget.begin_frame()
+    assert budget.allow_upload() and budget.warm_tiles(2048) == 2048  # nothing measured yet
+    budget.spent(0.010, uploads=1)
+    budget.spent(0.020, warm_tiles=2000)  # 10 µs a texture tile
+    budget.end_frame(0.060)
+    assert budget.deferred == 0 and budget.upload_s == pytest.approx(0.010)
+    budget.begin_frame()  # 20 ms left: an upload fits, then 10 ms of warm-up
+    assert budget.left() == pytest.approx(0.020)
+    assert budget.allow_upload()
+    budget.spent(0.010, uploads=1)
+    assert budget.warm_tiles(2048) == 1000
+    budget.spent(0.010, warm_tiles=1000)
+    budget.end_frame(0.060)
+    assert budget.deferred == 1  # fewer warm tiles than asked
+    budget.begin_frame()
+    assert budget.warm_tiles(2048) == 2000
+    budget.end_frame(0.079)
+    assert budget.deferred == 2
+    budget.begin_frame()  # deferred twice: this one pages regardless
+    assert budget.forced and budget.allow_upload() and budget.warm_tiles(2048) == 2048
+    budget.end_frame(0.079)
+    assert budget.deferred == 0
+    budget.begin_frame()  # 1 ms left: no upload, and no warm-up step for less than 1/8 of the budget
+    assert not budget.allow_upload() and budget.warm_tiles(2048) == 0
+    for bad in (dict(frame_ms=0.0), dict(frame_ms=-5.0), dict(max_deferred_frames=-1)):
+        with pytest.raises(ValueError):
+            PagingConfig(**bad)
+
+
+def test_paging_waits_for_frames_with_time_left(ctx, street_set):
+    """With no time left in any frame, a tiled renderer pages once every ``max_deferred_frames + 1``
+    frames (the first upload is free: its cost is not known yet), and still pages the whole walk."""
+    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, frame_ms=1e-6, max_deferred_frames=2,
+                          warm_tiles_per_frame=256)
+    pose = views()[0]
+    paged = []
+    with TiledRenderer(ctx, street_set, "gpu", background=BG, paging=paging) as tiled:
+        for frame in range(60):
+            tiled.loader.wait_idle()
+            tiled.render(K, pose, SIZE)
+            s = tiled.stats
+            paged.append(bool(s["uploads"] or s["warm_decoded_tiles"]))
+        assert s["tiles_resident"] == len(street_set) and s["tiles_warming"] == 0
+    frames = np.flatnonzero(paged[1:]) + 1
+    assert len(frames) >= len(street_set)
+    assert np.all(np.diff(frames[1:]) >= 3)  # after the first upload, every third frame at most
 
 
 def test_predecode_leaves_a_draw_only_the_rest(ctx, street):
