@@ -67,14 +67,20 @@ def check_intrinsics(K) -> np.ndarray:
     return K
 
 
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+_I3 = np.eye(3)
+
+
 def check_pose(world_from_cam) -> np.ndarray:
     """world_from_cam as (4, 4) float64 after checking it is a finite rigid transform."""
     T = np.asarray(world_from_cam, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"world_from_cam must be a finite (4, 4) matrix, got shape {T.shape}")
     R = T[:3, :3]
-    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) \
-            or np.linalg.det(R) <= 0:
+    # np.allclose (rtol 1e-5; atol 1e-8, and 1e-6 for RᵀR) written out: this runs for every tile
+    # of every frame, and allclose's own checks cost more than the test
+    if np.any(np.abs(T[3] - _LAST_ROW) > 1e-8 + 1e-5 * _LAST_ROW) \
+            or np.any(np.abs(R.T @ R - _I3) > 1e-6 + 1e-5 * _I3) or np.linalg.det(R) <= 0:
         raise ValueError("world_from_cam must be a rigid transform (rotation + translation)")
     return T
 
@@ -136,6 +142,16 @@ def gl_camera(K, world_from_cam, size, origin, clip: ClipPlanes = ClipPlanes()) 
     eye = T[:3, 3] - np.asarray(origin, dtype=np.float64).reshape(3)
     return GLCamera(projection=projection_from_K(K, size, clip.near, clip.far), view=_view(T, eye), eye=eye,
                     size=size)
+
+
+def camera_at_origin(camera: GLCamera, world_from_cam, origin) -> GLCamera:
+    """``camera`` (made by :func:`gl_camera` from ``world_from_cam``, the pose checked then) for a
+    model at ``origin`` (3,) float64: the same projection, the view built in float64 from the
+    camera centre minus ``origin`` as :func:`gl_camera` builds it. A tiled model draws each tile
+    with one."""
+    T = np.asarray(world_from_cam, dtype=np.float64)
+    eye = T[:3, 3] - np.asarray(origin, dtype=np.float64).reshape(3)
+    return GLCamera(projection=camera.projection, view=_view(T, eye), eye=eye, size=camera.size)
 
 
 def gl_bytes(matrix: np.ndarray) -> bytes:

@@ -280,7 +280,7 @@ class GpuDecoder(GpuOwner):
         centre = 0.5 * (model.centres[top].astype(np.float64) + model.centres[bottom])
         direction, weight = view_brackets(camera.eye, centre, model.base_yaw[top], model.yaw_offsets,
                                           model.pitches, self.interpolate)
-        firsts = np.cumsum(np.r_[0, count[:-1]])
+        firsts = np.cumsum(count) - count
         positions = np.repeat(start - firsts, count) + np.arange(int(count.sum()))
         kind = model.kind[top]
         edge = np.where(kind == 0, model.voxel_size, model.block_size)

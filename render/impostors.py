@@ -310,29 +310,30 @@ class Impostors(GpuOwner):
         # at least 2 texels and at most the tile
         extent = np.clip(np.ceil((rects[:, 1] - rects[:, 0]) * np.asarray(camera.size)), 2, t)
         self._extent[nodes] = extent
-        tiles = np.c_[self._origin[nodes], self._origin[nodes] + extent].astype(np.float64)  # (U, 4) pixels
-        projections = np.empty((len(nodes), 4, 4))
-        for i, (node, (lo, hi)) in enumerate(zip(nodes.tolist(), rects)):
-            # the plane through the box's centre facing the eye, cut to the box's screen rectangle
-            c = self.centre[node]
-            normal = (eye - c) / np.linalg.norm(eye - c)
-            ndc = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
-            far = np.c_[ndc, np.ones(4), np.ones(4)] @ inverse.T
-            far = far[:, :3] / far[:, 3:]
-            ray = far - eye
-            self._corners[node] = (eye + ray * (np.dot(c - eye, normal) / (ray @ normal))[:, None]).astype(np.float32)
-            size = np.maximum(hi - lo, 1e-9)
-            crop = np.eye(4)  # the rectangle → the whole of NDC
-            crop[0, 0], crop[1, 1] = 2 / size[0], 2 / size[1]
-            crop[0, 3], crop[1, 3] = -(hi[0] + lo[0]) / size[0], -(hi[1] + lo[1]) / size[1]
-            self._image_from_model[node] = (crop @ proj @ view)[[0, 1, 3]].astype(np.float32)
-            x0, y0, x1, y1 = tiles[i]
-            place = np.eye(4)  # the whole of NDC → the tile's part of the atlas
-            place[0, 0], place[1, 1] = (x1 - x0) / width, (y1 - y0) / height
-            place[0, 3], place[1, 3] = (x0 + x1) / width - 1, (y0 + y1) / height - 1
-            projections[i] = place @ crop @ proj
-            self._made_dir[node] = normal
-            self._made_dist[node] = float(np.linalg.norm(eye - c))
+        tiles = np.concatenate([self._origin[nodes], self._origin[nodes] + extent], axis=1).astype(np.float64)  # (U, 4) px
+        # the plane through each box's centre facing the eye, cut to the box's screen rectangle
+        centre = self.centre[nodes]
+        to_eye = eye - centre
+        distance = np.linalg.norm(to_eye, axis=1)
+        normal = to_eye / distance[:, None]
+        lo, hi = rects[:, 0], rects[:, 1]
+        ndc = np.stack([lo, np.stack([hi[:, 0], lo[:, 1]], 1), np.stack([lo[:, 0], hi[:, 1]], 1), hi], 1)  # (U, 4, 2)
+        far = np.concatenate([ndc, np.ones(ndc.shape)], axis=2) @ inverse.T  # (U, 4, 4): on the far plane
+        ray = far[..., :3] / far[..., 3:] - eye
+        along = np.einsum("uj,uj->u", -to_eye, normal)[:, None] / np.einsum("ukj,uj->uk", ray, normal)
+        self._corners[nodes] = (eye + ray * along[..., None]).astype(np.float32)
+        size = np.maximum(hi - lo, 1e-9)
+        crop = np.tile(np.eye(4), (len(nodes), 1, 1))  # each rectangle → the whole of NDC
+        crop[:, 0, 0], crop[:, 1, 1] = 2 / size[:, 0], 2 / size[:, 1]
+        crop[:, 0, 3], crop[:, 1, 3] = -(hi[:, 0] + lo[:, 0]) / size[:, 0], -(hi[:, 1] + lo[:, 1]) / size[:, 1]
+        self._image_from_model[nodes] = (crop @ (proj @ view))[:, [0, 1, 3]].astype(np.float32)
+        x0, y0, x1, y1 = tiles.T
+        place = np.tile(np.eye(4), (len(nodes), 1, 1))  # the whole of NDC → each tile's part of the atlas
+        place[:, 0, 0], place[:, 1, 1] = (x1 - x0) / width, (y1 - y0) / height
+        place[:, 0, 3], place[:, 1, 3] = (x0 + x1) / width - 1, (y0 + y1) / height - 1
+        projections = place @ crop @ proj
+        self._made_dir[nodes] = normal
+        self._made_dist[nodes] = distance
         target = self.ctx.fbo
         self.fbo.use()
         self.fbo.viewport = (0, 0, width, height)
@@ -341,14 +342,14 @@ class Impostors(GpuOwner):
         self.ctx.depth_func = "1"  # always: the far plane overwrites the old depth
         self.clear_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(nodes))
         self.ctx.depth_func = "<"
-        draw_views(camera, projections, tiles, [self._billboards([node]) for node in nodes.tolist()])
+        draw_views(camera, projections, tiles, [np.arange(*self._range[node]) for node in nodes.tolist()])
         target.use()
 
     def _billboards(self, nodes) -> np.ndarray:
         """(B,) int64 billboards of ``nodes`` (a node's billboards are one range of the octree order)."""
         ranges = self._range[np.asarray(nodes, np.int64)]
         lengths = ranges[:, 1] - ranges[:, 0]
-        return np.repeat(ranges[:, 0] - np.cumsum(np.r_[0, lengths[:-1]]), lengths) + np.arange(int(lengths.sum()))
+        return np.repeat(ranges[:, 0] - (np.cumsum(lengths) - lengths), lengths) + np.arange(int(lengths.sum()))
 
     def release(self) -> None:
         """Free the atlas, its framebuffer, the program and the stream (idempotent)."""

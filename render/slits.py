@@ -115,7 +115,7 @@ def exact_runs(slits: Slits, billboards: np.ndarray) -> tuple[np.ndarray, np.nda
     starts = np.ones(len(pos), bool)
     starts[1:] = (np.diff(pos) != 1) | (slits.column[pos[1:]] != slits.column[pos[:-1]])
     first = np.flatnonzero(starts)
-    return pos[first], np.diff(np.r_[first, len(pos)])
+    return pos[first], np.diff(first, append=len(pos))
 
 
 def exact_runs_reference(slits: Slits, billboards) -> tuple[np.ndarray, np.ndarray]:

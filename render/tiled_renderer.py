@@ -36,7 +36,7 @@ import numpy as np
 from billboards.model import BillboardModel
 from billboards.model_set import ModelSet, ModelTile, quad_bounds
 
-from .camera import ClipPlanes, gl_camera
+from .camera import ClipPlanes, camera_at_origin, gl_camera
 from .context import max_texture_size
 from .culling import CULL_MODES, boxes_outside, frustum_planes
 from .paging import FrameBudget, Motion, PagingConfig, TileLoader, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
@@ -177,6 +177,7 @@ class TiledRenderer:
         self._released = False
         self.motion = Motion()
         self.budget = FrameBudget(paging)
+        self._camera = None  # the frame's camera for the set's origin (prepare)
         self.targets = OffscreenTargets(ctx)
         self.programs = ProgramCache(ctx)  # the tiles' renderers compile once, not on each upload
         self.sky_pass: SkyPass | None = None
@@ -294,7 +295,7 @@ class TiledRenderer:
         self.budget.begin_frame()
         cfg = self.paging
         t0 = time.perf_counter()
-        camera = gl_camera(K, world_from_cam, size, self.origin, self.clip)
+        camera = self._camera = gl_camera(K, world_from_cam, size, self.origin, self.clip)
         view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
         visible = ~boxes_outside(frustum_planes(view_proj), self.lo - self.origin, self.hi - self.origin)
         pose = np.asarray(world_from_cam, np.float64)
@@ -373,12 +374,12 @@ class TiledRenderer:
         totals: dict = {}
         t1 = time.perf_counter()
         self._share_impostor_updates(tiles)
-        tiles = self._warm([int(i) for i in tiles if int(i) in self.warming], K, world_from_cam, size, tiles)
+        tiles = self._warm([int(i) for i in tiles if int(i) in self.warming], world_from_cam, tiles)
         self._paging_stats.update(tiles_drawn=len(tiles), tiles_warming=len(self.warming))
         t2 = time.perf_counter()
         for i in tiles:
             r = self.resident[int(i)].renderer
-            merge_stats(totals, r.draw(r.camera(K, world_from_cam, size)))
+            merge_stats(totals, r.draw(camera_at_origin(self._camera, world_from_cam, r.model.origin)))
         for i in tiles:
             self._measure(int(i))  # instance buffers grow with what is drawn
         totals["draw_s"] = time.perf_counter() - t2
@@ -395,7 +396,7 @@ class TiledRenderer:
         self.stats = totals
         return totals
 
-    def _warm(self, warming: list[int], K, world_from_cam, size, tiles: np.ndarray) -> np.ndarray:
+    def _warm(self, warming: list[int], world_from_cam, tiles: np.ndarray) -> np.ndarray:
         """Warm the visible ``warming`` tiles (nearest first) within the frame's decode budget; of
         ``tiles`` (nearest first), those to draw: every tile not warming, and those whose warm-up
         left nothing to decode or ran ``warm_frames`` frames."""
@@ -408,7 +409,8 @@ class TiledRenderer:
             if self.warm_decoded >= budget:
                 break  # the frame's budget is spent: the rest warm in later frames
             r = self.resident[i].renderer
-            decoded, left = r.warm(r.camera(K, world_from_cam, size), budget - self.warm_decoded)
+            decoded, left = r.warm(camera_at_origin(self._camera, world_from_cam, r.model.origin),
+                                   budget - self.warm_decoded)
             self.warm_decoded += decoded
             self.warming[i] += 1
             if left == 0 or self.warming[i] >= self.paging.warm_frames:

@@ -10,7 +10,7 @@ import pytest
 from billboards.atlas import pack_rows, pack_tiles
 from billboards.decode import decode, direction_index
 from billboards.model import BillboardModel
-from render.camera import gl_camera, look_at, project_cv, project_gl, projection_from_K
+from render.camera import camera_at_origin, gl_camera, look_at, project_cv, project_gl, projection_from_K
 from render.context import describe, max_texture_size
 from render.offscreen import clear_cache, render_view, renderer_for
 from render.renderer import BillboardRenderer
@@ -123,6 +123,17 @@ def test_gl_matrices_project_like_K(origin, skew):
     assert np.all(np.abs(ndc_z) < 1) and np.all(np.diff(ndc_z[np.argsort(depth)]) >= 0)
     P = projection_from_K(K, (w, h))
     assert P[3, 2] == -1 and P.dtype == np.float32
+
+
+def test_a_camera_moved_to_another_origin_is_the_camera_made_there():
+    K = np.array([[500.0, 0.0, 301.3], [0, 520.0, 205.8], [0, 0, 1]])
+    eye = np.asarray(BIG_ORIGIN) + [12.3, -4.5, 2.0]
+    pose = look_at(eye, eye + [0.3, 1.0, -0.1])
+    base = gl_camera(K, pose, (640, 480), BIG_ORIGIN)
+    for origin in (np.asarray(BIG_ORIGIN) + [48.0, -16.0, 0.0], (0.0, 0.0, 0.0)):
+        want, got = gl_camera(K, pose, (640, 480), origin), camera_at_origin(base, pose, origin)
+        assert got.size == want.size and np.array_equal(got.eye, want.eye)
+        assert np.array_equal(got.view, want.view) and np.array_equal(got.projection, want.projection)
 
 
 def test_invalid_camera_inputs():
