@@ -76,7 +76,7 @@ def mean_counts(stats: list[dict]) -> dict:
 
 #: Frames rendered on the way to a view before it is timed or compared: a walkthrough's steady state
 #: (the decoded atlas holds the brackets around the eye, far nodes have their impostor images,
-#: made at most ImpostorConfig.updates_per_frame per frame).
+#: made per frame within ImpostorConfig's quotas).
 WARM_UP_FRAMES = 40
 
 

@@ -69,6 +69,7 @@ def check_intrinsics(K) -> np.ndarray:
 
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 _I3 = np.eye(3)
+_LAST_ROW.flags.writeable = _I3.flags.writeable = False
 
 
 def check_pose(world_from_cam) -> np.ndarray:

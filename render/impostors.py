@@ -154,9 +154,10 @@ class Impostors(GpuOwner):
 
     def begin_frame(self, camera: GLCamera, draw_views) -> dict:
         """Choose the far nodes for this view — those whose box spans at most ``texels`` pixels
-        either way on screen (with hysteresis), wholly in front of the eye — and remake the
-        stalest images of far nodes that were drawn last frame (``draw_views``:
-        :meth:`GpuDecoder.draw_views`). Images are made before the frame's own drawing because
+        either way on screen (with hysteresis), wholly in front of the eye — and make images for
+        far nodes that were drawn last frame (``draw_views``: :meth:`GpuDecoder.draw_views`):
+        those drawn in full for want of a usable image, nearest first, within
+        ``in_full_updates_per_frame``, and the stalest usable ones within ``updates_per_frame``. Images are made before the frame's own drawing because
         on llvmpipe leaving the frame's framebuffer makes it finish everything drawn so far.
         Returns stats {impostor_updates}."""
         if len(self.nodes) == 0:
@@ -326,7 +327,7 @@ class Impostors(GpuOwner):
         crop = np.tile(np.eye(4), (len(nodes), 1, 1))  # each rectangle → the whole of NDC
         crop[:, 0, 0], crop[:, 1, 1] = 2 / size[:, 0], 2 / size[:, 1]
         crop[:, 0, 3], crop[:, 1, 3] = -(hi[:, 0] + lo[:, 0]) / size[:, 0], -(hi[:, 1] + lo[:, 1]) / size[:, 1]
-        self._image_from_model[nodes] = (crop @ (proj @ view))[:, [0, 1, 3]].astype(np.float32)
+        self._image_from_model[nodes] = (crop @ proj @ view)[:, [0, 1, 3]].astype(np.float32)
         x0, y0, x1, y1 = tiles.T
         place = np.tile(np.eye(4), (len(nodes), 1, 1))  # the whole of NDC → each tile's part of the atlas
         place[:, 0, 0], place[:, 1, 1] = (x1 - x0) / width, (y1 - y0) / height

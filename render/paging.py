@@ -1,7 +1,7 @@
 """Out-of-core paging of a tiled model (:class:`billboards.model_set.ModelSet`): which tiles to
 load, upload and release as the eye moves, and an exact account of their GPU bytes.
 
-Two stages per tile, each with its own place:
+Three stages per tile, each with its own place:
 
 - **Loaded** (disk → numpy): :func:`billboards.model_set.ModelSet.load_tile` with the atlas and
   coefficient pages memory-mapped, then the page files read once so that they are in the page
@@ -18,6 +18,11 @@ Two stages per tile, each with its own place:
   frames), and drawn once nothing is left to decode: its first frame would otherwise decode
   every billboard it shows (~10 000 texture tiles, ~50 ms on llvmpipe). Nearer tiles are drawn
   the frame they are visible.
+
+Uploads beyond those a frame waits for and warm-up go to frames with time left
+(:class:`FrameBudget`): a frame pages only while its drawing is expected to stay under
+``frame_ms`` (the last frame's time without paging, plus each kind of work's measured cost);
+after ``max_deferred_frames`` frames in a row that skipped work, a frame pages regardless.
 
 Priorities (:func:`tile_priorities`, numpy over the tiles): a tile is *wanted* when its bounds
 come within ``load_radius`` of the eye or of the point ``prefetch`` metres ahead along the
@@ -47,6 +52,7 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import math
+import numbers
 import threading
 import time
 from dataclasses import dataclass
@@ -76,8 +82,8 @@ class PagingConfig:
     loads_in_flight: int = 2  # tiles queued on the background loader at a time
     warm_tiles_per_frame: int = 2048  # texture tiles a frame decodes for tiles not drawn yet (0: no warm-up)
     warm_frames: int = 30  # a tile warms at most this many frames before it is drawn
-    frame_ms: float | None = 80.0  # page only while the frame is expected to stay under this (None: always)
-    max_deferred_frames: int = 8  # … but after this many frames in a row without paging, page anyway
+    frame_ms: float | None = 80.0  # page only while draw() is expected to stay under this (None: always)
+    max_deferred_frames: int = 8  # … but after this many frames in a row that skipped paging, page anyway
 
     def __post_init__(self):
         if self.gpu_budget is not None and (isinstance(self.gpu_budget, bool) or int(self.gpu_budget) != self.gpu_budget
@@ -94,10 +100,11 @@ class PagingConfig:
         if self.warm_tiles_per_frame < 0 or self.warm_frames < 1:
             raise ValueError(f"warm_tiles_per_frame must be ≥ 0 and warm_frames ≥ 1, got "
                              f"{self.warm_tiles_per_frame}, {self.warm_frames}")
-        if self.frame_ms is not None and not (isinstance(self.frame_ms, (int, float)) and self.frame_ms > 0):
+        if self.frame_ms is not None and not (isinstance(self.frame_ms, numbers.Real) and not isinstance(self.frame_ms, bool)
+                                              and math.isfinite(self.frame_ms) and self.frame_ms > 0):
             raise ValueError(f"frame_ms must be a positive number of milliseconds or None, got {self.frame_ms!r}")
-        if self.max_deferred_frames < 0:
-            raise ValueError(f"max_deferred_frames must be ≥ 0, got {self.max_deferred_frames}")
+        if not (isinstance(self.max_deferred_frames, numbers.Integral) and self.max_deferred_frames >= 0):
+            raise ValueError(f"max_deferred_frames must be an integer ≥ 0, got {self.max_deferred_frames!r}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -292,27 +299,36 @@ class Motion:
 
 class FrameBudget:
     """How much paging work (uploads beyond those a frame waits for, warm-up decoding) a frame
-    may do within ``PagingConfig.frame_ms``: the frame is expected to take as long to draw as the
-    last one did, and each kind of work as long as it took before (averaged), so work goes to
-    frames with room to spare. A frame that had to skip work counts as deferred; after
-    ``max_deferred_frames`` such frames in a row the next one does its work regardless, so paging
-    never starves when every frame is slow. Pure bookkeeping, no GL: times in seconds."""
+    may do within ``PagingConfig.frame_ms``: the frame is expected to take as long as the last
+    one did without its paging, and each kind of work as long as it took before (decayed
+    averages weighted by the work done: seconds per upload, per texture tile of warm-up; a
+    sample is capped at 4× the average so that one stall does not hold paging back for long),
+    so work goes to frames with room to spare. A frame that had to skip work counts as deferred;
+    after ``max_deferred_frames`` such frames in a row the next one does its work regardless,
+    so paging never starves when every frame is slow (frames with nothing to page leave the
+    count alone). Pure bookkeeping, no GL: times in seconds."""
 
-    SMOOTHING = 0.5  # weight of the older average in each update
+    DECAY = 0.5  # weight of the older samples in each average
+    MAX_SAMPLE = 4.0  # a sample counts at most this many times the average
 
     def __init__(self, config: PagingConfig):
         self.frame_s = None if config.frame_ms is None else config.frame_ms / 1000.0
         self.max_deferred = config.max_deferred_frames
-        self.draw_s = 0.0  # the last frame's drawing, paging excluded
-        self.upload_s: float | None = None  # one upload (average); None: none measured yet
-        self.warm_tile_s: float | None = None  # one texture tile of warm-up (average)
+        self.draw_s = 0.0  # the last frame without its paging
+        self._sums = {"upload": [0.0, 0.0], "warm": [0.0, 0.0]}  # decayed (seconds, work done)
         self.deferred = 0  # frames in a row that skipped paging work
-        self._spent = 0.0
-        self._skipped = False
+        self._spent = self._reserved = 0.0
+        self._skipped = self._worked = False
 
     def begin_frame(self) -> None:
-        self._spent = 0.0
-        self._skipped = False
+        self._spent = self._reserved = 0.0
+        self._skipped = self._worked = False
+
+    def cost(self, kind: str) -> float | None:
+        """Average seconds per unit of ``kind`` ("upload": an upload, "warm": a texture tile of
+        warm-up); None before any was measured."""
+        seconds, done = self._sums[kind]
+        return seconds / done if done > 0 else None
 
     @property
     def forced(self) -> bool:
@@ -323,11 +339,15 @@ class FrameBudget:
         """Seconds this frame may still spend paging (inf when forced)."""
         if self.forced:
             return math.inf
-        return self.frame_s - self.draw_s - self._spent
+        return self.frame_s - self.draw_s - self._spent - self._reserved
 
     def allow_upload(self) -> bool:
-        """Whether an upload fits the frame (one not measured yet always does); a refusal counts."""
-        ok = self.upload_s is None or self.upload_s <= self.left()
+        """Whether an upload fits the frame (one not measured yet always does; an allowed one is
+        reserved until :meth:`spent` records it); a refusal counts."""
+        cost = self.cost("upload")
+        ok = cost is None or cost <= self.left()
+        if ok and cost is not None:
+            self._reserved += cost
         self._skipped |= not ok
         return ok
 
@@ -337,28 +357,34 @@ class FrameBudget:
         decodes); fewer than asked counts as a refusal."""
         if most <= 0:
             return 0
-        left = self.left()
-        tiles = most if self.warm_tile_s is None or math.isinf(left) else int(min(most, max(left, 0.0) / self.warm_tile_s))
+        left, cost = self.left(), self.cost("warm")
+        tiles = most if cost is None or math.isinf(left) else int(min(most, max(left, 0.0) / max(cost, 1e-12)))
         if tiles < most // 8:
             tiles = 0
         self._skipped |= tiles < most
         return tiles
 
     def spent(self, seconds: float, uploads: int = 0, warm_tiles: int = 0) -> None:
-        """Record paging work done this frame and update the averages."""
+        """Record paging work done this frame (``seconds`` for ``uploads`` uploads or
+        ``warm_tiles`` texture tiles of warm-up, or neither: uploads the frame waited for)."""
         self._spent += seconds
-        if uploads:
-            self.upload_s = self._average(self.upload_s, seconds / uploads)
-        if warm_tiles:
-            self.warm_tile_s = self._average(self.warm_tile_s, seconds / warm_tiles)
+        self._reserved = 0.0
+        for kind, done in (("upload", uploads), ("warm", warm_tiles)):
+            if done:
+                self._worked = True
+                total, count = self._sums[kind]
+                average = total / count if count > 0 and total > 0 else math.inf
+                sample = min(seconds, self.MAX_SAMPLE * average * done)
+                self._sums[kind] = [self.DECAY * total + sample, self.DECAY * count + done]
 
-    def end_frame(self, draw_s: float) -> None:
-        """The frame's drawing time (paging excluded); a frame that skipped work counts as deferred."""
-        self.draw_s = float(draw_s)
-        self.deferred = self.deferred + 1 if self._skipped else 0
-
-    def _average(self, old: float | None, new: float) -> float:
-        return new if old is None else self.SMOOTHING * old + (1 - self.SMOOTHING) * new
+    def end_frame(self, frame_s: float) -> None:
+        """The frame's time without its paging work; a frame that skipped work counts as
+        deferred, one that paged without skipping resets the count."""
+        self.draw_s = float(frame_s)
+        if self._skipped:
+            self.deferred += 1
+        elif self._worked:
+            self.deferred = 0
 
 
 # ----------------------------------------------------------------------------------------------

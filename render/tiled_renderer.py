@@ -10,7 +10,8 @@ float32 origin (and the order of exactly coincident quads of different tiles).
 
 Which tiles are resident follows the eye (:mod:`render.paging`): tiles are loaded in a
 background thread (memory-mapped, nearest and visible first, prefetching along the direction of
-travel), uploaded on the GL thread a bounded amount per frame, and released, farthest first,
+travel), uploaded on the GL thread a bounded amount per frame in frames with time left
+(:class:`~render.paging.FrameBudget`), and released, farthest first,
 when the GPU budget would be exceeded or they fall behind ``drop_radius``; a tile uploaded far
 from the eye is decoded for the view over a few frames before it is first drawn (warm-up), so
 no frame decodes a whole tile. The renderers of the tiles share their shader programs (one
@@ -165,7 +166,7 @@ class TiledRenderer:
         self.lo, self.hi = self.model_set.lo, self.model_set.hi
         self.origin = np.asarray(self.model_set.origin, np.float64)
         self.resident: dict[int, _Resident] = {}
-        self.warming: dict[int, int] = {}  # resident tiles not drawn yet → frames warmed
+        self.warming: dict[int, int] = {}  # resident tiles not drawn yet → frames they were visible warming
         self.warm_decoded = 0  # texture tiles the last frame decoded for warming tiles
         self.stats: dict = {}
         self.frames = 0
@@ -176,7 +177,7 @@ class TiledRenderer:
         self._paging_stats: dict = {}
         self._released = False
         self.motion = Motion()
-        self.budget = FrameBudget(paging)
+        self.frame_budget = FrameBudget(paging)
         self._camera = None  # the frame's camera for the set's origin (prepare)
         self.targets = OffscreenTargets(ctx)
         self.programs = ProgramCache(ctx)  # the tiles' renderers compile once, not on each upload
@@ -292,7 +293,7 @@ class TiledRenderer:
         if wait == "auto":
             wait = "near" if self.frames == 0 else "none"
         self._frame_uploads = self._frame_releases = 0
-        self.budget.begin_frame()
+        self.frame_budget.begin_frame()
         cfg = self.paging
         t0 = time.perf_counter()
         camera = self._camera = gl_camera(K, world_from_cam, size, self.origin, self.clip)
@@ -321,6 +322,7 @@ class TiledRenderer:
             if i not in self.resident and i not in self._too_big:
                 self._upload(i, rank, protected, sync=True)
         wait_s = time.perf_counter() - t1
+        self.frame_budget.spent(wait_s)
         waited = self._frame_uploads
         budget_bytes = 0
         t2 = time.perf_counter()
@@ -336,14 +338,14 @@ class TiledRenderer:
                 continue
             if budget_bytes > 0 and budget_bytes + tile.bound > cfg.upload_bytes_per_frame:
                 break
-            if not self.budget.allow_upload():
+            if not self.frame_budget.allow_upload():
                 break  # no room in this frame's time: a later frame uploads it
             bound = self._upload(i, rank, protected, sync=False)
             if bound is None:
                 break  # no room for the most important tile left: the rest wait
             budget_bytes += bound
         upload_s = time.perf_counter() - t2
-        self.budget.spent(upload_s, uploads=self._frame_uploads - waited)
+        self.frame_budget.spent(upload_s, uploads=self._frame_uploads - waited)
         for i in (int(j) for j in order):
             if not wanted[i] or self.loader.in_flight >= cfg.loads_in_flight:
                 break
@@ -383,7 +385,8 @@ class TiledRenderer:
         for i in tiles:
             self._measure(int(i))  # instance buffers grow with what is drawn
         totals["draw_s"] = time.perf_counter() - t2
-        self.budget.end_frame(totals["draw_s"])
+        paging_s = self._paging_stats["wait_s"] + self._paging_stats["upload_s"] + (t2 - t1)
+        self.frame_budget.end_frame(time.perf_counter() - t0 - paging_s)
         totals.update(warm_s=t2 - t1, warm_decoded_tiles=self.warm_decoded)
         used, reserved = self.gpu_bytes(), self.gpu_reserved()
         self.peak_bytes = max(self.peak_bytes, used)
@@ -404,18 +407,20 @@ class TiledRenderer:
         if not warming:
             return tiles
         t0 = time.perf_counter()
-        budget = self.budget.warm_tiles(self.paging.warm_tiles_per_frame)
+        budget = self.frame_budget.warm_tiles(self.paging.warm_tiles_per_frame)
         for i in warming:
-            if self.warm_decoded >= budget:
-                break  # the frame's budget is spent: the rest warm in later frames
-            r = self.resident[i].renderer
-            decoded, left = r.warm(camera_at_origin(self._camera, world_from_cam, r.model.origin),
-                                   budget - self.warm_decoded)
-            self.warm_decoded += decoded
             self.warming[i] += 1
-            if left == 0 or self.warming[i] >= self.paging.warm_frames:
+            if self.warm_decoded < budget:  # once the frame's budget is spent, the rest wait
+                r = self.resident[i].renderer
+                decoded, left = r.warm(camera_at_origin(self._camera, world_from_cam, r.model.origin),
+                                       budget - self.warm_decoded)
+                self.warm_decoded += decoded
+                if left == 0:
+                    del self.warming[i]
+                    continue
+            if self.warming[i] >= self.paging.warm_frames:
                 del self.warming[i]
-        self.budget.spent(time.perf_counter() - t0, warm_tiles=self.warm_decoded)
+        self.frame_budget.spent(time.perf_counter() - t0, warm_tiles=self.warm_decoded)
         return np.array([i for i in tiles if int(i) not in self.warming], np.int64)
 
     def _share_impostor_updates(self, tiles: np.ndarray) -> None:

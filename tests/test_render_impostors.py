@@ -112,6 +112,14 @@ def test_nodes_drawn_in_full_and_stale_images_have_their_own_quotas(ctx, long_st
         remade = np.flatnonzero(imp._made_dist != before)
         assert 0 < renderer.stats["impostor_updates"] == len(remade) <= 3
         assert set(remade) <= set(made[(age > 1) & (age <= 2)])  # no node in full got an image
+        imp.config = dataclasses.replace(imp.config, updates_per_frame=3, in_full_updates_per_frame=2)
+        moved = eye + [0.0, 2.0, 0.0]  # both kinds due: each quota is spent
+        camera = renderer.camera(K, look_at(moved, moved + [60.0, 0.0, 1.0]), SIZE)
+        made = np.flatnonzero(imp._made_dist > 0)
+        age = imp._age(camera, made)
+        assert np.count_nonzero((age > 1) & (age <= 2)) >= 3 and renderer.stats["nodes_in_full"] >= 2
+        renderer.render(K, look_at(moved, moved + [60.0, 0.0, 1.0]), SIZE)
+        assert renderer.stats["impostor_updates"] == 2 + 3
 
 
 def test_impostor_config_is_validated():

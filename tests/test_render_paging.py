@@ -195,7 +195,8 @@ def test_paging_walk_under_a_small_budget(ctx, street_set, tiles_in_budget):
     limit = max_texture_size(ctx)
     bounds = [tile_gpu_bound(street_set.load_tile(i), "gpu", None, limit) for i in range(len(street_set))]
     budget = int(tiles_in_budget * max(bounds))
-    paging = PagingConfig(gpu_budget=budget, load_radius=10.0, prefetch=12.0, drop_radius=12.0, wait_radius=5.0)
+    paging = PagingConfig(gpu_budget=budget, load_radius=10.0, prefetch=12.0, drop_radius=12.0, wait_radius=5.0,
+                          frame_ms=None)  # every frame pages, however loaded the machine
     clip_far = dict(clip=ClipPlanes(far=14.0))
     poses = _walk([-3.0, 0.0, 2.0], [65.0, 0.0, 2.0], 36)
     with TiledRenderer(ctx, street_set, "gpu", background=BG, paging=paging, **clip_far) as small, \
@@ -226,7 +227,7 @@ def test_paging_walk_under_a_small_budget(ctx, street_set, tiles_in_budget):
 
 
 def test_first_frame_waits_only_for_the_tiles_around_the_eye(ctx, street_set):
-    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, uploads_per_frame=1)
+    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, uploads_per_frame=1, frame_ms=None)
     pose = look_at(WORLD + [7.0, 0.0, 2.0], WORLD + [7.0, 6.0, 2.0])  # inside tile 0, facing its facade
     with TiledRenderer(ctx, street_set, "gpu", paging=paging) as tiled:
         tiled.render(K, pose, SIZE)
@@ -330,7 +331,7 @@ def test_viewer_pages_a_set_headless(street_set, tmp_path):
     budget = 3 * max(tile_gpu_bound(street_set.load_tile(i), "gpu", LodConfig(), max_texture_size(wnd.ctx))
                      for i in range(len(street_set)))
     app = ViewerApp(street_set, ctx=wnd.ctx, wnd=wnd, screenshot_dir=tmp_path,
-                    paging=PagingConfig(gpu_budget=budget))
+                    paging=PagingConfig(gpu_budget=budget, frame_ms=None))
     try:
         assert isinstance(app.renderer, TiledRenderer)
         for _ in range(4):
@@ -425,7 +426,8 @@ def test_far_tiles_warm_before_they_are_drawn(ctx, street_set):
     ``warm_tiles_per_frame`` texture tiles a frame and drawn only once nothing is left to decode;
     then the frame equals the exact one. A warming tile the eye comes near is drawn at once."""
     budget = 40
-    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, warm_tiles_per_frame=budget, warm_frames=1000)
+    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, warm_tiles_per_frame=budget, warm_frames=1000,
+                          frame_ms=None)
     pose = views()[0]  # along the street: every tile visible, tile 0 around the eye
     with TiledRenderer(ctx, street_set, "gpu", background=BG, paging=paging) as tiled, \
             TiledRenderer(ctx, street_set, "gpu", background=BG) as exact:
@@ -445,7 +447,7 @@ def test_far_tiles_warm_before_they_are_drawn(ctx, street_set):
         assert max(warmed_frames.values()) >= 3  # a tile took several frames of the budget
         np.testing.assert_array_equal(tiled.render(K, pose, SIZE), want)
 
-    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, warm_tiles_per_frame=1, warm_frames=1000)
+    paging = PagingConfig(load_radius=100.0, wait_radius=3.0, warm_tiles_per_frame=1, warm_frames=1000, frame_ms=None)
     with TiledRenderer(ctx, street_set, "gpu", background=BG, paging=paging) as tiled:
         for _ in range(len(street_set) + 2):
             tiled.loader.wait_idle()
@@ -457,9 +459,9 @@ def test_far_tiles_warm_before_they_are_drawn(ctx, street_set):
 
 
 def test_the_frame_budget_gives_paging_the_time_a_frame_has_left():
-    """Uploads and warm-up go to frames expected to stay under ``frame_ms`` (the last frame's
-    drawing plus each kind of work's measured cost); a frame that skips work is deferred, and
-    after ``max_deferred_frames`` in a row the next pages whatever it costs. No budget: always."""
+    """Uploads and warm-up go to frames expected to stay under ``frame_ms`` (the last frame's time
+    without paging plus each kind of work's measured cost); a frame that skips work is deferred,
+    and after ``max_deferred_frames`` in a row the next pages whatever it costs. No budget: always."""
     free = FrameBudget(PagingConfig(frame_ms=None))
     free.begin_frame()
     free.end_frame(10.0)
@@ -469,31 +471,36 @@ def test_the_frame_budget_gives_paging_the_time_a_frame_has_left():
     budget = FrameBudget(PagingConfig(frame_ms=80.0, max_deferred_frames=2))
     budget.begin_frame()
     assert budget.allow_upload() and budget.warm_tiles(2048) == 2048  # nothing measured yet
-    budget.spent(0.010, uploads=1)
-    budget.spent(0.020, warm_tiles=2000)  # 10 µs a texture tile
-    budget.end_frame(0.060)
-    assert budget.deferred == 0 and budget.upload_s == pytest.approx(0.010)
-    budget.begin_frame()  # 20 ms left: an upload fits, then 10 ms of warm-up
-    assert budget.left() == pytest.approx(0.020)
-    assert budget.allow_upload()
-    budget.spent(0.010, uploads=1)
-    assert budget.warm_tiles(2048) == 1000
-    budget.spent(0.010, warm_tiles=1000)
-    budget.end_frame(0.060)
+    budget.spent(0.0078125, uploads=1)  # 2⁻⁷ s
+    budget.spent(0.015625, warm_tiles=2048)  # 2⁻¹⁷ s a texture tile
+    budget.end_frame(0.0625)  # 62.5 ms without paging
+    assert budget.deferred == 0 and budget.cost("upload") == 0.0078125
+    budget.begin_frame()  # 17.5 ms left: an upload fits (and is reserved), then 1 255 tiles of warm-up
+    assert budget.left() == pytest.approx(0.0175)
+    assert budget.allow_upload() and budget.left() == pytest.approx(0.0175 - 0.0078125)
+    budget.spent(0.0078125, uploads=1)
+    assert budget.warm_tiles(2048) == int((0.0175 - 0.0078125) * 131072)
+    budget.end_frame(0.0625)
     assert budget.deferred == 1  # fewer warm tiles than asked
     budget.begin_frame()
-    assert budget.warm_tiles(2048) == 2000
+    budget.end_frame(0.0625)
+    assert budget.deferred == 1  # nothing to page: the count stays
+    budget.begin_frame()
+    budget.end_frame(0.079)
+    budget.begin_frame()  # 1 ms left: no upload, and no warm-up step for less than 1/8 of the budget
+    assert not budget.allow_upload() and budget.warm_tiles(2048) == 0
     budget.end_frame(0.079)
     assert budget.deferred == 2
     budget.begin_frame()  # deferred twice: this one pages regardless
     assert budget.forced and budget.allow_upload() and budget.warm_tiles(2048) == 2048
+    budget.spent(0.5, uploads=1)  # a stall counts at most 4× the average
     budget.end_frame(0.079)
-    assert budget.deferred == 0
-    budget.begin_frame()  # 1 ms left: no upload, and no warm-up step for less than 1/8 of the budget
-    assert not budget.allow_upload() and budget.warm_tiles(2048) == 0
-    for bad in (dict(frame_ms=0.0), dict(frame_ms=-5.0), dict(max_deferred_frames=-1)):
+    assert budget.deferred == 0 and budget.cost("upload") <= 4 * 0.0078125
+    for bad in (dict(frame_ms=0.0), dict(frame_ms=-5.0), dict(frame_ms=True), dict(frame_ms=float("inf")),
+                dict(max_deferred_frames=-1), dict(max_deferred_frames=1.5)):
         with pytest.raises(ValueError):
             PagingConfig(**bad)
+    PagingConfig(frame_ms=np.float32(50.0), max_deferred_frames=np.int64(3))
 
 
 def test_paging_waits_for_frames_with_time_left(ctx, street_set):
@@ -547,7 +554,7 @@ def test_paging_walk_reports_the_frames_that_page(ctx, street_set, monkeypatch):
 
     monkeypatch.setattr(TileLoader, "request", request_and_wait)
     poses = _walk([-3.0, 0.0, 2.0], [65.0, 0.0, 2.0], 24)
-    paging = PagingConfig(load_radius=10.0, prefetch=12.0, drop_radius=12.0, wait_radius=5.0)
+    paging = PagingConfig(load_radius=10.0, prefetch=12.0, drop_radius=12.0, wait_radius=5.0, frame_ms=None)
     walk = paging_walk(ctx, street_set, poses, SIZE, paging, K=K)
     assert walk["frames"] == len(poses) and walk["uploads"] >= 4
     assert 1 <= walk["paging_frames"] <= len(poses) - 1
