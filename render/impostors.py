@@ -157,8 +157,9 @@ class Impostors(GpuOwner):
         either way on screen (with hysteresis), wholly in front of the eye — and make images for
         far nodes that were drawn last frame (``draw_views``: :meth:`GpuDecoder.draw_views`):
         those drawn in full for want of a usable image, nearest first, within
-        ``in_full_updates_per_frame``, and the stalest usable ones within ``updates_per_frame``. Images are made before the frame's own drawing because
-        on llvmpipe leaving the frame's framebuffer makes it finish everything drawn so far.
+        ``in_full_updates_per_frame``, and the stalest usable ones within ``updates_per_frame``.
+        Images are made before the frame's own drawing because on llvmpipe leaving the frame's
+        framebuffer makes it finish everything drawn so far.
         Returns stats {impostor_updates}."""
         if len(self.nodes) == 0:
             return {"impostor_updates": 0}
@@ -311,7 +312,8 @@ class Impostors(GpuOwner):
         # at least 2 texels and at most the tile
         extent = np.clip(np.ceil((rects[:, 1] - rects[:, 0]) * np.asarray(camera.size)), 2, t)
         self._extent[nodes] = extent
-        tiles = np.concatenate([self._origin[nodes], self._origin[nodes] + extent], axis=1).astype(np.float64)  # (U, 4) px
+        origin = self._origin[nodes]
+        tiles = np.concatenate([origin, origin + extent], axis=1).astype(np.float64)  # (U, 4) pixels
         # the plane through each box's centre facing the eye, cut to the box's screen rectangle
         centre = self.centre[nodes]
         to_eye = eye - centre

@@ -100,8 +100,9 @@ class PagingConfig:
         if self.warm_tiles_per_frame < 0 or self.warm_frames < 1:
             raise ValueError(f"warm_tiles_per_frame must be ≥ 0 and warm_frames ≥ 1, got "
                              f"{self.warm_tiles_per_frame}, {self.warm_frames}")
-        if self.frame_ms is not None and not (isinstance(self.frame_ms, numbers.Real) and not isinstance(self.frame_ms, bool)
-                                              and math.isfinite(self.frame_ms) and self.frame_ms > 0):
+        ms = self.frame_ms
+        if ms is not None and not (isinstance(ms, numbers.Real) and not isinstance(ms, bool) and math.isfinite(ms)
+                                   and ms > 0):
             raise ValueError(f"frame_ms must be a positive number of milliseconds or None, got {self.frame_ms!r}")
         if not (isinstance(self.max_deferred_frames, numbers.Integral) and self.max_deferred_frames >= 0):
             raise ValueError(f"max_deferred_frames must be an integer ≥ 0, got {self.max_deferred_frames!r}")

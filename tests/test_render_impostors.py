@@ -65,7 +65,8 @@ def test_an_image_is_remade_once_the_view_turns_past_the_angle(ctx, long_street)
     model = long_street
     K = intrinsics(200.0, *SIZE)
     eye = model.origin + [1.0, 0.0, 1.6]
-    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_angle_deg=1.0, updates_per_frame=1000, in_full_updates_per_frame=1000))
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_angle_deg=1.0, updates_per_frame=1000,
+                                             in_full_updates_per_frame=1000))
     with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
         for step in range(2):
             renderer.render(K, look_at(eye, eye + [60.0, 0.0, 1.0]), SIZE)
@@ -155,7 +156,8 @@ def test_image_age_is_the_parallax_on_screen(ctx, long_street):
     model = long_street
     K = intrinsics(200.0, *SIZE)
     eye = model.origin + [1.0, 0.0, 1.6]
-    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_error_px=1.0, max_angle_deg=30.0, updates_per_frame=1000, in_full_updates_per_frame=1000))
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, max_error_px=1.0, max_angle_deg=30.0, updates_per_frame=1000,
+                                             in_full_updates_per_frame=1000))
     with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as renderer:
         pose = look_at(eye, eye + [60.0, 0.0, 1.0])
         for _ in range(2):
