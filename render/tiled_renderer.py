@@ -142,7 +142,8 @@ class TiledRenderer:
     ``load_radius`` of the eye, not resident), tiles_resident, tiles_warming (resident, decoded
     for the view before they are drawn: :mod:`render.paging`), tiles_loaded (in host memory),
     loads_in_flight, uploads and releases (this frame), upload_s, wait_s, warm_s,
-    warm_decoded_tiles, gpu_bytes (measured, resident tiles), gpu_reserved (their bounds),
+    warm_decoded_tiles, paging_deferred (frames in a row that skipped paging for lack of time,
+    :class:`~render.paging.FrameBudget`), gpu_bytes (measured, resident tiles), gpu_reserved (their bounds),
     gpu_budget (None: no limit), billboards (of the set).
     """
 
@@ -365,7 +366,8 @@ class TiledRenderer:
             "tiles_wanted": int(wanted.sum()), "tiles_resident": len(self.resident), "tiles_warming": len(self.warming),
             "tiles_loaded": len(self.loader.indices()), "loads_in_flight": self.loader.in_flight,
             "uploads": self._frame_uploads, "releases": self._frame_releases, "wait_s": wait_s,
-            "upload_s": upload_s, "page_s": time.perf_counter() - t0 - wait_s - upload_s}
+            "upload_s": upload_s, "page_s": time.perf_counter() - t0 - wait_s - upload_s,
+            "paging_deferred": self.frame_budget.deferred}
         return np.array(draw, np.int64)
 
     def draw(self, K, world_from_cam, size, wait: str = "auto") -> dict:

@@ -259,7 +259,8 @@ class ViewerApp(_WindowConfig):
         fps (over the last half second), draw and cull time (frustum plus occlusion) of the
         frame; quads and billboards drawn; quads per level of detail and tiles decoded (GPU
         decode) and impostors drawn and remade; the modes; the GPU memory held (a tiled model:
-        tiles drawn / visible, loaded, and MB used of the budget)."""
+        tiles drawn / visible, loaded, MB used of the budget, and the frames in a row whose
+        paging waited for time, if any)."""
         s = self.renderer.stats if stats is None else stats
         total = self.model.num_billboards
         drawn = int(s.get("billboards_drawn", s.get("instances", total)))
@@ -282,6 +283,8 @@ class ViewerApp(_WindowConfig):
             memory = (f" | tiles {int(s.get('tiles_drawn', 0))}/{int(s.get('tiles_visible', 0))} drawn, "
                       f"{int(s.get('tiles_resident', 0))} loaded | GPU {s.get('gpu_bytes', 0) / MB:.0f}/"
                       + ("-" if budget is None else f"{budget / MB:.0f}") + " MB")
+            if s.get("paging_deferred", 0):  # paging waiting for a frame with time left
+                memory += f" | deferred {int(s['paging_deferred'])}"
         else:
             memory = f" | GPU {self.gpu_bytes() / MB:.0f} MB"
         return [f"bbcity | {self.fps:5.1f} fps, {frame_ms:5.1f} ms/frame | draw {draw_ms:.1f} ms, cull {cull_ms:.1f} ms",

@@ -342,6 +342,8 @@ def test_viewer_pages_a_set_headless(street_set, tmp_path):
                                    f"{street_set.num_billboards}")
         assert (f"tiles {stats['tiles_drawn']}/{stats['tiles_visible']} drawn, {stats['tiles_resident']} loaded | "
                 f"GPU {stats['gpu_bytes'] / 2**20:.0f}/{budget / 2**20:.0f} MB") in lines[4]
+        assert "deferred" not in lines[4]  # no frame_ms: paging never waits
+        assert app.hud_lines({**stats, "paging_deferred": 3})[4].endswith(" MB | deferred 3")
         from render.hud import text_image
 
         assert text_image(lines).shape[1] < 470  # the HUD fits a 480-pixel window
