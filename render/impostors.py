@@ -215,7 +215,8 @@ class Impostors(GpuOwner):
         gap = depth - radius
         bound = np.where(gap > 0, 4 * radius * scale / np.where(gap > 0, gap, 1.0), np.inf)
         side = np.where(bound < small, bound, np.inf)
-        exact = np.flatnonzero(~(bound < small))
+        # a box wholly behind the eye has no rectangle (inf, as _screen_rects would give it)
+        exact = np.flatnonzero(~(bound < small) & (depth + radius > 0))
         if len(exact):
             rect = self._screen_rects(camera, exact)
             side[exact] = np.maximum(rect[:, 1, 0] - rect[:, 0, 0], rect[:, 1, 1] - rect[:, 0, 1]) \

@@ -57,7 +57,8 @@ class BillboardRenderer:
     every frame, then one instanced draw of the per-frame atlas). spherical: quads also pitch toward the eye; None
     takes the model's ``pitched_quads``. interpolate: blend the sampled view
     directions around the view (else the nearest one; settable between frames).
-    linear: texels bilinear within each tile, never reading a neighbouring tile (else
+    linear: texels bilinear within each tile (a slit's blocks as one texture), never reading
+    another billboard's or slit's tiles (else
     the nearest texel; settable between frames).
     background: RGB in [0, 1] (or 0–255).
     clip: near/far planes (m). cull: "none"; "frustum" (the model's octree nodes

@@ -429,10 +429,23 @@ def test_shader_files_and_attribute_padding(ctx):
     program.release()
 
 
+def _near_block_rows(K, pose, size, origin, block, margin) -> np.ndarray:
+    """(h, w) bool: pixels whose ray meets the wall y = origin[1] within ``margin`` (m) of a
+    horizontal edge between blocks (z − origin[2] a multiple of ``block``)."""
+    w, h = size
+    u, v = np.meshgrid(np.arange(w) + 0.0, np.arange(h) + 0.0)
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ pose[:3, :3].T
+    s = (origin[1] - pose[1, 3]) / rays[..., 1]
+    z = (pose[2, 3] + s * rays[..., 2] - origin[2]) / block
+    return np.abs(z - np.round(z)) * block < margin
+
+
 @pytest.mark.parametrize("linear", [False, True])
 def test_slits_draw_like_their_blocks(ctx, linear):
     """A wall of facade blocks (columns with gaps) drawn as slits by the GPU path gives the image of
-    the CPU path, which draws every block alone; so do subsets that cut columns."""
+    the CPU path, which draws every block alone; so do subsets that cut columns. Bilinear slits
+    filter across the edges between their blocks, where the CPU path repeats each block's border
+    texels: within a texel of those edges the two may differ."""
     xs, zs = np.meshgrid(np.arange(16) * 0.5, np.arange(10) * 0.5 + 0.25)
     keep = ~((xs > 2) & (xs < 4) & (zs > 1.5) & (zs < 3))  # a window: columns in two parts
     centres = np.stack([xs[keep], np.zeros(keep.sum()), zs[keep]], 1)
@@ -453,6 +466,11 @@ def test_slits_draw_like_their_blocks(ctx, linear):
             b = cpu.render(K, pose, size, visible=visible).astype(int)
             assert np.mean(np.any(a != SKY_U8, -1)) > 0.1
             diff = np.abs(a - b).max(-1)
+            if linear:
+                edges = _near_block_rows(K, pose, size, model.origin, model.block_size,
+                                         model.block_size / model.tile)
+                assert 0.05 < edges.mean() < 0.5
+                diff[edges] = 0
             assert np.mean(diff > 8) < 0.003, f"{np.mean(diff > 8):.2%} pixels differ"
 
 

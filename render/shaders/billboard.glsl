@@ -6,10 +6,14 @@
 // `blocks` facade blocks — with its centre (model coordinates), base yaw and kind, the position
 // of its first block in the decoded atlas, and the weights of the sampled directions held in
 // each storage slot (render.view_brackets; computed for this view on the CPU). The vertex stage
-// turns a billboard toward the eye and leaves layer blocks fixed. The fragment stage finds its
-// block within the run and blends its decoded tiles: colour = clamp(Σ_s w_s·D_s, 0, 1), one
-// fetch per slot (or one fetch of the tile pre-blended for this view), bilinear within the
-// block's tile or the nearest texel, never reading a neighbouring tile. Alpha < 0.5 is discarded.
+// turns a billboard toward the eye and leaves layer blocks fixed. The fragment stage blends the
+// run's decoded tiles: colour = clamp(Σ_s w_s·D_s, 0, 1), one fetch per slot (or one fetch of
+// the tiles pre-blended for this view), bilinear or the nearest texel. A run's blocks lie one
+// below the other in the atlases, so its tiles form one texture of t × blocks·t texels,
+// filtered across the edges between its blocks (neighbouring blocks of one facade column) and
+// kept inside the run's outer texel centres, so it never reads another run's tiles. No
+// per-fragment block index: on a CPU rasterizer every instruction of this stage counts.
+// Alpha < 0.5 is discarded.
 
 // MULTIVIEW 1: several views in one draw (impostor images, render.impostors): each instance
 // names its view, whose projection maps into that view's tile of the target; fragments outside
@@ -38,7 +42,7 @@ in vec4 in_weights;      // weight of each storage slot's direction (unused with
 
 out vec2 v_texel;
 flat out vec2 v_origin;
-flat out float v_blocks;
+flat out vec2 v_texel_max;
 flat out vec4 v_weights;
 #if MULTIVIEW
 flat out vec4 v_rect;
@@ -49,7 +53,7 @@ void main() {
     v_rect = u_view_rects[in_view];
 #endif
     v_origin = in_origin;
-    v_blocks = float(in_blocks);
+    v_texel_max = vec2(float(u_tile), float(u_tile * in_blocks)) - 0.5;   // the run's last texel centre
     v_weights = in_weights;
     gl_Position = quad_vertex_run(in_centre, quad_angles(in_centre, in_base_yaw, in_kind), in_kind,
                                   quad_corner(gl_VertexID), in_blocks, v_texel);
@@ -60,14 +64,14 @@ void main() {
 // Branch-free (llvmpipe runs both sides of a branch on a flat input): compiled per source
 // (DECODED: the STORAGE_SLOTS tiles of the bracket, blended here; VIEW: the view atlas, where
 // large quads were blended once per texel) and per filter (LINEAR 1: bilinear within the
-// tile, 0: the nearest texel). In the atlases a block's slots lie side by side and the blocks
-// of a run one below the other, so every address is an addition.
+// run's tiles, 0: the nearest texel). In the atlases a block's slots lie side by side and the
+// blocks of a run one below the other, so every address is an addition.
 uniform sampler2D u_tiles_in;   // RGBA16F: the decoded atlas (DECODED) or the view atlas (VIEW)
 uniform vec2 u_atlas_texel;     // 1 / its size
 
 in vec2 v_texel;
 flat in vec2 v_origin;
-flat in float v_blocks;
+flat in vec2 v_texel_max;
 flat in vec4 v_weights;
 #if MULTIVIEW
 flat in vec4 v_rect;
@@ -77,9 +81,9 @@ out vec4 f_color;
 
 vec4 fetch(vec2 origin, vec2 texel) {
 #if LINEAR
-    return texture(u_tiles_in, (origin + clamp(texel, vec2(0.5), vec2(float(u_tile) - 0.5))) * u_atlas_texel);
+    return texture(u_tiles_in, (origin + clamp(texel, vec2(0.5), v_texel_max)) * u_atlas_texel);
 #else
-    return texelFetch(u_tiles_in, ivec2(origin) + tile_texel(texel), 0);
+    return texelFetch(u_tiles_in, ivec2(origin) + clamp(ivec2(floor(texel)), ivec2(0), ivec2(v_texel_max)), 0);
 #endif
 }
 
@@ -88,15 +92,13 @@ void main() {
     if (any(lessThan(gl_FragCoord.xy, v_rect.xy)) || any(greaterThanEqual(gl_FragCoord.xy, v_rect.zw))) discard;
 #endif
     float t = float(u_tile);
-    float block = clamp(floor(v_texel.y / t), 0.0, v_blocks - 1.0);
-    vec2 texel = vec2(v_texel.x, v_texel.y - block * t);
-    vec2 origin = v_origin + vec2(0.0, block * t);
 #if VIEW
-    vec4 colour = fetch(origin, texel);
+    vec4 colour = fetch(v_origin, v_texel);
 #else
-    vec4 colour = v_weights.x * fetch(origin, texel) + v_weights.y * fetch(origin + vec2(t, 0.0), texel);
+    vec4 colour = v_weights.x * fetch(v_origin, v_texel) + v_weights.y * fetch(v_origin + vec2(t, 0.0), v_texel);
 #if STORAGE_SLOTS == 4
-    colour += v_weights.z * fetch(origin + vec2(2.0 * t, 0.0), texel) + v_weights.w * fetch(origin + vec2(3.0 * t, 0.0), texel);
+    colour += v_weights.z * fetch(v_origin + vec2(2.0 * t, 0.0), v_texel)
+              + v_weights.w * fetch(v_origin + vec2(3.0 * t, 0.0), v_texel);
 #endif
 #endif
     colour = clamp(colour, 0.0, 1.0);
