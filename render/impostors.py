@@ -42,7 +42,7 @@ from billboards.model import BillboardModel
 
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
-from .culling import model_quad_radius
+from .culling import model_quad_radius, ranges_to_indices
 from .lod import ImpostorConfig
 from .program import ProgramCache
 from .resources import GpuOwner, InstanceStream, set_uniform, vertex_binding
@@ -351,9 +351,7 @@ class Impostors(GpuOwner):
 
     def _billboards(self, nodes) -> np.ndarray:
         """(B,) int64 billboards of ``nodes`` (a node's billboards are one range of the octree order)."""
-        ranges = self._range[np.asarray(nodes, np.int64)]
-        lengths = ranges[:, 1] - ranges[:, 0]
-        return np.repeat(ranges[:, 0] - (np.cumsum(lengths) - lengths), lengths) + np.arange(int(lengths.sum()))
+        return ranges_to_indices(self._range[np.asarray(nodes, np.int64)])
 
     def release(self) -> None:
         """Free the atlas, its framebuffer, the program and the stream (idempotent)."""
