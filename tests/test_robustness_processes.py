@@ -384,7 +384,9 @@ def test_sigterm_unwinds_without_a_native_stack_dump(model, tmp_path):
     frames = tmp_path / "frames"
     run = Run("render", model, "--out", frames, "--frames", "2000", "--size", "64", "48")
     end = time.monotonic() + 120
-    while not list(frames.glob("*.png")):
+    # frames are written into a hidden directory and moved into place at the end: terminate while
+    # they are being rendered, not in the moment between the move and the exit
+    while not list(frames.glob(".frames.tmp-*/*.png")):
         assert run.proc.poll() is None and time.monotonic() < end, run.stderr
         time.sleep(0.05)
     run.proc.terminate()
