@@ -4,7 +4,8 @@ Three passes per frame:
 
 1. **Decode** (``billboard_decode.glsl``): each tile that the view needs and the decoded
    atlas does not hold yet — a billboard's texture at one sampled direction — is decoded
-   (mean + Σ_k w_k·V_k, dequantised) into an RGBA16F atlas kept between frames. Each
+   (mean + Σ_k w_k·V_k, dequantised) into an atlas kept between frames (RGBA16F; RGBA8 with
+   level of detail, ``LodConfig.decoded_format``). Each
    billboard keeps the corners of the direction bracket around the eye in its storage
    slots (:mod:`render.view_brackets`), so a tile is decoded again only when the eye
    crosses into another bracket (6° of yaw by default) or its level of detail changes
@@ -86,6 +87,17 @@ def atlas_layout(place: np.ndarray, slots: int, tile: int, limit: int) -> tuple[
     band = place // BAND_ROWS
     origin = np.stack([(band % per_row) * slots * tile, ((band // per_row) * BAND_ROWS + place % BAND_ROWS) * tile], 1)
     return origin.astype(np.int32), size
+
+
+def decoded_dtype(lod: LodConfig | None) -> str:
+    """The moderngl dtype of the decoded atlas: "f1" (RGBA8) for ``lod.decoded_format`` "u8",
+    else "f2" (RGBA16F; always without level of detail, the exact decode)."""
+    return "f1" if lod is not None and lod.decoded_format == "u8" else "f2"
+
+
+def decoded_atlas_bytes(size, lod: LodConfig | None) -> int:
+    """Bytes of a decoded atlas of ``size`` (w, h) texels (:func:`decoded_dtype`)."""
+    return int(size[0]) * int(size[1]) * (4 if decoded_dtype(lod) == "f1" else 8)
 
 
 class _Plan(NamedTuple):
@@ -175,13 +187,13 @@ class GpuDecoder(GpuOwner):
         limit = max_texture_size(self.ctx)
         self._origin, size = atlas_layout(place, self.storage_slots, self.model.tile, limit)
         self._view_origin, view_size = atlas_layout(place, 1, self.model.tile, limit)
-        self.decoded = self._keep(self._atlas_texture(size))
+        self.decoded = self._keep(self._atlas_texture(size, decoded_dtype(self.lod)))
         self.decoded_fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.decoded]))
         self.view_tiles = self._keep(self._atlas_texture(view_size, "f1"))
         self.view_fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.view_tiles]))
-        self.nbytes = size[0] * size[1] * 8 + view_size[0] * view_size[1] * 4
+        self.nbytes = decoded_atlas_bytes(size, self.lod) + view_size[0] * view_size[1] * 4
 
-    def _atlas_texture(self, size, dtype: str = "f2") -> moderngl.Texture:
+    def _atlas_texture(self, size, dtype: str) -> moderngl.Texture:
         zeros = np.zeros(size[0] * size[1] * 4, np.float16 if dtype == "f2" else np.uint8)
         tex = self.ctx.texture(size, 4, zeros, dtype=dtype)
         tex.filter = (moderngl.LINEAR, moderngl.LINEAR)  # sampled bilinear only within a tile

@@ -59,16 +59,26 @@ class ImpostorConfig:
             raise ValueError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
 
 
+#: Formats of the GPU decode's decoded atlas: "f16" (RGBA16F, the reference decode's
+#: clip(Σ w·D) over the blended directions) or "u8" (RGBA8: each sampled direction's tile
+#: clipped to [0, 1] and rounded to 8 bits, then blended).
+DECODED_FORMATS = ("f16", "u8")
+
+
 @dataclass(frozen=True)
 class LodConfig:
-    """Thresholds (texel width in pixels), the hysteresis band (a fraction of them) and the
-    impostors of far nodes (None: every quad drawn)."""
+    """Thresholds (texel width in pixels), the hysteresis band (a fraction of them), the
+    impostors of far nodes (None: every quad drawn) and the decoded atlas's format
+    (:data:`DECODED_FORMATS`; "u8" halves its memory, and llvmpipe filters 8-bit texels in
+    integer arithmetic, a quarter faster a fetch than half floats; without level of detail
+    the decode is exact, "f16")."""
 
     full_texel_px: float = 0.5
     mean_texel_px: float = 0.15
     reduced_rank: int = 2
     hysteresis: float = 0.25
     impostors: ImpostorConfig | None = ImpostorConfig()
+    decoded_format: str = "u8"
 
     def __post_init__(self):
         if not (0 < self.mean_texel_px <= self.full_texel_px and np.isfinite(self.full_texel_px)):
@@ -78,6 +88,8 @@ class LodConfig:
             raise ValueError(f"reduced_rank must be 0…255, got {self.reduced_rank}")
         if not 0 <= self.hysteresis < 1:
             raise ValueError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
+        if self.decoded_format not in DECODED_FORMATS:
+            raise ValueError(f"decoded_format must be one of {DECODED_FORMATS}, got {self.decoded_format!r}")
 
     @property
     def rank_caps(self) -> np.ndarray:

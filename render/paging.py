@@ -39,11 +39,12 @@ plus its own stay within the budget, releasing the farthest tiles (lowest priori
 Hence the measured bytes never exceed the budget. The frame's own target and the sky pass are
 not tiles' and are not counted.
 
-The decoded atlas (every billboard's storage slots in RGBA16F), the view atlas (a tile per
+The decoded atlas (every billboard's storage slots in RGBA8 with level of detail, else
+RGBA16F), the view atlas (a tile per
 block in RGBA8) and the impostor atlas (a ``texels``² RGBA8 tile plus depth per far-node
 candidate) are sized for the whole model a renderer draws; for a tile that is the tile, which
 is what makes the account per tile. On the default street as one model the decoded and view
-atlases are 96 and 32 MiB and the impostor atlas 132 MiB, beside 39 MiB of pages and slot table;
+atlases are 48 (96 in RGBA16F) and 32 MiB and the impostor atlas 132 MiB, beside 39 MiB of pages and slot table;
 split into 50 m tiles, a tile's bound is 6–30 MiB without impostors.
 """
 
@@ -189,7 +190,7 @@ def tile_gpu_bound(model: BillboardModel, decode: str = "gpu", lod=None, max_tex
     exactly as they are allocated, every instance buffer at the largest capacity it can grow
     to (2× the most records one draw can write), an occlusion culler's query buffer likewise.
     ``max_texture``: GL_MAX_TEXTURE_SIZE of the context."""
-    from .gpu_decode import BAND_ROWS, BLEND_DTYPE, DECODE_DTYPE, QUAD_DTYPE, atlas_layout
+    from .gpu_decode import BAND_ROWS, BLEND_DTYPE, DECODE_DTYPE, QUAD_DTYPE, atlas_layout, decoded_atlas_bytes
     from .impostors import IMPOSTOR_DTYPE, impostor_nodes, ATLAS_WIDTH
     from .resources import _COEF_DTYPE, _TILE_DTYPE
     from .slits import build_slits, pack_columns
@@ -231,7 +232,7 @@ def tile_gpu_bound(model: BillboardModel, decode: str = "gpu", lod=None, max_tex
     place = np.repeat(first, counts) + within
     _, size = atlas_layout(place, s, model.tile, max_texture)
     _, view_size = atlas_layout(place, 1, model.tile, max_texture)
-    total += size[0] * size[1] * 8 + view_size[0] * view_size[1] * 4
+    total += decoded_atlas_bytes(size, lod) + view_size[0] * view_size[1] * 4
     total += 2 * _stream_bound(n, QUAD_DTYPE.itemsize) + _stream_bound(n * s, DECODE_DTYPE.itemsize) \
         + _stream_bound(n, BLEND_DTYPE.itemsize)
     if lod is not None and lod.impostors is not None:

@@ -188,6 +188,40 @@ def test_facing_billboard_shows_its_decoded_texture(ctx, case, mode):
     assert np.all(image[outside] == SKY_U8)
 
 
+@pytest.mark.parametrize("decoded_format", ["f16", "u8"])
+def test_decoded_atlas_format_decides_where_the_blend_clips(ctx, decoded_format):
+    """Level of detail with every eigen image everywhere: "f16" shows the reference decode,
+    clip(Σ w·D) over the blended directions; "u8" blends the directions' tiles clipped and
+    rounded to 8 bits, Σ w·clip(D). Random eigen images leave [0, 1], so the two differ."""
+    from billboards.decode import bracket
+    from render.lod import LodConfig
+
+    centre = np.array([0.3, -0.2, 1.1])
+    model = make_model([centre], base_yaw=0.7, holes=True, page_size=32, tile_mode="u8", coef_mode="u8", rank=10,
+                       d_yaw=10)
+    yaw = 0.7 + np.deg2rad(17.0)  # between yaw samples
+    ray = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    lod = LodConfig(full_texel_px=1e-6, mean_texel_px=1e-6, impostors=None, decoded_format=decoded_format)
+    with BillboardRenderer(ctx, model, "gpu", background=SKY, linear=False, lod=lod) as renderer:
+        image = renderer.render(intrinsics(256.0, 128, 128), look_at(model.origin + centre + 4.0 * ray,
+                                                                     model.origin + centre), (128, 128))
+        assert renderer.stats["lod"] == [1, 0, 0]
+    yi, pi = direction_index(model, [0], (4.0 * ray)[None])
+    i0, i1, w = bracket(yi, model.num_directions // len(model.pitches))
+    assert 0.1 < w[0] < 0.9
+    blended = decode(model, [0], yi, pi)[0]
+    clipped = [decode(model, [0], i.astype(np.float64), pi)[0] for i in (i0, i1)]
+    per_direction = (1 - w[0]) * np.rint(clipped[0] * 255) / 255 + w[0] * np.rint(clipped[1] * 255) / 255
+    ref = blended if decoded_format == "f16" else per_direction
+    want = np.where(ref[..., 3:] >= 0.5, np.rint(ref[..., :3] * 255), SKY_U8)
+    got = image[32:96, 32:96].reshape(8, 8, 8, 8, 3)[:, 2:6, :, 2:6]
+    err = np.abs(got.astype(int) - want[:, None, :, None].astype(int)).max(axis=(1, 3, 4))  # (8, 8) per texel
+    sure = np.abs(ref[..., 3] - 0.5) > 0.01  # rounding cannot flip the alpha test
+    assert sure.mean() > 0.8 and err[sure].max() <= 2, f"max error {err[sure].max()}"
+    other = per_direction if decoded_format == "f16" else blended
+    assert np.abs(np.clip(other, 0, 1) - ref)[sure].max() > 8 / 255  # the two rules differ on this model
+
+
 @pytest.mark.parametrize("mode", ["gpu", "cpu"])
 def test_without_interpolation_the_nearest_direction_is_shown(ctx, mode):
     """interpolate=False: the texture of the nearest sampled direction, not the blend (the
