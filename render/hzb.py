@@ -90,6 +90,7 @@ class DepthPyramid:
         self.widths = np.array([w for _, w in shapes], dtype=np.int64)
         self.flat = np.zeros(int(sizes.sum()), dtype=dtype)
         self.levels = [self.flat[o:o + h * w].reshape(h, w) for o, (h, w) in zip(self.offsets, shapes)]
+        self._rows = [np.empty(((h + 1) // 2, w), dtype) for h, w in shapes[:-1]]  # update's scratch
 
     @property
     def base(self) -> np.ndarray:
@@ -99,20 +100,16 @@ class DepthPyramid:
     def update(self) -> DepthPyramid:
         """Recompute levels 1 … from :attr:`base` (2 × 2 maxima, odd edges alone). Raises
         ValueError if the image holds NaN or +inf (they reach the 1 × 1 top through the maxima)."""
-        for a, out in zip(self.levels[:-1], self.levels[1:]):
+        # pairs of rows first (contiguous, then half as much left), then pairs of columns
+        for a, out, rows in zip(self.levels[:-1], self.levels[1:], self._rows):
             h, w = a.shape
             he, we = h // 2, w // 2
-            if he and we:
-                m = out[:he, :we]
-                np.maximum(a[0:2 * he:2, 0:2 * we:2], a[1:2 * he:2, 0:2 * we:2], out=m)
-                np.maximum(m, a[0:2 * he:2, 1:2 * we:2], out=m)
-                np.maximum(m, a[1:2 * he:2, 1:2 * we:2], out=m)
-            if w % 2 and he:  # the last column alone
-                np.maximum(a[0:2 * he:2, w - 1], a[1:2 * he:2, w - 1], out=out[:he, we])
-            if h % 2 and we:  # the last row alone
-                np.maximum(a[h - 1, 0:2 * we:2], a[h - 1, 1:2 * we:2], out=out[he, :we])
-            if h % 2 and w % 2:
-                out[he, we] = a[h - 1, w - 1]
+            np.maximum(a[0:2 * he:2], a[1:2 * he:2], out=rows[:he])
+            if h % 2:  # the last row alone
+                rows[he] = a[h - 1]
+            np.maximum(rows[:, 0:2 * we:2], rows[:, 1:2 * we:2], out=out[:, :we])
+            if w % 2:  # the last column alone
+                out[:, we] = rows[:, w - 1]
         top = float(self.levels[-1][0, 0])
         if self.dtype == np.float32 and not np.isfinite(top):
             raise ValueError(f"depth image holds non-finite values (maximum {top})")
