@@ -4,8 +4,8 @@ Three passes per frame:
 
 1. **Decode** (``billboard_decode.glsl``): each tile that the view needs and the decoded
    atlas does not hold yet — a billboard's texture at one sampled direction — is decoded
-   (mean + Σ_k w_k·V_k, dequantised) into an atlas kept between frames (RGBA16F; RGBA8 with
-   level of detail, ``LodConfig.decoded_format``). Each
+   (mean + Σ_k w_k·V_k, dequantised; one point per tile) into an atlas kept between frames
+   (RGBA16F; RGBA8 with level of detail, ``LodConfig.decoded_format``). Each
    billboard keeps the corners of the direction bracket around the eye in its storage
    slots (:mod:`render.view_brackets`), so a tile is decoded again only when the eye
    crosses into another bracket (6° of yaw by default) or its level of detail changes
@@ -67,8 +67,8 @@ BAND_ROWS = 64  # tiles per band of the decoded atlas: the tallest slit, in bloc
 
 def empty_stats() -> dict:
     """The decoder's per-draw counts, all zero (see :meth:`GpuDecoder.draw`)."""
-    return {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "blended_tiles": 0,
-            "upload_bytes": 0, "lod": [0, 0, 0]}
+    return {"draw_calls": 0, "instances": 0, "quads": 0, "decoded_tiles": 0, "refreshed_tiles": 0,
+            "deferred_tiles": 0, "blended_tiles": 0, "upload_bytes": 0, "lod": [0, 0, 0]}
 
 
 def atlas_layout(place: np.ndarray, slots: int, tile: int, limit: int) -> tuple[np.ndarray, tuple[int, int]]:
@@ -138,6 +138,11 @@ class GpuDecoder(GpuOwner):
         self.lod = lod
         model = resources.model
         self.model = model
+        largest_point = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
+        if model.tile > largest_point:
+            raise ValueError(f"tiles of {model.tile} texels are wider than the largest point this GL draws "
+                             f"({largest_point:g} pixels), and the GPU decode writes a tile as one point; "
+                             f"use the CPU decode")
         self.slits = build_slits(model.centres, model.kind, model.base_yaw, model.block_size,
                                  merge=len(model.pitches) == 1, max_blocks=BAND_ROWS)
         n = model.num_billboards
@@ -146,6 +151,7 @@ class GpuDecoder(GpuOwner):
         self._held_level = np.full((n, self.storage_slots), -1, np.int8)  # its level of detail
         self._level = np.full(n, -1, np.int8)  # current level per position (hysteresis)
         self._drawn = np.zeros(self.slits.num_columns, bool)  # columns drawn this frame
+        self.refresh_left: int | None = None  # refreshes the frame's draws may still decode (begin_frame)
         ends = self.slits.column_start + self.slits.column_count - 1
         self._column_centre = 0.5 * (model.centres[self.slits.order[self.slits.column_start]].astype(np.float64)
                                      + model.centres[self.slits.order[ends]])
@@ -207,9 +213,14 @@ class GpuDecoder(GpuOwner):
         origin[:, 0] += np.asarray(slots, np.int32) * self.model.tile
         return origin
 
-    def begin_frame(self) -> None:
-        """Start a frame: draws with ``whole_columns`` may draw every column again."""
+    def begin_frame(self, refresh_budget: int | None = None) -> None:
+        """Start a frame: draws with ``whole_columns`` may draw every column again; the frame's
+        draws refresh at most ``refresh_budget`` tiles (None: ``lod.refresh_tiles_per_frame``,
+        no limit without level of detail; see :meth:`draw`)."""
         self._drawn[:] = False
+        if refresh_budget is None and self.lod is not None:
+            refresh_budget = self.lod.refresh_tiles_per_frame
+        self.refresh_left = None if refresh_budget is None else max(int(refresh_budget), 0)
 
     def _runs(self, visible, whole_columns: bool) -> tuple[np.ndarray, np.ndarray]:
         if visible is None:
@@ -220,9 +231,17 @@ class GpuDecoder(GpuOwner):
 
     def draw(self, camera: GLCamera, visible=None, whole_columns: bool = False) -> dict:
         """Draw into the bound framebuffer; returns stats {draw_calls, instances, quads,
-        decoded_tiles, blended_tiles, upload_bytes, lod} (instances: billboards drawn; quads:
-        runs drawn, a slit counting once; decoded_tiles, blended_tiles: tiles the decode and
-        pre-blend passes computed; lod: quads per level of detail, full / reduced / mean).
+        decoded_tiles, refreshed_tiles, deferred_tiles, blended_tiles, upload_bytes, lod}
+        (instances: billboards drawn; quads: runs drawn, a slit counting once; decoded_tiles,
+        blended_tiles: tiles the decode and pre-blend passes computed; lod: quads per level of
+        detail, full / reduced / mean).
+
+        Refreshes: a tile whose storage slot holds another direction or level is decoded again
+        only within the frame's refresh budget (:meth:`begin_frame`), the quads largest on screen
+        first (refreshed_tiles); the rest (deferred_tiles) are drawn from what their slots hold,
+        the texture of a nearby direction, and refreshed in later frames, so that a sudden turn
+        of the eye spreads its decoding over a few frames. A slot that holds nothing yet is
+        always decoded.
 
         visible: None (all billboards), (B,) int indices or an (n,) bool mask.
         ``whole_columns``: draw the whole slit of any facade block in ``visible``, each once per
@@ -232,8 +251,14 @@ class GpuDecoder(GpuOwner):
         plan = self._selection_plan(camera, visible, whole_columns)
         if plan is None:
             return stats
-        stats["decoded_tiles"], stats["upload_bytes"], _ = self._decode(plan.positions, plan.block_direction,
-                                                                        plan.block_level)
+        refresh = None
+        if self.refresh_left is not None:
+            refresh = (self.refresh_left, np.repeat(plan.texel_px, plan.count))
+        decoded, nbytes, _, refreshed, deferred = self._decode(plan.positions, plan.block_direction,
+                                                               plan.block_level, refresh=refresh)
+        stats.update(decoded_tiles=decoded, upload_bytes=nbytes, refreshed_tiles=refreshed, deferred_tiles=deferred)
+        if refresh is not None:
+            self.refresh_left -= refreshed
         self._emit(camera, plan, True, stats)
         return stats
 
@@ -245,7 +270,7 @@ class GpuDecoder(GpuOwner):
         plan = self._selection_plan(camera, visible, True)
         if plan is None:
             return 0, 0
-        decoded, _, pending = self._decode(plan.positions, plan.block_direction, plan.block_level, budget)
+        decoded, _, pending, _, _ = self._decode(plan.positions, plan.block_direction, plan.block_level, budget)
         return decoded, pending
 
     def _selection_plan(self, camera: GLCamera, visible, whole_columns: bool) -> _Plan | None:
@@ -277,7 +302,7 @@ class GpuDecoder(GpuOwner):
             count = np.concatenate([r[1] for r in runs])
             view = np.repeat(np.arange(len(runs)), [len(r[0]) for r in runs])
             plan = self._plan(camera, start, count)
-            decoded, nbytes, _ = self._decode(plan.positions, plan.block_direction, plan.block_level)
+            decoded, nbytes, _, _, _ = self._decode(plan.positions, plan.block_direction, plan.block_level)
             stats["decoded_tiles"] += decoded
             stats["upload_bytes"] += nbytes
             self._emit(camera, plan, False, stats, (view, projections[first:first + MAX_VIEWS],
@@ -392,20 +417,24 @@ class GpuDecoder(GpuOwner):
         self._offscreen(self.view_fbo, self.blend_vao, len(records))
         return int(count.sum()), nbytes
 
-    def _offscreen(self, fbo: moderngl.Framebuffer, vao: moderngl.VertexArray, instances: int) -> None:
-        """Draw ``instances`` tile quads into an atlas's framebuffer, then rebind the caller's."""
+    def _offscreen(self, fbo: moderngl.Framebuffer, vao: moderngl.VertexArray, instances: int,
+                   mode: int = moderngl.TRIANGLE_STRIP) -> None:
+        """Draw ``instances`` tile quads (or points) into an atlas's framebuffer, then rebind the caller's."""
         target = self.ctx.fbo
         fbo.use()
         self.ctx.disable(moderngl.DEPTH_TEST)  # atlases have no depth; every texel of a tile is written
-        vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=instances)
+        vao.render(mode, vertices=4 if mode == moderngl.TRIANGLE_STRIP else 1, instances=instances)
         self.ctx.enable(moderngl.DEPTH_TEST)
         target.use()
 
     def _decode(self, positions: np.ndarray, direction: np.ndarray, level: np.ndarray,
-                budget: int | None = None) -> tuple[int, int, int]:
+                budget: int | None = None, refresh=None) -> tuple[int, int, int, int, int]:
         """Decode the tiles of ``positions`` (P,) whose storage slots do not hold ``direction`` (P, S)
-        at ``level`` (P,) yet, the first ``budget`` of them (None: all); returns (tiles decoded,
-        bytes uploaded, tiles left for later). Restores the bound framebuffer."""
+        at ``level`` (P,) yet, the first ``budget`` of them (None: all). ``refresh``: None, or
+        (most refreshes, priority (P,) float): of the tiles whose slot holds something else, only
+        that many are decoded, highest priority first (see :meth:`draw`). Returns (tiles decoded,
+        bytes uploaded, tiles left for later, refreshes decoded, refreshes deferred). Restores
+        the bound framebuffer."""
         held = self._held[positions]
         need = (direction >= 0) & ((held != direction) | (self._held_level[positions] != level[:, None]))
         rows, slots = np.nonzero(need)
@@ -414,8 +443,18 @@ class GpuDecoder(GpuOwner):
             keep = max(int(budget), 0)
             left = len(rows) - keep
             rows, slots = rows[:keep], slots[:keep]
+        stale = held[rows, slots] >= 0  # drawable as it is: another direction or level
+        refreshed, deferred = int(stale.sum()), 0
+        if refresh is not None and refreshed > refresh[0]:
+            most, priority = refresh
+            candidates = np.flatnonzero(stale)
+            later = candidates[np.argsort(-priority[rows[candidates]], kind="stable")[most:]]
+            keep = np.ones(len(rows), bool)
+            keep[later] = False
+            rows, slots = rows[keep], slots[keep]
+            refreshed, deferred = most, len(later)
         if len(rows) == 0:
-            return 0, 0, left
+            return 0, 0, left, 0, deferred
         model = self.model
         pos = positions[rows]
         billboard = self.slits.order[pos]
@@ -430,10 +469,11 @@ class GpuDecoder(GpuOwner):
         self.resources.bind(prog)
         set_uniform(prog, "u_linear", False)
         set_uniform(prog, "u_decoded_size", tuple(float(v) for v in self.decoded.size))
-        self._offscreen(self.decoded_fbo, self.decode_vao, len(tiles))
+        self.ctx.point_size = float(model.tile)  # one point a tile (billboard_decode.glsl)
+        self._offscreen(self.decoded_fbo, self.decode_vao, len(tiles), moderngl.POINTS)
         self._held[pos, slots] = tiles["direction"]
         self._held_level[pos, slots] = level[rows]
-        return len(tiles), nbytes, left
+        return len(tiles), nbytes, left, refreshed, deferred
 
     def release(self) -> None:
         """Free the programs, vertex arrays, instance streams and the decoded atlas (idempotent)."""

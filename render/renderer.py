@@ -37,8 +37,8 @@ DECODE_MODES = ("gpu", "cpu")
 
 def add_stats(totals: dict, part: dict) -> None:
     """Add a draw's counts to ``totals``: numbers summed, lists (LOD counts) element-wise."""
-    for key in ("draw_calls", "instances", "upload_bytes", "quads", "decoded_tiles", "blended_tiles", "lod",
-                "decode_s", "upload_s"):
+    for key in ("draw_calls", "instances", "upload_bytes", "quads", "decoded_tiles", "refreshed_tiles",
+                "deferred_tiles", "blended_tiles", "lod", "decode_s", "upload_s"):
         if key not in part:
             continue
         value = part[key]
@@ -138,16 +138,21 @@ class BillboardRenderer:
         """The :class:`GLCamera` of an OpenCV camera for this model's origin."""
         return gl_camera(K, world_from_cam, size, self.model.origin, self.clip)
 
-    def draw(self, camera: GLCamera, visible=None) -> dict:
+    def draw(self, camera: GLCamera, visible=None, refresh_budget: int | None = None) -> dict:
         """Draw into the currently bound framebuffer (for a viewer); returns and stores the stats.
 
         With culling on, the framebuffer's depth must have been cleared and its viewport
         must be the camera's size; ``visible`` (if given) is drawn without culling.
+        ``refresh_budget``: tiles the GPU decode may decode again this frame (None: the level of
+        detail's ``refresh_tiles_per_frame``; :meth:`render.gpu_decode.GpuDecoder.draw`).
         """
         if self._released:
             raise RuntimeError("BillboardRenderer used after release()")
         self.ctx.enable_only(moderngl.DEPTH_TEST)
-        self.decoder.begin_frame()
+        if self.decode == "gpu":
+            self.decoder.begin_frame(refresh_budget)
+        else:
+            self.decoder.begin_frame()
         t0 = time.perf_counter()
         n = self.model.num_billboards
         if visible is not None or n == 0 or (self.cull == "none" and self.impostors is None):

@@ -4,7 +4,7 @@ One frame, one clear, one sky pass, one depth buffer: each resident tile whose b
 view frustum is drawn by its own :class:`~render.renderer.BillboardRenderer` into the bound
 framebuffer, with camera matrices relative to that tile's origin (float64 on the CPU, float32
 relative positions on the GPU, as for one model), nearest tile first (with level of detail, the
-frame's impostor images shared among them, nearest first). Nothing is cleared between
+frame's impostor images and refreshes of decoded tiles shared among them, nearest first). Nothing is cleared between
 tiles, so a set draws the image its billboards would draw as one model, up to each tile's
 float32 origin (and the order of exactly coincident quads of different tiles).
 
@@ -381,9 +381,14 @@ class TiledRenderer:
         tiles = self._warm([int(i) for i in tiles if int(i) in self.warming], world_from_cam, tiles)
         self._paging_stats.update(tiles_drawn=len(tiles), tiles_warming=len(self.warming))
         t2 = time.perf_counter()
+        # the frame's refreshes (LodConfig.refresh_tiles_per_frame) go to the nearest tiles first
+        refresh = None if self.lod is None else self.lod.refresh_tiles_per_frame
         for i in tiles:
             r = self.resident[int(i)].renderer
-            merge_stats(totals, r.draw(camera_at_origin(self._camera, world_from_cam, r.model.origin)))
+            part = r.draw(camera_at_origin(self._camera, world_from_cam, r.model.origin), refresh_budget=refresh)
+            merge_stats(totals, part)
+            if refresh is not None:
+                refresh = max(refresh - int(part.get("refreshed_tiles", 0)), 0)
         for i in tiles:
             self._measure(int(i))  # instance buffers grow with what is drawn
         totals["draw_s"] = time.perf_counter() - t2

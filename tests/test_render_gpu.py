@@ -222,6 +222,49 @@ def test_decoded_atlas_format_decides_where_the_blend_clips(ctx, decoded_format)
     assert np.abs(np.clip(other, 0, 1) - ref)[sure].max() > 8 / 255  # the two rules differ on this model
 
 
+def test_refreshes_past_the_budget_are_drawn_from_what_their_slots_hold(ctx):
+    """LodConfig.refresh_tiles_per_frame: after a turn that moves every quad into another
+    direction bracket, a frame refreshes the tiles of the quads largest on screen first, up to
+    the budget; the rest draw from the direction their slots hold (no hole: the same pixels are
+    covered) until later frames refresh them, ending on the image of a renderer without a budget."""
+    from render.lod import LodConfig
+
+    rng = np.random.default_rng(3)
+    n = 300
+    centres = np.stack([rng.uniform(-15, 15, n), rng.uniform(-1, 1, n), rng.uniform(0, 5, n)], 1)
+    model = make_model(centres, base_yaw=np.pi / 2, voxel_size=0.6, rank=2, d_yaw=9, yaw_span_deg=160.0, seed=3)
+    K, size = intrinsics(150.0, 240, 160), (240, 160)
+    first = look_at(model.origin + [-12.0, -14.0, 2.0], model.origin + [0.0, 0.0, 2.0])
+    turned = look_at(model.origin + [12.0, -14.0, 2.0], model.origin + [0.0, 0.0, 2.0])
+    budget = 100
+
+    def lod(refresh):
+        return LodConfig(full_texel_px=1e-6, mean_texel_px=1e-6, impostors=None, refresh_tiles_per_frame=refresh)
+
+    with BillboardRenderer(ctx, model, "gpu", background=SKY, lod=lod(None)) as fresh:
+        want = fresh.render(K, turned, size)
+    with BillboardRenderer(ctx, model, "gpu", background=SKY, lod=lod(budget)) as renderer:
+        renderer.render(K, first, size)
+        assert renderer.stats["refreshed_tiles"] == 0 and renderer.stats["decoded_tiles"] >= n
+        dec = renderer.decoder
+        before = dec._held.copy()
+        image = renderer.render(K, turned, size)
+        st = renderer.stats
+        assert st["refreshed_tiles"] == budget and st["decoded_tiles"] == budget and st["deferred_tiles"] > budget
+        assert np.array_equal(np.any(image != SKY_U8, -1), np.any(want != SKY_U8, -1))
+        assert not np.array_equal(image, want)
+        wanted = dec._plan(renderer.camera(K, turned, size), dec.slits.column_start, dec.slits.column_count)
+        refreshed = (dec._held != before).any(1)
+        deferred = (dec._held != wanted.block_direction).any(1)
+        dist = np.linalg.norm(model.centres[dec.slits.order].astype(np.float64) - [12.0, -14.0, 2.0], axis=1)
+        assert refreshed.any() and dist[refreshed].max() <= dist[deferred].min() + 1e-6  # the nearest first
+        for _ in range(20):
+            image = renderer.render(K, turned, size)
+            if renderer.stats["deferred_tiles"] == 0:
+                break
+        assert renderer.stats["deferred_tiles"] == 0 and np.array_equal(image, want)
+
+
 @pytest.mark.parametrize("mode", ["gpu", "cpu"])
 def test_without_interpolation_the_nearest_direction_is_shown(ctx, mode):
     """interpolate=False: the texture of the nearest sampled direction, not the blend (the

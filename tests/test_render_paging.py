@@ -562,3 +562,24 @@ def test_paging_walk_reports_the_frames_that_page(ctx, street_set, monkeypatch):
     assert 1 <= walk["paging_frames"] <= len(poses) - 1
     assert max(walk["paging_ms_max"], walk["other_ms_max"]) == pytest.approx(walk["ms_max"])
     assert walk["paging_frames_over_100ms"] <= walk["frames_over_100ms"] <= len(poses) - 1
+
+
+def test_the_frame_refresh_budget_goes_to_the_nearest_tiles_first(ctx, street_set):
+    """A set's tiles share LodConfig.refresh_tiles_per_frame: turning round from the street's far
+    end, the frame refreshes at most that many tiles over all its tiles, defers the rest, and
+    later frames finish the job."""
+    budget = 40
+    lod = LodConfig(impostors=None, refresh_tiles_per_frame=budget)
+    turned = look_at(WORLD + [40.0, 0.0, 2.0], WORLD + [5.0, 0.0, 2.0])
+    with TiledRenderer(ctx, street_set, "gpu", lod=lod) as tiled:
+        tiled.render(K, views()[0], SIZE, wait="all")
+        assert tiled.stats["refreshed_tiles"] == 0  # nothing held yet: decoded, not refreshed
+        tiled.render(K, turned, SIZE, wait="all")
+        assert tiled.stats["tiles_drawn"] >= 2
+        assert tiled.stats["refreshed_tiles"] == budget and tiled.stats["deferred_tiles"] > budget
+        for _ in range(100):
+            tiled.render(K, turned, SIZE, wait="all")
+            assert tiled.stats["refreshed_tiles"] <= budget
+            if tiled.stats["deferred_tiles"] == 0:
+                break
+        assert tiled.stats["deferred_tiles"] == 0

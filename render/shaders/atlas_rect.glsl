@@ -1,4 +1,4 @@
-// Shared by the passes that write rectangles of an atlas (decode, pre-blend, impostor clear): the
+// Shared by the passes that write rectangles of an atlas (pre-blend, impostor clear): the
 // clip-space corner gl_VertexID (0..3 of a triangle strip) of the pixel rectangle at `origin`
 // (bottom-left, pixels) of `extent` pixels in a target of `target_size` pixels, at NDC depth `z`.
 #if defined VERTEX_SHADER

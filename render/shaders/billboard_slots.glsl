@@ -27,20 +27,23 @@ vec4 slot_entry(int slot, int which) {
     return texelFetch(u_slot_table, ivec2(t.x * 3 + which, t.y), 0);
 }
 
+// Where the tile of `slot` lies in the atlas pages: (top-left texel x, y, page).
+ivec3 tile_address(int slot) {
+    int page = slot / u_tiles_per_page;
+    int rest = slot - page * u_tiles_per_page;
+    int row = rest / u_tiles_per_row;
+    return ivec3(ivec2(rest - row * u_tiles_per_row, row) * u_tile, page);
+}
 // Quantised value q of the tile in `slot` (dequantised: offset + scale·q) at the continuous tile
 // coordinate `texel` (0…t): the nearest texel, or bilinear within the tile (u_linear). The
 // decode is linear in q, so filtering q filters the decoded colour.
 vec4 tile_q(int slot, vec2 texel) {
-    int page = slot / u_tiles_per_page;
-    int rest = slot - page * u_tiles_per_page;
-    int row = rest / u_tiles_per_row;
-    int col = rest - row * u_tiles_per_row;
-    ivec2 origin = ivec2(col, row) * u_tile;
+    ivec3 tile = tile_address(slot);
     if (u_linear) {
         vec2 size = vec2(textureSize(u_tiles, 0).xy);
-        return texture(u_tiles, vec3(tile_point(origin, texel) / size, float(page)));
+        return texture(u_tiles, vec3(tile_point(tile.xy, texel) / size, float(tile.z)));
     }
-    return texelFetch(u_tiles, ivec3(origin + tile_texel(texel), page), 0);
+    return texelFetch(u_tiles, ivec3(tile.xy + tile_texel(texel), tile.z), 0);
 }
 
 // Weight w = Σ_c weights_c · (coef_offset + coef_scale·q_c) of the eigen tile in `slot` over
