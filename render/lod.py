@@ -39,7 +39,7 @@ class ImpostorConfig:
     max_error_px: float = 1.0
     max_angle_deg: float = 4.0
     updates_per_frame: int = 24
-    in_full_updates_per_frame: int = 96
+    in_full_updates_per_frame: int = 64
     hysteresis: float = 0.1
 
     def __post_init__(self):
@@ -83,7 +83,7 @@ class LodConfig:
     hysteresis: float = 0.25
     impostors: ImpostorConfig | None = ImpostorConfig()
     decoded_format: str = "u8"
-    refresh_tiles_per_frame: int | None = 8192
+    refresh_tiles_per_frame: int | None = 4096
 
     def __post_init__(self):
         if not (0 < self.mean_texel_px <= self.full_texel_px and np.isfinite(self.full_texel_px)):
