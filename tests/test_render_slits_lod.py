@@ -150,6 +150,7 @@ def test_lod_levels_and_hysteresis():
     d = texel_pixels([0.0, 0.0, 0.0], np.array([[10.0, 0, 0], [0.0, 0, 0]]), np.array([0.5, 0.5]), 8, 1000.0)
     assert d[0] == pytest.approx(1000 * 0.5 / 8 / 10) and d[1] == np.inf
     for bad in (dict(full_texel_px=0.1, mean_texel_px=0.2), dict(hysteresis=1.0), dict(reduced_rank=-1),
-                dict(mean_texel_px=0.0)):
+                dict(mean_texel_px=0.0), dict(decoded_format="f32"), dict(refresh_tiles_per_frame=-1),
+                dict(refresh_tiles_per_frame=2.5), dict(refresh_tiles_per_frame=True)):
         with pytest.raises(ValueError):
             LodConfig(**bad)

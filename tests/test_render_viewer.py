@@ -148,6 +148,7 @@ def test_viewer_toggles_headless(tmp_path):
         assert lines[0].endswith("50.0 fps,  20.0 ms/frame | draw 12.5 ms, cull 3.5 ms")
         assert lines[1] == f"quads 7 | drawn 9/{total} culled {total - 9} | decoded 3 tiles"
         assert lines[2] == "LOD on: full 4 reduced 2 mean 1 | impostors 5, 2 new"
+        assert app.hud_lines({**fake, "deferred_tiles": 40})[1].endswith(" | decoded 3 tiles, 40 deferred")
         assert app.hud_lines({})[2] == "LOD on: full 0 reduced 0 mean 0 | impostors 0, 0 new"  # .get defaults
         app.handle_command("L")  # level of detail off: every eigen image
         assert not app.lod and app.renderer.decoder.lod is None and "LOD off" in app.hud()
