@@ -43,12 +43,14 @@ class BenchConfig:
     street_length: float = 30.0  # metres: the 1× street of the pipeline runs
     scales: tuple[int, ...] = (1, 2, 4)  # street lengths of the scaling runs, in multiples of street_length
     city_scales: tuple[int, ...] = (1, 4, 16)  # the city-scale runs (scene "city", tile by tile), likewise
+    city_gpu_budget_mb: int = 256  # the city runs' viewer: its GPU budget (the 1× street should fill it)
+    city_lazy: bool = False  # the city runs' datasets cast on demand (no images stored, no ground-truth depth)
 
     def __post_init__(self):
         if self.scene not in SCENES:
             raise ValueError(f"scene must be one of {SCENES}, got {self.scene!r}")
         if not (0 < self.street_length < float("inf") and self.scales and all(int(s) >= 1 for s in self.scales)
-                and self.repeats >= 1 and self.workers >= 1):
+                and self.repeats >= 1 and self.workers >= 1 and self.city_gpu_budget_mb >= 1):
             raise ValueError(f"invalid BenchConfig: {self}")
 
     @classmethod

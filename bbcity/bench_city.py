@@ -21,9 +21,8 @@ from .bench_pipeline import StageTime, stage_in_fresh_process
 
 logger = logging.getLogger(__name__)
 
-#: Side of the model set's tiles (m), the viewer's GPU budget (MB) and the walk's step (m).
+#: Side of the model set's tiles (m) and the walk's step (m).
 TILE_METRES = 32.0
-GPU_BUDGET_MB = 256
 WALK_STEP = 0.5
 
 
@@ -89,16 +88,16 @@ def _view(model: Path, budget_mb: int, size: tuple[int, int], frames: int | None
             for k, v in result.items()}
 
 
-def run_city(cfg: BenchConfig, length: float, out: Path, lazy: bool = False) -> dict:
+def run_city(cfg: BenchConfig, length: float, out: Path) -> dict:
     """Synthesise, reconstruct, build tile by tile and view a ``length`` m street under ``out``;
     every stage's time and peak memory, and the viewer's walk."""
     dataset, work, model = out / "street", out / "work", out / "model"
-    synth = city_street(cfg, length, lazy)
+    synth = city_street(cfg, length, cfg.city_lazy)
     t_synth, _ = stage_in_fresh_process(_synthesis, synth, dataset, cfg.workers)
     t_recon, recon = stage_in_fresh_process(_reconstruction, dataset, work, cfg.workers)
     t_build, build = stage_in_fresh_process(_build, work, dataset, model, cfg.workers)
     size = (640, 360) if cfg.quick else (1280, 720)
-    t_view, view = stage_in_fresh_process(_view, model, GPU_BUDGET_MB, size, 60 if cfg.quick else None)
+    t_view, view = stage_in_fresh_process(_view, model, cfg.city_gpu_budget_mb, size, 60 if cfg.quick else None)
     return {"length": length, "frames": int(recon["frames"]), "points": int(recon["points"]),
             "billboards": int(build["billboards"]), "tiles": int(build["tiles"]),
             "synthesis": t_synth, "reconstruction": t_recon, "build": t_build, "view": t_view, "walk": view}
@@ -110,13 +109,12 @@ def _ratio(values: list[float]) -> float:
     return float(v.max() / v.min()) if len(v) >= 2 else float("nan")
 
 
-def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, ...] = (1, 4, 16),
-               lazy: bool = False) -> list[dict]:
+def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, ...] = (1, 4, 16)) -> list[dict]:
     """The city-scale section: :func:`run_city` at each scale of ``cfg.street_length``, a row per
     scale and a row of the spread (max / min over the scales) of each memory figure."""
     runs = []
     for scale in scales:
-        run = run_city(cfg, cfg.street_length * scale, out / f"city_{scale}x", lazy)
+        run = run_city(cfg, cfg.street_length * scale, out / f"city_{scale}x")
         runs.append(run)
         first = runs[0]
         row = {"scale": f"{scale}×", "length m": run["length"], "frames": run["frames"], "points": run["points"],
@@ -145,9 +143,9 @@ def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, .
     report.add("City scale", spread)
     report.notes["City scale"] = (
         f"Streets of {', '.join(f'{s}×' for s in scales)} {cfg.street_length:g} m, 3 m between frames, both lanes, "
-        f"{'cast on demand (lazy datasets)' if lazy else 'images stored'}; recon (no evaluation) writes the cloud "
+        f"{'cast on demand (lazy datasets)' if cfg.city_lazy else 'images stored'}; recon (no evaluation) writes the cloud "
         f"tile by tile, the build makes {TILE_METRES:g} m tiles one at a time, the viewer walks the drive path "
-        f"{WALK_STEP:g} m a frame under a {GPU_BUDGET_MB} MB GPU budget. Each stage in a fresh process, "
+        f"{WALK_STEP:g} m a frame under a {cfg.city_gpu_budget_mb} MB GPU budget. Each stage in a fresh process, "
         f"{cfg.workers} workers; peak MB of the stage's process and of its largest worker; time per metre from "
         "the CPU seconds of the stage and its workers (wall time moves with the machine's load). The last row: "
         "the largest figure over the smallest (1.0 = flat; the target is within 1.1).")

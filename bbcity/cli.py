@@ -651,6 +651,10 @@ def _add_bench(sub) -> None:
                         "streets of --city-scales × --street-length built tile by tile and paged by the viewer")
     p.add_argument("--city-scales", type=positive_int, nargs="+", default=None,
                    help="street lengths of the city runs in multiples of --street-length (default 1 4 16)")
+    p.add_argument("--gpu-budget", type=positive_int, default=None, metavar="MB",
+                   help="city: the viewer's GPU budget (256); memory is flat from 1× only if the 1× street fills it")
+    p.add_argument("--lazy", action="store_true",
+                   help="city: datasets cast on demand (kilobytes on disk, no ground-truth depth), for long streets")
     p.add_argument("--quick", action="store_true", help="small inputs, for a smoke run (under 3 minutes)")
     p.add_argument("--repeats", type=int_range(1, MAX_REPEATS), default=None,
                    help="timings are the median of this many runs (3; quick 1)")
@@ -672,6 +676,10 @@ def _run_bench(args) -> int:
         given["street_length"] = args.street_length
     if args.city_scales is not None:
         given["city_scales"] = tuple(args.city_scales)
+    if args.gpu_budget is not None:
+        given["city_gpu_budget_mb"] = args.gpu_budget
+    if args.lazy:
+        given["city_lazy"] = True
     run_bench(BenchConfig.quick_config(**given) if args.quick else BenchConfig(**given), args.out)
     return 0
 
