@@ -5,7 +5,8 @@
 - :mod:`core.tasks` — independent tasks through any ``concurrent.futures.Executor``;
 - :mod:`core.rigid` — rigid transforms (inverse, nearest rotation);
 - :mod:`core.metrics` — image quality numbers (PSNR);
-- :mod:`core.memory` — resident and peak memory of this process and its workers;
+- :mod:`core.memory` — resident and peak memory of this process and its workers, and giving
+  memory back (heap trim, mapped pages);
 - :mod:`core.signals` — Python's signal handlers kept across native libraries' imports.
 """
 

@@ -7,7 +7,12 @@ resident set) starts afresh at exec.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import mmap
 import os
+
+import numpy as np
 
 
 def rss_bytes(pid: int | str = "self") -> int:
@@ -59,3 +64,34 @@ def peak_memory() -> dict:
     workers = [b for b in workers if b > 0]
     return {"main_mb": round(peak_rss_bytes() / 1e6, 1),
             "largest_worker_mb": round(max(workers) / 1e6, 1) if workers else None}
+
+
+def trim_heap() -> bool:
+    """Return the C heap's free pages to the kernel (glibc ``malloc_trim(0)``: every arena, free
+    pages in the middle too). Freed texture-sized blocks otherwise stay resident where the
+    allocator put them in its heap; a viewer that uploads and releases tiles would keep the
+    largest set it ever held. False where the C library has no malloc_trim (not glibc)."""
+    name = ctypes.util.find_library("c")
+    try:
+        trim = ctypes.CDLL(name).malloc_trim if name else None
+    except (OSError, AttributeError):
+        return False
+    if trim is None:
+        return False
+    trim(0)
+    return True
+
+
+def drop_mapped_pages(array: np.ndarray) -> bool:
+    """Take the pages of the file that ``array`` (a ``numpy.memmap`` or a view of one) maps out of
+    this process's resident set; they stay in the page cache and fault back in on the next read.
+    For data read once (uploaded, warmed): a mapping otherwise counts every page it was read
+    through as resident while it lives. False when ``array`` maps no file."""
+    base = array
+    while base is not None and getattr(base, "_mmap", None) is None:
+        base = base.base if isinstance(base, np.ndarray) else None
+    mm = getattr(base, "_mmap", None)
+    if mm is None or mm.closed:
+        return False
+    mm.madvise(mmap.MADV_DONTNEED)
+    return True

@@ -63,6 +63,7 @@ import numpy as np
 from billboards.atlas import atlas_layout as page_layout
 from billboards.model import BillboardModel
 from billboards.model_set import ModelSet
+from core.memory import drop_mapped_pages, trim_heap
 
 logger = logging.getLogger(__name__)
 
@@ -405,7 +406,9 @@ class LoadedTile:
 
 def warm_pages(model: BillboardModel, chunk: int = 8 * MB) -> None:
     """Read every memory-mapped page of ``model`` once, so an upload reads the page cache, not
-    the disk (nothing is kept: the bytes are only touched)."""
+    the disk. Nothing is kept: the bytes are only touched, then the mapping's pages leave this
+    process's resident set (:func:`core.memory.drop_mapped_pages`), so tiles loaded ahead cost
+    the page cache, not the viewer's memory."""
     for page in (*model.pages, *model.coef_pages):
         mm = getattr(page, "_mmap", None)
         flat = page.reshape(-1).view(np.uint8) if page.flags.c_contiguous else None
@@ -414,6 +417,7 @@ def warm_pages(model: BillboardModel, chunk: int = 8 * MB) -> None:
         step = max(chunk, 1)
         for start in range(0, len(flat), step):
             int(flat[start:start + step:4096].sum())  # one byte a page of memory
+        drop_mapped_pages(page)
 
 
 class TileLoader:
@@ -434,6 +438,9 @@ class TileLoader:
         self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="bbcity-tiles")
         self.loads = 0
         self.load_s = 0.0
+        self.trims = 0
+        self._trim_queued = False
+        self._trim_future: concurrent.futures.Future | None = None
 
     def _load(self, i: int) -> LoadedTile:
         t0 = time.perf_counter()
@@ -499,11 +506,12 @@ class TileLoader:
             return self._done[i]
 
     def wait_idle(self, timeout: float | None = None) -> None:
-        """Wait until every queued load has finished (for tests and benchmarks that model a slow
-        frame; a viewer never waits)."""
+        """Wait until every queued load (and heap trim) has finished (for tests and benchmarks that
+        model a slow frame; a viewer never waits)."""
         with self._lock:
             pending = list(self._pending.values())
-        concurrent.futures.wait(pending, timeout=timeout)
+            trim = self._trim_future
+        concurrent.futures.wait(pending + ([trim] if trim is not None else []), timeout=timeout)
         for f in pending:  # the done-callbacks run in the loader thread: let them file the tiles
             if f.done():
                 with self._lock:
@@ -519,6 +527,22 @@ class TileLoader:
         """Forget tile ``i`` (its memory goes once no renderer holds its model)."""
         with self._lock:
             self._done.pop(i, None)
+
+    def trim(self) -> None:
+        """Return the C heap's free pages to the kernel in the loader thread
+        (:func:`core.memory.trim_heap`, 1–10 ms), once however often it is asked before it runs:
+        after a tile's release, so the viewer's memory follows what it holds now."""
+        with self._lock:
+            if self._trim_queued:
+                return
+            self._trim_queued = True
+            self._trim_future = self._pool.submit(self._trim)
+
+    def _trim(self) -> None:
+        with self._lock:
+            self._trim_queued = False
+        trim_heap()
+        self.trims += 1
 
     def close(self) -> None:
         with self._lock:

@@ -31,6 +31,7 @@ import moderngl
 import numpy as np
 
 from billboards.model import BillboardModel
+from core.memory import drop_mapped_pages
 
 from .context import max_array_layers, max_texture_size
 
@@ -104,6 +105,7 @@ def _page_array(ctx: moderngl.Context, pages, width: int, components: int, dtype
             for y0 in range(0, page.shape[0], band):
                 rows = np.ascontiguousarray(page[y0:y0 + band])
                 tex.write(rows, viewport=(0, y0, layer, width, rows.shape[0], 1))
+            drop_mapped_pages(page)  # uploaded: a memory-mapped page need not stay resident here
     tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
     tex.repeat_x = tex.repeat_y = False
     return tex

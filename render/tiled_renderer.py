@@ -280,6 +280,7 @@ class TiledRenderer:
         r = self.resident.pop(i)
         self.warming.pop(i, None)
         r.renderer.release()
+        self.loader.trim()  # llvmpipe's textures are heap memory: give the freed pages back
         self.releases += 1
         self._frame_releases += 1
 

@@ -6,6 +6,9 @@ ones, and a view whose tiles are all resident equals the unlimited-budget image.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -21,6 +24,7 @@ from render.sky import SkyPass, render_over_sky
 from render.target import OffscreenTargets
 from render.tiled_renderer import TiledRenderer
 
+from .test_core_memory import mapped_resident_bytes
 from .test_render_cull_draw import octree_model
 from .test_render_gpu import intrinsics
 
@@ -221,9 +225,28 @@ def test_paging_walk_under_a_small_budget(ctx, street_set, tiles_in_budget):
             assert sum(missing) == 0, missing  # prefetched: nothing near was ever missing
         assert compared >= 0.8 * len(poses)
         assert releases >= 2 and uploads >= 4  # walked through all four tiles, dropping those behind
+        assert 1 <= small.loader.trims <= releases  # the heap trimmed in the loader after releases
         assert small.peak_bytes <= budget < free.peak_bytes  # the budget bound
         # at the end of the walk, the first tiles are gone
         assert 0 not in small.resident and (len(street_set) - 1) in small.resident
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/smaps"), reason="needs Linux /proc")
+def test_loaded_and_resident_tiles_keep_no_mapped_page_resident(ctx, street_set):
+    """A tile's memory-mapped pages are read (warmed, uploaded) and then leave the viewer's
+    resident set: memory follows what is on the GPU, not how many tiles were loaded ahead."""
+    files = sorted(Path(street_set.root).rglob("*.npy"))
+    pages = [f for f in files if f.stat().st_size > 64 * 1024]
+    assert pages  # the set's atlas and coefficient pages
+    with TiledRenderer(ctx, street_set, "gpu", background=BG, paging=PagingConfig(load_radius=1e3, drop_radius=1e3)) as r:
+        r.render(K, views()[0], SIZE, wait="all")
+        for i in range(len(street_set)):
+            r.loader.request(i)
+        r.loader.wait_idle()
+        assert len(r.resident) == len(street_set) and len(r.loader.indices()) == len(street_set)
+        assert sum(mapped_resident_bytes(f) for f in pages) == 0
+        mapped = [p for i in r.resident for p in r.resident[i].renderer.model.pages]
+        assert mapped and all(isinstance(p, np.memmap) for p in mapped)  # still mapped, only not resident
 
 
 def test_first_frame_waits_only_for_the_tiles_around_the_eye(ctx, street_set):
