@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import mmap
 import os
 
@@ -66,16 +67,22 @@ def peak_memory() -> dict:
             "largest_worker_mb": round(max(workers) / 1e6, 1) if workers else None}
 
 
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim`` (None elsewhere), looked up once (find_library runs ldconfig)."""
+    name = ctypes.util.find_library("c")
+    try:
+        return ctypes.CDLL(name).malloc_trim if name else None
+    except (OSError, AttributeError):
+        return None
+
+
 def trim_heap() -> bool:
     """Return the C heap's free pages to the kernel (glibc ``malloc_trim(0)``: every arena, free
     pages in the middle too). Freed texture-sized blocks otherwise stay resident where the
     allocator put them in its heap; a viewer that uploads and releases tiles would keep the
     largest set it ever held. False where the C library has no malloc_trim (not glibc)."""
-    name = ctypes.util.find_library("c")
-    try:
-        trim = ctypes.CDLL(name).malloc_trim if name else None
-    except (OSError, AttributeError):
-        return False
+    trim = _malloc_trim()
     if trim is None:
         return False
     trim(0)
