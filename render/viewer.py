@@ -272,7 +272,7 @@ class ViewerApp(_WindowConfig):
             detail = (f"LOD {'on' if self.lod else 'off'}: full {full} reduced {reduced} mean {mean} | "
                       f"impostors {int(s.get('impostors', 0))}, {int(s.get('impostor_updates', 0))} new")
             deferred = int(s.get("deferred_tiles", 0))  # refreshes left for later frames (a turn)
-            decoded = f" | decoded {int(s.get('decoded_tiles', 0))} tiles" + (f", {deferred} deferred" * bool(deferred))
+            decoded = f" | decoded {int(s.get('decoded_tiles', 0))} tiles" + (f", {deferred} deferred" if deferred else "")
         else:
             quads = drawn  # the CPU decode draws a quad per billboard
             detail = "CPU decode of every drawn billboard (no level of detail)"
