@@ -345,10 +345,10 @@ class FrameBudget:
         return self.frame_s - self.draw_s - self._spent - self._reserved
 
     def allow_upload(self) -> bool:
-        """Whether an upload fits the frame (one not measured yet always does; an allowed one is
-        reserved until :meth:`spent` records it); a refusal counts."""
+        """Whether an upload fits the frame (one not measured yet needs a quarter of ``frame_ms``
+        left; an allowed one is reserved until :meth:`spent` records it); a refusal counts."""
         cost = self.cost("upload")
-        ok = cost is None or cost <= self.left()
+        ok = (cost if cost is not None else 0.25 * (self.frame_s or 0.0)) <= self.left()
         if ok and cost is not None:
             self._reserved += cost
         self._skipped |= not ok
@@ -357,11 +357,19 @@ class FrameBudget:
     def warm_tiles(self, most: int) -> int:
         """Texture tiles of warm-up the frame has room for, at most ``most`` (none where room is
         left for less than an eighth of that: a warm-up step plans the tile's view whatever it
-        decodes); fewer than asked counts as a refusal."""
+        decodes; before the cost is measured, an eighth in a frame with time left, so that the
+        first step cannot take a whole frame); fewer than asked counts as a refusal (not the
+        first step's eighth)."""
         if most <= 0:
             return 0
         left, cost = self.left(), self.cost("warm")
-        tiles = most if cost is None or math.isinf(left) else int(min(most, max(left, 0.0) / max(cost, 1e-12)))
+        if self.frame_s is None:
+            return most
+        if cost is None:  # the probe
+            tiles = max(most // 8, 1) if left > 0 else 0
+            self._skipped |= tiles == 0
+            return tiles
+        tiles = most if math.isinf(left) else int(min(most, max(left, 0.0) / max(cost, 1e-12)))
         if tiles < most // 8:
             tiles = 0
         self._skipped |= tiles < most
