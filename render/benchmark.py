@@ -141,6 +141,11 @@ def path_fps(ctx, model: BillboardModel, poses, size=(1280, 720), decode: str = 
             **frame_time_stats(times), **mean_counts(stats)}
 
 
+#: What :func:`paging_walk` keeps of each frame's stats.
+_WALK_FIGURES = ("uploads", "releases", "warm_decoded_tiles", "tiles_missing", "upload_s", "wait_s", "tiles",
+                 "tiles_drawn", "tiles_resident", "instances", "quads", "decoded_tiles")
+
+
 def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str = "gpu",
                 lod: LodConfig | None = LodConfig(), cull: str = "frustum", K=None) -> dict:
     """Walk ``poses`` (n, 4, 4) world_from_cam through ``source`` (a ModelSet or a BillboardModel)
@@ -168,42 +173,44 @@ def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str =
     t0 = time.perf_counter()
     renderer = TiledRenderer(ctx, source, decode, paging=paging, cull=cull, lod=lod if decode == "gpu" else None)
     open_s = time.perf_counter() - t0
-    times, stats = [], []
+    # per frame, a fixed row of numbers: a walk's own record must not grow the viewer's memory by a dict a frame
+    times = np.zeros(len(poses), np.float64)
+    frames = np.zeros((len(poses), len(_WALK_FIGURES)), np.float64)
     try:
-        for pose in poses:
+        for k, pose in enumerate(poses):
             t1 = time.perf_counter()
             renderer.render(K, pose, size)
-            times.append(time.perf_counter() - t1)
-            stats.append(dict(renderer.stats))
+            times[k] = time.perf_counter() - t1
+            frames[k] = [renderer.stats.get(key, 0) for key in _WALK_FIGURES]
         loads, load_s = renderer.loader.loads, renderer.loader.load_s
         peak, peak_reserved = renderer.peak_bytes, renderer.peak_reserved
         uploads, releases = renderer.uploads, renderer.releases
     finally:
         renderer.release()
+    figure = {key: frames[:, j] for j, key in enumerate(_WALK_FIGURES)}
     later = frame_time_stats(times[1:])
     budget = paging.gpu_budget
-    later_ms = 1000.0 * np.asarray(times[1:])
-    paged = np.array([bool(s.get("uploads") or s.get("releases") or s.get("warm_decoded_tiles")) for s in stats[1:]])
+    later_ms = 1000.0 * times[1:]
+    uploaded = figure["uploads"][1:] > 0
+    paged = uploaded | (figure["releases"][1:] > 0) | (figure["warm_decoded_tiles"][1:] > 0)
     return {"frames": len(times), "open_ms": 1000.0 * open_s, "first_ms": 1000.0 * times[0],
-            "ms": later["ms"], "ms_p95": later["ms_p95"], "ms_max": 1000.0 * max(times[1:]),
+            "ms": later["ms"], "ms_p95": later["ms_p95"], "ms_max": float(later_ms.max()),
             "fps": later["fps"], "fps_p5": later["fps_p5"],
             "budget_mb": None if budget is None else budget / MB, "peak_mb": peak / MB,
             "peak_reserved_mb": peak_reserved / MB, "uploads": uploads, "releases": releases, "loads": loads,
-            "load_s": load_s, "wait_ms": 1000.0 * stats[0].get("wait_s", 0.0),
-            "missing_frames": int(sum(1 for s in stats if s.get("tiles_missing", 0) > 0)),
-            "upload_ms_max": 1000.0 * max(s.get("upload_s", 0.0) for s in stats[1:]),
-            "upload_frames": int(sum(1 for s in stats[1:] if s.get("uploads", 0) > 0)),
-            "ms_upload_frames": (1000.0 * float(np.median([t for t, s in zip(times[1:], stats[1:]) if s.get("uploads")]))
-                                 if any(s.get("uploads") for s in stats[1:]) else 0.0),
+            "load_s": load_s, "wait_ms": 1000.0 * figure["wait_s"][0],
+            "missing_frames": int(np.sum(figure["tiles_missing"] > 0)),
+            "upload_ms_max": 1000.0 * float(figure["upload_s"][1:].max()),
+            "upload_frames": int(uploaded.sum()),
+            "ms_upload_frames": float(np.median(later_ms[uploaded])) if uploaded.any() else 0.0,
             "paging_frames": int(paged.sum()),
             "paging_ms_max": float(later_ms[paged].max()) if paged.any() else 0.0,
             "other_ms_max": float(later_ms[~paged].max()) if (~paged).any() else 0.0,
             "frames_over_100ms": int(np.sum(later_ms > 100.0)),
             "paging_frames_over_100ms": int(np.sum(later_ms[paged] > 100.0)),
-            "tiles": int(stats[0].get("tiles", 0)),
-            "drawn": float(np.mean([s.get("tiles_drawn", 0) for s in stats])),
-            "resident": float(np.mean([s.get("tiles_resident", 0) for s in stats])),
-            **{k: v for k, v in mean_counts(stats).items() if k in ("instances", "quads", "decoded_tiles")}}
+            "tiles": int(figure["tiles"][0]),
+            "drawn": float(figure["tiles_drawn"].mean()), "resident": float(figure["tiles_resident"].mean()),
+            **{key: float(figure[key].mean()) for key in ("instances", "quads", "decoded_tiles")}}
 
 
 def lod_psnr(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1280, 720), K=None,
