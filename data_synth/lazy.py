@@ -34,6 +34,10 @@ motion stereo reads again are cast once) are kept; nothing grows with the street
 object table a section keeps (about 30 bytes per metre). The first read in a process checks
 the generator against the stored digest (a streamed digest: about 60 ms per kilometre).
 The bytes do not depend on the process, the order of reads or what is kept.
+
+**On disk.** Cast colour images are also kept as PNG files beside the dataset, within a bound
+(``BBCITY_LAZY_CACHE_MB``), for every process that reads it (:mod:`data_synth.lazy_cache`): a
+build reads each view many times, in several processes, and a cast costs a second or two.
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ import numpy as np
 from core.fileio import DataFormatError, read_json, read_png
 
 from .distortion import undistort
+from .lazy_cache import ImageCache, cache_limit_bytes
 from .raycast import Renderer, RenderResult
 from .rig import Rig, make_rig
 from .section import object_table, scene_section, verify_digest
@@ -260,8 +265,31 @@ class LazyImages:
         return result
 
     def image(self, frame: int, cam: int) -> np.ndarray:
-        """(h, w, 3) uint8 raw (distorted, where the camera has a lens) RGB of a frame (a new array)."""
-        return self.render(frame, cam).rgb.copy()
+        """(h, w, 3) uint8 raw (distorted, where the camera has a lens) RGB of a frame (a new array):
+        from the dataset's image cache (:mod:`data_synth.lazy_cache`) or cast, then kept there."""
+        self._check(frame, cam)
+        cache = self.cache()
+        if cache is None:
+            return self.render(frame, cam).rgb.copy()
+        size = tuple(int(v) for v in self._state().rig.sizes[cam])
+        rgb = cache.get(frame, cam, size)
+        if rgb is None:
+            rgb = self.render(frame, cam).rgb.copy()
+            cache.put(frame, cam, rgb)
+        return rgb
+
+    def cache(self) -> ImageCache | None:
+        """This process's :class:`~data_synth.lazy_cache.ImageCache` of the dataset's cast images
+        (None when ``BBCITY_LAZY_CACHE_MB`` is 0)."""
+        limit = cache_limit_bytes()
+        if limit <= 0:
+            return None
+        key = (str(self.root.resolve() / "cache" / self.digest[:16]), limit)
+        with _LOCK:
+            cache = _CACHES.get(key)
+            if cache is None:
+                cache = _CACHES[key] = ImageCache(key[0], limit)
+        return cache
 
     def ground_truth(self, kind: str, frame: int, cam: int) -> np.ndarray:
         """Raw ``kind`` ("depth": (h, w) float32 NaN = sky; "ids": (h, w) int32, −1 = sky) of a frame;
@@ -294,6 +322,7 @@ _LOCK = threading.RLock()  # the caches below may be read from several threads
 _STATES: OrderedDict = OrderedDict()
 _RENDERERS: OrderedDict = OrderedDict()
 _RESULTS: OrderedDict = OrderedDict()
+_CACHES: dict = {}
 _SOURCES: OrderedDict = OrderedDict()  # dataset directory → LazyImages or None (stored)
 
 

@@ -29,7 +29,8 @@ def _same_scene(a, b) -> bool:
 
 def _forget_casts():
     """Empty this process's lazy caches (as a fresh process starts)."""
-    for cache in (lazy_module._STATES, lazy_module._RENDERERS, lazy_module._RESULTS, lazy_module._SOURCES):
+    for cache in (lazy_module._STATES, lazy_module._RENDERERS, lazy_module._RESULTS, lazy_module._SOURCES,
+                  lazy_module._CACHES):
         cache.clear()
 
 
@@ -200,6 +201,63 @@ def test_lazy_recon_writes_the_stored_cloud(stored_and_lazy, tmp_path):
     a = recon_main(conf, stored.root, tmp_path / "a", progress=False)
     b = recon_main(conf, lazy.root, tmp_path / "b", progress=False)
     assert a.read_bytes() == b.read_bytes()
+
+
+def test_lazy_images_are_kept_on_disk_within_a_bound(stored_and_lazy, tmp_path, monkeypatch):
+    """A cast image is kept as a PNG in the dataset's cache and read back the same in any
+    process; a cut-off file is cast again; the least recently read go beyond the bound; 0 (or
+    an unwritable dataset) keeps none; a bad bound names the variable."""
+    import shutil
+
+    from data_synth.lazy_cache import CACHE_ENV, cache_limit_bytes
+
+    stored, lazy = stored_and_lazy
+    root = tmp_path / "lazy"
+    shutil.copytree(lazy.root, root, ignore=shutil.ignore_patterns("cache"))  # as made
+    ds = load_dataset(root)
+    _forget_casts()
+    cache = ds.lazy.cache()
+    assert cache.directory.parent == root.resolve() / "cache"
+    want = stored.image(4, 1)
+    np.testing.assert_array_equal(ds.image(4, 1), want)  # cast, then kept
+    kept = cache.path(4, 1)
+    assert kept.is_file() and (cache.hits, cache.misses) == (0, 1)
+    _forget_casts()  # a fresh process: nothing cast in memory, the file is read
+    np.testing.assert_array_equal(ds.image(4, 1), want)
+    assert ds.lazy.cache().hits == 1
+    with ProcessPoolExecutor(1) as pool:
+        assert pool.submit(_frame_digest, (str(root), 4, 1)).result() == _frame_digest((str(root), 4, 1))
+    kept.write_bytes(kept.read_bytes()[:-40])  # cut off: cast again, and kept whole
+    np.testing.assert_array_equal(ds.image(4, 1), want)
+    np.testing.assert_array_equal(read_image(kept), want)
+
+    per_image = kept.stat().st_size
+    monkeypatch.setenv(CACHE_ENV, str(2.5 * per_image / 2**20))  # room for about two images
+    _forget_casts()
+    small = ds.lazy.cache()
+    for f in range(ds.num_frames):
+        ds.image(f, 0)
+    small.sweep()
+    total = sum(size for _, size, _ in small.files())
+    assert small.evicted > 0 and 0 < total <= small.limit
+    assert small.path(ds.num_frames - 1, 0).is_file()  # the most recent stays
+
+    monkeypatch.setenv(CACHE_ENV, "0")
+    _forget_casts()
+    shutil.rmtree(root / "cache")
+    assert ds.lazy.cache() is None
+    np.testing.assert_array_equal(ds.image(2, 2), stored.image(2, 2))
+    assert not (root / "cache").exists()
+    for bad in ("-1", "nan", "lots"):
+        monkeypatch.setenv(CACHE_ENV, bad)
+        with pytest.raises(ValueError, match=CACHE_ENV):
+            cache_limit_bytes()
+
+    monkeypatch.delenv(CACHE_ENV)
+    _forget_casts()
+    (root / "cache").write_text("not a directory")  # nothing can be kept: each read casts
+    np.testing.assert_array_equal(ds.image(3, 0), stored.image(3, 0))
+    np.testing.assert_array_equal(ds.image(3, 0), stored.image(3, 0))
 
 
 def test_long_lazy_street_is_small(tmp_path):
