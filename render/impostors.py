@@ -10,8 +10,11 @@ its quads (a dynamic impostor, Schaufler 1995):
   and lies wholly in front of the eye (with ``hysteresis`` on that size, so a node does
   not switch back and forth).
 - **The image.** The node's quads drawn by the decoder with the eye's own perspective
-  cropped to the box's screen rectangle, into a part of the node's ``texels``² tile of an
-  RGBA8 atlas (with depth, cleared transparent) twice as fine as the node is on screen.
+  cropped to the box's screen rectangle, twice as fine as the node is on screen, into a
+  studio (:class:`ImpostorStudio`: colour and depth, cleared transparent, shared by the tiles
+  of a set), then copied into a part of the node's ``texels``² tile of an RGBA8 atlas: an
+  atlas holds no depth, half the bytes it would (the depth an image is drawn with is not
+  needed once it is made), so a GPU budget holds more tiles.
   The impostor quad lies on the plane through the box's centre facing the eye, cut to
   that rectangle; its fragments look the image up through the camera it was made with
   (projective texturing), so at that moment it shows what the quads would show.
@@ -58,6 +61,25 @@ IMPOSTOR_ATTRIBUTES = ("in_corner0", "in_corner1", "in_corner2", "in_corner3", "
                        "in_image_w", "in_origin", "in_extent")
 
 ATLAS_WIDTH = 4096  # texels per row of the impostor atlas (at most)
+STUDIO_ROWS = 1  # rows of tiles of an ImpostorStudio: the images one pass makes (32 of 128² texels)
+
+#: Per-image record of the copy from the studio into an atlas (impostor_copy.glsl).
+COPY_DTYPE = np.dtype([("source", "<f4", 2), ("target", "<f4", 2), ("extent", "<f4", 2)])
+COPY_FORMAT = "2f 2f 2f/i"
+COPY_ATTRIBUTES = ("in_source", "in_target", "in_extent")
+
+
+def tile_origins(count: int, texels: int) -> np.ndarray:
+    """(count, 2) int32 texel origins of ``count`` tiles of ``texels``² in rows of ATLAS_WIDTH."""
+    per_row = max(ATLAS_WIDTH // texels, 1)
+    tiles = np.arange(count)
+    return np.stack([(tiles % per_row) * texels, (tiles // per_row) * texels], 1).astype(np.int32)
+
+
+def atlas_size(count: int, texels: int) -> tuple[int, int]:
+    """(width, height) texels of an atlas of ``count`` tiles of ``texels``² (at least one)."""
+    per_row = max(ATLAS_WIDTH // texels, 1)
+    return min(max(count, 1), per_row) * texels, max(-(-count // per_row), 1) * texels
 #: Change of distance an image survives: made twice as fine as the node is on screen, a texel
 #: stays under 0.7 pixels 25 % nearer (and under-sampling 25 % farther is what the quads do).
 MAX_SCALE_CHANGE = 0.25
@@ -96,7 +118,7 @@ class Impostors(GpuOwner):
     """
 
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, config: ImpostorConfig = ImpostorConfig(),
-                 programs: ProgramCache | None = None):
+                 programs: ProgramCache | None = None, studio: ImpostorStudio | None = None):
         self.ctx = ctx
         self.model = model
         self.config = config
@@ -122,27 +144,24 @@ class Impostors(GpuOwner):
         self._wanted = np.zeros(k, bool)  # nodes selected this frame
         self._objects = []
         t = config.texels
-        per_row = max(ATLAS_WIDTH // t, 1)
-        rows = max(-(-k // per_row), 1)
-        size = (min(max(k, 1), per_row) * t, rows * t)
+        size = atlas_size(k, t)
         limit = max_texture_size(ctx)
         if size[1] > limit:
             raise ValueError(f"{k} impostor tiles of {t}² texels need an atlas {size[1]} texels tall; "
                              f"GL_MAX_TEXTURE_SIZE is {limit} (fewer texels or a larger node_edge)")
-        tiles = np.arange(k)
-        self._origin = np.stack([(tiles % per_row) * t, (tiles // per_row) * t], 1).astype(np.int32)
+        if studio is not None and studio.texels != t:
+            raise ValueError(f"an impostor studio of {studio.texels}² tiles cannot make images of {t}² texels")
+        self._origin = tile_origins(k, t)
         self.atlas_size = size
         # the atlas is allocated with the first image: a tile uploaded while paging does not pay
         # for it in the frame that uploads the rest (llvmpipe fills new textures, ~15 ms)
-        self.atlas = self.depth = self.fbo = None
+        self.atlas = self.fbo = None
         try:
             if programs is None:
                 programs = self._keep(ProgramCache(ctx))
+            self.own_studio = studio is None
+            self.studio = self._keep(ImpostorStudio(ctx, t, programs)) if studio is None else studio
             self.program = programs.get("impostor.glsl")
-            self.clear_program = programs.get("impostor_clear.glsl")
-            self.clear_stream = self._keep(InstanceStream(ctx, 16))
-            self.clear_vao = self._keep(ctx.vertex_array(self.clear_program,
-                                                         [(self.clear_stream.buffer, "4f/i", "in_rect")]))
             self.stream = self._keep(InstanceStream(ctx, IMPOSTOR_DTYPE.itemsize))
             self.vao = self._keep(ctx.vertex_array(
                 self.program, [vertex_binding(self.program, self.stream.buffer, IMPOSTOR_FORMAT,
@@ -150,7 +169,7 @@ class Impostors(GpuOwner):
         except BaseException:
             self.release()
             raise
-        self.nbytes = size[0] * size[1] * 8
+        self.nbytes = size[0] * size[1] * 4
 
     def begin_frame(self, camera: GLCamera, draw_views) -> dict:
         """Choose the far nodes for this view — those whose box spans at most ``texels`` pixels
@@ -294,9 +313,9 @@ class Impostors(GpuOwner):
         return self._billboards(wanted[~usable])
 
     def _make(self, camera: GLCamera, nodes: np.ndarray, draw_views) -> None:
-        """Render the images of ``nodes`` (U,) from ``camera`` into their tiles: one clear pass and
-        the views through ``draw_views(camera, projections, rects, selections)`` (the decoder's),
-        all in one visit of the atlas's framebuffer."""
+        """Render the images of ``nodes`` (U,) from ``camera`` into their tiles, through the
+        studio (:meth:`ImpostorStudio.make`: as many images a pass as it has tiles) with the
+        views ``draw_views(camera, projections, rects, selections)`` (the decoder's)."""
         view = camera.view.astype(np.float64)
         proj = camera.projection.astype(np.float64)
         eye = np.asarray(camera.eye, np.float64)
@@ -306,15 +325,11 @@ class Impostors(GpuOwner):
         if self.atlas is None:
             self.atlas = self._keep(self.ctx.texture(self.atlas_size, 4))
             self.atlas.filter = (moderngl.LINEAR, moderngl.LINEAR)
-            self.depth = self._keep(self.ctx.depth_renderbuffer(self.atlas_size))
-            self.fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.atlas], depth_attachment=self.depth))
-        width, height = self.atlas.size
+            self.fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.atlas]))
         # each image twice as fine as the node is on screen now (resampling a 1:1 image blurs it),
         # at least 2 texels and at most the tile
         extent = np.clip(np.ceil((rects[:, 1] - rects[:, 0]) * np.asarray(camera.size)), 2, t)
         self._extent[nodes] = extent
-        origin = self._origin[nodes]
-        tiles = np.concatenate([origin, origin + extent], axis=1).astype(np.float64)  # (U, 4) pixels
         # the plane through each box's centre facing the eye, cut to the box's screen rectangle
         centre = self.centre[nodes]
         to_eye = eye - centre
@@ -331,28 +346,95 @@ class Impostors(GpuOwner):
         crop[:, 0, 0], crop[:, 1, 1] = 2 / size[:, 0], 2 / size[:, 1]
         crop[:, 0, 3], crop[:, 1, 3] = -(hi[:, 0] + lo[:, 0]) / size[:, 0], -(hi[:, 1] + lo[:, 1]) / size[:, 1]
         self._image_from_model[nodes] = (crop @ proj @ view)[:, [0, 1, 3]].astype(np.float32)
-        x0, y0, x1, y1 = tiles.T
-        place = np.tile(np.eye(4), (len(nodes), 1, 1))  # the whole of NDC → each tile's part of the atlas
-        place[:, 0, 0], place[:, 1, 1] = (x1 - x0) / width, (y1 - y0) / height
-        place[:, 0, 3], place[:, 1, 3] = (x0 + x1) / width - 1, (y0 + y1) / height - 1
-        projections = place @ crop @ proj
         self._made_dir[nodes] = normal
         self._made_dist[nodes] = distance
-        target = self.ctx.fbo
-        self.fbo.use()
-        self.fbo.viewport = (0, 0, width, height)
-        self.clear_stream.write(tiles.astype(np.float32))
-        set_uniform(self.clear_program, "u_target_size", (float(width), float(height)))
-        self.ctx.depth_func = "1"  # always: the far plane overwrites the old depth
-        self.clear_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(nodes))
-        self.ctx.depth_func = "<"
-        draw_views(camera, projections, tiles, [np.arange(*self._range[node]) for node in nodes.tolist()])
-        target.use()
+        selections = [np.arange(*self._range[node]) for node in nodes.tolist()]
+        self.studio.make(camera, crop @ proj, extent, self._origin[nodes], selections, self.fbo, draw_views)
 
     def _billboards(self, nodes) -> np.ndarray:
         """(B,) int64 billboards of ``nodes`` (a node's billboards are one range of the octree order)."""
         return ranges_to_indices(self._range[np.asarray(nodes, np.int64)])
 
     def release(self) -> None:
-        """Free the atlas, its framebuffer, the program and the stream (idempotent)."""
+        """Free the atlas, its framebuffer, the stream and an own studio (idempotent)."""
         super().release()
+
+
+class ImpostorStudio(GpuOwner):
+    """Where impostor images are drawn: a colour and depth target of ``slots`` tiles of
+    ``texels``² (default STUDIO_ROWS rows; allocated on first use), then copied into their
+    atlases' tiles, ``slots`` images a pass. Shared
+    by the impostors of every tile a :class:`~render.tiled_renderer.TiledRenderer` draws (an
+    :class:`Impostors` without one makes its own), so an atlas holds colour only."""
+
+    def __init__(self, ctx: moderngl.Context, texels: int, programs: ProgramCache | None = None,
+                 slots: int | None = None):
+        self.ctx = ctx
+        self.texels = int(texels)
+        self.slots = max(ATLAS_WIDTH // self.texels, 1) * STUDIO_ROWS if slots is None else int(slots)
+        if self.slots < 1:
+            raise ValueError(f"an impostor studio needs at least one tile, got {slots}")
+        self.size = atlas_size(self.slots, self.texels)
+        self._origin = tile_origins(self.slots, self.texels)
+        self.colour = self.depth = self.fbo = None
+        self._objects = []
+        try:
+            if programs is None:
+                programs = self._keep(ProgramCache(ctx))
+            self.clear_program = programs.get("impostor_clear.glsl")
+            self.copy_program = programs.get("impostor_copy.glsl")
+            self.clear_stream = self._keep(InstanceStream(ctx, 16))
+            self.clear_vao = self._keep(ctx.vertex_array(self.clear_program,
+                                                         [(self.clear_stream.buffer, "4f/i", "in_rect")]))
+            self.copy_stream = self._keep(InstanceStream(ctx, COPY_DTYPE.itemsize))
+            self.copy_vao = self._keep(ctx.vertex_array(
+                self.copy_program, [vertex_binding(self.copy_program, self.copy_stream.buffer, COPY_FORMAT,
+                                                   COPY_ATTRIBUTES)]))
+        except BaseException:
+            self.release()
+            raise
+        self.nbytes = self.size[0] * self.size[1] * 8
+
+    def make(self, camera: GLCamera, image_projections: np.ndarray, extent: np.ndarray, targets: np.ndarray,
+             selections: list, atlas_fbo: moderngl.Framebuffer, draw_views) -> None:
+        """Draw U images and copy each into ``atlas_fbo``: image i shows ``selections[i]``
+        through ``image_projections[i]`` (4, 4) (GL eye → the whole of NDC), ``extent[i]`` (2,)
+        texels from ``targets[i]`` (2,) of the atlas; ``draw_views``: the decoder's
+        :meth:`~render.gpu_decode.GpuDecoder.draw_views`. ``slots`` images a pass, each pass
+        one visit of the studio and one of the atlas; rebinds the caller's framebuffer."""
+        if self.fbo is None:
+            self.colour = self._keep(self.ctx.texture(self.size, 4))
+            self.depth = self._keep(self.ctx.depth_renderbuffer(self.size))
+            self.fbo = self._keep(self.ctx.framebuffer(color_attachments=[self.colour], depth_attachment=self.depth))
+        width, height = self.size
+        target = self.ctx.fbo
+        for first in range(0, len(selections), self.slots):
+            last = min(first + self.slots, len(selections))
+            origin = self._origin[:last - first].astype(np.float64)
+            rects = np.concatenate([origin, origin + extent[first:last]], axis=1)  # (u, 4) pixels
+            x0, y0, x1, y1 = rects.T
+            place = np.tile(np.eye(4), (last - first, 1, 1))  # the whole of NDC → each image's studio tile
+            place[:, 0, 0], place[:, 1, 1] = (x1 - x0) / width, (y1 - y0) / height
+            place[:, 0, 3], place[:, 1, 3] = (x0 + x1) / width - 1, (y0 + y1) / height - 1
+            self.fbo.use()
+            self.fbo.viewport = (0, 0, width, height)
+            self.clear_stream.write(rects.astype(np.float32))
+            set_uniform(self.clear_program, "u_target_size", (float(width), float(height)))
+            self.ctx.depth_func = "1"  # always: the far plane overwrites the old depth
+            self.clear_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=last - first)
+            self.ctx.depth_func = "<"
+            draw_views(camera, place @ image_projections[first:last], rects, selections[first:last])
+            records = np.empty(last - first, COPY_DTYPE)
+            records["source"] = origin
+            records["target"] = targets[first:last]
+            records["extent"] = extent[first:last]
+            self.copy_stream.write(records)
+            set_uniform(self.copy_program, "u_target_size", tuple(float(v) for v in atlas_fbo.size))
+            set_uniform(self.copy_program, "u_studio", 0)
+            self.colour.use(0)
+            atlas_fbo.use()
+            atlas_fbo.viewport = (0, 0, *atlas_fbo.size)
+            self.ctx.disable(moderngl.DEPTH_TEST)  # the atlas has no depth; every texel of an image is written
+            self.copy_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=last - first)
+            self.ctx.enable(moderngl.DEPTH_TEST)
+        target.use()

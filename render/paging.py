@@ -146,11 +146,12 @@ def _streams_bytes(streams) -> int:
 def renderer_gpu_bytes(renderer) -> dict[str, int]:
     """Bytes of every texture, renderbuffer and buffer a :class:`~render.renderer.BillboardRenderer`
     holds, by part, and their ``total``: pages (atlas and coefficient arrays), slot_table,
-    decoded_atlas, view_atlas, impostor_atlas (colour and depth), cpu_atlas (the CPU decode's
-    frame atlas), instance_buffers, culling (occlusion-query buffers), targets (its own
-    framebuffers, unused when a :class:`~render.tiled_renderer.TiledRenderer` draws it)."""
+    decoded_atlas, view_atlas, impostor_atlas, cpu_atlas (the CPU decode's frame atlas),
+    instance_buffers, culling (occlusion-query buffers), targets (its own framebuffers, unused
+    when a :class:`~render.tiled_renderer.TiledRenderer` draws it), studio (its own
+    :class:`~render.impostors.ImpostorStudio`, where it shares none)."""
     out = dict.fromkeys(("pages", "slot_table", "decoded_atlas", "view_atlas", "impostor_atlas", "cpu_atlas",
-                         "instance_buffers", "culling", "targets"), 0)
+                         "instance_buffers", "culling", "targets", "studio"), 0)
     res = renderer.resources
     if res is not None and not res.released:
         out["pages"] = object_bytes(res.tiles) + object_bytes(res.coefs)
@@ -167,14 +168,24 @@ def renderer_gpu_bytes(renderer) -> dict[str, int]:
             out["instance_buffers"] += _streams_bytes([dec.stream])
     imp = renderer.impostors
     if imp is not None and not imp.released:
-        out["impostor_atlas"] = object_bytes(imp.atlas) + object_bytes(imp.depth)
-        out["instance_buffers"] += _streams_bytes([imp.stream, imp.clear_stream])
+        out["impostor_atlas"] = object_bytes(imp.atlas)
+        out["instance_buffers"] += _streams_bytes([imp.stream])
+        if imp.own_studio:
+            out["studio"] = studio_bytes(imp.studio)
     for culler in getattr(renderer, "_cullers", {}).values():
         out["culling"] += object_bytes(getattr(culler, "_buffer", None))
     for fbo in getattr(renderer.targets, "_targets", {}).values():
         out["targets"] += sum(object_bytes(a) for a in (*fbo.color_attachments, fbo.depth_attachment))
     out["total"] = sum(out.values())
     return out
+
+
+def studio_bytes(studio) -> int:
+    """Bytes an :class:`~render.impostors.ImpostorStudio` holds: its target and streams."""
+    if studio is None or studio.released:
+        return 0
+    return (object_bytes(studio.colour) + object_bytes(studio.depth)
+            + _streams_bytes([studio.clear_stream, studio.copy_stream]))
 
 
 def _stream_bound(records: int, record_size: int) -> int:
@@ -187,12 +198,12 @@ def tile_gpu_bound(model: BillboardModel, decode: str = "gpu", lod=None, max_tex
                    cull: str = "frustum") -> int:
     """Bytes a :class:`~render.renderer.BillboardRenderer` of ``model`` can ever hold on the GPU
     (numpy, no GL; what :func:`renderer_gpu_bytes` measures never exceeds it, without its own
-    framebuffers): the page arrays, slot table, decoded and view atlases and impostor atlas
+    framebuffers and impostor studio): the page arrays, slot table, decoded and view atlases and impostor atlas
     exactly as they are allocated, every instance buffer at the largest capacity it can grow
     to (2× the most records one draw can write), an occlusion culler's query buffer likewise.
     ``max_texture``: GL_MAX_TEXTURE_SIZE of the context."""
     from .gpu_decode import BAND_ROWS, BLEND_DTYPE, DECODE_DTYPE, QUAD_DTYPE, atlas_layout, decoded_atlas_bytes
-    from .impostors import IMPOSTOR_DTYPE, impostor_nodes, ATLAS_WIDTH
+    from .impostors import IMPOSTOR_DTYPE, atlas_size, impostor_nodes
     from .resources import _COEF_DTYPE, _TILE_DTYPE
     from .slits import build_slits, pack_columns
     from .view_brackets import storage_slots
@@ -236,12 +247,10 @@ def tile_gpu_bound(model: BillboardModel, decode: str = "gpu", lod=None, max_tex
     total += decoded_atlas_bytes(size, lod) + view_size[0] * view_size[1] * 4
     total += 2 * _stream_bound(n, QUAD_DTYPE.itemsize) + _stream_bound(n * s, DECODE_DTYPE.itemsize) \
         + _stream_bound(n, BLEND_DTYPE.itemsize)
-    if lod is not None and lod.impostors is not None:
+    if lod is not None and lod.impostors is not None:  # the atlas (colour only) and its stream
         k = len(impostor_nodes(model, lod.impostors.node_edge)[0])
-        t = lod.impostors.texels
-        per_row = max(ATLAS_WIDTH // t, 1)
-        total += min(max(k, 1), per_row) * t * max(-(-k // per_row), 1) * t * 8
-        total += _stream_bound(k, IMPOSTOR_DTYPE.itemsize) + _stream_bound(k, 16)
+        width, height = atlas_size(k, lod.impostors.texels)
+        total += width * height * 4 + _stream_bound(k, IMPOSTOR_DTYPE.itemsize)
     return int(total)
 
 

@@ -24,7 +24,7 @@ from .hzb_culler import HzbCuller
 from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
 from .gpu_decode import GpuDecoder, empty_stats
-from .impostors import Impostors
+from .impostors import Impostors, ImpostorStudio
 from .lod import LodConfig
 from .program import ProgramCache
 from .resources import ModelResources
@@ -70,7 +70,8 @@ class BillboardRenderer:
     (:class:`~render.lod.LodConfig`: fewer eigen images where a texel is below a pixel,
     far octree nodes as impostors, :mod:`render.impostors`); None, the default, draws
     every quad with every eigen image (evaluation does). programs: a
-    :class:`~render.program.ProgramCache` shared with other renderers (None: compiled anew).
+    :class:`~render.program.ProgramCache` shared with other renderers (None: compiled anew);
+    studio: an :class:`~render.impostors.ImpostorStudio` shared likewise (None: its own).
 
     After each :meth:`render` / :meth:`draw`, ``stats`` holds that frame's
     draw_calls, instances, quads, tiles decoded and blended, LOD counts, upload_bytes and
@@ -81,7 +82,8 @@ class BillboardRenderer:
     def __init__(self, ctx: moderngl.Context, model: BillboardModel, decode: str = "gpu", *,
                  spherical: bool | None = None, interpolate: bool = True, linear: bool = True,
                  background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "none",
-                 lod: LodConfig | None = None, programs: ProgramCache | None = None):
+                 lod: LodConfig | None = None, programs: ProgramCache | None = None,
+                 studio: ImpostorStudio | None = None):
         if decode not in DECODE_MODES:
             raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
         if cull not in CULL_MODES:
@@ -105,7 +107,7 @@ class BillboardRenderer:
                 self.resources = ModelResources(ctx, model)
                 self.decoder = GpuDecoder(ctx, self.resources, self.spherical, interpolate, linear, lod, programs)
                 if lod is not None and lod.impostors is not None:
-                    self.impostors = Impostors(ctx, model, lod.impostors, programs)
+                    self.impostors = Impostors(ctx, model, lod.impostors, programs, studio)
             else:
                 self.decoder = CpuDecoder(ctx, model, self.spherical, interpolate=interpolate, linear=linear)
         except BaseException:

@@ -15,7 +15,8 @@ travel), uploaded on the GL thread a bounded amount per frame in frames with tim
 when the GPU budget would be exceeded or they fall behind ``drop_radius``; a tile uploaded far
 from the eye is decoded for the view over a few frames before it is first drawn (warm-up), so
 no frame decodes a whole tile. The renderers of the tiles share their shader programs (one
-:class:`~render.program.ProgramCache`). A frame draws what is resident; ``wait`` decides what
+:class:`~render.program.ProgramCache`) and where impostor images are drawn (one
+:class:`~render.impostors.ImpostorStudio`, 4 MB, outside the budget like the framebuffers). A frame draws what is resident; ``wait`` decides what
 it waits for first: ``"none"``, ``"near"`` (the visible tiles within ``wait_radius`` of the
 eye: what the first frame waits for by default, not the city) or ``"all"`` (every visible
 tile: offline rendering, exact).
@@ -40,6 +41,7 @@ from billboards.model_set import ModelSet, ModelTile, quad_bounds
 from .camera import ClipPlanes, camera_at_origin, gl_camera
 from .context import max_texture_size
 from .culling import CULL_MODES, boxes_outside, frustum_planes
+from .impostors import ImpostorStudio
 from .paging import FrameBudget, Motion, PagingConfig, TileLoader, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
 from .program import ProgramCache
 from .renderer import DECODE_MODES, BillboardRenderer
@@ -183,6 +185,7 @@ class TiledRenderer:
         self.targets = OffscreenTargets(ctx)
         self.programs = ProgramCache(ctx)  # the tiles' renderers compile once, not on each upload
         self.sky_pass: SkyPass | None = None
+        self.studio: ImpostorStudio | None = None  # where every tile's impostor images are drawn
         limit = max_texture_size(ctx)
 
         def bound(model, decode=decode, lod=lod, cull=cull, limit=limit):
@@ -190,6 +193,8 @@ class TiledRenderer:
 
         self.loader = TileLoader(self.model_set, bound, preloaded)
         try:
+            if decode == "gpu" and lod is not None and lod.impostors is not None:
+                self.studio = ImpostorStudio(ctx, lod.impostors.texels, self.programs)
             if sky is not None:
                 self.sky_pass = SkyPass(ctx, sky)
         except BaseException:
@@ -267,7 +272,8 @@ class TiledRenderer:
                 for j in chosen:
                     self._release_tile(j)
         renderer = BillboardRenderer(self.ctx, tile.model, self.decode, interpolate=self._interpolate,
-                                     linear=self._linear, programs=self.programs, **self._options)
+                                     linear=self._linear, programs=self.programs, studio=self.studio,
+                                     **self._options)
         self.resident[i] = _Resident(renderer, tile.bound)
         if not sync and self.paging.warm_tiles_per_frame > 0:
             self.warming[i] = 0
@@ -471,6 +477,8 @@ class TiledRenderer:
             self.resident.pop(i).renderer.release()
         if self.sky_pass is not None:
             self.sky_pass.release()
+        if self.studio is not None:
+            self.studio.release()
         self.programs.release()
         self.targets.release()
         self.loader.close()

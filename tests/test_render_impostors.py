@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from render.camera import look_at
-from render.impostors import impostor_nodes
+from render.impostors import ImpostorStudio, impostor_nodes
 from render.lod import ImpostorConfig, LodConfig
+from render.paging import renderer_gpu_bytes, studio_bytes
 from render.renderer import BillboardRenderer
 
 from .test_render_cull_draw import octree_model
@@ -59,6 +60,41 @@ def test_impostors_look_like_the_quads_and_replace_them(ctx, long_street, cull):
             assert np.mean(np.any(b != SKY_U8, -1)) > 0.3
             diff = np.abs(a - b).max(-1)
             assert diff.mean() < 4.0 and np.mean(diff > 48) < 0.02, (diff.mean(), np.mean(diff > 48))
+
+
+def test_images_are_drawn_in_a_shared_studio_and_copied(ctx, long_street):
+    """An impostor atlas holds colour only: images are drawn (with depth) in a studio, as many a
+    pass as it has tiles, and copied into their atlas tiles. Two renderers sharing a studio of 3
+    tiles draw what one with its own studio (one pass) draws; the shared studio is counted by
+    neither, an own one by its renderer."""
+    model = long_street
+    K = intrinsics(200.0, *SIZE)
+    eye = model.origin + [1.0, 0.0, 1.6]
+    poses = [look_at(eye + [0.05 * i, 0.0, 0.0], eye + [60.0, 0.0, 1.0]) for i in range(3)]
+    lod = LodConfig(impostors=ImpostorConfig(texels=32, updates_per_frame=1000, in_full_updates_per_frame=1000))
+    studio = ImpostorStudio(ctx, 32, slots=3)
+    try:
+        with BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod) as own, \
+                BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod, studio=studio) as a, \
+                BillboardRenderer(ctx, model, "gpu", background=SKY, cull="frustum", lod=lod, studio=studio) as b:
+            for k, pose in enumerate(poses):
+                want = own.render(K, pose, SIZE)
+                for shared in (a, b):
+                    got = shared.render(K, pose, SIZE)
+                    assert shared.stats["impostor_updates"] == own.stats["impostor_updates"]
+                    assert np.array_equal(got, want), k
+                if k == 1:
+                    assert own.stats["impostor_updates"] > 3 * studio.slots and own.stats["impostors"] > 10
+            assert a.impostors.fbo.depth_attachment is None
+            mine, theirs = renderer_gpu_bytes(own), renderer_gpu_bytes(a)
+            assert theirs["studio"] == 0 and mine["studio"] == studio_bytes(own.impostors.studio) > 0
+            assert theirs["impostor_atlas"] == mine["impostor_atlas"] == a.impostors.nbytes
+            with pytest.raises(ValueError, match="studio"):
+                BillboardRenderer(ctx, model, "gpu", lod=LodConfig(impostors=ImpostorConfig(texels=64)), studio=studio)
+    finally:
+        studio.release()
+    with pytest.raises(ValueError):
+        ImpostorStudio(ctx, 32, slots=0)
 
 
 def test_an_image_is_remade_once_the_view_turns_past_the_angle(ctx, long_street):
