@@ -98,7 +98,8 @@ def run_city(cfg: BenchConfig, length: float, out: Path) -> dict:
     t_build, build = stage_in_fresh_process(_build, work, dataset, model, cfg.workers)
     size = (640, 360) if cfg.quick else (1280, 720)
     t_view, view = stage_in_fresh_process(_view, model, cfg.city_gpu_budget_mb, size, 60 if cfg.quick else None)
-    return {"length": length, "frames": int(recon["frames"]), "points": int(recon["points"]),
+    disk = sum(p.stat().st_size for p in dataset.rglob("*") if p.is_file())  # a lazy one's with its image cache
+    return {"length": length, "frames": int(recon["frames"]), "points": int(recon["points"]), "dataset_mb": disk / 1e6,
             "billboards": int(build["billboards"]), "tiles": int(build["tiles"]),
             "synthesis": t_synth, "reconstruction": t_recon, "build": t_build, "view": t_view, "walk": view}
 
@@ -118,7 +119,7 @@ def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, .
         runs.append(run)
         first = runs[0]
         row = {"scale": f"{scale}×", "length m": run["length"], "frames": run["frames"], "points": run["points"],
-               "billboards": run["billboards"], "tiles": run["tiles"]}
+               "billboards": run["billboards"], "tiles": run["tiles"], "dataset MB on disk": run["dataset_mb"]}
         for stage in ("reconstruction", "build"):
             t: StageTime = run[stage]
             row[f"{stage} s"] = t.wall
@@ -141,9 +142,11 @@ def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, .
         spread[f"{stage} CPU s per m, vs 1×"] = _ratio(
             [r[f"{stage} CPU s per m, vs 1×"] for r in report.sections["City scale"][-len(scales):]])
     report.add("City scale", spread)
+    images = ("cast on demand (lazy datasets; cast images kept in their bounded cache, data_synth.lazy_cache)"
+              if cfg.city_lazy else "images stored")
     report.notes["City scale"] = (
         f"Streets of {', '.join(f'{s}×' for s in scales)} {cfg.street_length:g} m, 3 m between frames, both lanes, "
-        f"{'cast on demand (lazy datasets)' if cfg.city_lazy else 'images stored'}; recon (no evaluation) writes the cloud "
+        f"{images}; recon (no evaluation) writes the cloud "
         f"tile by tile, the build makes {TILE_METRES:g} m tiles one at a time, the viewer walks the drive path "
         f"{WALK_STEP:g} m a frame under a {cfg.city_gpu_budget_mb} MB GPU budget. Each stage in a fresh process, "
         f"{cfg.workers} workers; peak MB of the stage's process and of its largest worker; time per metre from "

@@ -95,7 +95,7 @@ def test_quick_city_bench_measures_each_scale_and_the_spread(tmp_path):
     rows = json.loads((tmp_path / "report.json").read_text())["sections"]["City scale"]
     assert [r["scale"] for r in rows] == ["1×", "2×", "max / min"]
     for r in rows[:2]:
-        assert r["tiles"] >= 1 and r["billboards"] > 0
+        assert r["tiles"] >= 1 and r["billboards"] > 0 and r["dataset MB on disk"] > 0
         for key in ("reconstruction peak MB (main)", "reconstruction peak MB (worker)", "build peak MB (main)",
                     "build peak MB (worker)", "viewer peak MB"):
             assert r[key] > 50
