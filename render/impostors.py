@@ -68,6 +68,12 @@ COPY_DTYPE = np.dtype([("source", "<f4", 2), ("target", "<f4", 2), ("extent", "<
 COPY_FORMAT = "2f 2f 2f/i"
 COPY_ATTRIBUTES = ("in_source", "in_target", "in_extent")
 
+#: Change of distance an image survives: made twice as fine as the node is on screen, a texel
+#: stays under 0.7 pixels 25 % nearer (and under-sampling 25 % farther is what the quads do).
+MAX_SCALE_CHANGE = 0.25
+#: An image is remade once its age (:meth:`Impostors._age`) passes 1 and drawn until it passes this.
+USABLE_AGE = 2.0
+
 
 def tile_origins(count: int, texels: int) -> np.ndarray:
     """(count, 2) int32 texel origins of ``count`` tiles of ``texels``² in rows of ATLAS_WIDTH."""
@@ -80,11 +86,6 @@ def atlas_size(count: int, texels: int) -> tuple[int, int]:
     """(width, height) texels of an atlas of ``count`` tiles of ``texels``² (at least one)."""
     per_row = max(ATLAS_WIDTH // texels, 1)
     return min(max(count, 1), per_row) * texels, max(-(-count // per_row), 1) * texels
-#: Change of distance an image survives: made twice as fine as the node is on screen, a texel
-#: stays under 0.7 pixels 25 % nearer (and under-sampling 25 % farther is what the quads do).
-MAX_SCALE_CHANGE = 0.25
-#: An image is remade once its age (:meth:`Impostors._age`) passes 1 and drawn until it passes this.
-USABLE_AGE = 2.0
 
 
 def impostor_nodes(model: BillboardModel, node_edge: float) -> tuple[np.ndarray, np.ndarray]:
