@@ -42,6 +42,7 @@ build reads each view many times, in several processes, and a cast costs a secon
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -284,7 +285,8 @@ class LazyImages:
         limit = cache_limit_bytes()
         if limit <= 0:
             return None
-        key = (str(self.root.resolve() / "cache" / self.digest[:16]), limit)
+        casts = hashlib.sha256(f"{self.config_json}\n{self.digest}".encode()).hexdigest()[:16]  # what makes a frame
+        key = (str(self.root.resolve() / "cache" / casts), limit)
         with _LOCK:
             cache = _CACHES.get(key)
             if cache is None:

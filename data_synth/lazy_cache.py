@@ -3,9 +3,9 @@
 Casting a frame takes a second or two; a build reads each view many times (photometry, the
 facade layer, and the texture sampling of every tile within reach of it), in several worker
 processes. So :meth:`data_synth.lazy.LazyImages.image` keeps what it casts as a PNG under
-``DATASET/cache/DIGEST/cam{c}/NNNNNN.png`` (lossless: the bytes a stored dataset holds) and
-reads it from there the next time, in any process. The directory is named by the scene's
-digest, so a dataset made again with other settings never reads another's frames.
+``DATASET/cache/KEY/cam{c}/NNNNNN.png`` (lossless: the bytes a stored dataset holds) and
+reads it from there the next time, in any process. KEY hashes the dataset's settings and
+its scene's digest, so a dataset made again with other settings never reads another's frames.
 
 The cache holds at most ``BBCITY_LAZY_CACHE_MB`` megabytes (default :data:`CACHE_MB`; 0: no
 cache): a writer that has added a sixteenth of the bound since it last looked removes the least
