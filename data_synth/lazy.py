@@ -285,12 +285,13 @@ class LazyImages:
         limit = cache_limit_bytes()
         if limit <= 0:
             return None
-        casts = hashlib.sha256(f"{self.config_json}\n{self.digest}".encode()).hexdigest()[:16]  # what makes a frame
-        key = (str(self.root.resolve() / "cache" / casts), limit)
+        key = (self.root, self.config_json, self.digest, limit)
         with _LOCK:
             cache = _CACHES.get(key)
-            if cache is None:
-                cache = _CACHES[key] = ImageCache(key[0], limit)
+        if cache is None:  # the directory named by what makes a frame
+            casts = hashlib.sha256(f"{self.config_json}\n{self.digest}".encode()).hexdigest()[:16]
+            with _LOCK:
+                cache = _CACHES.setdefault(key, ImageCache(self.root.resolve() / "cache" / casts, limit))
         return cache
 
     def ground_truth(self, kind: str, frame: int, cam: int) -> np.ndarray:
