@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from bbcity.bench import BenchConfig, Report, run_bench
+from bbcity.bench_city import added_metre_seconds
 
 
 def test_report_writes_nan_as_null_and_markdown_as_na(tmp_path):
@@ -103,3 +104,21 @@ def test_quick_city_bench_measures_each_scale_and_the_spread(tmp_path):
         assert r["first frame ms"] > 0 and r["max frame ms"] > 0
     assert rows[0]["build CPU s per m, vs 1×"] == 1
     assert all(v is None or v >= 1 for k, v in rows[2].items() if k != "scale")
+
+
+def test_seconds_per_added_metre_do_not_count_a_fixed_cost():
+    """A fixed cost makes seconds per metre fall with the length; per metre added beyond the
+    first street they stay equal exactly when the time is linear in the length."""
+    lengths = [120.0, 480.0, 1920.0]
+    linear = [20.0 + 0.5 * x for x in lengths]
+    np.testing.assert_allclose(added_metre_seconds(lengths, linear), [0.5, 0.5], rtol=1e-12)
+    per_metre = np.divide(linear, lengths)
+    assert per_metre[0] / per_metre[-1] > 1.25  # what the fixed cost does to seconds per metre
+    quadratic = [1e-3 * x * x for x in lengths]
+    growth = added_metre_seconds(lengths, quadratic)
+    assert growth[1] / growth[0] == pytest.approx((1920 + 120) / (480 + 120), rel=1e-12)
+    assert len(added_metre_seconds([120.0], [3.0])) == 0
+    for bad in (([120.0, 120.0], [1.0, 2.0]), ([480.0, 120.0], [2.0, 1.0]), ([120.0, 480.0], [1.0]),
+                ([120.0, float("nan")], [1.0, 2.0])):
+        with pytest.raises(ValueError):
+            added_metre_seconds(*bad)
