@@ -198,8 +198,8 @@ def tile_gpu_bound(model: BillboardModel, decode: str = "gpu", lod=None, max_tex
                    cull: str = "frustum") -> int:
     """Bytes a :class:`~render.renderer.BillboardRenderer` of ``model`` can ever hold on the GPU
     (numpy, no GL; what :func:`renderer_gpu_bytes` measures never exceeds it, without its own
-    framebuffers and impostor studio): the page arrays, slot table, decoded and view atlases and impostor atlas
-    exactly as they are allocated, every instance buffer at the largest capacity it can grow
+    framebuffers and impostor studio): the page arrays, slot table, decoded and view atlases and
+    impostor atlas exactly as they are allocated, every instance buffer at the largest capacity it can grow
     to (2× the most records one draw can write), an occlusion culler's query buffer likewise.
     ``max_texture``: GL_MAX_TEXTURE_SIZE of the context."""
     from .gpu_decode import BAND_ROWS, BLEND_DTYPE, DECODE_DTYPE, QUAD_DTYPE, atlas_layout, decoded_atlas_bytes

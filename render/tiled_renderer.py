@@ -16,10 +16,10 @@ when the GPU budget would be exceeded or they fall behind ``drop_radius``; a til
 from the eye is decoded for the view over a few frames before it is first drawn (warm-up), so
 no frame decodes a whole tile. The renderers of the tiles share their shader programs (one
 :class:`~render.program.ProgramCache`) and where impostor images are drawn (one
-:class:`~render.impostors.ImpostorStudio`, 4 MB, outside the budget like the framebuffers). A frame draws what is resident; ``wait`` decides what
-it waits for first: ``"none"``, ``"near"`` (the visible tiles within ``wait_radius`` of the
-eye: what the first frame waits for by default, not the city) or ``"all"`` (every visible
-tile: offline rendering, exact).
+:class:`~render.impostors.ImpostorStudio`, 4 MB, outside the budget like the framebuffers).
+A frame draws what is resident; ``wait`` decides what it waits for first: ``"none"``,
+``"near"`` (the visible tiles within ``wait_radius`` of the eye: what the first frame waits for
+by default, not the city) or ``"all"`` (every visible tile: offline rendering, exact).
 
 A plain model (a directory, or a :class:`~billboards.model.BillboardModel` in memory) is a set
 of one tile, so every front end takes either.
