@@ -22,6 +22,19 @@ def bracket(index: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.n
     return i0, i1, (x - i0).astype(np.float32)
 
 
+def direction_corners(yaw_index: np.ndarray, pitch_index: np.ndarray, d_yaw: int, d_pitch: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The sampled directions a view blends and their weights: fractional ``yaw_index``,
+    ``pitch_index`` (B,) float64 over a d_yaw × d_pitch table → corners (B, 4) int64 direction
+    indices p·d_yaw + y of the bracket [p0y0, p0y1, p1y0, p1y1] and weights (B, 4) float32
+    (bilinear over yaw × pitch, summing to 1; with one pitch the last two are 0)."""
+    y0, y1, fy = bracket(yaw_index, d_yaw)
+    p0, p1, fp = bracket(pitch_index, d_pitch)
+    corners = np.stack([p0 * d_yaw + y0, p0 * d_yaw + y1, p1 * d_yaw + y0, p1 * d_yaw + y1], axis=1)
+    weights = np.stack([(1 - fy) * (1 - fp), fy * (1 - fp), (1 - fy) * fp, fy * fp], axis=1)
+    return corners, weights
+
+
 def _dequant_tiles(model: BillboardModel, slots: np.ndarray) -> np.ndarray:
     """(len(slots), t, t, 4) float32 tile values offset + scale·q."""
     q = read_tiles(model.pages, slots, model.tile, model.page_size).astype(np.float32)
@@ -62,11 +75,7 @@ def decode(model: BillboardModel, billboards, yaw_index, pitch_index=None) -> np
     pi = np.zeros(B) if pitch_index is None else np.broadcast_to(np.asarray(pitch_index, dtype=np.float64), (B,))
     if not (np.all(np.isfinite(yi)) and np.all(np.isfinite(pi))):
         raise ValueError("direction indices must be finite")
-    dy = len(model.yaw_offsets)
-    y0, y1, fy = bracket(yi, dy)
-    p0, p1, fp = bracket(pi, len(model.pitches))
-    corners = np.stack([p0 * dy + y0, p0 * dy + y1, p1 * dy + y0, p1 * dy + y1], axis=1)  # (B, 4)
-    weights = np.stack([(1 - fy) * (1 - fp), fy * (1 - fp), (1 - fy) * fp, fy * fp], axis=1)
+    corners, weights = direction_corners(yi, pi, len(model.yaw_offsets), len(model.pitches))
     first = model.first_slot[b].astype(np.int64)
     rank = model.rank[b].astype(np.int64)
     out = _dequant_tiles(model, first)

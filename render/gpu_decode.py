@@ -14,7 +14,7 @@ Three passes per frame:
    PREBLEND_TEXEL_PX pixels have their bracket blended once per texel, one quad per run,
    into an RGBA8 view atlas — fewer texels than their fragments.
 3. **Draw** (``billboard.glsl``): instanced quads — billboards, ground blocks and slits
-   (the facade layer's columns as one quad each, :mod:`render.slits`) — whose fragments
+   (the facade layer's columns as one quad each, :mod:`billboards.slits`) — whose fragments
    blend the decoded tiles of the bracket with this view's weights (one bilinear fetch per
    corner), or fetch the pre-blended texel; one draw per atlas drawn from.
 
@@ -36,7 +36,7 @@ from .context import max_texture_size
 from .lod import LodConfig, lod_levels, texel_pixels
 from .program import ProgramCache
 from .resources import GpuOwner, InstanceStream, ModelResources, check_billboards, set_uniform, vertex_binding
-from .slits import build_slits, exact_runs, pack_columns, whole_runs
+from billboards.slits import build_slits, exact_runs, pack_columns, whole_runs
 from .view_brackets import storage_slots, view_brackets
 
 #: Per-quad record of the draw pass (billboard.glsl).
@@ -75,7 +75,7 @@ def atlas_layout(place: np.ndarray, slots: int, tile: int, limit: int) -> tuple[
     """Texel origins (P, 2) int32 of places ``place`` (P,) int and the atlas size (w, h): bands of
     BAND_ROWS places, each place a row of ``slots`` t×t tiles, bands side by side up to
     DECODED_WIDTH texels, then stacked. A column's blocks fill consecutive places of one band
-    (:func:`render.slits.pack_columns`), so a fragment of a slit finds its block's tile by
+    (:func:`billboards.slits.pack_columns`), so a fragment of a slit finds its block's tile by
     adding to the first one's origin."""
     places = int(place.max()) + 1 if len(place) else 1
     per_row = max(min(DECODED_WIDTH, limit) // (tile * slots), 1)  # bands per row of bands

@@ -205,7 +205,7 @@ def tile_gpu_bound(model: BillboardModel, decode: str = "gpu", lod=None, max_tex
     from .gpu_decode import BAND_ROWS, BLEND_DTYPE, DECODE_DTYPE, QUAD_DTYPE, atlas_layout, decoded_atlas_bytes
     from .impostors import IMPOSTOR_DTYPE, atlas_size, impostor_nodes
     from .resources import _COEF_DTYPE, _TILE_DTYPE
-    from .slits import build_slits, pack_columns
+    from billboards.slits import build_slits, pack_columns
     from .view_brackets import storage_slots
 
     n, m = model.num_billboards, model.num_slots

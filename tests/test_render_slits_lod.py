@@ -8,7 +8,7 @@ import pytest
 from billboards.decode import direction_index
 from billboards.geometry import BILLBOARD, FACADE, GROUND
 from render.lod import LodConfig, lod_levels, texel_pixels
-from render.slits import (build_slits, exact_runs, exact_runs_reference, pack_columns, pack_columns_reference,
+from billboards.slits import (build_slits, exact_runs, exact_runs_reference, pack_columns, pack_columns_reference,
                           whole_runs)
 from render.view_brackets import storage_slots, view_brackets
 

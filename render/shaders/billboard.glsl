@@ -2,7 +2,7 @@
 // Billboards drawn from their decoded tiles: one instanced draw of triangle strips (4 vertices
 // per quad, corners from gl_VertexID; no vertex buffer, only instances).
 //
-// Per instance: a run of a column of render.slits — a billboard, a ground block or a slit of
+// Per instance: a run of a column of billboards.slits — a billboard, a ground block or a slit of
 // `blocks` facade blocks — with its centre (model coordinates), base yaw and kind, the position
 // of its first block in the decoded atlas, and the weights of the sampled directions held in
 // each storage slot (render.view_brackets; computed for this view on the CPU). The vertex stage

@@ -1,0 +1,476 @@
+"""The fit: sampled textures corrected until the model reproduces its training images.
+
+Sampling reads each texel once from the best camera; nothing checks what the model then
+draws. The fit closes that loop. For every training view the model's quads are placed
+as the renderer places them for that eye (billboards turned toward it, layer blocks
+fixed, ground blocks drawn larger by the overlap) and ray cast on the CPU (Open3D's
+``RaycastingScene``); a ray that meets a texel the renderer would discard (blended alpha
+< 0.5) goes on to the quad behind it. Each ray that meets a quad is one measurement::
+
+    pixel colour = Σ_s w_s · Σ_k b_k · X[quad, corner_s, texel_k]
+
+the renderer's own filtering: the bracket of sampled directions around the eye with the
+renderer's weights w_s (:func:`billboards.decode.direction_corners`), and bilinear taps
+b_k kept between the tile's outer texel centres (``billboard_quad.glsl``'s
+``tile_point``). The colours X of every (quad, direction, texel) then solve
+
+    min_X  Σ_pixels ‖A X − y‖²  +  λ ‖X − X₀‖²
+
+(plus μ‖L·X‖², the differences between neighbouring sampled directions of each texel, so
+that what the views of one direction teach reaches its neighbours and a view-independent
+surface stays view-independent) where X₀ is the sampled texture: λ (``FitConfig.prior``, in units of one pixel's full
+weight) keeps texels that few or no pixels measure (a quad seen edge-on, a direction no
+training camera looks from) at what sampling gave them, so the system is never singular
+and never yields NaN. With visibility fixed the system falls apart into one small
+problem per quad; a chunk of quads is solved at once by conjugate gradients on the
+normal equations with a Jacobi preconditioner (:func:`solve`), the residual of every
+iteration recorded, until the iterations or the time budget run out; the result is
+clipped to [0, 1] as the renderer clamps. :func:`solve_reference` is the same
+least-squares problem solved densely, for tests.
+
+Alpha and geometry are not fitted: the quads' places and the see-through texels are
+sampling's.
+
+Arrays: a view's measurements are :class:`Records` (one row per ray that met a quad);
+textures are (B, d, t, t, 3) float in [0, 1], direction j = p·d_yaw + y.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from .decode import direction_corners, view_direction_index
+from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP, kind_frames
+from .slits import Slits, build_slits
+
+#: Rows of one view's measurements (see :class:`Records`), as a structured dtype for files.
+def record_dtype(corners: int) -> np.dtype:
+    """The structured dtype of measurements whose direction bracket has ``corners`` (2 or 4) entries."""
+    return np.dtype([("quad", "<i4"), ("corner", "<i2", (corners,)), ("weight", "<f4", (corners,)),
+                     ("texel", "<f4", (2,)), ("colour", "u1", (3,))])
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    enabled: bool = True          # fit the textures to the training images (False: sampled textures as they are)
+    seconds: float = 150.0        # wall-clock budget of the fit (s): the solve stops iterating when it is spent
+    iterations: int = 12          # conjugate-gradient iterations per chunk of quads at most
+    pixel_stride: int = 2         # every n-th pixel of every n-th row of each training image is a measurement
+    prior: float = 0.1            # λ: pull of each texel toward its sampled colour, in pixels of full weight
+    smooth: float = 1.0           # μ: pull of each texel toward its neighbouring directions, in the same units
+    see_through: int = 3          # a ray goes on past this many see-through texels at most
+
+    def __post_init__(self):
+        if not (np.isfinite(self.seconds) and self.seconds >= 0):
+            raise ValueError(f"fit seconds must be a finite number ≥ 0, got {self.seconds!r}")
+        for name in ("iterations", "pixel_stride", "see_through"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"fit {name} must be an integer, got {value!r}")
+        if self.iterations < 0 or self.pixel_stride < 1 or self.see_through < 0:
+            raise ValueError("fit iterations and see_through must be ≥ 0, pixel_stride ≥ 1")
+        if not (np.isfinite(self.prior) and self.prior > 0):
+            raise ValueError(f"fit prior must be a finite number > 0 (it keeps the solve regular), got {self.prior!r}")
+        if not (np.isfinite(self.smooth) and self.smooth >= 0):
+            raise ValueError(f"fit smooth must be a finite number ≥ 0, got {self.smooth!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class Quads:
+    """The model's quads as the renderer places them.
+
+    centres (n, 3) float64 world; base_yaw (n,) float64 radians; kind (n,) uint8
+    (:data:`~billboards.geometry.KINDS`); size: a billboard's edge (m); block_size: a layer
+    block's edge (m); tile: texels per side t; yaw_offsets (d_yaw,), pitches (d_pitch,)
+    radians; pitched: billboards also tilt toward the eye's elevation; slits: the facade
+    columns the renderer draws as one quad each (:func:`quads_of`)."""
+
+    centres: np.ndarray
+    base_yaw: np.ndarray
+    kind: np.ndarray
+    size: float
+    block_size: float
+    tile: int
+    yaw_offsets: np.ndarray
+    pitches: np.ndarray
+    pitched: bool
+    slits: Slits
+
+    @property
+    def corners(self) -> int:
+        """Directions a view blends per quad: 2 with one sampled pitch, else 4."""
+        return 2 if len(self.pitches) <= 1 else 4
+
+    @property
+    def num_directions(self) -> int:
+        return len(self.yaw_offsets) * len(self.pitches)
+
+    def sizes(self, ids: np.ndarray) -> np.ndarray:
+        """(m,) float64 edge of quads ``ids`` that their t texels span (m)."""
+        return np.where(self.kind[ids] == BILLBOARD, self.size, self.block_size)
+
+    def edges(self, ids: np.ndarray) -> np.ndarray:
+        """(m,) float64 edge of quads ``ids`` as drawn: a ground block with its overlap, where
+        its border texels repeat."""
+        return np.where(self.kind[ids] == GROUND, 1 + 2 * GROUND_OVERLAP, 1.0) * self.sizes(ids)
+
+    def frames(self, ids: np.ndarray, eye: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Right and up axes (m, 3) float64 of quads ``ids`` seen from ``eye`` (3,) float64 world."""
+        v = np.asarray(eye, np.float64)[None, :] - self.centres[ids]
+        h = np.hypot(v[:, 0], v[:, 1])
+        yaw = np.where(h > 0, np.arctan2(v[:, 1], v[:, 0]), 0.0)
+        pitch = np.arctan2(v[:, 2], h)
+        _, right, up = kind_frames(self.kind[ids], self.base_yaw[ids], yaw, pitch, self.pitched)
+        return right, up
+
+    def brackets(self, ids: np.ndarray, eye: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The directions blended for quads ``ids`` seen from ``eye`` and their weights:
+        (m, c) int64 and (m, c) float32, c = :attr:`corners` (the renderer's view brackets)."""
+        v = np.asarray(eye, np.float64)[None, :] - self.centres[ids]
+        yi, pi = view_direction_index(v, self.base_yaw[ids], self.yaw_offsets, self.pitches)
+        corners, weights = direction_corners(yi, pi, len(self.yaw_offsets), len(self.pitches))
+        c = self.corners
+        return corners[:, :c], weights[:, :c]
+
+
+def quads_of(origin: np.ndarray, centres: np.ndarray, base_yaw: np.ndarray, kind: np.ndarray, size: float,
+             block_size: float, tile: int, yaw_offsets: np.ndarray, pitches: np.ndarray,
+             pitched: bool = False) -> Quads:
+    """:class:`Quads` of a model's arrays: origin (3,) float64; centres (n, 3) float32 relative to
+    it; base_yaw (n,) float32; kind (n,) uint8; the rest as in :class:`Quads`. The slits are made
+    from the model's own float32 arrays, as the renderer makes them."""
+    slits = build_slits(centres, kind, base_yaw, block_size, merge=len(pitches) == 1)
+    return Quads(np.asarray(centres, np.float64) + np.asarray(origin, np.float64), np.asarray(base_yaw, np.float64),
+                 np.asarray(kind, np.uint8), float(size), float(block_size), int(tile),
+                 np.asarray(yaw_offsets, np.float64), np.asarray(pitches, np.float64), bool(pitched), slits)
+
+
+def column_taps(quads: Quads, quad: np.ndarray, texel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The renderer's bilinear filtering: ``texel`` (r, 2) continuous tile coordinates (x =
+    column, y = row, 0..t) on quads ``quad`` (r,) → tap quads (r, 4) int64, tap texels (r, 4)
+    int64 (row·t + column) and weights (r, 4) float32 summing to 1. The sample point is kept
+    between the outer texel centres of what the renderer draws as one texture: the tile, or for
+    a block of a slit the column's tiles one below the other (so across a block's top and
+    bottom edge it filters with the block above or below, never beyond the column)."""
+    t = quads.tile
+    slits = quads.slits
+    pos = slits.position[quad]
+    col = slits.column[pos]
+    start, count = slits.column_start[col], slits.column_count[col]
+    texel = np.asarray(texel, np.float64)
+    px = np.clip(texel[:, 0], 0.5, t - 0.5) - 0.5                                     # texel-centre units
+    py = np.clip(texel[:, 1] + (pos - start) * t, 0.5, count * t - 0.5) - 0.5         # down the column
+    x0 = np.minimum(np.floor(px).astype(np.int64), t - 1)
+    y0 = np.minimum(np.floor(py).astype(np.int64), count * t - 1)
+    fx, fy = px - x0, py - y0
+    x1, y1 = np.minimum(x0 + 1, t - 1), np.minimum(y0 + 1, count * t - 1)
+    xs = np.stack([x0, x1, x0, x1], axis=1)
+    ys = np.stack([y0, y0, y1, y1], axis=1)
+    tap_quad = slits.order[start[:, None] + ys // t]
+    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    return tap_quad, (ys % t) * t + xs, weights.astype(np.float32)
+
+
+def blended(quads: Quads, values: np.ndarray, quad: np.ndarray, corner: np.ndarray, weight: np.ndarray,
+            texel: np.ndarray) -> np.ndarray:
+    """What the renderer draws from ``values`` (n, d, t·t, ...) per-texel values (alpha or
+    colour) at measurements: quad (r,) int, corner (r, c) int, weight (r, c) float, texel (r, 2)
+    → (r, ...) float32, the bracket's directions blended and each filtered bilinearly
+    (:func:`column_taps`)."""
+    tap_quad, taps, tap_w = column_taps(quads, quad, texel)
+    out = 0.0
+    for s in range(corner.shape[1]):
+        v = np.asarray(values[tap_quad, corner[:, s:s + 1], taps], np.float32)        # (r, 4, ...)
+        w = (weight[:, s:s + 1] * tap_w).reshape(tap_w.shape + (1,) * (v.ndim - 2))
+        out = out + (w * v).sum(axis=1)
+    return out
+
+
+def visible_quads(quads: Quads, K: np.ndarray, world_from_cam: np.ndarray, size, max_distance: float) -> np.ndarray:
+    """(m,) int64 the quads whose bounding sphere may appear in the view (in front, inside the
+    image widened by the sphere, nearer than ``max_distance`` m)."""
+    w, h = int(size[0]), int(size[1])
+    R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
+    cam = (quads.centres - C) @ R
+    radius = 0.75 * np.where(quads.kind == BILLBOARD, quads.size, quads.block_size * (1 + 2 * GROUND_OVERLAP))
+    z = cam[:, 2]
+    ok = (z > -radius) & (np.linalg.norm(cam, axis=1) < max_distance + radius)
+    zc = np.maximum(z, 1e-6)
+    for axis, focal, centre, extent in ((0, K[0, 0], K[0, 2], w), (1, K[1, 1], K[1, 2], h)):
+        margin = np.where(z > radius, radius * focal / zc + 1, np.inf)
+        x = focal * cam[:, axis] / zc + centre
+        ok &= (x > -0.5 - margin) & (x < extent - 0.5 + margin)
+    return np.flatnonzero(ok)
+
+
+@dataclass(frozen=True, eq=False)
+class Hits:
+    """Rays of one view that met a quad: pixel (r, 2) int64 (u = column, v = row); quad (r,)
+    int64; texel (r, 2) float32 continuous tile coordinates (column, row, 0..t); corner (r, c)
+    int64 and weight (r, c) float32: the directions blended there."""
+
+    pixel: np.ndarray
+    quad: np.ndarray
+    texel: np.ndarray
+    corner: np.ndarray
+    weight: np.ndarray
+
+
+def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, size, *,
+              stride: int = 1, max_distance: float = 60.0, see_through: int = 3) -> Hits:
+    """Ray cast the quads from one camera, as the renderer draws them.
+
+    alpha (n, d, t·t) uint8 (a memory map will do): each quad's alpha per direction; K (3, 3),
+    world_from_cam (4, 4) float64; size (w, h); rays through every ``stride``-th pixel centre of
+    every ``stride``-th row. A ray that meets a texel whose blended alpha is below ½ goes on,
+    ``see_through`` times at most (then it counts as missing, as behind too many see-through
+    texels the renderer too shows what lies far behind). A ray that stops where ground blocks
+    overlap is left out (see below).
+    """
+    w, h = int(size[0]), int(size[1])
+    C = np.asarray(world_from_cam, np.float64)[:3, 3]
+    R = np.asarray(world_from_cam, np.float64)[:3, :3]
+    ids = visible_quads(quads, K, world_from_cam, size, max_distance)
+    empty = Hits(np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.float32),
+                 np.zeros((0, quads.corners), np.int64), np.zeros((0, quads.corners), np.float32))
+    if len(ids) == 0:
+        return empty
+    right, up = quads.frames(ids, C)
+    edge = quads.edges(ids)[:, None]
+    rel = quads.centres[ids] - C                                   # camera-relative: float32 keeps millimetres
+    a, b = 0.5 * edge * right, 0.5 * edge * up
+    corners = np.stack([rel - a - b, rel + a - b, rel - a + b, rel + a + b], axis=1).reshape(-1, 3)
+    first = 4 * np.arange(len(ids), dtype=np.uint32)[:, None]
+    triangles = np.concatenate([first + np.array([0, 1, 2], np.uint32), first + np.array([2, 1, 3], np.uint32)])
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(corners.astype(np.float32)), o3d.core.Tensor(triangles))
+
+    u, v = np.meshgrid(np.arange(0, w, stride, dtype=np.float64), np.arange(0, h, stride, dtype=np.float64))
+    u, v = u.ravel(), v.ravel()
+    rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=1)
+    direction = rays_cam @ R.T
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    start = np.zeros(len(u))                                       # distance along each ray already passed
+    todo = np.arange(len(u))
+    found_ray, found_quad, found_texel, found_corner, found_weight = [], [], [], [], []
+    n_tri = len(ids)
+    for _ in range(see_through + 1):
+        if len(todo) == 0:
+            break
+        origin = direction[todo] * start[todo, None]
+        rays = np.concatenate([origin, direction[todo]], axis=1).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))
+        t_hit = hit["t_hit"].numpy().astype(np.float64)
+        met = np.isfinite(t_hit)
+        todo, t_hit = todo[met], t_hit[met]
+        prim = hit["primitive_ids"].numpy()[met].astype(np.int64)
+        local = prim % n_tri                                       # triangle k and n_tri + k are quad k's
+        point = direction[todo] * (start[todo] + t_hit)[:, None] - rel[local]
+        scale = quads.sizes(ids[local])
+        col = (point * right[local]).sum(axis=1) / scale + 0.5
+        row = 0.5 - (point * up[local]).sum(axis=1) / scale
+        texel = (np.stack([col, row], axis=1) * quads.tile).astype(np.float32)
+        corner, weight = quads.brackets(ids[local], C)
+        opaque = blended(quads, alpha, ids[local], corner, weight, texel) >= 0.5 * 255
+        # A ground block's overlap lies on its neighbours, drawn in about the same plane: which of
+        # them the renderer shows there is a tie, so a ray that meets a ground block within the
+        # overlap's width of its edge (either side of it) measures nothing.
+        band = np.where(quads.kind[ids[local]] == GROUND, GROUND_OVERLAP * quads.tile, 0.0)[:, None]
+        keep = opaque & np.all((texel >= band) & (texel <= quads.tile - band), axis=1)
+        found_ray.append(todo[keep])
+        found_quad.append(ids[local][keep])
+        found_texel.append(texel[keep])
+        found_corner.append(corner[keep])
+        found_weight.append(weight[keep])
+        start[todo] += t_hit + 1e-4                                # on past the see-through texel
+        todo = todo[~opaque]
+    if not found_ray:
+        return empty
+    ray = np.concatenate(found_ray)
+    pixel = np.stack([u[ray], v[ray]], axis=1).astype(np.int64)
+    return Hits(pixel, np.concatenate(found_quad), np.concatenate(found_texel), np.concatenate(found_corner),
+                np.concatenate(found_weight))
+
+
+def view_records(hits: Hits, image: np.ndarray) -> np.ndarray:
+    """One view's measurements: ``hits`` with the colours of ``image`` (h, w, 3) uint8 at their
+    pixels → (r,) :func:`record_dtype` rows, sorted by quad."""
+    out = np.empty(len(hits.quad), record_dtype(hits.corner.shape[1]))
+    out["quad"] = hits.quad
+    out["corner"] = hits.corner
+    out["weight"] = hits.weight
+    out["texel"] = hits.texel
+    out["colour"] = image[hits.pixel[:, 1], hits.pixel[:, 0]]
+    return out[np.argsort(out["quad"], kind="stable")]
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """The least-squares problem of a chunk of ``count`` quads: unknowns X (N, 3),
+    N = count·d_pitch·d_yaw·t², flat over (quad − begin, direction p·d_yaw + y, texel
+    row·t + column); each measurement i predicts Σ_k a[i, k]·X[idx[i, k]]. idx (r, k) int64,
+    a (r, k) float64, y (r, 3) float64 measured colours in [0, 1]."""
+
+    idx: np.ndarray
+    a: np.ndarray
+    y: np.ndarray
+    count: int
+    d_pitch: int
+    d_yaw: int
+    texels: int
+
+    @property
+    def size(self) -> int:
+        return self.count * self.d_pitch * self.d_yaw * self.texels
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """A·x: (N, 3) → (r, 3)."""
+        return np.einsum("rk,rkc->rc", self.a, x[self.idx])
+
+    def adjoint(self, z: np.ndarray) -> np.ndarray:
+        """Aᵀ·z: (r, 3) → (N, 3)."""
+        flat = self.idx.ravel()
+        return np.stack([np.bincount(flat, weights=(self.a * z[:, c:c + 1]).ravel(), minlength=self.size)
+                         for c in range(z.shape[1])], axis=1).astype(np.float64)   # (float even when empty)
+
+    def diagonal(self) -> np.ndarray:
+        """(N,) the diagonal of AᵀA: each unknown's summed squared weights."""
+        return np.bincount(self.idx.ravel(), weights=np.square(self.a).ravel(), minlength=self.size).astype(np.float64)
+
+    def smoothness(self, x: np.ndarray) -> np.ndarray:
+        """LᵀL·x for the differences L between neighbouring sampled directions of a texel (along
+        yaw, and along pitch): (N, 3) → (N, 3)."""
+        g = x.reshape(self.count, self.d_pitch, self.d_yaw, self.texels, -1)
+        out = np.zeros_like(g)
+        for axis in (1, 2):
+            if g.shape[axis] < 2:
+                continue
+            diff = np.diff(g, axis=axis)
+            lo = [slice(None)] * 5
+            hi = [slice(None)] * 5
+            lo[axis], hi[axis] = slice(None, -1), slice(1, None)
+            out[tuple(lo)] -= diff
+            out[tuple(hi)] += diff
+        return out.reshape(x.shape)
+
+    def smoothness_diagonal(self) -> np.ndarray:
+        """(N,) the diagonal of LᵀL: each unknown's number of neighbouring directions."""
+        ones = np.zeros((self.count, self.d_pitch, self.d_yaw, self.texels))
+        for axis, n in ((1, self.d_pitch), (2, self.d_yaw)):
+            if n >= 2:
+                neighbours = np.full(n, 2.0)
+                neighbours[[0, -1]] = 1.0
+                ones += neighbours.reshape([1, n, 1, 1] if axis == 1 else [1, 1, n, 1])
+        return ones.ravel()
+
+
+def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: np.ndarray) -> Problem:
+    """The problem of quads [begin, begin + count) from their ``records`` (:func:`record_dtype`
+    rows of any views, every quad in range). A tap on a quad outside the range (the block
+    above or below in a slit) is not an unknown of this problem: its colour in ``outside``
+    (n, d, t·t, 3) float (a memory map will do; the sampled texture) moves to the measured side."""
+    quad = records["quad"].astype(np.int64)
+    if len(quad) and (quad.min() < begin or quad.max() >= begin + count):
+        raise ValueError(f"records of quads outside [{begin}, {begin + count})")
+    d_pitch, d_yaw, T = len(quads.pitches), len(quads.yaw_offsets), quads.tile * quads.tile
+    tap_quad, taps, tap_w = column_taps(quads, quad, records["texel"])                 # (r, 4)
+    corner = records["corner"].astype(np.int64)                                        # (r, c)
+    r, c = corner.shape
+    a = records["weight"].astype(np.float64)[:, :, None] * tap_w[:, None, :]          # (r, c, 4)
+    tq = np.broadcast_to(tap_quad[:, None, :], (r, c, 4))
+    tt = np.broadcast_to(taps[:, None, :], (r, c, 4))
+    cc = np.broadcast_to(corner[:, :, None], (r, c, 4))
+    inside = (tq >= begin) & (tq < begin + count)
+    y = records["colour"].astype(np.float64) / 255.0
+    if not inside.all():
+        far = ~inside
+        known = np.asarray(outside[tq[far], cc[far], tt[far]], np.float64).reshape(-1, 3)
+        np.subtract.at(y, np.nonzero(far)[0], a[far][:, None] * known)
+        a = np.where(inside, a, 0.0)
+    idx = np.where(inside, ((tq - begin) * (d_pitch * d_yaw) + cc) * T + tt, 0)
+    return Problem(idx.reshape(r, c * 4), a.reshape(r, c * 4), y, count, d_pitch, d_yaw, T)
+
+
+def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations: int,
+          deadline: float | None = None, clip: bool = True) -> tuple[np.ndarray, list[float]]:
+    """min ‖A·x − y‖² + prior·‖x − x0‖² + smooth·‖L·x‖² by conjugate gradients on the normal
+    equations (AᵀA + prior·I + smooth·LᵀL)·x = Aᵀy + prior·x0, Jacobi-preconditioned, from
+    x = x0. L: differences between neighbouring sampled directions of each texel
+    (:meth:`Problem.smoothness`), so what one direction learns its neighbours share.
+
+    x0 (N, 3) float; prior > 0, smooth ≥ 0; at most ``iterations``, none begun after
+    ``deadline`` (``time.time()``). Returns x (N, 3) float64 (clipped to [0, 1] with ``clip``)
+    and the squared data residual ‖A·x − y‖² (summed over channels) before the first
+    iteration and after each. Without smoothing, unknowns no measurement touches stay
+    exactly at x0.
+    """
+    if not prior > 0 or not smooth >= 0:
+        raise ValueError(f"prior must be > 0 and smooth ≥ 0, got {prior!r}, {smooth!r}")
+    x = np.array(x0, np.float64)
+
+    def normal(v):
+        out = prob.adjoint(prob.apply(v)) + prior * v
+        return out + smooth * prob.smoothness(v) if smooth else out
+
+    e = prob.apply(x) - prob.y                                  # data residual A·x − y, kept up to date
+    history = [float(np.square(e).sum())]
+    diagonal = prob.diagonal() + prior + (smooth * prob.smoothness_diagonal() if smooth else 0.0)
+    precondition = 1.0 / diagonal[:, None]
+    r = -prob.adjoint(e)                                        # b − M·x at x = x0
+    if smooth:
+        r -= smooth * prob.smoothness(x)
+    z = precondition * r
+    p = z.copy()
+    rz = (r * z).sum(axis=0)
+    for _ in range(iterations):
+        if deadline is not None and time.time() > deadline:
+            break
+        if not np.any(rz > 1e-24):
+            break                                               # converged (or nothing measured)
+        Ap = prob.apply(p)
+        Mp = prob.adjoint(Ap) + prior * p
+        if smooth:
+            Mp += smooth * prob.smoothness(p)
+        pMp = (p * Mp).sum(axis=0)
+        step = np.where(pMp > 0, rz / np.where(pMp > 0, pMp, 1.0), 0.0)
+        x += step * p
+        e += step * Ap
+        r -= step * Mp
+        z = precondition * r
+        rz_new = (r * z).sum(axis=0)
+        p = z + np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0) * p
+        rz = rz_new
+        history.append(float(np.square(e).sum()))
+    if clip:
+        np.clip(x, 0.0, 1.0, out=x)
+    return x, history
+
+
+def solve_reference(prob: Problem, x0: np.ndarray, prior: float, smooth: float) -> np.ndarray:
+    """:func:`solve` the slow, obvious way: A and L as dense matrices built one measurement,
+    tap and pair of neighbouring directions at a time, the regularised normal equations
+    solved directly in float64 (unclipped). For small problems only."""
+    A = np.zeros((len(prob.y), prob.size))
+    for i in range(len(prob.y)):
+        for k in range(prob.idx.shape[1]):
+            A[i, prob.idx[i, k]] += prob.a[i, k]
+    rows = []
+    dy, dp, T = prob.d_yaw, prob.d_pitch, prob.texels
+    for q in range(prob.count):
+        for p in range(dp):
+            for y in range(dy):
+                for t in range(T):
+                    here = ((q * dp + p) * dy + y) * T + t
+                    for there in ((((q * dp + p) * dy + y + 1) * T + t) if y + 1 < dy else None,
+                                  (((q * dp + p + 1) * dy + y) * T + t) if p + 1 < dp else None):
+                        if there is not None:
+                            row = np.zeros(prob.size)
+                            row[here], row[there] = -1.0, 1.0
+                            rows.append(row)
+    L = np.array(rows).reshape(-1, prob.size)
+    M = A.T @ A + prior * np.eye(prob.size) + smooth * L.T @ L
+    return np.linalg.solve(M, A.T @ prob.y + prior * np.asarray(x0, np.float64))
