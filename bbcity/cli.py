@@ -360,6 +360,7 @@ def _run_recon(args) -> int:
 
 
 def _add_build(sub) -> None:
+    from billboards.fit import FitConfig
     from billboards.octree import MAX_DEPTH
 
     p = sub.add_parser(
@@ -419,6 +420,11 @@ def _add_build(sub) -> None:
     p.add_argument("--photometry", choices=("on", "off"), default="on",
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
                         "out before sampling textures (default on)")
+    p.add_argument("--fit", choices=("on", "off"), default="on",
+                   help="fit the sampled textures to the training images through the rendering, then compress "
+                        "(default on)")
+    p.add_argument("--fit-seconds", type=nonnegative_float, default=FitConfig.seconds,
+                   help=f"wall-clock budget of the fit's iterations in seconds (default {FitConfig.seconds:g})")
     p.add_argument("--tile-metres", type=length, default=None,
                    help="build a model set of square tiles this wide, one at a time, so that memory does not grow "
                         "with the street (a whole number of voxels; the viewer pages them; a killed build resumes "
@@ -429,6 +435,7 @@ def _add_build(sub) -> None:
 def build_config_from_args(args):
     """The BuildConfig the ``build`` options describe."""
     from billboards.build import BuildConfig
+    from billboards.fit import FitConfig
     from billboards.geometry import DirectionConfig
     from billboards.layer import LayerConfig
     from billboards.octree import OctreeConfig
@@ -458,6 +465,7 @@ def build_config_from_args(args):
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,
                        photometry=PhotometryConfig() if args.photometry == "on" else None,
+                       fit=FitConfig(seconds=args.fit_seconds) if args.fit == "on" else None,
                        tile_metres=args.tile_metres)
 
 
@@ -482,7 +490,7 @@ def _check_build(args) -> None:
     # every config validates its values; the work directory's --holdout is not read yet
     conf = build_config_from_args(argparse.Namespace(**{**vars(args), "holdout": args.holdout or 0}))
     n = args.workers or default_workers()
-    check_memory(build_bytes(args.tile, d, conf.chunk, n),
+    check_memory(build_bytes(args.tile, d, conf.chunk, n, conf.chunk * conf.task_chunks if conf.fit else 0),
                  f"build --tile {args.tile} with {d} directions and {n} workers")
 
 
@@ -951,6 +959,9 @@ def _add_eval(sub) -> None:
                    help="more model directories (other build settings): more points of the work-precision diagram")
     p.add_argument("--views", type=int_range(1, MAX_FRAMES), default=None,
                    help="viewpoints (default: 8, each also off path; a real capture: every held-out frame)")
+    p.add_argument("--training-views", type=int_range(0, MAX_FRAMES), default=None,
+                   help="also this many viewpoints of frames the textures came from, scored as 'training' (the "
+                        "ceiling; default EvalConfig's, 4; only when the model held frames out)")
     p.add_argument("--poisson-depth", type=int_range(1, 16), default=10,
                    help="octree depth of the Poisson-mesh baseline (10)")
     p.add_argument("--workprecision-depths", type=int_range(1, 16), nargs="*", default=[8, 9, 10, 11], metavar="D",
@@ -988,7 +999,8 @@ def _eval_config(args):
 
     return EvalConfig(views=args.views, size=None if args.size is None else tuple(args.size),
                       poisson_depth=args.poisson_depth, workprecision_depths=tuple(args.workprecision_depths),
-                      panel_width=args.panel_width, model_sky=not args.no_sky)
+                      panel_width=args.panel_width, model_sky=not args.no_sky,
+                      **({} if args.training_views is None else {"training_views": args.training_views}))
 
 
 def _run_eval(args) -> int:

@@ -55,6 +55,8 @@ EVAL_BYTES_PER_PIXEL = RENDER_BYTES_PER_PIXEL + 20 * 8
 #: Bytes per sampled texel and direction in a build worker: the float32 stack, its
 #: eigen images and decoded copy, and PCA's work arrays.
 BUILD_BYTES_PER_TEXEL = 32
+#: Bytes the fit's solve holds per unknown (float64 x, r, z, p, M·p and the right-hand side).
+FIT_BYTES_PER_UNKNOWN = 48
 
 
 class UsageError(ValueError):
@@ -221,10 +223,12 @@ def synth_bytes(width: int, height: int, spp: int, distorted: bool, workers: int
     return workers * per_image
 
 
-def build_bytes(tile: int, directions: int, chunk: int, workers: int) -> int:
+def build_bytes(tile: int, directions: int, chunk: int, workers: int, fit_quads: int = 0) -> int:
     """Bytes the build's workers hold at once: each a chunk of billboards' sampled textures
-    (directions × tile² × 4 channels) at BUILD_BYTES_PER_TEXEL."""
-    return workers * chunk * directions * tile * tile * 4 * BUILD_BYTES_PER_TEXEL
+    (directions × tile² × 4 channels) at BUILD_BYTES_PER_TEXEL, or with a fit the larger of that
+    and the solve of ``fit_quads`` billboards (FIT_BYTES_PER_UNKNOWN per colour of a texel)."""
+    sampled = chunk * directions * tile * tile * 4 * BUILD_BYTES_PER_TEXEL
+    return workers * max(sampled, fit_quads * directions * tile * tile * 3 * FIT_BYTES_PER_UNKNOWN)
 
 
 class CommandParser(argparse.ArgumentParser):

@@ -30,6 +30,8 @@ from data_synth.dataset import held_out_frames
 from recon.cloud_io import read_cloud_arrays
 from recon.epi import EpiConfig, epi_points
 
+from .fit import FitConfig, Quads, quads_of
+from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
 from .layer import Layer, LayerConfig, build_layer, facade_depth_report
 from .model_writer import ModelWriter, temp_dir
@@ -63,6 +65,9 @@ class BuildConfig:
     layer: LayerConfig | None = field(default_factory=LayerConfig)  # the facade layer (None: billboards only)
     photometry: PhotometryConfig | None = field(default_factory=PhotometryConfig)  # per-image gains divided out
                                                                                   # before sampling (None: off)
+    fit: FitConfig | None = field(default_factory=FitConfig)  # textures fitted to the training images through
+                                                             # the rendering (billboards.fit; None: as sampled)
+    fit_views_per_task: int = 12      # training views ray cast per worker task of the fit
     tile_metres: float | None = None  # build a model set of square tiles this wide (m, whole voxels; None: one model)
     tile_margin: float = 8.0          # a tile's context: its neighbours' points this near (m; layer, occlusion)
     sample_points: int = 2_000_000    # a tiled build estimates gains and sky from at most this many cloud points
@@ -78,6 +83,8 @@ class BuildConfig:
             raise ValueError(f"tile_metres must be a finite number > 0 or None, got {self.tile_metres!r}")
         if not (np.isfinite(self.tile_margin) and self.tile_margin >= 0) or self.sample_points < 1:
             raise ValueError("tile_margin must be finite and ≥ 0, sample_points ≥ 1")
+        if self.fit_views_per_task < 1:
+            raise ValueError("fit_views_per_task must be ≥ 1")
 
 
 @dataclass(frozen=True, eq=False)
@@ -191,6 +198,16 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
 class _Task:
     state: str          # directory with the shared arrays
     begin: int          # billboard range [begin, end)
+    end: int
+    stage: str = "textures"   # "textures": sample and compress; with a fit "sample": sampled textures into
+                              # the shared memory map, "fit": solved against the views' records, compressed
+    deadline: float | None = None  # the fit's iterations begin no later (time.time())
+
+
+@dataclass(frozen=True)
+class _ViewTask:
+    state: str          # directory with the shared arrays
+    begin: int          # training view range [begin, end) of the fit
     end: int
 
 
@@ -331,8 +348,48 @@ def compress_chunk(rgba: np.ndarray, conf: BuildConfig) -> tuple[dict, dict]:
     return arrays, stats
 
 
-def _run_task(task: _Task) -> list[tuple[dict, dict]]:
+def _fit_quads(state_dir: str, conf: BuildConfig) -> Quads:
+    """The quads of the model being built as the renderer will place them (once per process)."""
+    if _WORKER.get("quads_dir") != state_dir:
+        root = Path(state_dir)
+        meta = json.loads((root / "meta.json").read_text())
+        origin = np.asarray(meta["origin"], np.float64)
+        d = conf.sampling.directions
+        _WORKER.update(quads_dir=state_dir, quads=quads_of(
+            origin, (np.load(root / "quads.npy") - origin).astype(np.float32),
+            np.load(root / "base_yaw.npy").astype(np.float32), np.load(root / "kind.npy"), meta["voxel_size"],
+            meta["block_size"] or meta["voxel_size"], conf.sampling.tile, d.yaw_offsets, d.pitches, d.pitched_quads))
+    return _WORKER["quads"]
+
+
+def _cast_task(task: _ViewTask) -> dict:
+    """The fit's measurements of training views [begin, end) into ``records_BEGIN.npy``."""
     sampler, conf = _worker_state(task.state)
+    root = Path(task.state)
+    rgba = np.load(root / "rgba.npy", mmap_mode="r")
+    return write_view_records(root / f"records_{task.begin:06d}.npy", _fit_quads(task.state, conf), rgba,
+                              sampler.views, range(task.begin, task.end), conf.fit, conf.sampling.max_distance)
+
+
+def _run_task(task: _Task):
+    sampler, conf = _worker_state(task.state)
+    root = Path(task.state)
+    if task.stage == "sample":
+        rgba = np.load(root / "rgba.npy", mmap_mode="r+")
+        stats = []
+        for s in range(task.begin, task.end, conf.chunk):
+            t0 = time.perf_counter()
+            sampled = sampler.sample(np.arange(s, min(task.end, s + conf.chunk)))
+            rgba[s:s + len(sampled.rgba)] = sampled.rgba
+            stats.append({"sampling_s": time.perf_counter() - t0, "sampling": sampled.stats})
+        rgba.flush()
+        return stats
+    if task.stage == "fit":
+        rgba = np.load(root / "rgba.npy", mmap_mode="r")
+        records = read_records(sorted(root.glob("records_*.npy")), task.begin, task.end)
+        fitted, fit_stats = fit_range(_fit_quads(task.state, conf), rgba, task.begin, task.end, records, conf.fit,
+                                      task.deadline)
+        return [compress_chunk(fitted[s:s + conf.chunk], conf) for s in range(0, len(fitted), conf.chunk)], fit_stats
     out = []
     for s in range(task.begin, task.end, conf.chunk):
         ids = np.arange(s, min(task.end, s + conf.chunk))
@@ -362,8 +419,11 @@ def _config_from_json(data: dict) -> BuildConfig:
     photometry = data.get("photometry")
     if photometry is not None:
         photometry = PhotometryConfig(**photometry)
+    fit = data.get("fit")
+    if fit is not None:
+        fit = FitConfig(**fit)
     return BuildConfig(**{**data, "octree": OctreeConfig(**data["octree"]), "sampling": sampling,
-                          "pca": PcaConfig(**data["pca"]), "layer": layer, "photometry": photometry})
+                          "pca": PcaConfig(**data["pca"]), "layer": layer, "photometry": photometry, "fit": fit})
 
 
 @dataclass(frozen=True, eq=False)
@@ -490,11 +550,14 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         t3 = time.perf_counter()
         totals = _Totals(conf.sampling.directions.num_directions)
         d = conf.sampling.directions.num_directions
+        window = 2 * executor_workers(executor)
+        fitting = conf.fit is not None and conf.source == "images" and views is not None and len(views) > 0
         with ModelWriter(model_dir, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
                          coef_mode=conf.coef_mode, num_directions=d) as writer:
             done = 0
-            for chunks in ordered_results(_run_task, tasks, executor, window=2 * executor_workers(executor),
-                                          desc="billboards", progress=progress):
+
+            def append(chunks):
+                nonlocal done
                 for arrays, stats in chunks:
                     b = len(arrays["rank"])
                     writer.append(centres=(quads[done:done + b] - octree.origin).astype(np.float32),
@@ -502,7 +565,15 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                                   **arrays)
                     done += b
                     totals.add(stats)
-            stages["sample_compress_s"] = time.perf_counter() - t3
+
+            if fitting:
+                fit = _fit(conf, state, tasks, len(views), n, totals, append, executor, window, progress)
+                stages.update(fit.pop("stages"))
+            else:
+                for chunks in ordered_results(_run_task, tasks, executor, window=window, desc="billboards",
+                                              progress=progress):
+                    append(chunks)
+                stages["sample_compress_s"] = time.perf_counter() - t3
             t4 = time.perf_counter()
             nodes = _node_table(octree, node_range)
             info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,
@@ -528,6 +599,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     report = totals.report(model, conf, octree, len(views) if views is not None else 0)
     report["layer"] = layer_report
     report["photometry"] = photometry_report
+    report["fit"] = fit if fitting else {"enabled": False}
     report.update(cloud=str(cloud_path), dataset=None if dataset_dir is None else str(dataset_dir),
                   poses=None if poses is None or dataset_dir is None else str(poses), stages=stages, total_s=time.perf_counter() - t0, peak_memory=peak_memory(),
                   config=_config_to_json(conf))
@@ -536,6 +608,39 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                 model.num_billboards, model.num_slots, report["bytes"]["model"] / 1e6,
                 report["compression_ratio"], _db(report["psnr"]["decoded_rgb_opaque_db"]), model_dir)
     return BuildResult(model_dir, report)
+
+
+def _fit(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: int, n: int, totals: "_Totals", append,
+         executor: Executor | None, window: int, progress: bool | None) -> dict:
+    """Sample every texture into a memory map, ray cast the training views against them,
+    solve each task's textures against its records and ``append`` their compressed chunks
+    in order. Returns the build report's "fit" with its "stages" seconds."""
+    t0 = time.perf_counter()
+    s = conf.sampling
+    np.lib.format.open_memmap(state / "rgba.npy", mode="w+", dtype=np.uint8,
+                              shape=(n, s.directions.num_directions, s.tile, s.tile, 4)).flush()
+    for stats in ordered_results(_run_task, [replace(t, stage="sample") for t in tasks], executor, window=window,
+                                 desc="sampling", progress=progress):
+        for st in stats:
+            totals.add(st)
+    t1 = time.perf_counter()
+    deadline = time.time() + conf.fit.seconds
+    per = conf.fit_views_per_task
+    casts = list(ordered_results(_cast_task, [_ViewTask(str(state), b, min(num_views, b + per))
+                                              for b in range(0, num_views, per)],
+                                 executor, window=window, desc="fit: views", progress=progress))
+    t2 = time.perf_counter()
+    fit_stats = []
+    for chunks, stats in ordered_results(_run_task, [replace(t, stage="fit", deadline=deadline) for t in tasks],
+                                         executor, window=window, desc="fit: textures", progress=progress):
+        append(chunks)
+        fit_stats.append(stats)
+    t3 = time.perf_counter()
+    report = fit_report(fit_stats, casts, conf.fit, t3 - t1)
+    logger.info("fit: %d views, %d measurements, training pixels %s → %s dB in %.1f s", report["views"],
+                report["measurements"], _db(report["psnr_before_db"]), _db(report["psnr_after_db"]), t3 - t1)
+    report["stages"] = {"sample_s": t1 - t0, "fit_cast_s": t2 - t1, "fit_solve_compress_s": t3 - t2}
+    return report
 
 
 def sees_any(views: Views, points: np.ndarray, max_distance: float, sample: int = 50_000,

@@ -41,7 +41,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from .decode import direction_corners, view_direction_index
 from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP, kind_frames
@@ -54,9 +53,12 @@ def record_dtype(corners: int) -> np.dtype:
                      ("texel", "<f4", (2,)), ("colour", "u1", (3,))])
 
 
+#: Two surfaces along a ray nearer than this (m) are a tie the renderer breaks by draw order.
+TIE = 2e-3
+
+
 @dataclass(frozen=True)
 class FitConfig:
-    enabled: bool = True          # fit the textures to the training images (False: sampled textures as they are)
     seconds: float = 150.0        # wall-clock budget of the fit (s): the solve stops iterating when it is spent
     iterations: int = 12          # conjugate-gradient iterations per chunk of quads at most
     pixel_stride: int = 2         # every n-th pixel of every n-th row of each training image is a measurement
@@ -229,8 +231,10 @@ def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np
     every ``stride``-th row. A ray that meets a texel whose blended alpha is below ½ goes on,
     ``see_through`` times at most (then it counts as missing, as behind too many see-through
     texels the renderer too shows what lies far behind). A ray that stops where ground blocks
-    overlap is left out (see below).
+    overlap in one plane is left out (see below).
     """
+    import open3d as o3d  # (a second or two to import: not for every command line that knows FitConfig)
+
     w, h = int(size[0]), int(size[1])
     C = np.asarray(world_from_cam, np.float64)[:3, 3]
     R = np.asarray(world_from_cam, np.float64)[:3, :3]
@@ -276,11 +280,18 @@ def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np
         texel = (np.stack([col, row], axis=1) * quads.tile).astype(np.float32)
         corner, weight = quads.brackets(ids[local], C)
         opaque = blended(quads, alpha, ids[local], corner, weight, texel) >= 0.5 * 255
-        # A ground block's overlap lies on its neighbours, drawn in about the same plane: which of
-        # them the renderer shows there is a tie, so a ray that meets a ground block within the
-        # overlap's width of its edge (either side of it) measures nothing.
-        band = np.where(quads.kind[ids[local]] == GROUND, GROUND_OVERLAP * quads.tile, 0.0)[:, None]
-        keep = opaque & np.all((texel >= band) & (texel <= quads.tile - band), axis=1)
+        keep = opaque.copy()
+        # Where two quads lie in one plane (ground blocks overlap their neighbours) the renderer
+        # shows whichever it drew first: a ray with a second surface within TIE metres behind
+        # the first measures nothing.
+        flat = np.flatnonzero(opaque & (quads.kind[ids[local]] == GROUND))
+        if len(flat):
+            near = np.concatenate([direction[todo[flat]] * (start[todo[flat]] + t_hit[flat] - TIE)[:, None],
+                                   direction[todo[flat]]], axis=1).astype(np.float32)
+            found = scene.list_intersections(o3d.core.Tensor(near))
+            ray = found["ray_ids"].numpy().astype(np.int64)
+            other = (found["t_hit"].numpy() < 2 * TIE) & (found["primitive_ids"].numpy() % n_tri != local[flat][ray])
+            keep[flat[np.unique(ray[other])]] = False
         found_ray.append(todo[keep])
         found_quad.append(ids[local][keep])
         found_texel.append(texel[keep])
@@ -368,11 +379,12 @@ class Problem:
         return ones.ravel()
 
 
-def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: np.ndarray) -> Problem:
+def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: np.ndarray | None) -> Problem:
     """The problem of quads [begin, begin + count) from their ``records`` (:func:`record_dtype`
     rows of any views, every quad in range). A tap on a quad outside the range (the block
     above or below in a slit) is not an unknown of this problem: its colour in ``outside``
-    (n, d, t·t, 3) float (a memory map will do; the sampled texture) moves to the measured side."""
+    (n, d, t·t, 4) uint8 RGBA (a memory map will do: the sampled textures) moves to the
+    measured side (None: there must be no such tap)."""
     quad = records["quad"].astype(np.int64)
     if len(quad) and (quad.min() < begin or quad.max() >= begin + count):
         raise ValueError(f"records of quads outside [{begin}, {begin + count})")
@@ -388,7 +400,9 @@ def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: 
     y = records["colour"].astype(np.float64) / 255.0
     if not inside.all():
         far = ~inside
-        known = np.asarray(outside[tq[far], cc[far], tt[far]], np.float64).reshape(-1, 3)
+        if outside is None:
+            raise ValueError(f"records of quads [{begin}, {begin + count}) tap quads outside it")
+        known = np.asarray(outside[tq[far], cc[far], tt[far]], np.float64)[:, :3] / 255.0
         np.subtract.at(y, np.nonzero(far)[0], a[far][:, None] * known)
         a = np.where(inside, a, 0.0)
     idx = np.where(inside, ((tq - begin) * (d_pitch * d_yaw) + cc) * T + tt, 0)
@@ -396,28 +410,25 @@ def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: 
 
 
 def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations: int,
-          deadline: float | None = None, clip: bool = True) -> tuple[np.ndarray, list[float]]:
+          deadline: float | None = None, clip: bool = True) -> tuple[np.ndarray, list[float], list[float]]:
     """min ‖A·x − y‖² + prior·‖x − x0‖² + smooth·‖L·x‖² by conjugate gradients on the normal
     equations (AᵀA + prior·I + smooth·LᵀL)·x = Aᵀy + prior·x0, Jacobi-preconditioned, from
     x = x0. L: differences between neighbouring sampled directions of each texel
     (:meth:`Problem.smoothness`), so what one direction learns its neighbours share.
 
     x0 (N, 3) float; prior > 0, smooth ≥ 0; at most ``iterations``, none begun after
-    ``deadline`` (``time.time()``). Returns x (N, 3) float64 (clipped to [0, 1] with ``clip``)
-    and the squared data residual ‖A·x − y‖² (summed over channels) before the first
-    iteration and after each. Without smoothing, unknowns no measurement touches stay
-    exactly at x0.
+    ``deadline`` (``time.time()``). Returns x (N, 3) float64 (clipped to [0, 1] with ``clip``),
+    the squared data residual ‖A·x − y‖² (summed over channels) before the first iteration
+    and after each, and the seconds spent by each of those moments. Without smoothing,
+    unknowns no measurement touches stay exactly at x0.
     """
     if not prior > 0 or not smooth >= 0:
         raise ValueError(f"prior must be > 0 and smooth ≥ 0, got {prior!r}, {smooth!r}")
+    t0 = time.perf_counter()
     x = np.array(x0, np.float64)
-
-    def normal(v):
-        out = prob.adjoint(prob.apply(v)) + prior * v
-        return out + smooth * prob.smoothness(v) if smooth else out
-
     e = prob.apply(x) - prob.y                                  # data residual A·x − y, kept up to date
     history = [float(np.square(e).sum())]
+    seconds = [time.perf_counter() - t0]
     diagonal = prob.diagonal() + prior + (smooth * prob.smoothness_diagonal() if smooth else 0.0)
     precondition = 1.0 / diagonal[:, None]
     r = -prob.adjoint(e)                                        # b − M·x at x = x0
@@ -445,9 +456,10 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations
         p = z + np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0) * p
         rz = rz_new
         history.append(float(np.square(e).sum()))
+        seconds.append(time.perf_counter() - t0)
     if clip:
         np.clip(x, 0.0, 1.0, out=x)
-    return x, history
+    return x, history, seconds
 
 
 def solve_reference(prob: Problem, x0: np.ndarray, prior: float, smooth: float) -> np.ndarray:

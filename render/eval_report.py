@@ -71,21 +71,25 @@ def markdown_real(report: dict) -> str:
     """The report of a real capture as Markdown: scores over covered pixels, coverage of the
     pixels below the horizon, whole-image scores."""
     kind = "held-out" if report.get("held_out") else "capture (used for the textures; build with --holdout)"
-    lines = [f"# Novel views of a real capture ({report['views']} {kind} frames; "
+    training = len(report.get("training_frames") or [])
+    lines = [f"# Novel views of a real capture ({report['views']} {kind} frames"
+             + (f" and {training} training frames" if training else "") + "; "
              f"{report['size'][0]}×{report['size'][1]}, {report['texture_frames']} frames made the textures)", "",
-             "Each method's render at a held-out frame's pose against that frame's image. Covered pixels: those the "
+             "Each method's render at a held-out frame's pose against that frame's image (rows 'training': at "
+             "frames the textures came from, the ceiling). Covered pixels: those the "
              "method draws. Coverage: the share of the pixels below the horizon (rays pointing down) drawn. "
              + ("The model is drawn over its sky; the baselines' background is black." if report.get("sky")
                 else "Backgrounds are black."), "",
              "Exposure matched: the render times the per-channel gain that best fits the real image over the "
              "covered pixels (the held-out frame's own exposure and white balance).", "",
-             "| method | PSNR covered (dB) | exposure matched (dB) | SSIM covered | coverage below horizon | "
+             "| method, frames | PSNR covered (dB) | exposure matched (dB) | SSIM covered | coverage below horizon | "
              "PSNR below horizon (dB) | PSNR image (dB) | SSIM image | bytes |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, m in report["summary"].items():
         method = name.rsplit(", ", 1)[0]
         b = report["bytes"].get(method)
-        lines.append(f"| {method} | {_f(m['psnr_covered'], '.2f')} | {_f(m.get('psnr_covered_exposure'), '.2f')} | "
+        name = name.replace(", on path", ", held out")
+        lines.append(f"| {name} | {_f(m['psnr_covered'], '.2f')} | {_f(m.get('psnr_covered_exposure'), '.2f')} | "
                      f"{_f(m['ssim_covered'], '.3f')} | "
                      f"{_f(m.get('coverage_seen'), '.1%')} | {_f(m['psnr_seen'], '.2f')} | {_f(m['psnr'], '.2f')} | "
                      f"{_f(m['ssim'], '.3f')} | {_f(b, ',')} |")
@@ -100,9 +104,11 @@ def markdown(report: dict) -> str:
         return markdown_real(report)
     kind = "held-out" if report.get("held_out") else "capture (used for the textures)"
     cfg = report.get("config", {})
+    training = len(report.get("training_frames") or [])
     lines = [f"# Novel views against ground truth ({report['views']} {kind} viewpoints, each also moved "
-             f"{cfg.get('sideways', 2.0):g} m sideways and {cfg.get('up', 1.0):g} m up; "
-             f"{report['size'][0]}×{report['size'][1]})", "",
+             f"{cfg.get('sideways', 2.0):g} m sideways and {cfg.get('up', 1.0):g} m up"
+             + (f"; {training} training viewpoints, frames the textures came from: the ceiling" if training else "")
+             + f"; {report['size'][0]}×{report['size'][1]})", "",
              "Seen pixels: the ground-truth surface was seen by a capture camera whose images made the "
              "textures (depth agreeing within 2 cm + 1 %). Geometry pixels: the ground truth hits a surface. "
              + ("The model is drawn over its sky; the baselines' background is black." if report.get("sky")

@@ -63,6 +63,8 @@ Method = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
 METRICS = ("psnr", "psnr_geometry", "psnr_seen", "psnr_covered", "ssim", "ssim_geometry", "ssim_seen", "ssim_covered")
 _UNUSED_COLOUR = (1.0, 0.0, 1.0)  # background for finding the pixels a model draws (magenta, absent from streets)
 WHERE = ("on path", "off path")
+#: Viewpoints of frames the textures came from: the ceiling a model reaches where it was made.
+TRAINING = "training"
 
 
 @dataclass(frozen=True)
@@ -78,6 +80,8 @@ class EvalConfig:
     seen: SeenConfig = field(default_factory=SeenConfig)     # the seen-pixel test
     panel_width: int = 320                  # side-by-side images: width of each panel (0: none written)
     model_sky: bool = True                  # draw models over their sky (False: on black, like the baselines)
+    training_views: int = 4                 # also this many viewpoints of frames the textures came from ("training",
+                                            # the capture camera itself; none when no frame was held out)
 
     def __post_init__(self):
         if self.views is not None and self.views < 1:
@@ -90,6 +94,8 @@ class EvalConfig:
             raise ValueError("Poisson depths must lie in [1, 16]")
         if not 0 <= self.trim_quantile < 1 or self.panel_width < 0:
             raise ValueError("trim_quantile must be in [0, 1) and panel_width ≥ 0")
+        if isinstance(self.training_views, bool) or self.training_views < 0:
+            raise ValueError(f"training_views must be an integer ≥ 0, got {self.training_views!r}")
         if not (math.isfinite(self.sideways) and math.isfinite(self.up)):
             raise ValueError("sideways and up must be finite")
 
@@ -145,6 +151,15 @@ def choose_frames(info: dict | None, num_frames: int, views: int | None,
     return frames, texture_frames, bool(held)
 
 
+def training_frames(texture_frames, count: int) -> np.ndarray:
+    """(k,) int64: up to ``count`` of ``texture_frames`` (the frames the textures came from),
+    spread evenly over them."""
+    pool = np.asarray(texture_frames, np.int64)
+    if count <= 0 or len(pool) == 0:
+        return np.zeros(0, np.int64)
+    return np.unique(pool[np.linspace(0, len(pool) - 1, count).round().astype(int)])
+
+
 def view_camera(rig, size: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int], tuple[int, int]]:
     """Camera 0 of ``rig`` rendered at ``size`` (w, h; None: its own): K (3, 3) float64
     scaled to that size, the size, and the camera's own size."""
@@ -157,22 +172,25 @@ def view_camera(rig, size: tuple[int, int] | None) -> tuple[np.ndarray, tuple[in
 
 
 def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config: EvalConfig = EvalConfig(),
-                  progress: Callable[[str], None] | None = None) -> list[EvalView]:
-    """Ground truth, geometry and seen masks of each frame's camera-0 viewpoint, on and off path."""
+                  progress: Callable[[str], None] | None = None, training=()) -> list[EvalView]:
+    """Ground truth, geometry and seen masks of each frame's camera-0 viewpoint, on and off path;
+    and of each of ``training`` (frames the textures came from) at the capture camera itself."""
     ds = load_dataset(dataset_dir)
     if not ds.has_ground_truth:
         raise ValueError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
     scene = load_scene(dataset_dir)
     K, size, _ = view_camera(ds.rig, config.size)
     views = []
-    for f in frames:
-        capture = ds.world_from_cam(int(f), 0)
-        for where, pose in (("on path", capture), ("off path", off_path(capture, config.sideways, config.up))):
-            truth, depth = truth_view(scene, K, pose, size)
-            seen = seen_in_dataset(depth, K, pose, ds, texture_frames, config.seen)
-            views.append(EvalView(int(f), where, K, pose, size, truth, np.isfinite(depth), seen))
-            if progress is not None:
-                progress(f"frame {int(f)} {where}: {seen.mean():.0%} of the pixels seen")
+    poses = [(f, where, pose) for f in frames
+             for where, pose in (("on path", ds.world_from_cam(int(f), 0)),
+                                 ("off path", off_path(ds.world_from_cam(int(f), 0), config.sideways, config.up)))]
+    poses += [(f, TRAINING, ds.world_from_cam(int(f), 0)) for f in training]
+    for f, where, pose in poses:
+        truth, depth = truth_view(scene, K, pose, size)
+        seen = seen_in_dataset(depth, K, pose, ds, texture_frames, config.seen)
+        views.append(EvalView(int(f), where, K, pose, size, truth, np.isfinite(depth), seen))
+        if progress is not None:
+            progress(f"frame {int(f)} {where}: {seen.mean():.0%} of the pixels seen")
     return views
 
 
@@ -185,9 +203,10 @@ def below_horizon(K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, in
     return (rays @ np.asarray(world_from_cam, np.float64)[:3, :3].T)[..., 2] < 0
 
 
-def prepare_real_views(dataset, frames, config: EvalConfig = EvalConfig()) -> list[EvalView]:
-    """The camera-0 images of ``frames`` of a real capture as views (on path; geometry and
-    seen pixels: those below the horizon)."""
+def prepare_real_views(dataset, frames, config: EvalConfig = EvalConfig(), where: str = "on path") -> list[EvalView]:
+    """The camera-0 images of ``frames`` of a real capture as views (``where``: "on path" for
+    held-out frames, :data:`TRAINING` for frames the textures came from; geometry and seen
+    pixels: those below the horizon)."""
     K, size, native = view_camera(dataset.rig, config.size)
     views = []
     for f in frames:
@@ -196,7 +215,7 @@ def prepare_real_views(dataset, frames, config: EvalConfig = EvalConfig()) -> li
         if size != native:
             truth = cv2.resize(truth, size, interpolation=cv2.INTER_AREA)
         ground = below_horizon(K, pose, size)
-        views.append(EvalView(int(f), "on path", K, pose, size, truth, ground, ground, real=True))
+        views.append(EvalView(int(f), where, K, pose, size, truth, ground, ground, real=True))
     return views
 
 
@@ -361,7 +380,7 @@ def evaluate_methods(methods: dict[str, Method], views: list[EvalView], images: 
             method.release()
         logger.info("%s: %s", name, ", ".join(
             f"{w} {_nanmean([r['psnr_seen'] for r in rows if r['method'] == name and r['view'] == w]):.2f} dB seen"
-            for w in WHERE))
+            for w in (*WHERE, TRAINING)))
     return rows, info
 
 
@@ -369,7 +388,7 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
     """Mean of each metric per "method, view" (NaN-ignoring; NaN when no view measured it)."""
     summary = {}
     for method in dict.fromkeys(r["method"] for r in rows):
-        for where in WHERE:
+        for where in (*WHERE, TRAINING):
             sel = [r for r in rows if r["method"] == method and r["view"] == where]
             if not sel:
                 continue
@@ -416,15 +435,17 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     posed = ds.posed
     frames, texture_frames, held_out = choose_frames(info, ds.num_frames,
                                                      config.views if config.views or real else 8, posed)
+    training = training_frames(texture_frames, config.training_views) if held_out else np.zeros(0, np.int64)
     if real:
         if not held_out:
             logger.warning("%s is a real capture and the model was built from every frame: the scores are of "
                            "frames it has seen (build with --holdout 4 for held-out views)", dataset_dir)
-        eval_views = prepare_real_views(ds, frames, config)
+        eval_views = prepare_real_views(ds, frames, config) + prepare_real_views(ds, training, config, TRAINING)
     else:
-        eval_views = prepare_views(dataset_dir, frames, texture_frames, config, progress=logger.info)
+        eval_views = prepare_views(dataset_dir, frames, texture_frames, config, progress=logger.info,
+                                   training=training)
 
-    gains = neighbour_gains(info.get("exposure"), frames) if real else {}
+    gains = neighbour_gains(info.get("exposure"), [*frames, *training]) if real else {}
     renders: dict | None = {} if gains else None
     methods: dict[str, Method] = {"model": ModelMethod(model, sky, renders=renders)}
     if gains:
@@ -455,6 +476,7 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     report = {
         "dataset": str(dataset_dir), "views": len(frames), "size": list(eval_views[0].size),
         "real": real, "held_out": held_out, "frames": frames.tolist(), "texture_frames": len(texture_frames),
+        "training_frames": training.tolist(),
         "config": {"sideways": config.sideways, "up": config.up, "poisson_depth": config.poisson_depth,
                    "workprecision_depths": list(config.workprecision_depths),
                    "trim_quantile": config.trim_quantile, "seen": config.seen.__dict__},

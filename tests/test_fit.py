@@ -43,7 +43,7 @@ def test_solve_matches_dense_reference(seed, quads, dp, dy, tile, rows, prior, s
     q = lone_quads(quads, dp, dy, tile)
     prob = problem(q, random_records(rng, quads, dp * dy, tile, rows, corners), 0, quads, None)
     x0 = rng.uniform(0, 1, (prob.size, 3))
-    fast, history = solve(prob, x0, prior, smooth, iterations=4 * prob.size, clip=False)
+    fast, history, _ = solve(prob, x0, prior, smooth, iterations=4 * prob.size, clip=False)
     ref = solve_reference(prob, x0, prior, smooth)
     np.testing.assert_allclose(fast, ref, rtol=1e-6, atol=1e-6)
     assert history[-1] <= history[0] + 1e-9
@@ -60,7 +60,7 @@ def test_solve_is_regular_where_the_images_say_little():
     rec["colour"] = [[255, 255, 255], [0, 0, 0], [0, 0, 0]]
     prob = problem(lone_quads(2, 1, 2, 2), rec, 0, 2, None)
     x0 = np.full((prob.size, 3), 0.5)
-    x, history = solve(prob, x0, prior=1.0, smooth=0.0, iterations=50)
+    x, history, _ = solve(prob, x0, prior=1.0, smooth=0.0, iterations=50)
     assert np.all(np.isfinite(x)) and np.all(np.isfinite(history))
     # texel (0, 0) of quad 0, direction 0: one full pixel of white against a prior of one pixel
     np.testing.assert_allclose(x[0], 0.75, atol=1e-9)
@@ -70,7 +70,7 @@ def test_solve_is_regular_where_the_images_say_little():
     np.testing.assert_array_equal(x[untouched], x0[untouched])
     # nothing measured at all: x0 back, unchanged
     empty = problem(lone_quads(2, 1, 2, 2), rec[:0], 0, 2, None)
-    x, history = solve(empty, x0, prior=0.1, smooth=1.0, iterations=5)
+    x, history, _ = solve(empty, x0, prior=0.1, smooth=1.0, iterations=5)
     np.testing.assert_array_equal(x, x0)
     assert history == [0.0]
     with pytest.raises(ValueError):
@@ -81,10 +81,10 @@ def test_solve_stops_at_its_deadline_and_clips():
     rng = np.random.default_rng(3)
     prob = problem(lone_quads(2, 1, 3, 2), random_records(rng, 2, 3, 2, 60), 0, 2, None)
     x0 = rng.uniform(0, 1, (prob.size, 3))
-    x, history = solve(prob, x0, 0.01, 1.0, iterations=20, deadline=0.0)   # long past
+    x, history, _ = solve(prob, x0, 0.01, 1.0, iterations=20, deadline=0.0)   # long past
     assert len(history) == 1
     np.testing.assert_array_equal(x, x0)
-    x, _ = solve(prob, x0 * 4 - 2, 0.01, 1.0, iterations=20)
+    x, *_ = solve(prob, x0 * 4 - 2, 0.01, 1.0, iterations=20)
     assert x.min() >= 0 and x.max() <= 1
 
 
@@ -155,13 +155,13 @@ def model_of(textures: np.ndarray, centres: np.ndarray, kind: np.ndarray, base_y
 
 
 def wall_scene():
-    """A 4 × 3 wall of facade blocks facing −y at y = 3, a row of ground blocks before it and
-    one billboard; cameras on y = −1 looking at the wall (+y) from x = −1.5 … 1.5."""
+    """A 4 × 3 wall of facade blocks facing −y at y = 3, a row of ground blocks before it (each
+    1 cm above the last) and one billboard; cameras on y = −1 looking at the wall (+y) from x = −1.5 … 1.5."""
     block = 0.5
     xs = (np.arange(4) - 1.5) * block
     zs = 0.5 + np.arange(3) * block
     wall = np.array([[x, 3.0, z] for z in zs for x in xs])
-    ground = np.array([[x, 2.0, 0.0] for x in xs])
+    ground = np.array([[x, 2.0, 0.01 * k] for k, x in enumerate(xs)])   # (steps, as on a real road: no ties)
     board = np.array([[0.2, 1.5, 0.6]])
     centres = np.concatenate([wall, ground, board])
     kind = np.array([FACADE] * len(wall) + [GROUND] * len(ground) + [BILLBOARD])
@@ -235,7 +235,7 @@ def test_fit_recovers_a_known_texture_through_the_renderer(ctx):
     start = np.stack([cv2.GaussianBlur(t.astype(np.float32), (0, 0), 1.2) for t in start.reshape(-1, TILE, TILE, 3)])
     start = start.reshape(truth.shape)                                      # … and blurred
     prob = problem(quads, records, 0, n, None)
-    x, history = solve(prob, start.reshape(-1, 3), prior=0.01, smooth=1.0, iterations=100)
+    x, history, _ = solve(prob, start.reshape(-1, 3), prior=0.01, smooth=1.0, iterations=100)
     measured = prob.diagonal() > 0.5
     fitted = x.reshape(-1, 3)[measured]
     expected = np.rint(truth * 255).reshape(-1, 3)[measured] / 255

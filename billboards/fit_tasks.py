@@ -1,0 +1,100 @@
+"""The fit as the build runs it, in worker tasks (:mod:`billboards.fit` holds the maths).
+
+1. The sampled textures of every quad lie in a memory-mapped (n, d, t, t, 4) uint8 file.
+2. A batch of training views is ray cast against them (:func:`billboards.fit.cast_view`, with
+   the alpha the sampling gave) and its measurements written to one ``.npy`` file of
+   :func:`~billboards.fit.record_dtype` rows sorted by quad (:func:`write_view_records`).
+3. A range of quads reads its rows from every batch's file (:func:`read_records`) and
+   solves its textures (:func:`fit_range`); the build then compresses them as sampled
+   ones. :func:`fit_report` sums the ranges' residuals per iteration for the build report.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from core.fileio import atomic_path
+from core.metrics import psnr_from_mse
+
+from .fit import FitConfig, Quads, cast_view, problem, record_dtype, solve, view_records
+from .sampling import Views
+
+
+def write_view_records(path: os.PathLike | str, quads: Quads, rgba: np.ndarray, views: Views, view_ids,
+                       config: FitConfig, max_distance: float) -> dict:
+    """Ray cast views ``view_ids`` (of ``views``, images divided by their gains) against
+    ``quads`` with the alpha of ``rgba`` (n, d, t, t, 4) uint8 and write their measurements
+    to ``path`` (sorted by quad, atomically). Returns {"views", "rays", "records", "cast_s"}."""
+    t0 = time.perf_counter()
+    n, d, t = rgba.shape[:3]
+    alpha = rgba.reshape(n, d, t * t, 4)[..., 3]
+    out, rays = [], 0
+    for i in view_ids:
+        w, h = (int(s) for s in views.sizes[i])
+        hits = cast_view(quads, alpha, views.K[i], views.world_from_cam[i], (w, h), stride=config.pixel_stride,
+                         max_distance=max_distance, see_through=config.see_through)
+        rays += len(range(0, w, config.pixel_stride)) * len(range(0, h, config.pixel_stride))
+        if len(hits.quad):
+            out.append(view_records(hits, views.image(int(i))))
+    records = np.concatenate(out) if out else np.zeros(0, record_dtype(quads.corners))
+    records = records[np.argsort(records["quad"], kind="stable")]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, records)
+    return {"views": len(view_ids), "rays": rays, "records": len(records), "cast_s": time.perf_counter() - t0}
+
+
+def read_records(paths, begin: int, end: int) -> np.ndarray:
+    """The rows of quads [begin, end) from every file of ``paths`` (each sorted by quad)."""
+    parts = []
+    for path in paths:
+        rec = np.load(path, mmap_mode="r")
+        if len(rec) == 0:
+            continue
+        lo, hi = np.searchsorted(rec["quad"], [begin, end])
+        parts.append(np.array(rec[lo:hi]))
+    return np.concatenate(parts) if parts else None
+
+
+def fit_range(quads: Quads, rgba: np.ndarray, begin: int, end: int, records: np.ndarray | None,
+              config: FitConfig, deadline: float | None) -> tuple[np.ndarray, dict]:
+    """Textures of quads [begin, end) solved against their ``records``, from the sampled ones in
+    ``rgba`` (n, d, t, t, 4) uint8 (also what a slit's block outside the range holds).
+    Returns the fitted (end − begin, d, t, t, 4) uint8 (alpha as sampled) and statistics: the
+    squared residual (0..1 colours, summed over channels) before and after each iteration,
+    the seconds at each, the measurements."""
+    t0 = time.perf_counter()
+    n, d, t = rgba.shape[:3]
+    mine = np.array(rgba[begin:end])
+    if records is None or len(records) == 0:
+        return mine, {"measurements": 0, "residual": [0.0], "seconds": [0.0]}
+    prob = problem(quads, records, begin, end - begin, rgba.reshape(n, d, t * t, 4))
+    x0 = mine[..., :3].reshape(-1, 3) / 255.0
+    x, history, seconds = solve(prob, x0, config.prior, config.smooth, config.iterations, deadline)
+    mine[..., :3] = np.rint(x * 255).reshape(mine[..., :3].shape).astype(np.uint8)
+    setup = time.perf_counter() - t0 - seconds[-1]
+    return mine, {"measurements": len(records), "residual": history, "seconds": [setup + s for s in seconds]}
+
+
+def fit_report(stats: list[dict], casts: list[dict], config: FitConfig, seconds: float) -> dict:
+    """The build report's "fit": per iteration the training pixels' RMS error and PSNR in the
+    fit's own rendering (every range's residual at that iteration, or its last if it
+    stopped earlier) and the worker seconds spent by then; the views, rays and measurements."""
+    measured = sum(s["measurements"] for s in stats)
+    longest = max((len(s["residual"]) for s in stats), default=1)
+    curve = []
+    for k in range(longest):
+        sq = sum(s["residual"][min(k, len(s["residual"]) - 1)] for s in stats)
+        worker_s = sum(s["seconds"][min(k, len(s["seconds"]) - 1)] for s in stats)
+        mse = sq / (3 * measured) if measured else float("nan")
+        curve.append({"iteration": k, "rms": float(np.sqrt(mse)) if measured else None,
+                      "psnr_db": psnr_from_mse(mse) if measured else None, "worker_s": worker_s})
+    return {"enabled": True, "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
+            "views": sum(c["views"] for c in casts), "rays": sum(c["rays"] for c in casts),
+            "measurements": int(measured), "cast_worker_s": sum(c["cast_s"] for c in casts),
+            "iterations": curve, "seconds": seconds,
+            "psnr_before_db": curve[0]["psnr_db"], "psnr_after_db": curve[-1]["psnr_db"]}
