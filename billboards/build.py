@@ -201,7 +201,7 @@ class _Task:
     end: int
     stage: str = "textures"   # "textures": sample and compress; with a fit "sample": sampled textures into
                               # the shared memory map, "fit": solved against the views' records, compressed
-    deadline: float | None = None  # the fit's iterations begin no later (time.time())
+    seconds: float | None = None   # the fit's iterations begin no later than this long after the task's start
 
 
 @dataclass(frozen=True)
@@ -388,7 +388,7 @@ def _run_task(task: _Task):
         rgba = np.load(root / "rgba.npy", mmap_mode="r")
         records = read_records(sorted(root.glob("records_*.npy")), task.begin, task.end)
         fitted, fit_stats = fit_range(_fit_quads(task.state, conf), rgba, task.begin, task.end, records, conf.fit,
-                                      task.deadline)
+                                      time.time() + task.seconds)
         return [compress_chunk(fitted[s:s + conf.chunk], conf) for s in range(0, len(fitted), conf.chunk)], fit_stats
     out = []
     for s in range(task.begin, task.end, conf.chunk):
@@ -624,14 +624,15 @@ def _fit(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: int, n: 
         for st in stats:
             totals.add(st)
     t1 = time.perf_counter()
-    deadline = time.time() + conf.fit.seconds
     per = conf.fit_views_per_task
     casts = list(ordered_results(_cast_task, [_ViewTask(str(state), b, min(num_views, b + per))
                                               for b in range(0, num_views, per)],
                                  executor, window=window, desc="fit: views", progress=progress))
     t2 = time.perf_counter()
+    # What is left of the budget, shared fairly: each task's iterations may take its part of it.
+    share = max(0.0, conf.fit.seconds - (t2 - t1)) * executor_workers(executor) / max(1, len(tasks))
     fit_stats = []
-    for chunks, stats in ordered_results(_run_task, [replace(t, stage="fit", deadline=deadline) for t in tasks],
+    for chunks, stats in ordered_results(_run_task, [replace(t, stage="fit", seconds=share) for t in tasks],
                                          executor, window=window, desc="fit: textures", progress=progress):
         append(chunks)
         fit_stats.append(stats)

@@ -39,8 +39,10 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+from scipy import sparse
 
 from .decode import direction_corners, view_direction_index
 from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP, kind_frames
@@ -59,8 +61,8 @@ TIE = 2e-3
 
 @dataclass(frozen=True)
 class FitConfig:
-    seconds: float = 150.0        # wall-clock budget of the fit (s): the solve stops iterating when it is spent
-    iterations: int = 12          # conjugate-gradient iterations per chunk of quads at most
+    seconds: float = 150.0        # wall-clock budget of the fit (s): the solves stop iterating when it is spent
+    iterations: int = 6           # conjugate-gradient iterations per chunk of quads at most
     pixel_stride: int = 2         # every n-th pixel of every n-th row of each training image is a measurement
     prior: float = 0.1            # λ: pull of each texel toward its sampled colour, in pixels of full weight
     smooth: float = 1.0           # μ: pull of each texel toward its neighbouring directions, in the same units
@@ -338,15 +340,25 @@ class Problem:
     def size(self) -> int:
         return self.count * self.d_pitch * self.d_yaw * self.texels
 
+    @cached_property
+    def matrix(self) -> sparse.csr_matrix:
+        """A as a sparse (r, N) float64 matrix (a row's repeated taps add up)."""
+        r, k = self.idx.shape
+        return sparse.csr_matrix((self.a.ravel(), self.idx.ravel(), np.arange(0, r * k + 1, k)),
+                                 shape=(r, self.size))
+
+    @cached_property
+    def transpose(self) -> sparse.csr_matrix:
+        """Aᵀ as a sparse (N, r) float64 matrix."""
+        return self.matrix.T.tocsr()
+
     def apply(self, x: np.ndarray) -> np.ndarray:
         """A·x: (N, 3) → (r, 3)."""
-        return np.einsum("rk,rkc->rc", self.a, x[self.idx])
+        return np.asarray(self.matrix @ x, np.float64)
 
     def adjoint(self, z: np.ndarray) -> np.ndarray:
         """Aᵀ·z: (r, 3) → (N, 3)."""
-        flat = self.idx.ravel()
-        return np.stack([np.bincount(flat, weights=(self.a * z[:, c:c + 1]).ravel(), minlength=self.size)
-                         for c in range(z.shape[1])], axis=1).astype(np.float64)   # (float even when empty)
+        return np.asarray(self.transpose @ z, np.float64)
 
     def diagonal(self) -> np.ndarray:
         """(N,) the diagonal of AᵀA: each unknown's summed squared weights."""
