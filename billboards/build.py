@@ -573,7 +573,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                 for chunks in ordered_results(_run_task, tasks, executor, window=window, desc="billboards",
                                               progress=progress):
                     append(chunks)
-                stages["sample_compress_s"] = time.perf_counter() - t3
+            stages["sample_compress_s"] = time.perf_counter() - t3  # (with a fit: its stages too)
             t4 = time.perf_counter()
             nodes = _node_table(octree, node_range)
             info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,

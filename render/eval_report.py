@@ -93,6 +93,11 @@ def markdown_real(report: dict) -> str:
                      f"{_f(m['ssim_covered'], '.3f')} | "
                      f"{_f(m.get('coverage_seen'), '.1%')} | {_f(m['psnr_seen'], '.2f')} | {_f(m['psnr'], '.2f')} | "
                      f"{_f(m['ssim'], '.3f')} | {_f(b, ',')} |")
+    lines += ["", "## Above and below the horizon (PSNR over covered pixels, dB)", "",
+              "| method, frames | above the horizon | below the horizon |", "|---|---|---|"]
+    for name, m in report["summary"].items():
+        lines.append(f"| {name.replace(', on path', ', held out')} | {_f(m.get('psnr_covered_above'), '.2f')} | "
+                     f"{_f(m.get('psnr_covered_below'), '.2f')} |")
     if report.get("images"):
         lines += ["", "Images (real | model | Poisson mesh): " + ", ".join(report["images"])]
     return "\n".join(lines) + "\n"
@@ -122,6 +127,14 @@ def markdown(report: dict) -> str:
         lines.append(f"| {name} | {_f(m['psnr_seen'], '.2f')} | {_f(m['ssim_seen'], '.3f')} | {_f(m['psnr'], '.2f')} | "
                      f"{_f(m['ssim'], '.3f')} | {_f(m['psnr_geometry'], '.2f')} | {_f(m['ssim_geometry'], '.3f')} | "
                      f"{_f(m['seen_fraction'], '.0%')} | {_f(m.get('coverage_seen'), '.1%')} | {_f(b, ',')} |")
+    split = {name: m for name, m in report["summary"].items()
+             if any(m.get(f"psnr_seen_{k}") is not None for k in ("facade", "ground", "billboard"))}
+    if split:
+        lines += ["", "## The model's error by the kind of quad drawing a pixel (PSNR over seen pixels, dB)", "",
+                  "| method, viewpoints | facade blocks | ground blocks | billboards |", "|---|---|---|---|"]
+        for name, m in split.items():
+            lines.append(f"| {name} | {_f(m.get('psnr_seen_facade'), '.2f')} | {_f(m.get('psnr_seen_ground'), '.2f')} | "
+                         f"{_f(m.get('psnr_seen_billboard'), '.2f')} |")
     wp = report.get("work_precision", [])
     if wp:
         lines += ["", "## Work-precision (workprecision.png)", "",

@@ -46,6 +46,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from billboards.decode import decode_directions
+from billboards.fit import cast_view, quads_of
+from billboards.geometry import BILLBOARD, FACADE, GROUND
 from billboards.model_set import ModelSet
 from core.metrics import psnr, ssim
 from data_synth import load_dataset, load_scene, truth_view
@@ -61,6 +64,11 @@ BACKGROUND = (0.0, 0.0, 0.0)
 Method = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
 
 METRICS = ("psnr", "psnr_geometry", "psnr_seen", "psnr_covered", "ssim", "ssim_geometry", "ssim_seen", "ssim_covered")
+#: The model's error split by the kind of quad that draws a pixel (PSNR over seen pixels), and for a
+#: real capture by the horizon (PSNR over covered pixels above and below it).
+KIND_NAMES = {FACADE: "facade", GROUND: "ground", BILLBOARD: "billboard"}
+SPLIT_METRICS = tuple(f"psnr_seen_{name}" for name in KIND_NAMES.values()) + ("psnr_covered_above",
+                                                                              "psnr_covered_below")
 _UNUSED_COLOUR = (1.0, 0.0, 1.0)  # background for finding the pixels a model draws (magenta, absent from streets)
 WHERE = ("on path", "off path")
 #: Viewpoints of frames the textures came from: the ceiling a model reaches where it was made.
@@ -282,6 +290,26 @@ class ModelMethod:
     def __call__(self, K, world_from_cam, size) -> np.ndarray:
         return self._draw(K, world_from_cam, size, self.sky, BACKGROUND)
 
+    def kinds(self, K, world_from_cam, size) -> np.ndarray | None:
+        """(h, w) int8: the kind of quad the model draws at each pixel (−1: none), found by
+        ray casting its quads as the renderer places them (:func:`billboards.fit.cast_view`);
+        None for a tiled set."""
+        if isinstance(self.model, ModelSet):
+            return None
+        if not hasattr(self, "_quads"):
+            m = self.model
+            self._quads = quads_of(m.origin, m.centres, m.base_yaw, m.kind, m.voxel_size, m.block_size, m.tile,
+                                   m.yaw_offsets, m.pitches, m.pitched_quads)
+            n, chunk = m.num_billboards, 1024
+            self._alpha = np.concatenate([np.rint(decode_directions(m, np.arange(b, min(n, b + chunk)))[..., 3] * 255)
+                                          .astype(np.uint8).reshape(-1, m.num_directions, m.tile * m.tile)
+                                          for b in range(0, n, chunk)]) if n else np.zeros((0, 1, 1), np.uint8)
+        hits = cast_view(self._quads, self._alpha, np.asarray(K, np.float64), np.asarray(world_from_cam, np.float64),
+                         size, max_distance=np.inf)
+        out = np.full((int(size[1]), int(size[0])), -1, np.int8)
+        out[hits.pixel[:, 1], hits.pixel[:, 0]] = self.model.kind[hits.quad]
+        return out
+
     def covered(self, K, world_from_cam, size) -> np.ndarray:
         """(h, w) bool: the pixels the model draws (rendered once more over a colour no texel has)."""
         image = self._draw(K, world_from_cam, size, None, _UNUSED_COLOUR)
@@ -367,8 +395,16 @@ def evaluate_methods(methods: dict[str, Method], views: list[EvalView], images: 
             drawn = (method.covered(view.K, view.world_from_cam, view.size) if hasattr(method, "covered")
                      else np.any(image != 0, axis=-1))
             coverage = float(drawn[view.seen].mean()) if view.seen.any() else float("nan")
+            split = {}
+            if view.real:   # above and below the horizon (geometry: the pixels below it)
+                split = {"psnr_covered_above": psnr(image, view.truth, drawn & ~view.geometry),
+                         "psnr_covered_below": psnr(image, view.truth, drawn & view.geometry)}
+            kinds = method.kinds(view.K, view.world_from_cam, view.size) if hasattr(method, "kinds") else None
+            if kinds is not None and not view.real:
+                split = {f"psnr_seen_{kind_name}": psnr(image, view.truth, view.seen & (kinds == kind))
+                         for kind, kind_name in KIND_NAMES.items()}
             rows.append({"frame": view.frame, "view": view.where, "method": name,
-                         **score(image, view, drawn, real=view.real),
+                         **score(image, view, drawn, real=view.real), **split,
                          "seen_fraction": float(view.seen.mean()), "coverage_seen": coverage, "render_s": render_s})
             if images is not None and name in keep:
                 images[name, i] = image
@@ -394,7 +430,7 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
                 continue
             summary[f"{method}, {where}"] = {k: _nanmean([r.get(k, float("nan")) for r in sel])
                                              for k in (*METRICS, "psnr_covered_exposure", "seen_fraction",
-                                                       "coverage_seen")}
+                                                       "coverage_seen", *SPLIT_METRICS)}
     return summary
 
 

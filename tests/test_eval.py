@@ -170,14 +170,16 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     out = tmp_path / "eval"
     assert cli_main(["-q", "eval", str(model), str(tiny_dataset), "--cloud", str(tiny_cloud), "--views", "2",
                      "--out", str(out), "--poisson-depth", "7", "--workprecision-depths", "6", "7",
-                     "--models", str(model), "--billboards-only", str(model), "--panel-width", "120"]) == 0
+                     "--models", str(model), "--billboards-only", str(model), "--panel-width", "120",
+                     "--training-views", "1"]) == 0
     report = json.loads((out / "eval.json").read_text())
     assert report["held_out"] and report["frames"] == [1, 13] and report["sky"]
     methods = ("model", "model: model", "billboards only", "Poisson mesh", "Poisson depth 6", "point projection")
-    assert set(report["summary"]) == {f"{m}, {v}" for m in methods for v in ("on path", "off path")}
+    assert set(report["summary"]) == {f"{m}, {v}" for m in methods for v in ("on path", "off path", "training")}
+    assert len(report["training_frames"]) == 1 and report["training_frames"][0] not in held_out
     for name, m in report["summary"].items():
         assert 5 < m["psnr"] < 100 and -1 <= m["ssim"] <= 1, name
-        assert 5 < m["psnr_seen"] < 100 and 0 < m["seen_fraction"] < 1, name
+        assert 5 < m["psnr_seen"] < 100 and 0 < m["seen_fraction"] <= 1, name  # (a training view sees all)
         assert 0 <= m["coverage_seen"] <= 1, name
     on, off = report["summary"]["model, on path"], report["summary"]["model, off path"]
     assert on["seen_fraction"] > 0.3 and on["psnr_seen"] > on["psnr_geometry"] - 3
@@ -188,7 +190,11 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     assert report["bytes"]["Poisson depth 6"] < report["bytes"]["Poisson mesh"]
     assert {"model", "Poisson mesh", "point projection"} <= {p["family"] for p in report["work_precision"]}
     assert (out / "workprecision.png").is_file() and "off path" in (out / "eval.md").read_text()
-    assert len(report["images"]) == 4
+    split = [report["summary"]["model, on path"][f"psnr_seen_{k}"] for k in ("facade", "ground", "billboard")]
+    assert any(v is not None for v in split) and all(v is None or 5 < v <= 100 for v in split)
+    assert report["summary"]["Poisson mesh, on path"]["psnr_seen_facade"] is None   # (a model's quads only)
+    assert "kind of quad" in (out / "eval.md").read_text()
+    assert len(report["images"]) == 5 and report["images"][-1].endswith("_training.png")
     panel = read_png(out / report["images"][0])
     assert panel.shape == (90, 360, 3)  # ground truth | model | Poisson mesh, 120×90 each
     plain = tmp_path / "plain"
