@@ -16,9 +16,9 @@ b_k kept between the tile's outer texel centres (``billboard_quad.glsl``'s
 
     min_X  Σ_pixels ‖A X − y‖²  +  λ ‖X − X₀‖²
 
-(plus μ‖L·X‖², the differences between neighbouring sampled directions of each texel, so
-that what the views of one direction teach reaches its neighbours and a view-independent
-surface stays view-independent) where X₀ is the sampled texture: λ (``FitConfig.prior``, in units of one pixel's full
+(plus μ‖L·(X − X₀)‖², the differences between neighbouring sampled directions of each
+texel's correction, so that what the views of one direction teach reaches its neighbours
+while the view dependence sampling found stays) where X₀ is the sampled texture: λ (``FitConfig.prior``, in units of one pixel's full
 weight) keeps texels that few or no pixels measure (a quad seen edge-on, a direction no
 training camera looks from) at what sampling gave them, so the system is never singular
 and never yields NaN. With visibility fixed the system falls apart into one small
@@ -347,18 +347,13 @@ class Problem:
         return sparse.csr_matrix((self.a.ravel(), self.idx.ravel(), np.arange(0, r * k + 1, k)),
                                  shape=(r, self.size))
 
-    @cached_property
-    def transpose(self) -> sparse.csr_matrix:
-        """Aᵀ as a sparse (N, r) float64 matrix."""
-        return self.matrix.T.tocsr()
-
     def apply(self, x: np.ndarray) -> np.ndarray:
         """A·x: (N, 3) → (r, 3)."""
         return np.asarray(self.matrix @ x, np.float64)
 
     def adjoint(self, z: np.ndarray) -> np.ndarray:
         """Aᵀ·z: (r, 3) → (N, 3)."""
-        return np.asarray(self.transpose @ z, np.float64)
+        return np.asarray(self.matrix.T @ z, np.float64)
 
     def diagonal(self) -> np.ndarray:
         """(N,) the diagonal of AᵀA: each unknown's summed squared weights."""
@@ -423,16 +418,17 @@ def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: 
 
 def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations: int,
           deadline: float | None = None, clip: bool = True) -> tuple[np.ndarray, list[float], list[float]]:
-    """min ‖A·x − y‖² + prior·‖x − x0‖² + smooth·‖L·x‖² by conjugate gradients on the normal
-    equations (AᵀA + prior·I + smooth·LᵀL)·x = Aᵀy + prior·x0, Jacobi-preconditioned, from
-    x = x0. L: differences between neighbouring sampled directions of each texel
-    (:meth:`Problem.smoothness`), so what one direction learns its neighbours share.
+    """min ‖A·x − y‖² + prior·‖x − x0‖² + smooth·‖L·(x − x0)‖² by conjugate gradients on the
+    normal equations of the correction d = x − x0, (AᵀA + prior·I + smooth·LᵀL)·d = Aᵀ(y − A·x0),
+    Jacobi-preconditioned, from d = 0. L: differences between neighbouring sampled directions
+    of each texel (:meth:`Problem.smoothness`): what one direction learns its neighbours
+    share, while the view dependence sampling found is kept.
 
     x0 (N, 3) float; prior > 0, smooth ≥ 0; at most ``iterations``, none begun after
     ``deadline`` (``time.time()``). Returns x (N, 3) float64 (clipped to [0, 1] with ``clip``),
     the squared data residual ‖A·x − y‖² (summed over channels) before the first iteration
-    and after each, and the seconds spent by each of those moments. Without smoothing,
-    unknowns no measurement touches stay exactly at x0.
+    and after each, and the seconds spent by each of those moments. Texels that no
+    measurement touches in any direction stay exactly at x0.
     """
     if not prior > 0 or not smooth >= 0:
         raise ValueError(f"prior must be > 0 and smooth ≥ 0, got {prior!r}, {smooth!r}")
@@ -443,9 +439,7 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations
     seconds = [time.perf_counter() - t0]
     diagonal = prob.diagonal() + prior + (smooth * prob.smoothness_diagonal() if smooth else 0.0)
     precondition = 1.0 / diagonal[:, None]
-    r = -prob.adjoint(e)                                        # b − M·x at x = x0
-    if smooth:
-        r -= smooth * prob.smoothness(x)
+    r = -prob.adjoint(e)                                        # the right-hand side, as d = 0
     z = precondition * r
     p = z.copy()
     rz = (r * z).sum(axis=0)
@@ -497,4 +491,5 @@ def solve_reference(prob: Problem, x0: np.ndarray, prior: float, smooth: float) 
                             rows.append(row)
     L = np.array(rows).reshape(-1, prob.size)
     M = A.T @ A + prior * np.eye(prob.size) + smooth * L.T @ L
-    return np.linalg.solve(M, A.T @ prob.y + prior * np.asarray(x0, np.float64))
+    x0 = np.asarray(x0, np.float64)
+    return x0 + np.linalg.solve(M, A.T @ (prob.y - A @ x0))

@@ -68,6 +68,12 @@ def test_solve_is_regular_where_the_images_say_little():
     untouched[np.unique(prob.idx[np.abs(prob.a) > 0])] = False
     assert untouched.sum() > 0
     np.testing.assert_array_equal(x[untouched], x0[untouched])
+    # with smoothing across directions: texels measured in no direction still stay exactly
+    x, _, _ = solve(prob, x0, prior=1.0, smooth=3.0, iterations=50)
+    texel = np.arange(prob.size) // (prob.d_pitch * prob.d_yaw * prob.texels) * prob.texels + np.arange(prob.size) % prob.texels
+    seen = np.isin(texel, texel[~untouched])
+    assert np.all(np.isfinite(x)) and (~seen).sum() > 0
+    np.testing.assert_array_equal(x[~seen], x0[~seen])
     # nothing measured at all: x0 back, unchanged
     empty = problem(lone_quads(2, 1, 2, 2), rec[:0], 0, 2, None)
     x, history, _ = solve(empty, x0, prior=0.1, smooth=1.0, iterations=5)
