@@ -387,7 +387,9 @@ def _run_task(task: _Task):
     if task.stage == "fit":
         rgba = np.load(root / "rgba.npy", mmap_mode="r")
         records = read_records(sorted(root.glob("records_*.npy")), task.begin, task.end)
-        fitted, fit_stats = fit_range(_fit_quads(task.state, conf), rgba, task.begin, task.end, records, conf.fit,
+        # transients are left out of the fit as out of the sampling, or neither
+        fit = conf.fit if conf.sampling.transients else replace(conf.fit, transients=None)
+        fitted, fit_stats = fit_range(_fit_quads(task.state, conf), rgba, task.begin, task.end, records, fit,
                                       time.time() + task.seconds)
         return [compress_chunk(fitted[s:s + conf.chunk], conf) for s in range(0, len(fitted), conf.chunk)], fit_stats
     out = []

@@ -310,6 +310,9 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
         raise ValueError("a tiled build needs a voxel size (OctreeConfig.voxel_size), not an octree depth")
     if conf.source != "images" and dataset_dir is None and conf.layer is not None:
         conf = replace(conf, layer=None)
+    if conf.fit is not None:
+        # each tile would have to see its neighbours' quads in front of its own to be fitted
+        logger.warning("a tiled build is not fitted to its images: its textures stay as sampled")
     cloud_path, model_dir = Path(cloud_path), Path(model_dir)
     t_start = time.perf_counter()
     stages: dict[str, float] = {}
@@ -396,7 +399,7 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
         write_model_set(work, grid_origin, conf.tile_metres,
                         [{k: r[k] for k in ("name", "index", "lo", "hi")} for r in reports], info=info)
         report = _set_report(reports, conf)
-        report.update(photometry=photometry_report, resumed_tiles=resumed, cloud=str(cloud_path),
+        report.update(photometry=photometry_report, fit={"enabled": False}, resumed_tiles=resumed, cloud=str(cloud_path),
                       dataset=None if dataset_dir is None else str(dataset_dir), stages=stages,
                       total_s=time.perf_counter() - t_start, peak_memory=peak_memory(),
                       config=_config_to_json(conf))

@@ -38,7 +38,7 @@ textures are (B, d, t, t, 3) float in [0, 1], direction j = p·d_yaw + y.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -67,6 +67,9 @@ class FitConfig:
     prior: float = 0.1            # λ: pull of each texel toward its sampled colour, in pixels of full weight
     smooth: float = 1.0           # μ: pull of each texel toward its neighbouring directions, in the same units
     see_through: int = 3          # a ray goes on past this many see-through texels at most
+    transients: float | None = 64.0   # a measurement off the sampled texture by more than this many grey
+                                      # levels in some channel is something passing (a car), not the
+                                      # surface, and is left out (None: every measurement counts)
 
     def __post_init__(self):
         if not (np.isfinite(self.seconds) and self.seconds >= 0):
@@ -81,6 +84,8 @@ class FitConfig:
             raise ValueError(f"fit prior must be a finite number > 0 (it keeps the solve regular), got {self.prior!r}")
         if not (np.isfinite(self.smooth) and self.smooth >= 0):
             raise ValueError(f"fit smooth must be a finite number ≥ 0, got {self.smooth!r}")
+        if self.transients is not None and not (np.isfinite(self.transients) and self.transients > 0):
+            raise ValueError(f"fit transients must be a finite number > 0 or None, got {self.transients!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -355,6 +360,10 @@ class Problem:
         """Aᵀ·z: (r, 3) → (N, 3)."""
         return np.asarray(self.matrix.T @ z, np.float64)
 
+    def rows(self, keep: np.ndarray) -> "Problem":
+        """The problem of the measurements where ``keep`` (r,) bool is set."""
+        return replace(self, idx=self.idx[keep], a=self.a[keep], y=self.y[keep])
+
     def diagonal(self) -> np.ndarray:
         """(N,) the diagonal of AᵀA: each unknown's summed squared weights."""
         return np.bincount(self.idx.ravel(), weights=np.square(self.a).ravel(), minlength=self.size).astype(np.float64)
@@ -414,6 +423,14 @@ def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: 
         a = np.where(inside, a, 0.0)
     idx = np.where(inside, ((tq - begin) * (d_pitch * d_yaw) + cc) * T + tt, 0)
     return Problem(idx.reshape(r, c * 4), a.reshape(r, c * 4), y, count, d_pitch, d_yaw, T)
+
+
+def transient_rows(prob: Problem, x0: np.ndarray, threshold: float) -> np.ndarray:
+    """(r,) bool: the measurements whose colour is off what the textures ``x0`` (N, 3) in [0, 1]
+    predict by more than ``threshold`` grey levels in some channel. The sampled textures
+    already left out what most cameras did not see there, so such a pixel saw something
+    in front of the surface for a moment (a passing car), which the fit must not paint in."""
+    return (np.abs(prob.apply(x0) - prob.y) > threshold / 255.0).any(axis=1)
 
 
 def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations: int,

@@ -20,7 +20,7 @@ import numpy as np
 from core.fileio import atomic_path
 from core.metrics import psnr_from_mse
 
-from .fit import FitConfig, Quads, cast_view, problem, record_dtype, solve, view_records
+from .fit import FitConfig, Quads, cast_view, problem, record_dtype, solve, transient_rows, view_records
 from .sampling import Views
 
 
@@ -71,19 +71,26 @@ def fit_range(quads: Quads, rgba: np.ndarray, begin: int, end: int, records: np.
     n, d, t = rgba.shape[:3]
     mine = np.array(rgba[begin:end])
     if records is None or len(records) == 0:
-        return mine, {"measurements": 0, "residual": [0.0], "seconds": [0.0]}
+        return mine, {"measurements": 0, "transients": 0, "residual": [0.0], "seconds": [0.0]}
     prob = problem(quads, records, begin, end - begin, rgba.reshape(n, d, t * t, 4))
     x0 = mine[..., :3].reshape(-1, 3) / 255.0
+    transients = 0
+    if config.transients is not None:
+        passing = transient_rows(prob, x0, config.transients)
+        transients = int(passing.sum())
+        prob = prob.rows(~passing)
     x, history, seconds = solve(prob, x0, config.prior, config.smooth, config.iterations, deadline)
     mine[..., :3] = np.rint(x * 255).reshape(mine[..., :3].shape).astype(np.uint8)
     setup = time.perf_counter() - t0 - seconds[-1]
-    return mine, {"measurements": len(records), "residual": history, "seconds": [setup + s for s in seconds]}
+    return mine, {"measurements": len(records) - transients, "transients": transients, "residual": history,
+                  "seconds": [setup + s for s in seconds]}
 
 
 def fit_report(stats: list[dict], casts: list[dict], config: FitConfig, seconds: float) -> dict:
     """The build report's "fit": per iteration the training pixels' RMS error and PSNR in the
     fit's own rendering (every range's residual at that iteration, or its last if it
-    stopped earlier) and the worker seconds spent by then; the views, rays and measurements."""
+    stopped earlier) and the worker seconds spent by then; the views, rays, measurements
+    and the measurements left out as transients (not in the residual)."""
     measured = sum(s["measurements"] for s in stats)
     longest = max((len(s["residual"]) for s in stats), default=1)
     curve = []
@@ -95,6 +102,7 @@ def fit_report(stats: list[dict], casts: list[dict], config: FitConfig, seconds:
                       "psnr_db": psnr_from_mse(mse) if measured else None, "worker_s": worker_s})
     return {"enabled": True, "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
             "views": sum(c["views"] for c in casts), "rays": sum(c["rays"] for c in casts),
-            "measurements": int(measured), "cast_worker_s": sum(c["cast_s"] for c in casts),
+            "measurements": int(measured), "transients": sum(s.get("transients", 0) for s in stats),
+            "cast_worker_s": sum(c["cast_s"] for c in casts),
             "iterations": curve, "seconds": seconds,
             "psnr_before_db": curve[0]["psnr_db"], "psnr_after_db": curve[-1]["psnr_db"]}

@@ -94,6 +94,26 @@ def test_solve_stops_at_its_deadline_and_clips():
     assert x.min() >= 0 and x.max() <= 1
 
 
+def test_a_passing_car_is_left_out_of_the_fit():
+    """Grey texels measured grey by many pixels and red by a few (a car in one frame): the red
+    ones are transients, left out; the fit stays grey. Counted in, they tint it."""
+    from billboards.fit_tasks import fit_range
+
+    q = lone_quads(1, 1, 2, 2)
+    rgba = np.full((1, 2, 2, 2, 4), 120, np.uint8)
+    rgba[..., 3] = 255
+    rng = np.random.default_rng(5)
+    rec = random_records(rng, 1, 2, 2, 80)
+    rec["colour"] = rng.integers(110, 131, (80, 3))
+    rec["colour"][:12] = (230, 20, 20)
+    rec = rec[np.argsort(rec["quad"], kind="stable")]
+    kept, stats = fit_range(q, rgba, 0, 1, rec, FitConfig(), None)
+    assert stats["transients"] == 12 and stats["measurements"] == 68
+    assert np.abs(kept[..., :3].astype(int) - 120).max() <= 10
+    tinted, stats = fit_range(q, rgba, 0, 1, rec, FitConfig(transients=None), None)
+    assert stats["transients"] == 0 and (tinted[..., 0].astype(int) - tinted[..., 1]).max() > 20
+
+
 def test_taps_follow_the_renderer():
     """Bilinear, the sample point clamped between the outer texel centres of a tile, or of a
     slit's column of tiles (a facade column filters across its blocks' edges)."""
@@ -119,6 +139,9 @@ def test_taps_follow_the_renderer():
 
 
 def test_config_refuses_what_cannot_run():
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="transients"):
+            FitConfig(transients=bad)
     for bad in (dict(prior=0.0), dict(prior=float("nan")), dict(seconds=-1.0), dict(seconds=float("inf")),
                 dict(pixel_stride=0), dict(iterations=-1), dict(iterations=1.5), dict(see_through=True), dict(smooth=-1.0)):
         with pytest.raises(ValueError):

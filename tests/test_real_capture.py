@@ -137,14 +137,16 @@ def test_eval_of_a_real_capture_scores_the_held_out_images(real_street, tmp_path
                             extra_methods={"photograph": photograph}, out_dir=tmp_path)
     assert report["real"] and report["held_out"] and report["frames"] == held  # every held-out frame
     methods = ("model", "model, neighbours' exposure", "photograph", "Poisson mesh", "point projection")
-    assert set(report["summary"]) == {f"{m}, on path" for m in methods}  # no off-path views: nothing to compare
-    exact = report["summary"]["photograph, on path"]
-    assert exact["psnr"] == 100 and exact["coverage_seen"] == 1 and exact["psnr_covered_exposure"] == 100
+    # no off-path views: nothing to compare; training frames scored beside the held-out ones
+    assert set(report["summary"]) == {f"{m}, {where}" for m in methods for where in ("on path", "training")}
+    for where in ("on path", "training"):
+        exact = report["summary"][f"photograph, {where}"]
+        assert exact["psnr"] == 100 and exact["coverage_seen"] == 1 and exact["psnr_covered_exposure"] == 100
     m = report["summary"]["model, on path"]
     assert 12 < m["psnr_covered"] < 100 and 0.5 < m["coverage_seen"] <= 1
     assert m["psnr_covered_exposure"] >= m["psnr_covered"] - 0.5  # a fitted gain can only help (up to rounding)
     assert 0 < m["seen_fraction"] < 1  # the pixels below the horizon (the camera is pitched up 10°)
-    assert len(report["images"]) == len(held)
+    assert len(report["images"]) == len(held) + EvalConfig().training_views  # a panel per view
 
 
 def test_eval_cli_of_a_real_capture_writes_its_table(real_street, tmp_path):
@@ -158,7 +160,8 @@ def test_eval_cli_of_a_real_capture_writes_its_table(real_street, tmp_path):
     assert "real capture" in text and "PSNR covered" in text and "coverage below horizon" in text
     report = json.loads((out / "eval.json").read_text())
     assert report["views"] == 1
-    assert list(report["summary"]) == ["model, on path", "model, neighbours' exposure, on path"]
+    assert list(report["summary"]) == ["model, on path", "model, training",
+                                       "model, neighbours' exposure, on path", "model, neighbours' exposure, training"]
 
 
 def test_one_camera_without_stereo_partners_is_one_clear_error(tmp_path):
