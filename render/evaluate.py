@@ -507,7 +507,8 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         methods["point projection"] = PointProjector(cloud["points"], cloud["colours"])
 
     images: dict = {}
-    rows, method_info = evaluate_methods(methods, eval_views, images, keep=("model", poisson_name))
+    drawn = ("model", *(f"model: {label}" for label in extra_models or {}), poisson_name)  # the side-by-side panels
+    rows, method_info = evaluate_methods(methods, eval_views, images, keep=drawn)
     summary = summarise(rows)
     report = {
         "dataset": str(dataset_dir), "views": len(frames), "size": list(eval_views[0].size),
@@ -524,7 +525,7 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         "per_view": rows,
     }
     if out_dir is not None and config.panel_width > 0:
-        report["images"] = write_side_by_side(Path(out_dir), eval_views, images, poisson_name, config.panel_width,
+        report["images"] = write_side_by_side(Path(out_dir), eval_views, images, drawn, config.panel_width,
                                               truth_label="real" if real else "ground truth")
     report["seconds"] = time.perf_counter() - t0
     return json_ready(report)
@@ -573,10 +574,10 @@ def _panel(image: np.ndarray, width: int, label: str) -> np.ndarray:
     return out
 
 
-def write_side_by_side(out_dir: Path, views: list[EvalView], images: dict, poisson_name: str,
+def write_side_by_side(out_dir: Path, views: list[EvalView], images: dict, methods: tuple[str, ...],
                        panel_width: int, truth_label: str = "ground truth") -> list[str]:
     """For each view ``view_NNNNNN_{on,off}_path.png``: ground truth (``truth_label``) |
-    model | Poisson mesh (the panels that exist), each ``panel_width`` pixels wide,
+    each of ``methods`` (those drawn in ``images``), each ``panel_width`` pixels wide,
     labelled; side by side, or one above the other for images more than twice as wide
     as high. Returns the names."""
     from core.fileio import write_png
@@ -584,7 +585,7 @@ def write_side_by_side(out_dir: Path, views: list[EvalView], images: dict, poiss
     names = []
     for i, view in enumerate(views):
         panels = [_panel(view.truth, panel_width, truth_label)]
-        for method in ("model", poisson_name):
+        for method in methods:
             if (method, i) in images:
                 image = images[method, i]
                 where = "below horizon" if truth_label == "real" else "seen"

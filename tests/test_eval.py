@@ -196,7 +196,7 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     assert "kind of quad" in (out / "eval.md").read_text()
     assert len(report["images"]) == 5 and report["images"][-1].endswith("_training.png")
     panel = read_png(out / report["images"][0])
-    assert panel.shape == (90, 360, 3)  # ground truth | model | Poisson mesh, 120×90 each
+    assert panel.shape == (90, 480, 3)  # ground truth | model | model: model | Poisson mesh, 120×90 each
     plain = tmp_path / "plain"
     assert cli_main(["-q", "eval", str(model), str(tiny_dataset), "--views", "1", "--out", str(plain), "--no-sky",
                      "--panel-width", "0"]) == 0
