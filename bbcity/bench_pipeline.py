@@ -183,8 +183,8 @@ def run_pipeline(cfg: BenchConfig, length: float, out: Path, holdout: int = 0) -
     if fit.get("enabled"):
         row("  fit: training views cast", wall=br["stages"]["fit_cast_s"], items=fit["views"], unit="views")
         row("  fit: solve + compress", wall=br["stages"]["fit_solve_compress_s"], items=fit["measurements"],
-            unit="measurements", note=f"training pixels {fit['psnr_before_db']:.2f} → {fit['psnr_after_db']:.2f} dB "
-                                      "in the fit's rendering")
+            unit="measurements", note=f"training pixels {fit['psnr_all_before_db']:.2f} → "
+                                      f"{fit['psnr_all_after_db']:.2f} dB in the fit's rendering")
     run.fit = fit
     build = t
 

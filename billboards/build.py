@@ -640,8 +640,10 @@ def _fit(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: int, n: 
         fit_stats.append(stats)
     t3 = time.perf_counter()
     report = fit_report(fit_stats, casts, conf.fit, t3 - t1)
-    logger.info("fit: %d views, %d measurements, training pixels %s → %s dB in %.1f s", report["views"],
-                report["measurements"], _db(report["psnr_before_db"]), _db(report["psnr_after_db"]), t3 - t1)
+    logger.info("fit: %d views, %d measurements (%d transients left out), training pixels %s → %s dB "
+                "(transients too: %s → %s dB) in %.1f s", report["views"], report["measurements"],
+                report["transients"], _db(report["psnr_before_db"]), _db(report["psnr_after_db"]),
+                _db(report["psnr_all_before_db"]), _db(report["psnr_all_after_db"]), t3 - t1)
     report["stages"] = {"sample_s": t1 - t0, "fit_cast_s": t2 - t1, "fit_solve_compress_s": t3 - t2}
     return report
 

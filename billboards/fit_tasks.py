@@ -71,18 +71,18 @@ def fit_range(quads: Quads, rgba: np.ndarray, begin: int, end: int, records: np.
     n, d, t = rgba.shape[:3]
     mine = np.array(rgba[begin:end])
     if records is None or len(records) == 0:
-        return mine, {"measurements": 0, "transients": 0, "residual": [0.0], "seconds": [0.0]}
+        return mine, {"measurements": 0, "transients": 0, "residual": [0.0], "transients_residual": [0.0, 0.0],
+                      "seconds": [0.0]}
     prob = problem(quads, records, begin, end - begin, rgba.reshape(n, d, t * t, 4))
     x0 = mine[..., :3].reshape(-1, 3) / 255.0
-    transients = 0
-    if config.transients is not None:
-        passing = transient_rows(prob, x0, config.transients)
-        transients = int(passing.sum())
-        prob = prob.rows(~passing)
-    x, history, seconds = solve(prob, x0, config.prior, config.smooth, config.iterations, deadline)
+    passing = (transient_rows(prob, x0, config.transients) if config.transients is not None
+               else np.zeros(len(prob.y), bool))
+    left_out = prob.rows(passing)
+    x, history, seconds = solve(prob.rows(~passing), x0, config.prior, config.smooth, config.iterations, deadline)
     mine[..., :3] = np.rint(x * 255).reshape(mine[..., :3].shape).astype(np.uint8)
     setup = time.perf_counter() - t0 - seconds[-1]
-    return mine, {"measurements": len(records) - transients, "transients": transients, "residual": history,
+    return mine, {"measurements": int((~passing).sum()), "transients": int(passing.sum()), "residual": history,
+                  "transients_residual": [float(np.square(left_out.apply(v) - left_out.y).sum()) for v in (x0, x)],
                   "seconds": [setup + s for s in seconds]}
 
 
@@ -90,7 +90,8 @@ def fit_report(stats: list[dict], casts: list[dict], config: FitConfig, seconds:
     """The build report's "fit": per iteration the training pixels' RMS error and PSNR in the
     fit's own rendering (every range's residual at that iteration, or its last if it
     stopped earlier) and the worker seconds spent by then; the views, rays, measurements
-    and the measurements left out as transients (not in the residual)."""
+    and the measurements left out as transients (not in that residual; the PSNR of all the
+    measurements, theirs too, before and after)."""
     measured = sum(s["measurements"] for s in stats)
     longest = max((len(s["residual"]) for s in stats), default=1)
     curve = []
@@ -100,9 +101,14 @@ def fit_report(stats: list[dict], casts: list[dict], config: FitConfig, seconds:
         mse = sq / (3 * measured) if measured else float("nan")
         curve.append({"iteration": k, "rms": float(np.sqrt(mse)) if measured else None,
                       "psnr_db": psnr_from_mse(mse) if measured else None, "worker_s": worker_s})
+    # every measurement, the transients left out too: what the training images see of the change
+    everything = measured + sum(s["transients"] for s in stats)
+    whole = [sum(s["residual"][k] + s["transients_residual"][j] for s in stats) for j, k in ((0, 0), (1, -1))]
+    whole_db = [psnr_from_mse(sq / (3 * everything)) if everything else None for sq in whole]
     return {"enabled": True, "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
             "views": sum(c["views"] for c in casts), "rays": sum(c["rays"] for c in casts),
             "measurements": int(measured), "transients": sum(s.get("transients", 0) for s in stats),
             "cast_worker_s": sum(c["cast_s"] for c in casts),
             "iterations": curve, "seconds": seconds,
-            "psnr_before_db": curve[0]["psnr_db"], "psnr_after_db": curve[-1]["psnr_db"]}
+            "psnr_before_db": curve[0]["psnr_db"], "psnr_after_db": curve[-1]["psnr_db"],
+            "psnr_all_before_db": whole_db[0], "psnr_all_after_db": whole_db[1]}

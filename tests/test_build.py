@@ -56,6 +56,12 @@ def test_model_loads_and_the_report_adds_up(tiny_model):
     assert np.isfinite(r["psnr"]["decoded_rgb_opaque_db"]) and r["psnr"]["decoded_rgb_opaque_db"] > 25
     # The quantised model can only lose against the unquantised PCA.
     assert r["psnr"]["decoded_rgba_db"] <= r["psnr"]["pca_rgba_db"] + 1e-9
+    fit = r["fit"]   # on by default: the residual falls, every iteration in the curve, the stages timed
+    assert fit["enabled"] and fit["views"] > 0 and fit["measurements"] > 1000 and fit["transients"] >= 0
+    curve = [it["rms"] for it in fit["iterations"]]
+    assert len(curve) >= 2 and curve[-1] < curve[0]
+    assert fit["psnr_after_db"] > fit["psnr_before_db"] and fit["psnr_all_after_db"] > fit["psnr_all_before_db"]
+    assert all(r["stages"][k] >= 0 for k in ("sample_s", "fit_cast_s", "fit_solve_compress_s"))
     on_disk = json.loads((tiny_model.model / "build_report.json").read_text())
     assert on_disk["voxels"] == r["voxels"]
     # Billboards lie in their octree leaves, in Morton order.
