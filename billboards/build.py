@@ -36,7 +36,7 @@ from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
 from .layer import Layer, LayerConfig, build_layer, facade_depth_report
 from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
-from .pca import PcaConfig, eigen_textures
+from .pca import EigenTextures, PcaConfig, eigen_textures
 from .photometry import PhotometryConfig, estimate_gains
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
@@ -286,17 +286,18 @@ def _worker_state(state_dir: str):
     return sampler, conf
 
 
-def compress_chunk(rgba: np.ndarray, conf: BuildConfig) -> tuple[dict, dict]:
+def compress_chunk(rgba: np.ndarray, conf: BuildConfig, eig: EigenTextures | None = None) -> tuple[dict, dict]:
     """PCA + quantisation of one chunk of sampled textures.
 
-    rgba (B, d, t, t, 4) uint8 → (arrays for the model writer, error statistics).
-    Slots per billboard: [mean, eigen_1 … eigen_r].
+    rgba (B, d, t, t, 4) uint8 → (arrays for the model writer, error statistics: against
+    ``rgba``). Slots per billboard: [mean, eigen_1 … eigen_r]. ``eig``: the chunk's
+    eigen-textures already made (fitted), only quantised.
     """
     B, d, t = rgba.shape[:3]
     n = t * t * 4
     raw = rgba.reshape(B, d, n).astype(np.float32) / 255.0
     t0 = time.perf_counter()
-    eig = eigen_textures(raw, conf.pca)
+    eig = eigen_textures(raw, conf.pca) if eig is None else eig
     t1 = time.perf_counter()
     rank = eig.rank.astype(np.int64)
     # Gather the slots in order: billboard b owns 1 + rank[b] consecutive tiles.
@@ -389,9 +390,10 @@ def _run_task(task: _Task):
         records = read_records(sorted(root.glob("records_*.npy")), task.begin, task.end)
         # transients are left out of the fit as out of the sampling, or neither
         fit = conf.fit if conf.sampling.transients else replace(conf.fit, transients=None)
-        fitted, fit_stats = fit_range(_fit_quads(task.state, conf), rgba, task.begin, task.end, records, fit,
-                                      time.time() + task.seconds)
-        return [compress_chunk(fitted[s:s + conf.chunk], conf) for s in range(0, len(fitted), conf.chunk)], fit_stats
+        eig, fit_stats = fit_range(_fit_quads(task.state, conf), rgba, task.begin, task.end, records, fit,
+                                   time.time() + task.seconds, conf.pca)
+        return [compress_chunk(rgba[task.begin + s:task.begin + s + conf.chunk], conf, eig.slice(s, s + conf.chunk))
+                for s in range(0, task.end - task.begin, conf.chunk)], fit_stats
     out = []
     for s in range(task.begin, task.end, conf.chunk):
         ids = np.arange(s, min(task.end, s + conf.chunk))

@@ -16,17 +16,18 @@ b_k kept between the tile's outer texel centres (``billboard_quad.glsl``'s
 
     min_X  Σ_pixels ‖A X − y‖²  +  λ ‖X − X₀‖²
 
-(plus μ‖L·(X − X₀)‖², the differences between neighbouring sampled directions of each
-texel's correction, so that what the views of one direction teach reaches its neighbours
-while the view dependence sampling found stays) where X₀ is the sampled texture: λ (``FitConfig.prior``, in units of one pixel's full
+where X₀ is the sampled texture: λ (``FitConfig.prior``, in units of one pixel's full
 weight) keeps texels that few or no pixels measure (a quad seen edge-on, a direction no
 training camera looks from) at what sampling gave them, so the system is never singular
-and never yields NaN. With visibility fixed the system falls apart into one small
-problem per quad; a chunk of quads is solved at once by conjugate gradients on the
+and never yields NaN. The build solves this within the eigen-textures the model stores
+(:mod:`billboards.fit_subspace`: X = B·Z, Z the mean and eigen images), so that
+compression does not undo the fit. With visibility fixed the system falls apart into one
+small problem per quad; a chunk of quads is solved at once by conjugate gradients on the
 normal equations with a Jacobi preconditioner (:func:`solve`), the residual of every
-iteration recorded, until the iterations or the time budget run out; the result is
-clipped to [0, 1] as the renderer clamps. :func:`solve_reference` is the same
-least-squares problem solved densely, for tests.
+iteration recorded, until the iterations or the time budget run out.
+:func:`solve_reference` is the same least-squares problem solved densely, for tests.
+A pixel far off what X₀ predicts saw something passing (:func:`transient_rows`) and is
+left out.
 
 Alpha and geometry are not fitted: the quads' places and the see-through texels are
 sampling's.
@@ -65,9 +66,8 @@ class FitConfig:
     iterations: int = 6           # conjugate-gradient iterations per chunk of quads at most
     pixel_stride: int = 2         # every n-th pixel of every n-th row of each training image is a measurement
     prior: float = 0.1            # λ: pull of each texel toward its sampled colour, in pixels of full weight
-    smooth: float = 1.0           # μ: pull of each texel toward its neighbouring directions, in the same units
     see_through: int = 3          # a ray goes on past this many see-through texels at most
-    transients: float | None = 64.0   # a measurement off the sampled texture by more than this many grey
+    transients: float | None = 96.0   # a measurement off the sampled texture by more than this many grey
                                       # levels in some channel is something passing (a car), not the
                                       # surface, and is left out (None: every measurement counts)
 
@@ -82,8 +82,6 @@ class FitConfig:
             raise ValueError("fit iterations and see_through must be ≥ 0, pixel_stride ≥ 1")
         if not (np.isfinite(self.prior) and self.prior > 0):
             raise ValueError(f"fit prior must be a finite number > 0 (it keeps the solve regular), got {self.prior!r}")
-        if not (np.isfinite(self.smooth) and self.smooth >= 0):
-            raise ValueError(f"fit smooth must be a finite number ≥ 0, got {self.smooth!r}")
         if self.transients is not None and not (np.isfinite(self.transients) and self.transients > 0):
             raise ValueError(f"fit transients must be a finite number > 0 or None, got {self.transients!r}")
 
@@ -364,35 +362,13 @@ class Problem:
         """The problem of the measurements where ``keep`` (r,) bool is set."""
         return replace(self, idx=self.idx[keep], a=self.a[keep], y=self.y[keep])
 
+    def prior_weight(self) -> np.ndarray:
+        """(N,) each unknown's weight in the prior: one each."""
+        return np.ones(self.size)
+
     def diagonal(self) -> np.ndarray:
         """(N,) the diagonal of AᵀA: each unknown's summed squared weights."""
         return np.bincount(self.idx.ravel(), weights=np.square(self.a).ravel(), minlength=self.size).astype(np.float64)
-
-    def smoothness(self, x: np.ndarray) -> np.ndarray:
-        """LᵀL·x for the differences L between neighbouring sampled directions of a texel (along
-        yaw, and along pitch): (N, 3) → (N, 3)."""
-        g = x.reshape(self.count, self.d_pitch, self.d_yaw, self.texels, -1)
-        out = np.zeros_like(g)
-        for axis in (1, 2):
-            if g.shape[axis] < 2:
-                continue
-            diff = np.diff(g, axis=axis)
-            lo = [slice(None)] * 5
-            hi = [slice(None)] * 5
-            lo[axis], hi[axis] = slice(None, -1), slice(1, None)
-            out[tuple(lo)] -= diff
-            out[tuple(hi)] += diff
-        return out.reshape(x.shape)
-
-    def smoothness_diagonal(self) -> np.ndarray:
-        """(N,) the diagonal of LᵀL: each unknown's number of neighbouring directions."""
-        ones = np.zeros((self.count, self.d_pitch, self.d_yaw, self.texels))
-        for axis, n in ((1, self.d_pitch), (2, self.d_yaw)):
-            if n >= 2:
-                neighbours = np.full(n, 2.0)
-                neighbours[[0, -1]] = 1.0
-                ones += neighbours.reshape([1, n, 1, 1] if axis == 1 else [1, 1, n, 1])
-        return ones.ravel()
 
 
 def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: np.ndarray | None) -> Problem:
@@ -425,36 +401,36 @@ def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: 
     return Problem(idx.reshape(r, c * 4), a.reshape(r, c * 4), y, count, d_pitch, d_yaw, T)
 
 
-def transient_rows(prob: Problem, x0: np.ndarray, threshold: float) -> np.ndarray:
-    """(r,) bool: the measurements whose colour is off what the textures ``x0`` (N, 3) in [0, 1]
-    predict by more than ``threshold`` grey levels in some channel. The sampled textures
+def transient_rows(prob, x0: np.ndarray, threshold: float) -> np.ndarray:
+    """(r,) bool: the measurements of ``prob`` (a :class:`Problem` or its subspace) whose colour
+    is off what the unknowns ``x0`` (N, 3) predict by more than ``threshold`` grey levels in some channel. The sampled textures
     already left out what most cameras did not see there, so such a pixel saw something
     in front of the surface for a moment (a passing car), which the fit must not paint in."""
     return (np.abs(prob.apply(x0) - prob.y) > threshold / 255.0).any(axis=1)
 
 
-def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations: int,
+def solve(prob: Problem, x0: np.ndarray, prior: float, iterations: int,
           deadline: float | None = None, clip: bool = True) -> tuple[np.ndarray, list[float], list[float]]:
-    """min ‖A·x − y‖² + prior·‖x − x0‖² + smooth·‖L·(x − x0)‖² by conjugate gradients on the
-    normal equations of the correction d = x − x0, (AᵀA + prior·I + smooth·LᵀL)·d = Aᵀ(y − A·x0),
-    Jacobi-preconditioned, from d = 0. L: differences between neighbouring sampled directions
-    of each texel (:meth:`Problem.smoothness`): what one direction learns its neighbours
-    share, while the view dependence sampling found is kept.
+    """min ‖A·x − y‖² + prior·(x − x0)ᵀP(x − x0) by conjugate gradients on the normal equations
+    of the correction d = x − x0, (AᵀA + prior·P)·d = Aᵀ(y − A·x0), Jacobi-preconditioned,
+    from d = 0; P = diag(``prob.prior_weight()``) (ones for a :class:`Problem`; a
+    :class:`billboards.fit_subspace.Subspace` weighs its slots by the directions they span).
 
-    x0 (N, 3) float; prior > 0, smooth ≥ 0; at most ``iterations``, none begun after
-    ``deadline`` (``time.time()``). Returns x (N, 3) float64 (clipped to [0, 1] with ``clip``),
-    the squared data residual ‖A·x − y‖² (summed over channels) before the first iteration
-    and after each, and the seconds spent by each of those moments. Texels that no
-    measurement touches in any direction stay exactly at x0.
+    x0 (N, 3) float; prior > 0; at most ``iterations``, none begun after ``deadline``
+    (``time.time()``). Returns x (N, 3) float64 (clipped to [0, 1] with ``clip``), the
+    squared data residual ‖A·x − y‖² (summed over channels) before the first iteration and
+    after each, and the seconds spent by each of those moments. Unknowns that no
+    measurement touches stay exactly at x0.
     """
-    if not prior > 0 or not smooth >= 0:
-        raise ValueError(f"prior must be > 0 and smooth ≥ 0, got {prior!r}, {smooth!r}")
+    if not prior > 0:
+        raise ValueError(f"prior must be > 0, got {prior!r}")
     t0 = time.perf_counter()
     x = np.array(x0, np.float64)
     e = prob.apply(x) - prob.y                                  # data residual A·x − y, kept up to date
     history = [float(np.square(e).sum())]
     seconds = [time.perf_counter() - t0]
-    diagonal = prob.diagonal() + prior + (smooth * prob.smoothness_diagonal() if smooth else 0.0)
+    weight = prior * prob.prior_weight()                        # (N,) the prior's diagonal
+    diagonal = prob.diagonal() + weight
     precondition = 1.0 / diagonal[:, None]
     r = -prob.adjoint(e)                                        # the right-hand side, as d = 0
     z = precondition * r
@@ -466,9 +442,7 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations
         if not np.any(rz > 1e-24):
             break                                               # converged (or nothing measured)
         Ap = prob.apply(p)
-        Mp = prob.adjoint(Ap) + prior * p
-        if smooth:
-            Mp += smooth * prob.smoothness(p)
+        Mp = prob.adjoint(Ap) + weight[:, None] * p
         pMp = (p * Mp).sum(axis=0)
         step = np.where(pMp > 0, rz / np.where(pMp > 0, pMp, 1.0), 0.0)
         x += step * p
@@ -485,28 +459,14 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, smooth: float, iterations
     return x, history, seconds
 
 
-def solve_reference(prob: Problem, x0: np.ndarray, prior: float, smooth: float) -> np.ndarray:
-    """:func:`solve` the slow, obvious way: A and L as dense matrices built one measurement,
-    tap and pair of neighbouring directions at a time, the regularised normal equations
-    solved directly in float64 (unclipped). For small problems only."""
+def solve_reference(prob: Problem, x0: np.ndarray, prior: float) -> np.ndarray:
+    """:func:`solve` the slow, obvious way: A as a dense matrix built one measurement and tap
+    at a time, the regularised normal equations solved directly in float64 (unclipped).
+    For small problems only."""
     A = np.zeros((len(prob.y), prob.size))
     for i in range(len(prob.y)):
         for k in range(prob.idx.shape[1]):
             A[i, prob.idx[i, k]] += prob.a[i, k]
-    rows = []
-    dy, dp, T = prob.d_yaw, prob.d_pitch, prob.texels
-    for q in range(prob.count):
-        for p in range(dp):
-            for y in range(dy):
-                for t in range(T):
-                    here = ((q * dp + p) * dy + y) * T + t
-                    for there in ((((q * dp + p) * dy + y + 1) * T + t) if y + 1 < dy else None,
-                                  (((q * dp + p + 1) * dy + y) * T + t) if p + 1 < dp else None):
-                        if there is not None:
-                            row = np.zeros(prob.size)
-                            row[here], row[there] = -1.0, 1.0
-                            rows.append(row)
-    L = np.array(rows).reshape(-1, prob.size)
-    M = A.T @ A + prior * np.eye(prob.size) + smooth * L.T @ L
+    M = A.T @ A + prior * np.eye(prob.size)
     x0 = np.asarray(x0, np.float64)
     return x0 + np.linalg.solve(M, A.T @ (prob.y - A @ x0))

@@ -4,9 +4,9 @@
 2. A batch of training views is ray cast against them (:func:`billboards.fit.cast_view`, with
    the alpha the sampling gave) and its measurements written to one ``.npy`` file of
    :func:`~billboards.fit.record_dtype` rows sorted by quad (:func:`write_view_records`).
-3. A range of quads reads its rows from every batch's file (:func:`read_records`) and
-   solves its textures (:func:`fit_range`); the build then compresses them as sampled
-   ones. :func:`fit_report` sums the ranges' residuals per iteration for the build report.
+3. A range of quads reads its rows from every batch's file (:func:`read_records`), takes
+   the eigen-textures of its sampled textures and solves their colours
+   (:func:`fit_range`); the build then quantises them as it does sampled ones. :func:`fit_report` sums the ranges' residuals per iteration for the build report.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ from core.fileio import atomic_path
 from core.metrics import psnr_from_mse
 
 from .fit import FitConfig, Quads, cast_view, problem, record_dtype, solve, transient_rows, view_records
+from .fit_subspace import slots, subspace, with_slots
+from .pca import EigenTextures, PcaConfig, eigen_textures
 from .sampling import Views
 
 
@@ -61,29 +63,32 @@ def read_records(paths, begin: int, end: int) -> np.ndarray:
 
 
 def fit_range(quads: Quads, rgba: np.ndarray, begin: int, end: int, records: np.ndarray | None,
-              config: FitConfig, deadline: float | None) -> tuple[np.ndarray, dict]:
-    """Textures of quads [begin, end) solved against their ``records``, from the sampled ones in
-    ``rgba`` (n, d, t, t, 4) uint8 (also what a slit's block outside the range holds).
-    Returns the fitted (end − begin, d, t, t, 4) uint8 (alpha as sampled) and statistics: the
-    squared residual (0..1 colours, summed over channels) before and after each iteration,
-    the seconds at each, the measurements."""
+              config: FitConfig, deadline: float | None, pca: PcaConfig) -> tuple[EigenTextures, dict]:
+    """The eigen-textures of quads [begin, end): those of their sampled textures in ``rgba``
+    (n, d, t, t, 4) uint8 (also what a slit's block outside the range holds), their colour
+    slots then solved against ``records`` (:mod:`billboards.fit_subspace`). Returns them
+    (alpha, coefficients and ranks as sampled) and statistics: the squared residual (0..1
+    colours, summed over channels) of the measurements kept before and after each
+    iteration, the seconds at each, the measurements kept, and the transients left out
+    with their squared residual before and after."""
     t0 = time.perf_counter()
     n, d, t = rgba.shape[:3]
     mine = np.array(rgba[begin:end])
+    eig = eigen_textures(mine.reshape(end - begin, d, t * t * 4).astype(np.float32) / 255.0, pca)
     if records is None or len(records) == 0:
-        return mine, {"measurements": 0, "transients": 0, "residual": [0.0], "transients_residual": [0.0, 0.0],
-                      "seconds": [0.0]}
-    prob = problem(quads, records, begin, end - begin, rgba.reshape(n, d, t * t, 4))
-    x0 = mine[..., :3].reshape(-1, 3) / 255.0
-    passing = (transient_rows(prob, x0, config.transients) if config.transients is not None
+        return eig, {"measurements": 0, "transients": 0, "residual": [0.0], "transients_residual": [0.0, 0.0],
+                     "seconds": [time.perf_counter() - t0]}
+    prob = subspace(problem(quads, records, begin, end - begin, rgba.reshape(n, d, t * t, 4)), eig)
+    z0 = slots(eig, t * t)
+    passing = (transient_rows(prob, z0, config.transients) if config.transients is not None
                else np.zeros(len(prob.y), bool))
     left_out = prob.rows(passing)
-    x, history, seconds = solve(prob.rows(~passing), x0, config.prior, config.smooth, config.iterations, deadline)
-    mine[..., :3] = np.rint(x * 255).reshape(mine[..., :3].shape).astype(np.uint8)
+    z, history, seconds = solve(prob.rows(~passing), z0, config.prior, config.iterations, deadline, clip=False)
     setup = time.perf_counter() - t0 - seconds[-1]
-    return mine, {"measurements": int((~passing).sum()), "transients": int(passing.sum()), "residual": history,
-                  "transients_residual": [float(np.square(left_out.apply(v) - left_out.y).sum()) for v in (x0, x)],
-                  "seconds": [setup + s for s in seconds]}
+    return with_slots(eig, z), {
+        "measurements": int((~passing).sum()), "transients": int(passing.sum()), "residual": history,
+        "transients_residual": [float(np.square(left_out.apply(v) - left_out.y).sum()) for v in (z0, z)],
+        "seconds": [setup + s for s in seconds]}
 
 
 def fit_report(stats: list[dict], casts: list[dict], config: FitConfig, seconds: float) -> dict:

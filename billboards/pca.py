@@ -89,8 +89,8 @@ class EigenTextures:
     """Compressed view-dependent textures of B billboards (d views, n values each).
 
     mean: (B, n) float32 mean image.
-    basis: (B, R, n) float32 orthonormal eigen images (rows), zero rows beyond a
-        billboard's rank; R = the largest rank in the batch (may be 0).
+    basis: (B, R, n) float32 eigen images (rows; orthonormal as the PCA makes them, not
+        once fitted), zero rows beyond a billboard's rank; R = the largest rank in the batch (may be 0).
     coefficients: (B, d, R) float32 w_ik, zero beyond a billboard's rank.
     rank: (B,) int32 eigen images each billboard uses.
     """
@@ -103,6 +103,11 @@ class EigenTextures:
     @property
     def num_views(self) -> int:
         return self.coefficients.shape[1]
+
+    def slice(self, begin: int, end: int) -> "EigenTextures":
+        """Billboards [begin, end) (R kept)."""
+        return EigenTextures(self.mean[begin:end], self.basis[begin:end], self.coefficients[begin:end],
+                             self.rank[begin:end])
 
     def reconstruct(self) -> np.ndarray:
         """(B, d, n) float32: mean + Σ_k w_ik V_k for every view."""

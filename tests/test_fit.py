@@ -10,8 +10,10 @@ import pytest
 from billboards.atlas import pack_rows, pack_tiles
 from billboards.fit import (FitConfig, Quads, blended, cast_view, column_taps, problem, quads_of, record_dtype,
                             solve, solve_reference, view_records)
+from billboards.fit_subspace import FLOOR, expansion, expansion_reference, slots, subspace, with_slots
 from billboards.geometry import BILLBOARD, FACADE, GROUND
 from billboards.model import BillboardModel
+from billboards.pca import EigenTextures, PcaConfig
 from core.metrics import psnr
 
 
@@ -36,15 +38,15 @@ def random_records(rng, quads: int, d: int, tile: int, rows: int, corners: int =
 
 @pytest.mark.parametrize("seed, quads, dp, dy, tile, rows",
                          [(0, 1, 1, 2, 2, 5), (1, 2, 1, 3, 2, 40), (2, 3, 1, 4, 3, 200), (3, 2, 2, 3, 2, 60)])
-@pytest.mark.parametrize("prior, smooth", [(1e-3, 0.0), (0.1, 0.0), (10.0, 0.0), (1e-3, 1.0), (0.1, 5.0)])
-def test_solve_matches_dense_reference(seed, quads, dp, dy, tile, rows, prior, smooth):
+@pytest.mark.parametrize("prior", [1e-3, 0.1, 10.0])
+def test_solve_matches_dense_reference(seed, quads, dp, dy, tile, rows, prior):
     rng = np.random.default_rng(seed)
     corners = 2 if dp == 1 else 4
     q = lone_quads(quads, dp, dy, tile)
     prob = problem(q, random_records(rng, quads, dp * dy, tile, rows, corners), 0, quads, None)
     x0 = rng.uniform(0, 1, (prob.size, 3))
-    fast, history, _ = solve(prob, x0, prior, smooth, iterations=4 * prob.size, clip=False)
-    ref = solve_reference(prob, x0, prior, smooth)
+    fast, history, _ = solve(prob, x0, prior, iterations=4 * prob.size, clip=False)
+    ref = solve_reference(prob, x0, prior)
     np.testing.assert_allclose(fast, ref, rtol=1e-6, atol=1e-6)
     assert history[-1] <= history[0] + 1e-9
 
@@ -60,7 +62,7 @@ def test_solve_is_regular_where_the_images_say_little():
     rec["colour"] = [[255, 255, 255], [0, 0, 0], [0, 0, 0]]
     prob = problem(lone_quads(2, 1, 2, 2), rec, 0, 2, None)
     x0 = np.full((prob.size, 3), 0.5)
-    x, history, _ = solve(prob, x0, prior=1.0, smooth=0.0, iterations=50)
+    x, history, _ = solve(prob, x0, prior=1.0, iterations=50)
     assert np.all(np.isfinite(x)) and np.all(np.isfinite(history))
     # texel (0, 0) of quad 0, direction 0: one full pixel of white against a prior of one pixel
     np.testing.assert_allclose(x[0], 0.75, atol=1e-9)
@@ -68,29 +70,23 @@ def test_solve_is_regular_where_the_images_say_little():
     untouched[np.unique(prob.idx[np.abs(prob.a) > 0])] = False
     assert untouched.sum() > 0
     np.testing.assert_array_equal(x[untouched], x0[untouched])
-    # with smoothing across directions: texels measured in no direction still stay exactly
-    x, _, _ = solve(prob, x0, prior=1.0, smooth=3.0, iterations=50)
-    texel = np.arange(prob.size) // (prob.d_pitch * prob.d_yaw * prob.texels) * prob.texels + np.arange(prob.size) % prob.texels
-    seen = np.isin(texel, texel[~untouched])
-    assert np.all(np.isfinite(x)) and (~seen).sum() > 0
-    np.testing.assert_array_equal(x[~seen], x0[~seen])
     # nothing measured at all: x0 back, unchanged
     empty = problem(lone_quads(2, 1, 2, 2), rec[:0], 0, 2, None)
-    x, history, _ = solve(empty, x0, prior=0.1, smooth=1.0, iterations=5)
+    x, history, _ = solve(empty, x0, prior=0.1, iterations=5)
     np.testing.assert_array_equal(x, x0)
     assert history == [0.0]
     with pytest.raises(ValueError):
-        solve(prob, x0, prior=0.0, smooth=0.0, iterations=1)
+        solve(prob, x0, prior=0.0, iterations=1)
 
 
 def test_solve_stops_at_its_deadline_and_clips():
     rng = np.random.default_rng(3)
     prob = problem(lone_quads(2, 1, 3, 2), random_records(rng, 2, 3, 2, 60), 0, 2, None)
     x0 = rng.uniform(0, 1, (prob.size, 3))
-    x, history, _ = solve(prob, x0, 0.01, 1.0, iterations=20, deadline=0.0)   # long past
+    x, history, _ = solve(prob, x0, 0.01, iterations=20, deadline=0.0)   # long past
     assert len(history) == 1
     np.testing.assert_array_equal(x, x0)
-    x, *_ = solve(prob, x0 * 4 - 2, 0.01, 1.0, iterations=20)
+    x, *_ = solve(prob, x0 * 4 - 2, 0.01, iterations=20)
     assert x.min() >= 0 and x.max() <= 1
 
 
@@ -107,11 +103,50 @@ def test_a_passing_car_is_left_out_of_the_fit():
     rec["colour"] = rng.integers(110, 131, (80, 3))
     rec["colour"][:12] = (230, 20, 20)
     rec = rec[np.argsort(rec["quad"], kind="stable")]
-    kept, stats = fit_range(q, rgba, 0, 1, rec, FitConfig(), None)
+    kept, stats = fit_range(q, rgba, 0, 1, rec, FitConfig(), None, PcaConfig())
+    kept = kept.reconstruct().reshape(1, 2, 4, 4) * 255
     assert stats["transients"] == 12 and stats["measurements"] == 68
-    assert np.abs(kept[..., :3].astype(int) - 120).max() <= 10
-    tinted, stats = fit_range(q, rgba, 0, 1, rec, FitConfig(transients=None), None)
-    assert stats["transients"] == 0 and (tinted[..., 0].astype(int) - tinted[..., 1]).max() > 20
+    assert np.abs(kept[..., :3] - 120).max() <= 10
+    tinted, stats = fit_range(q, rgba, 0, 1, rec, FitConfig(transients=None), None, PcaConfig())
+    tinted = tinted.reconstruct().reshape(1, 2, 4, 4) * 255
+    assert stats["transients"] == 0 and (tinted[..., 0] - tinted[..., 1]).max() > 20
+
+
+def random_eigen_textures(rng, count: int, d: int, texels: int, R: int) -> EigenTextures:
+    rank = rng.integers(0, R + 1, count).astype(np.int32)
+    rank[0] = 0
+    basis = rng.normal(0, 0.3, (count, R, texels * 4)).astype(np.float32)
+    coefficients = rng.normal(0, 1, (count, d, R)).astype(np.float32)
+    used = np.arange(R)[None, :] < rank[:, None]
+    basis[~used] = 0.0
+    coefficients[~np.broadcast_to(used[:, None, :], coefficients.shape)] = 0.0
+    return EigenTextures(rng.uniform(0, 1, (count, texels * 4)).astype(np.float32), basis, coefficients, rank)
+
+
+@pytest.mark.parametrize("seed, quads, dy, tile, R", [(0, 1, 2, 2, 1), (1, 3, 3, 2, 2), (2, 4, 4, 3, 3)])
+def test_the_subspace_is_what_the_model_stores_and_its_solve_matches_a_dense_one(seed, quads, dy, tile, R):
+    """B maps slots to exactly the textures the eigen-textures decode to; the solve in the
+    slots equals the dense regularised normal equations of A·B."""
+    rng = np.random.default_rng(seed)
+    T = tile * tile
+    eig = random_eigen_textures(rng, quads, dy, T, R)
+    B = expansion(eig.coefficients, eig.rank, T)
+    np.testing.assert_allclose(B.toarray(), expansion_reference(eig.coefficients, eig.rank, T), atol=1e-7)
+    z = slots(eig, T)
+    decoded = eig.reconstruct().reshape(quads, dy, T, 4)[..., :3].reshape(-1, 3)
+    np.testing.assert_allclose(B @ z, decoded, atol=1e-5)
+    np.testing.assert_array_equal(slots(with_slots(eig, z), T), z.astype(np.float32))
+    prob = problem(lone_quads(quads, 1, dy, tile), random_records(rng, quads, dy, tile, 30 * quads), 0, quads, None)
+    sub = subspace(prob, eig)
+    fast, history, _ = solve(sub, z, 0.1, iterations=10 * sub.size, clip=False)
+    AB = prob.matrix.toarray() @ B.toarray()
+    M = AB.T @ AB + 0.1 * np.diag(np.maximum((B.toarray() ** 2).sum(axis=0), FLOOR))
+    ref = z + np.linalg.solve(M, AB.T @ (prob.y - AB @ z))
+    np.testing.assert_allclose(fast, ref, rtol=1e-5, atol=1e-5)
+    assert history[-1] <= history[0] + 1e-9
+    # slots beyond a quad's rank stay zero in what is stored
+    stored = with_slots(eig, fast)
+    assert np.all(stored.basis[np.arange(R)[None, :] >= eig.rank[:, None]] == 0)
 
 
 def test_taps_follow_the_renderer():
@@ -143,7 +178,7 @@ def test_config_refuses_what_cannot_run():
         with pytest.raises(ValueError, match="transients"):
             FitConfig(transients=bad)
     for bad in (dict(prior=0.0), dict(prior=float("nan")), dict(seconds=-1.0), dict(seconds=float("inf")),
-                dict(pixel_stride=0), dict(iterations=-1), dict(iterations=1.5), dict(see_through=True), dict(smooth=-1.0)):
+                dict(pixel_stride=0), dict(iterations=-1), dict(iterations=1.5), dict(see_through=True)):
         with pytest.raises(ValueError):
             FitConfig(**bad)
 
@@ -264,7 +299,7 @@ def test_fit_recovers_a_known_texture_through_the_renderer(ctx):
     start = np.stack([cv2.GaussianBlur(t.astype(np.float32), (0, 0), 1.2) for t in start.reshape(-1, TILE, TILE, 3)])
     start = start.reshape(truth.shape)                                      # … and blurred
     prob = problem(quads, records, 0, n, None)
-    x, history, _ = solve(prob, start.reshape(-1, 3), prior=0.01, smooth=1.0, iterations=100)
+    x, history, _ = solve(prob, start.reshape(-1, 3), prior=0.01, iterations=100)
     measured = prob.diagonal() > 0.5
     fitted = x.reshape(-1, 3)[measured]
     expected = np.rint(truth * 255).reshape(-1, 3)[measured] / 255
