@@ -266,7 +266,8 @@ def bench_pipeline(cfg: BenchConfig, report: Report, out: Path) -> PipelineRun:
             report.add("Fit", {"iteration": it["iteration"], "worker s": it["worker_s"],
                                "training pixels RMS": it["rms"], "training pixels PSNR dB": it["psnr_db"]})
         report.notes["Fit"] = ("The 1× build's fit (billboards.fit): the training pixels' error in the fit's own "
-                               "rendering before the first iteration and after each, against the worker CPU seconds "
+                               "rendering of the stored model (the transients left out) before the first iteration "
+                               "and after each, against the worker CPU seconds "
                                "spent by then (summed over the tasks, set-up included); plot: fit.png. The rendered "
                                "ceiling and held-out views are in the novel-view section.")
         _fit_plot(first.fit, out / "fit.png")

@@ -56,8 +56,10 @@ def test_quick_bench_writes_every_section(tmp_path):
     for name in ("Scene generation", "Pipeline stages", "Scaling", "Octree", "Stereo sweep",
                  "Stereo: trinocular vs single pairs", "Texture sweep", "Sampling against ground truth",
                  "Billboard model", "Rendering: decode", "Rendering: level of detail", "Rendering: culling (street)",
-                 "Rendering: culling (town meshes)", "Novel views"):
+                 "Rendering: culling (town meshes)", "Novel views", "Fit"):
         assert sections.get(name), f"section {name!r} missing or empty"
+    fit = sections["Fit"]   # the residual against time: falls from the sampled model's, the plot written
+    assert fit[-1]["training pixels PSNR dB"] > fit[0]["training pixels PSNR dB"] and (tmp_path / "fit.png").is_file()
     stages = {r["stage"].strip() for r in sections["Pipeline stages"]}
     assert {"synthesis", "stereo, per frame", "fusion", "octree", "sampling", "PCA", "atlas packing (quantise)",
             "model load + GPU upload"} <= stages
