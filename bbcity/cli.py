@@ -974,7 +974,7 @@ def _add_eval(sub) -> None:
 
 
 #: What an eval report directory holds (it is replaced whole by the next report).
-_EVAL_REPORT_FILES = re.compile(r"eval\.json|eval\.md|workprecision\.png|view_\d+_(on|off)_path\.png")
+_EVAL_REPORT_FILES = re.compile(r"eval\.json|eval\.md|workprecision\.png|view_\d+_(on_path|off_path|training)\.png")
 
 
 def _check_eval(args) -> None:

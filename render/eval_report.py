@@ -99,7 +99,8 @@ def markdown_real(report: dict) -> str:
         lines.append(f"| {name.replace(', on path', ', held out')} | {_f(m.get('psnr_covered_above'), '.2f')} | "
                      f"{_f(m.get('psnr_covered_below'), '.2f')} |")
     if report.get("images"):
-        lines += ["", "Images (real | model | Poisson mesh): " + ", ".join(report["images"])]
+        panels = " | ".join(report.get("image_panels", ["real", "model", "Poisson mesh"]))
+        lines += ["", f"Images ({panels}): " + ", ".join(report["images"])]
     return "\n".join(lines) + "\n"
 
 
@@ -145,7 +146,8 @@ def markdown(report: dict) -> str:
             lines.append(f"| {p['method']} | {_f(p['bytes'], ',')} | {_f(p['psnr_seen_on_path'], '.2f')} | "
                          f"{_f(p['psnr_seen_off_path'], '.2f')} | {_f(build, '.1f')} |")
     if report.get("images"):
-        lines += ["", "Images (ground truth | model | Poisson mesh): " + ", ".join(report["images"])]
+        panels = " | ".join(report.get("image_panels", ["ground truth", "model", "Poisson mesh"]))
+        lines += ["", f"Images ({panels}): " + ", ".join(report["images"])]
     return "\n".join(lines) + "\n"
 
 

@@ -527,6 +527,7 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     if out_dir is not None and config.panel_width > 0:
         report["images"] = write_side_by_side(Path(out_dir), eval_views, images, drawn, config.panel_width,
                                               truth_label="real" if real else "ground truth")
+        report["image_panels"] = ["real" if real else "ground truth", *drawn]
     report["seconds"] = time.perf_counter() - t0
     return json_ready(report)
 
@@ -569,8 +570,11 @@ def _panel(image: np.ndarray, width: int, label: str) -> np.ndarray:
     h, w = image.shape[:2]
     height = max(1, round(h * width / w))
     out = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA if width < w else cv2.INTER_LINEAR)
-    for colour, thickness in (((0, 0, 0), 3), ((255, 255, 255), 1)):
-        cv2.putText(out, label, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, thickness, cv2.LINE_AA)
+    # a black outline: the white text shifted by one pixel each way (a thicker stroke
+    # would advance the glyphs further and not line up)
+    for dx, dy in ((-1, -1), (-1, 1), (1, -1), (1, 1), (0, 0)):
+        colour = (255, 255, 255) if (dx, dy) == (0, 0) else (0, 0, 0)
+        cv2.putText(out, label, (6 + dx, 16 + dy), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
     return out
 
 

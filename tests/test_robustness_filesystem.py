@@ -200,3 +200,16 @@ def test_eval_refuses_a_directory_that_is_not_its_report_before_any_sweep(inputs
         main(commands(inputs, out)["eval"])
     assert caught.value.code == 2
     assert sorted(p.name for p in out.iterdir()) == [".draft.tmp-original", "eval.json", "work"]
+
+
+def test_eval_replaces_its_own_earlier_report(inputs, tmp_path, caplog):
+    """Every file an eval report writes (training panels too) marks the directory as a report."""
+    out = tmp_path / "eval"
+    out.mkdir()
+    for name in ("eval.json", "eval.md", "workprecision.png", "view_000003_on_path.png",
+                 "view_000003_off_path.png", "view_000000_training.png"):
+        (out / name).write_bytes(b"old")
+    code, errors = run_cli(commands(inputs, out)["eval"], caplog)
+    assert code == 0 and errors == []
+    assert "view_000000_training.png" not in {p.name for p in out.iterdir()}
+    assert (out / "eval.json").read_bytes() != b"old"
