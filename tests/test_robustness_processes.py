@@ -41,13 +41,19 @@ def _env() -> dict:
     return {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
+def _default_sigint() -> None:
+    """In the child: Ctrl-C as in a terminal, also when the tests run as a background job
+    (which starts with SIGINT ignored, and a child inherits that)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Run:
     """A ``bbcity`` command running in its own session; its stderr is collected as it comes."""
 
     def __init__(self, *args, cwd=None):
         self.proc = subprocess.Popen([sys.executable, "-m", "bbcity.cli", *map(str, args)], cwd=cwd or ROOT,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                     start_new_session=True, env=_env())
+                                     start_new_session=True, env=_env(), preexec_fn=_default_sigint)
         self.lines: list[str] = []
         self._reader = threading.Thread(target=lambda: self.lines.extend(self.proc.stderr), daemon=True)
         self._reader.start()
