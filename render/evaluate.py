@@ -525,9 +525,10 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         "per_view": rows,
     }
     if out_dir is not None and config.panel_width > 0:
+        truth = "real" if real else "ground truth"
         report["images"] = write_side_by_side(Path(out_dir), eval_views, images, drawn, config.panel_width,
-                                              truth_label="real" if real else "ground truth")
-        report["image_panels"] = ["real" if real else "ground truth", *drawn]
+                                              truth_label=truth)
+        report["image_panels"] = [truth, *drawn]
     report["seconds"] = time.perf_counter() - t0
     return json_ready(report)
 
