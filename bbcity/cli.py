@@ -361,6 +361,7 @@ def _run_recon(args) -> int:
 
 def _add_build(sub) -> None:
     from billboards.fit import FitConfig
+    from billboards.layer import LayerConfig
     from billboards.octree import MAX_DEPTH
 
     p = sub.add_parser(
@@ -417,6 +418,10 @@ def _add_build(sub) -> None:
                         "blocks on flat ground (default both; none: billboards only)")
     p.add_argument("--block-size", type=length, default=None,
                    help="edge of the layer's blocks in metres (default: the voxel size)")
+    p.add_argument("--ground-reach", type=nonnegative_float, default=LayerConfig.ground_reach,
+                   help="continue the ground across gaps up to this wide (m) between ground cells where nothing "
+                        "stands; blocks no camera saw get a texture synthesised from ground nearby, marked in the "
+                        f"model (0: off; default {LayerConfig.ground_reach:g})")
     p.add_argument("--photometry", choices=("on", "off"), default="on",
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
                         "out before sampling textures (default on)")
@@ -460,7 +465,7 @@ def build_config_from_args(args):
                           min_points=args.min_points)
     sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
     layer = None if args.layer == "none" else LayerConfig(facades="facades" in args.layer, ground="ground" in args.layer,
-                                                          block_size=args.block_size)
+                                                          block_size=args.block_size, ground_reach=args.ground_reach)
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,

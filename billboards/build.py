@@ -33,6 +33,7 @@ from recon.epi import EpiConfig, epi_points
 from .fit import FitConfig, Quads, quads_of
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
+from .ground import synthesis_sources
 from .layer import Layer, LayerConfig, build_layer, facade_depth_report
 from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
@@ -95,7 +96,8 @@ class Billboards:
     voxels: the points grouped by billboard (cube centres, for z-buffers and slabs);
     base_yaw (n,) float64 world yaw toward the capture path; quads (n, 3) float64
     quad centres on the surface (:func:`sampling.quad_centres`); kind (n,) uint8 quad
-    kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node.
+    kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node; synthesised
+    (n,) bool ground blocks no camera saw, each sampled at its ``donor`` (n,) int64 (−1: itself).
     Without a facade layer there is one billboard per voxel leaf, in leaf order; with one,
     a leaf holds its billboard (if its own points make one) and the layer blocks whose
     centres lie in it, so that culling by the octree covers both.
@@ -109,6 +111,14 @@ class Billboards:
     kind: np.ndarray
     node_range: np.ndarray
     block_size: float | None = None
+    synthesised: np.ndarray | None = None
+    donor: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.synthesised is None:
+            self.synthesised = np.zeros(len(self.kind), bool)
+        if self.donor is None:
+            self.donor = np.full(len(self.kind), -1, np.int64)
 
     @property
     def num_billboards(self) -> int:
@@ -189,7 +199,16 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     quads[blocks] = box_centres[blocks]
     item_begin = np.searchsorted(item_leaf, np.arange(n_leaves + 1))
     node_range = item_begin[octree.node_range]
-    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size)
+    # Ground no camera saw takes the texture of measured ground nearby (continued ground when none is).
+    synthesised = np.zeros(len(item_kind), bool)
+    continued = np.zeros(len(item_kind), bool)
+    synthesised[blocks] = layer.synthesised[source[blocks]]
+    continued[blocks] = layer.continued[source[blocks]]
+    ground = item_kind == GROUND
+    measured = ground & ~continued
+    donor = synthesis_sources(quads, synthesised, measured if measured.any() else ground)
+    synthesised &= donor >= 0
+    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, synthesised, donor)
 
 
 # --------------------------------------------------------------------------- worker side
@@ -226,6 +245,7 @@ def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views:
     np.save(state / "centres.npy", grouped.centres)
     np.save(state / "base_yaw.npy", placed.base_yaw)
     np.save(state / "kind.npy", placed.kind)
+    np.save(state / "donor.npy", placed.donor)
     if conf.source == "points":
         np.save(state / "colours.npy", placed.voxel_colours(colours))
     meta = {"config": _config_to_json(conf), "origin": placed.octree.origin.tolist(),
@@ -282,8 +302,14 @@ def _worker_state(state_dir: str):
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)
     _WORKER.clear()
-    _WORKER.update(dir=state_dir, sampler=sampler, conf=conf)
+    _WORKER.update(dir=state_dir, sampler=sampler, conf=conf, donor=np.load(root / "donor.npy"))
     return sampler, conf
+
+
+def _sample(sampler, ids: np.ndarray):
+    """The sampled textures of billboards ``ids`` (B,) int64; a synthesised block's are its donor's."""
+    donor = _WORKER["donor"][ids]
+    return sampler.sample(np.where(donor >= 0, donor, ids))
 
 
 def compress_chunk(rgba: np.ndarray, conf: BuildConfig, eig: EigenTextures | None = None) -> tuple[dict, dict]:
@@ -380,7 +406,7 @@ def _run_task(task: _Task):
         stats = []
         for s in range(task.begin, task.end, conf.chunk):
             t0 = time.perf_counter()
-            sampled = sampler.sample(np.arange(s, min(task.end, s + conf.chunk)))
+            sampled = _sample(sampler, np.arange(s, min(task.end, s + conf.chunk)))
             rgba[s:s + len(sampled.rgba)] = sampled.rgba
             stats.append({"sampling_s": time.perf_counter() - t0, "sampling": sampled.stats})
         rgba.flush()
@@ -398,7 +424,7 @@ def _run_task(task: _Task):
     for s in range(task.begin, task.end, conf.chunk):
         ids = np.arange(s, min(task.end, s + conf.chunk))
         t0 = time.perf_counter()
-        sampled = sampler.sample(ids)
+        sampled = _sample(sampler, ids)
         t1 = time.perf_counter()
         arrays, stats = compress_chunk(sampled.rgba, conf)
         stats["sampling_s"] = t1 - t0
@@ -538,7 +564,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     try:
         if placed is None:
             placed = place_billboards(points, octree, views.centres if views is not None else None)
-        base_yaw, quads, kind = placed.base_yaw, placed.quads, placed.kind
+        base_yaw, quads, kind, synthesised = placed.base_yaw, placed.quads, placed.kind, placed.synthesised
         node_range = placed.node_range
         save_worker_state(state, conf, placed, views, colours)
         stages["prepare_s"] = time.perf_counter() - t2
@@ -566,7 +592,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                     b = len(arrays["rank"])
                     writer.append(centres=(quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=base_yaw[done:done + b].astype(np.float32), kind=kind[done:done + b],
-                                  **arrays)
+                                  synthesised=synthesised[done:done + b], **arrays)
                     done += b
                     totals.add(stats)
 
@@ -688,6 +714,8 @@ def _layer_report(layer: Layer, passes, points: np.ndarray, dataset, config: Lay
     """Counts of the facade layer and, when ``dataset`` has ground truth, its facade depth against it."""
     report = {"enabled": True, "passes": len(passes), "epi_points": int(sum(len(p.points) for p in passes)),
               "facade_blocks": int((layer.kind != GROUND).sum()), "ground_blocks": int((layer.kind == GROUND).sum()),
+              "ground_blocks_continued": int(layer.continued.sum()),
+              "ground_blocks_synthesised": int(layer.synthesised.sum()),
               "explained_points": int(layer.explained.sum()), "points": int(len(points))}
     if layer.columns and dataset.has_ground_truth:
         report["facade_depth"] = facade_depth_report(layer.columns, points, load_scene(dataset.root), config)

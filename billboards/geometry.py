@@ -156,17 +156,25 @@ def base_yaw_toward(centres: np.ndarray, viewpoints: np.ndarray, chunk: int = 40
 
 def base_yaw_seen(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, sizes: np.ndarray,
                   max_distance: float = 60.0, chunk: int = 1024) -> np.ndarray:
+    """Base yaw of each item toward the cameras that see it (:func:`toward_cameras`)."""
+    return toward_cameras(centres, K, world_from_cam, sizes, max_distance, chunk)[0]
+
+
+def toward_cameras(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, sizes: np.ndarray,
+                   max_distance: float = 60.0, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray]:
     """Base yaw of each item toward the cameras that see it: the yaw of the mean horizontal
     unit vector from it to the centres of the cameras (within ``max_distance``) in whose
     image it lies, in front. Items no camera sees face the nearest camera
     (:func:`base_yaw_toward`).
 
     centres (n, 3) float64; K (v, 3, 3), world_from_cam (v, 4, 4) float64; sizes (v, 2)
-    (width, height) → (n,) float64 radians. A forward-looking camera sees the road ahead,
-    not below itself: the nearest camera is the wrong side to face.
+    (width, height) → yaw (n,) float64 radians and seen (n,) bool (some camera sees the item;
+    a frustum test, not occlusion). A forward-looking camera sees the road ahead, not below
+    itself: the nearest camera is the wrong side to face.
     """
     centres = np.asarray(centres, dtype=np.float64)
     out = base_yaw_toward(centres, world_from_cam[:, :3, 3])
+    seen_any = np.zeros(len(centres), bool)
     R, C = world_from_cam[:, :3, :3], world_from_cam[:, :3, 3]
     w, h = np.asarray(sizes, np.float64)[:, 0], np.asarray(sizes, np.float64)[:, 1]
     for s in range(0, len(centres), chunk):
@@ -183,12 +191,14 @@ def base_yaw_seen(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray
             u = Kn[None, :, 0, 0] * cam[..., 0] / z + Kn[None, :, 0, 2]
             v = Kn[None, :, 1, 1] * cam[..., 1] / z + Kn[None, :, 1, 2]
         flat = np.linalg.norm(to_cam[..., :2], axis=-1)
-        seen = (z > 0.3) & (u >= 0) & (u <= w_n - 1) & (v >= 0) & (v <= h_n - 1) & (flat > 1e-6) \
+        seen = (z > 0.3) & (u >= 0) & (u <= w_n - 1) & (v >= 0) & (v <= h_n - 1) \
             & (np.linalg.norm(to_cam, axis=-1) < max_distance)
+        seen_any[s:s + chunk] = seen.any(axis=1)
+        seen &= flat > 1e-6
         unit = np.where(seen[..., None], to_cam[..., :2] / np.maximum(flat, 1e-12)[..., None], 0.0).sum(axis=1)
         any_seen = seen.any(axis=1) & (np.linalg.norm(unit, axis=-1) > 1e-9)
         out[s:s + chunk][any_seen] = np.arctan2(unit[any_seen, 1], unit[any_seen, 0])
-    return out
+    return out, seen_any
 
 
 def ray_box_interval(origin: np.ndarray, direction: np.ndarray, box_min: np.ndarray, box_max: np.ndarray

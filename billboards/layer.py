@@ -27,7 +27,8 @@ import numpy as np
 
 from recon.epi import EpiConfig, EpiPass
 
-from .geometry import FACADE, GROUND, base_yaw_seen, base_yaw_toward
+from .geometry import FACADE, GROUND
+from .ground import ground_blocks
 
 logger = logging.getLogger(__name__)
 
@@ -51,11 +52,15 @@ class LayerConfig:
     ground_step: float = 0.05       # neighbouring ground cells this close in height (m) are one smooth surface
     ground_fill_neighbours: int = 5 # a cell without flat ground but with this many ground neighbours (of 8) is filled
     ground_fill_passes: int = 2     # rounds of that filling (0: none)
+    ground_reach: float = 12.0      # ground continues across gaps up to this wide (m) between ground cells
+                                    # where nothing stands (0: not); blocks no camera sees are synthesised
     epi: EpiConfig = field(default_factory=EpiConfig)
 
     def __post_init__(self):
         if self.block_size is not None and not (np.isfinite(self.block_size) and self.block_size > 0):
             raise ValueError(f"block_size must be a finite number > 0 or None, got {self.block_size}")
+        if not (np.isfinite(self.ground_reach) and self.ground_reach >= 0):
+            raise ValueError(f"ground_reach must be a finite number ≥ 0 (m), got {self.ground_reach}")
         if not (self.slab > 0 and self.histogram_bin > 0 and self.ground_tolerance > 0 and self.min_depth > 0):
             raise ValueError("slab, histogram_bin, ground_tolerance and min_depth must be > 0")
         if not (self.ground_step >= 0 and 1 <= self.ground_fill_neighbours <= 8 and self.ground_fill_passes >= 0):
@@ -193,7 +198,8 @@ class Layer:
     centres (b, 3) float64 block centres (on the surface); base_yaw (b,) float64 world yaw the
     block faces (FACADE) or that its rows run away from (GROUND); kind (b,) uint8;
     point_block (N,) int64 the block that explains each cloud point (−1: none);
-    columns: the facade of each pass.
+    columns: the facade of each pass; continued (b,) bool ground blocks continued between
+    measured ground, synthesised (b,) bool those no camera sees (None: none).
     """
 
     centres: np.ndarray
@@ -201,6 +207,13 @@ class Layer:
     kind: np.ndarray
     point_block: np.ndarray
     columns: list[FacadeColumns]
+    continued: np.ndarray | None = None
+    synthesised: np.ndarray | None = None
+
+    def __post_init__(self):
+        for name in ("continued", "synthesised"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.zeros(len(self.centres), bool))
 
     @property
     def explained(self) -> np.ndarray:
@@ -249,119 +262,6 @@ def _facade_blocks(columns: FacadeColumns, cloud: np.ndarray, grid_z0: float, co
     return centres, np.full(len(centres), yaw), point_block
 
 
-#: The 8 neighbours of a grid cell, (8, 2) int64.
-_NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)], np.int64)
-
-
-def _cell_keys(cells: np.ndarray) -> np.ndarray:
-    """(m, 2) int64 grid cells → (m,) int64 keys (cells within ±2³¹)."""
-    return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
-
-
-def _neighbour_heights(cells: np.ndarray, heights: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """(q, 8) float64: the heights of the 8 neighbours of each query cell (q, 2) int64 among
-    ``cells`` (m, 2) int64 with ``heights`` (m,); NaN where a neighbour is not a cell."""
-    keys = _cell_keys(cells)
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    out = np.full((len(queries), len(_NEIGHBOURS)), np.nan)
-    if len(cells) == 0:
-        return out
-    for k, step in enumerate(_NEIGHBOURS):
-        q = _cell_keys(queries + step)
-        at = np.minimum(np.searchsorted(sorted_keys, q), len(keys) - 1)
-        hit = sorted_keys[at] == q
-        out[hit, k] = heights[order[at[hit]]]
-    return out
-
-
-def _plane_at_centre(heights: np.ndarray) -> np.ndarray:
-    """(q,) float64: the least-squares plane through the finite entries of ``heights``
-    (q, 9) float64 — a cell (column 0, offset (0, 0)) and its 8 neighbours (:data:`_NEIGHBOURS`),
-    NaN where absent — evaluated at the cell's centre. Unlike a median it is unbiased on a
-    slope with neighbours on one side only; a small ridge on the slopes keeps one or two
-    collinear cells well-posed (their mean)."""
-    offsets = np.vstack([[0, 0], _NEIGHBOURS]).astype(np.float64)                # (9, 2)
-    design = np.column_stack([np.ones(9), offsets])                                # (9, 3)
-    w = np.isfinite(heights).astype(np.float64)
-    z = np.where(w > 0, heights, 0.0)
-    normal = np.einsum("qk,ki,kj->qij", w, design, design) + np.diag([0.0, 1e-6, 1e-6])
-    rhs = np.einsum("qk,ki->qi", w * z, design)
-    return np.linalg.solve(normal, rhs[..., None])[:, 0, 0]
-
-
-def _nearest_height(xy: np.ndarray, viewpoints: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """(m,) float64: the height of the viewpoint horizontally nearest each of ``xy`` (m, 2)."""
-    out = np.empty(len(xy))
-    for a in range(0, len(xy), chunk):
-        d = ((xy[a:a + chunk, None, :] - viewpoints[None, :, :2]) ** 2).sum(-1)
-        out[a:a + chunk] = viewpoints[np.argmin(d, axis=1), 2]
-    return out
-
-
-def _ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, size: float,
-                   viewpoints: np.ndarray, config: LayerConfig, cameras: tuple | None = None):
-    """Horizontal blocks on the ground grid (cells of ``size`` from ``grid_origin``) where the
-    lowest cloud points of a cell (among ``free`` ones) form a flat surface.
-
-    A cell's height is then the plane through its own and its neighbours' within
-    ``ground_step`` (noise would show as steps, and steps as cracks at grazing views;
-    kerbs stay). Cells without a flat surface but with at least ``ground_fill_neighbours``
-    ground neighbours get a block on the plane through theirs, ``ground_fill_passes`` times:
-    asphalt without texture gives stereo no points, yet the road continues there."""
-    idx = np.flatnonzero(free)
-    if len(idx) == 0 or len(viewpoints) == 0:
-        return np.zeros((0, 3)), np.zeros(0), np.full(len(cloud), -1, np.int64)
-    p = cloud[idx]
-    cell = np.floor((p[:, :2] - grid_origin[:2]) / size).astype(np.int64)
-    key = _cell_keys(cell)
-    order = np.lexsort((p[:, 2], key))
-    key, idx, p, cell = key[order], idx[order], p[order], cell[order]
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    counts = np.diff(np.r_[starts, len(key)])
-    # Ground height: the 10th percentile of the cell's heights (robust to a few low outliers).
-    pick = starts + (counts * 0.1).astype(np.int64)
-    height = p[pick, 2]
-    cell_of = np.repeat(np.arange(len(starts)), counts)
-    on = np.abs(p[:, 2] - height[cell_of]) <= config.ground_tolerance
-    n_on = np.bincount(cell_of[on], minlength=len(starts))
-    cells = cell[starts]
-    centre_xy = grid_origin[:2] + (cells + 0.5) * size
-    # Only surfaces below the nearest camera can be ground (the road may climb along the path).
-    good = (n_on >= config.ground_min_points) & (height < _nearest_height(centre_xy, viewpoints) - 0.5)
-    sums = np.bincount(cell_of[on], weights=p[on, 2], minlength=len(starts))
-    ground_z = sums[good] / np.maximum(n_on[good], 1)
-    ground_cells = cells[good]
-    near = _neighbour_heights(ground_cells, ground_z, ground_cells)
-    near[np.abs(near - ground_z[:, None]) > config.ground_step] = np.nan
-    ground_z = _plane_at_centre(np.concatenate([ground_z[:, None], near], axis=1))
-    block_of_cell = np.where(good, np.cumsum(good) - 1, -1)
-    for _ in range(config.ground_fill_passes):
-        lo, hi = ground_cells.min(axis=0) - 1, ground_cells.max(axis=0) + 1
-        around = (ground_cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 2)
-        around = np.unique(around[np.all((around >= lo) & (around <= hi), axis=1)], axis=0)
-        taken = np.isin(_cell_keys(around), _cell_keys(ground_cells))
-        around = around[~taken]
-        near = _neighbour_heights(ground_cells, ground_z, around)
-        fill = np.isfinite(near).sum(axis=1) >= config.ground_fill_neighbours
-        if not fill.any():
-            break
-        ground_cells = np.concatenate([ground_cells, around[fill]])
-        own = np.full((int(fill.sum()), 1), np.nan)
-        ground_z = np.concatenate([ground_z, _plane_at_centre(np.concatenate([own, near[fill]], axis=1))])
-    centres = np.empty((len(ground_cells), 3))
-    centres[:, :2] = grid_origin[:2] + (ground_cells + 0.5) * size
-    centres[:, 2] = ground_z
-    # Rows run away from the cameras that see the block (its textures' directions centre
-    # there), snapped to the grid (blocks tile without gaps).
-    yaw = base_yaw_toward(centres, viewpoints) if cameras is None else base_yaw_seen(centres, *cameras)
-    yaw = np.round(yaw / (np.pi / 2)) * (np.pi / 2)
-    point_block = np.full(len(cloud), -1, np.int64)
-    mine = on & good[cell_of]
-    point_block[idx[mine]] = block_of_cell[cell_of[mine]]
-    return centres, yaw, point_block
-
-
 def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_origin: np.ndarray,
                 viewpoints: np.ndarray, config: LayerConfig = LayerConfig(), cameras: tuple | None = None) -> Layer:
     """The facade layer of a capture.
@@ -389,20 +289,29 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
             yaws.append(y)
             kinds.append(np.full(len(c), FACADE, np.uint8))
             total += len(c)
+    continued, synthesised = [np.zeros(total, bool)], [np.zeros(total, bool)]
     if config.ground:
-        c, y, pb = _ground_blocks(cloud, point_block < 0, np.asarray(grid_origin, np.float64), size,
-                                  np.asarray(viewpoints, np.float64).reshape(-1, 3), config, cameras)
-        take = pb >= 0
-        point_block[take] = pb[take] + total
-        centres.append(c)
-        yaws.append(y)
-        kinds.append(np.full(len(c), GROUND, np.uint8))
-        total += len(c)
+        walls = np.concatenate(centres) if centres else None
+        g = ground_blocks(cloud, point_block < 0, np.asarray(grid_origin, np.float64), size,
+                          np.asarray(viewpoints, np.float64).reshape(-1, 3), tolerance=config.ground_tolerance,
+                          min_points=config.ground_min_points, step=config.ground_step,
+                          fill_neighbours=config.ground_fill_neighbours, fill_passes=config.ground_fill_passes,
+                          reach=config.ground_reach, walls=walls, cameras=cameras)
+        take = g.point_block >= 0
+        point_block[take] = g.point_block[take] + total
+        centres.append(g.centres)
+        yaws.append(g.base_yaw)
+        kinds.append(np.full(len(g.centres), GROUND, np.uint8))
+        continued.append(g.continued)
+        synthesised.append(g.synthesised)
+        total += len(g.centres)
     if total == 0:
         return Layer.empty(len(cloud))
-    layer = Layer(np.concatenate(centres), np.concatenate(yaws), np.concatenate(kinds), point_block, columns)
-    logger.info("facade layer: %d facade blocks in %d passes, %d ground blocks; %.0f %% of the cloud explained",
-                int((layer.kind == FACADE).sum()), len(columns), int((layer.kind == GROUND).sum()),
+    layer = Layer(np.concatenate(centres), np.concatenate(yaws), np.concatenate(kinds), point_block, columns,
+                  np.concatenate(continued), np.concatenate(synthesised))
+    logger.info("facade layer: %d facade blocks in %d passes, %d ground blocks (%d continued, %d of them "
+                "synthesised); %.0f %% of the cloud explained", int((layer.kind == FACADE).sum()), len(columns),
+                int((layer.kind == GROUND).sum()), int(layer.continued.sum()), int(layer.synthesised.sum()),
                 100 * layer.explained.mean() if len(cloud) else 0)
     return layer
 

@@ -12,6 +12,8 @@ Layout of a model directory::
                          base_yaw) or GROUND (a fixed horizontal block; texture rows run away from
                          base_yaw)
     rank.npy             (n,) uint8 eigen images per billboard
+    synthesised.npy      (n,) uint8 1: a ground block no camera saw, its texture synthesised from
+                         ground nearby (optional: a model without it has none)
     first_slot.npy       (n,) int32 slot of the billboard's mean tile
     slot_scale.npy       (m, 4) float32 tile dequantisation: value = offset + scale·q
     slot_offset.npy      (m, 4) float32
@@ -69,6 +71,7 @@ ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
     "base_yaw": (np.dtype(np.float32), ("n",)),
     "kind": (np.dtype(np.uint8), ("n",)),
     "rank": (np.dtype(np.uint8), ("n",)),
+    "synthesised": (np.dtype(np.uint8), ("n",)),
     "first_slot": (np.dtype(np.int32), ("n",)),
     "slot_scale": (np.dtype(np.float32), ("m", 4)),
     "slot_offset": (np.dtype(np.float32), ("m", 4)),
@@ -79,7 +82,9 @@ ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
     "node_children": (np.dtype(np.int32), ("k", 8)),
     "node_range": (np.dtype(np.int32), ("k", 2)),
 }
-_BILLBOARD_ARRAYS = ("centres", "base_yaw", "kind", "rank")
+_BILLBOARD_ARRAYS = ("centres", "base_yaw", "kind", "rank", "synthesised")
+#: arrays a model written before them lacks (read as zeros)
+OPTIONAL_ARRAYS = ("synthesised",)
 _SLOT_ARRAYS = ("slot_scale", "slot_offset", "coef_scale", "coef_offset")
 
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,200}\.npy")
@@ -117,10 +122,13 @@ class BillboardModel:
     info: dict  # free-form build info (JSON-serialisable)
     kind: np.ndarray | None = None  # (n,) uint8 BILLBOARD | FACADE | GROUND; None: all BILLBOARD
     block_size: float | None = None  # edge of FACADE and GROUND blocks (m); None: voxel_size
+    synthesised: np.ndarray | None = None  # (n,) uint8 1: texture synthesised (no camera saw it); None: none
 
     def __post_init__(self):
         if self.kind is None:
             self.kind = np.zeros(len(self.centres), dtype=np.uint8)
+        if self.synthesised is None:
+            self.synthesised = np.zeros(len(self.centres), dtype=np.uint8)
         if self.block_size is None:
             self.block_size = self.voxel_size
 
@@ -409,7 +417,8 @@ def _parse_manifest(doc: Any, path: Path) -> _Meta:
     unknown = sorted(set(arrays) - set(ARRAYS))
     if unknown:
         raise r.fail(f"arrays names unknown arrays {unknown}")
-    files = {name: r.file(r.get(arrays, name, "arrays."), f"arrays.{name}") for name in ARRAYS}
+    files = {name: r.file(r.get(arrays, name, "arrays."), f"arrays.{name}") for name in ARRAYS
+             if name not in OPTIONAL_ARRAYS or name in arrays}
     names = list(files.values()) + [p[0] for p in pages] + [p[0] for p in coef_pages]
     if len(set(names)) != len(names):
         raise r.fail("the same file is named twice among arrays and pages")
@@ -454,6 +463,10 @@ def _table_problem(a: dict[str, np.ndarray], d: int) -> tuple[str, str] | None:
     if bad.size:
         i = int(bad[0])
         return "kind", f"billboard {i} has kind {int(a['kind'][i])}, valid are {list(KINDS)}"
+    bad = np.flatnonzero(a["synthesised"] > 1)
+    if bad.size:
+        i = int(bad[0])
+        return "synthesised", f"billboard {i} has synthesised = {int(a['synthesised'][i])}, valid are 0 and 1"
     if n and rank.max() > d:
         i = int(np.argmax(rank))
         return "rank", f"billboard {i} has rank {rank[i]}, more than the {d} view directions"

@@ -15,8 +15,8 @@ import numpy as np
 from core.fileio import DataFormatError, load_npy, read_json, read_npy_header
 
 from .atlas import AtlasLayout, atlas_layout, row_layout
-from .model import (ARRAYS, COEF_MODES, MANIFEST, TILE_MODES, BillboardModel, _Doc, _array_problem, _parse_manifest,
-                    _shape, _table_problem)
+from .model import (ARRAYS, COEF_MODES, MANIFEST, OPTIONAL_ARRAYS, TILE_MODES, BillboardModel, _Doc,
+                    _array_problem, _parse_manifest, _shape, _table_problem)
 
 _MAX_MANIFEST_BYTES = 64 << 20
 
@@ -82,6 +82,9 @@ def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
 
     arrays = {}
     for name, (dtype, _) in ARRAYS.items():
+        if name in OPTIONAL_ARRAYS and name not in meta.arrays:   # a model written before the array
+            arrays[name] = np.zeros(_shape(name, meta), dtype)
+            continue
         counted = {"n": "billboards", "m": "slots", "k": "nodes"}[ARRAYS[name][1][0]]
         arrays[name] = _load_array(path / meta.arrays[name], dtype, _shape(name, meta), mmap=False,
                                    hint=f" (counts.{counted} in {mpath})")

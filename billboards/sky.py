@@ -12,7 +12,10 @@ image counts as sky when it lies
   ``margin`` cells), above the first such pixel; so glass and flat paint that stereo
   left without points (below a roof line), and columns the cloud does not reach at
   all, are never taken for sky,
-- bright and smooth (luma and gradient of the slightly blurred image below thresholds).
+- bright and smooth (luma and gradient of the slightly blurred image below thresholds),
+- sky-coloured: blue or grey, not warm (red above blue by more than ``max_warmth``): the
+  brick, roofs and asphalt that a sparse cloud leaves uncovered at the end of a street are
+  bright and smooth too, but warm.
 
 The sky pixels' colours are averaged per elevation bin; bins with too few pixels take
 the colour interpolated (constant beyond the ends) from the bins that have them.
@@ -57,6 +60,7 @@ class SkyConfig:
     upper: float = 0.6                               # candidates lie in this top fraction of an image's rows
     min_luma: float = 0.35                           # candidates are at least this bright (luma in [0, 1])
     max_gradient: float = 0.02                       # … and this smooth (gradient of the blurred luma per pixel)
+    max_warmth: float = 0.03                         # … and no warmer than this: red − blue (in [0, 1]) at most
     zbuffer_scale: int = 4                           # cloud z-buffer at 1/scale of the image resolution
     margin: int = 2                                  # z-buffer cells next to covered ones count as covered
     max_points: int = 1_000_000                      # the cloud is thinned (every k-th point) to at most this many
@@ -72,6 +76,8 @@ class SkyConfig:
             raise ValueError(f"upper must be in (0, 1], got {self.upper}")
         if not (0 <= self.min_luma <= 1 and self.max_gradient > 0 and self.min_pixels >= 1):
             raise ValueError("min_luma must be in [0, 1], max_gradient > 0 and min_pixels ≥ 1")
+        if not -1 <= self.max_warmth <= 1:
+            raise ValueError(f"max_warmth must be in [-1, 1], got {self.max_warmth}")
 
 
 def _check_range(rng, error, where: str = "elevation_deg") -> tuple[float, float]:
@@ -155,7 +161,8 @@ def sky_candidates(image: np.ndarray, covered: np.ndarray, config: SkyConfig = S
     # column the cloud does not reach: without a horizon, a bright wall could pass for sky)
     top = np.where(covered.any(axis=0), covered.argmax(axis=0), 0)
     above = rows < top[None, :]
-    return above & (rows < config.upper * h) & (grey >= config.min_luma) & smooth
+    warmth = (image[..., 0].astype(np.float32) - image[..., 2].astype(np.float32)) / 255.0
+    return above & (rows < config.upper * h) & (grey >= config.min_luma) & smooth & (warmth <= config.max_warmth)
 
 
 def _covered(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, size,

@@ -66,9 +66,12 @@ Method = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
 METRICS = ("psnr", "psnr_geometry", "psnr_seen", "psnr_covered", "ssim", "ssim_geometry", "ssim_seen", "ssim_covered")
 #: The model's error split by the kind of quad that draws a pixel (PSNR over seen pixels), and for a
 #: real capture by the horizon (PSNR over covered pixels above and below it).
+SYNTHESISED = 3  # not a kind of quad: ground blocks whose texture was synthesised (no camera saw them)
 KIND_NAMES = {FACADE: "facade", GROUND: "ground", BILLBOARD: "billboard"}
-SPLIT_METRICS = tuple(f"psnr_seen_{name}" for name in KIND_NAMES.values()) + ("psnr_covered_above",
-                                                                              "psnr_covered_below")
+#: … and synthesised ground apart: over the pixels with geometry (no capture camera saw it, so it
+#: draws no seen pixel), with the share of those pixels it draws.
+SPLIT_METRICS = tuple(f"psnr_seen_{name}" for name in KIND_NAMES.values()) + (
+    "psnr_geometry_synthesised", "synthesised_fraction", "psnr_covered_above", "psnr_covered_below")
 _UNUSED_COLOUR = (1.0, 0.0, 1.0)  # background for finding the pixels a model draws (magenta, absent from streets)
 WHERE = ("on path", "off path")
 #: Viewpoints of frames the textures came from: the ceiling a model reaches where it was made.
@@ -291,9 +294,9 @@ class ModelMethod:
         return self._draw(K, world_from_cam, size, self.sky, BACKGROUND)
 
     def kinds(self, K, world_from_cam, size) -> np.ndarray | None:
-        """(h, w) int8: the kind of quad the model draws at each pixel (−1: none), found by
-        ray casting its quads as the renderer places them (:func:`billboards.fit.cast_view`);
-        None for a tiled set."""
+        """(h, w) int8: the kind of quad the model draws at each pixel (−1: none; :data:`SYNTHESISED`
+        for a synthesised ground block), found by ray casting its quads as the renderer places them
+        (:func:`billboards.fit.cast_view`); None for a tiled set."""
         if isinstance(self.model, ModelSet):
             return None
         if not hasattr(self, "_quads"):
@@ -307,7 +310,8 @@ class ModelMethod:
         hits = cast_view(self._quads, self._alpha, np.asarray(K, np.float64), np.asarray(world_from_cam, np.float64),
                          size, max_distance=np.inf)
         out = np.full((int(size[1]), int(size[0])), -1, np.int8)
-        out[hits.pixel[:, 1], hits.pixel[:, 0]] = self.model.kind[hits.quad]
+        kind = np.where(self.model.synthesised > 0, SYNTHESISED, self.model.kind)
+        out[hits.pixel[:, 1], hits.pixel[:, 0]] = kind[hits.quad]
         return out
 
     def covered(self, K, world_from_cam, size) -> np.ndarray:
@@ -403,6 +407,9 @@ def evaluate_methods(methods: dict[str, Method], views: list[EvalView], images: 
             if kinds is not None and not view.real:
                 split = {f"psnr_seen_{kind_name}": psnr(image, view.truth, view.seen & (kinds == kind))
                          for kind, kind_name in KIND_NAMES.items()}
+                synthesised = view.geometry & (kinds == SYNTHESISED)
+                split.update(psnr_geometry_synthesised=psnr(image, view.truth, synthesised),
+                             synthesised_fraction=float(synthesised.sum() / max(int(view.geometry.sum()), 1)))
             rows.append({"frame": view.frame, "view": view.where, "method": name,
                          **score(image, view, drawn, real=view.real), **split,
                          "seen_fraction": float(view.seen.mean()), "coverage_seen": coverage, "render_s": render_s})

@@ -2,7 +2,7 @@
 
 Fly with the mouse and WASD/QE, or drive along the capture path; toggle GPU/CPU
 decode, level of detail (on by default), cycle the culling modes, view interpolation,
-wireframe; a HUD over the frame (and the title bar) shows the frame time and fps, the
+wireframe, hide synthesised ground; a HUD over the frame (and the title bar) shows the frame time and fps, the
 draw and cull times, quads and billboards drawn (and culled), quads per level of detail,
 tiles decoded, and the decode and cull modes (:meth:`ViewerApp.hud_lines`), and the GPU memory
 the model holds; a tiled model (:class:`billboards.model_set.ModelSet`) is paged by a
@@ -50,6 +50,7 @@ keys:
   C              cycle culling: none, frustum, occlusion, hzb, auto
   I              toggle view interpolation (blend sampled directions / nearest)
   F              toggle wireframe (billboard outlines)
+  Y              hide / show synthesised ground (what no camera of the capture saw)
   U              toggle the on-screen HUD
   F12 or P       save a screenshot PNG to --screenshot-dir
   H              print this help
@@ -183,6 +184,7 @@ class ViewerApp(_WindowConfig):
         self.mode = mode
         self.held: set[str] = set()
         self.wireframe = False
+        self.hide_synthesised = False
         self.interpolate = True
         self.lod = bool(lod)  # level of detail of the GPU decode (render.lod.LodConfig's defaults)
         self.show_hud = True
@@ -234,6 +236,10 @@ class ViewerApp(_WindowConfig):
         try:
             if self.tiled:  # paged: what is resident (the first frame waits for the tiles around the eye)
                 stats = r.draw(K, pose, (w, h))
+            elif self.hide_synthesised:   # every other quad, unculled
+                keep = np.flatnonzero(self.model.synthesised == 0)
+                stats = r.draw(r.camera(K, pose, (w, h)), keep)
+                stats.setdefault("billboards_drawn", len(keep))
             else:
                 stats = r.draw(r.camera(K, pose, (w, h)))
         finally:
@@ -292,7 +298,8 @@ class ViewerApp(_WindowConfig):
                 f"quads {quads} | drawn {drawn}/{total} culled {total - drawn}{decoded}",
                 detail,
                 f"decode {self.decode} | cull {self.cull} | interpolation {'on' if self.interpolate else 'off'}",
-                f"{self.mode}{extra}" + (" | wireframe" if self.wireframe else "") + memory]
+                f"{self.mode}{extra}" + (" | wireframe" if self.wireframe else "")
+                + (" | synthesised hidden" if self.hide_synthesised and not self.tiled else "") + memory]
 
     def gpu_bytes(self) -> int:
         """Bytes the model holds on the GPU (every texture and buffer of its renderer or tiles)."""
@@ -369,6 +376,8 @@ class ViewerApp(_WindowConfig):
             self.show_hud = not self.show_hud
         elif name == "F":
             self.wireframe = not self.wireframe
+        elif name == "Y":
+            self.hide_synthesised = not self.hide_synthesised
         elif name in ("F12", "P"):
             self.screenshot()
         elif name == "H":

@@ -602,6 +602,8 @@ CORRUPTIONS = {
     "pickle": (_pickled, "centres.npy"),
     "fortran order": (_npy("slot_scale.npy", np.asfortranarray), "slot_scale.npy"),
     "rank above d": (_npy("rank.npy", _assign(0, 11)), "rank.npy"),
+    "synthesised not a flag": (_npy("synthesised.npy", _assign(3, 2)), "synthesised.npy"),
+    "synthesised listed, file missing": (_unlink("synthesised.npy"), "synthesised.npy"),
     "rank sum": (_npy("rank.npy", lambda a: _assign(0, (a[0] + 1) % 11)(a)), "rank.npy"),
     "first_slot order": (_npy("first_slot.npy", lambda a: a[[1, 0, *range(2, len(a))]]), "first_slot.npy"),
     "child out of range": (_npy("node_children.npy", _assign((0, 2), 3)), "node_children.npy"),
@@ -639,6 +641,18 @@ def test_load_rejects_corruption(saved_model, tmp_path, case, mmap):
         load(path, mmap=mmap)
     assert info.value.path == path / culprit
     assert str(path / culprit) in str(info.value)
+
+
+def test_a_model_written_before_the_synthesised_flags_loads_without_any(saved_model, tmp_path):
+    """synthesised.npy is optional: a model whose manifest does not list it has no synthesised quad."""
+    path = Path(shutil.copytree(saved_model, tmp_path / "m"))
+    _delete("arrays", "synthesised")(path)
+    (path / "synthesised.npy").unlink()
+    model = load(path)
+    assert model.synthesised.dtype == np.uint8 and np.array_equal(model.synthesised, np.zeros(12, np.uint8))
+    marked, _ = make_model()
+    marked.synthesised = (np.arange(12) % 3 == 0).astype(np.uint8)
+    assert np.array_equal(load(save(marked, tmp_path / "marked")).synthesised, marked.synthesised)
 
 
 def test_load_missing_directory(tmp_path):

@@ -175,6 +175,16 @@ def test_viewer_toggles_headless(tmp_path):
         app.render_frame(0.0)
         assert app.wireframe and "wireframe" in app.hud()
         app.handle_command("F")
+        flags = app.model.synthesised
+        try:   # Y hides the quads marked synthesised (here every other one)
+            app.model.synthesised = (np.arange(total) % 2).astype(np.uint8)
+            app.handle_command("Y")
+            stats = app.render_frame(0.0)
+            assert "synthesised hidden" in app.hud() and stats["billboards_drawn"] == total - total // 2
+            app.handle_command("Y")
+            assert "synthesised" not in app.hud()
+        finally:
+            app.model.synthesised = flags
         app.handle_command("M")
         assert app.mode == "fly"
         p0 = app.fly.position.copy()

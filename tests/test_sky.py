@@ -62,6 +62,28 @@ def test_sky_from_a_view_with_a_covered_lower_half(tmp_path):
     assert estimate_sky(views, np.zeros((0, 3)), config=config) is None
 
 
+def test_a_bright_smooth_warm_wall_above_the_cloud_is_not_sky(tmp_path):
+    """Brick that stereo left without points (the end wall of a short street) is bright, smooth
+    and above the cloud's horizon, but warm: no bin takes its colour; the bins it alone reached
+    are interpolated from the blue ones."""
+    pose = look_at(np.array([0.0, 0.0, 2.0]), np.array([0.0, 10.0, 2.0]))
+    views, points = sky_view(tmp_path, "v", pose)
+    image = np.asarray(views.image(0)).copy()
+    brick = np.array([150, 110, 80], np.uint8)                 # luma 0.47, red − blue 0.27
+    image[H // 2 - 20:H // 2, :] = brick                      # the lowest sky rows, every column
+    write_png(views.paths[0], image)
+    config = SkyConfig(bins=16, upper=1.0)
+    sky = estimate_sky(views, points, config=config)
+    colours = np.rint(sky.colours * 255)
+    assert np.all(colours[:, 2] > colours[:, 0] + 20), colours      # every bin blue, none brick
+    assert np.abs(colours - brick).sum(axis=1).min() > 60
+    # the same wall counts as sky when warmth is allowed (what the test guards against)
+    warm = estimate_sky(views, points, config=SkyConfig(bins=16, upper=1.0, max_warmth=1.0))
+    assert np.abs(np.rint(warm.colours * 255) - brick).sum(axis=1).min() < 30
+    with pytest.raises(ValueError, match="max_warmth"):
+        SkyConfig(max_warmth=2.0)
+
+
 def test_sky_bins_without_pixels_are_interpolated_and_nothing_gives_none(tmp_path):
     pose = look_at(np.array([0.0, 0.0, 2.0]), np.array([0.0, 10.0, 2.0]))
     views, points = sky_view(tmp_path, "v", pose)

@@ -1,0 +1,254 @@
+"""The ground of the facade layer: flat blocks on a grid where the cloud shows ground, and the
+ground continued between them where no camera gave points.
+
+Measured ground: cloud points on a flat, low surface (the lowest points of a ground-grid cell,
+within a few centimetres of each other) give a horizontal block per cell; its height is the
+plane through its own and its neighbours' heights (:func:`ground_blocks`).
+
+Continued ground: a cell that lies on a row or column of the grid between two ground cells
+no farther apart than ``reach`` with nothing standing between them (a cell whose points rise
+from its ground, or a facade) gets a block on the line between their heights
+(:func:`continue_ground`): asphalt without texture gives stereo no points, and the road
+between a sideways rig's two passes is never in any image, yet the road continues there.
+A continued block that no camera sees is *synthesised*: its texture is copied from a
+measured ground block nearby (:func:`synthesis_sources`), and the model marks it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .geometry import base_yaw_toward, toward_cameras
+
+#: a cell whose points rise this far (m, 10th to 90th percentile of their heights) stands on the ground
+_BARRIER_RISE = 0.25
+
+#: The 8 neighbours of a grid cell, (8, 2) int64.
+_NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)], np.int64)
+
+
+def _cell_keys(cells: np.ndarray) -> np.ndarray:
+    """(m, 2) int64 grid cells → (m,) int64 keys (cells within ±2³¹)."""
+    return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
+
+
+def _neighbour_heights(cells: np.ndarray, heights: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """(q, 8) float64: the heights of the 8 neighbours of each query cell (q, 2) int64 among
+    ``cells`` (m, 2) int64 with ``heights`` (m,); NaN where a neighbour is not a cell."""
+    keys = _cell_keys(cells)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    out = np.full((len(queries), len(_NEIGHBOURS)), np.nan)
+    if len(cells) == 0:
+        return out
+    for k, step in enumerate(_NEIGHBOURS):
+        q = _cell_keys(queries + step)
+        at = np.minimum(np.searchsorted(sorted_keys, q), len(keys) - 1)
+        hit = sorted_keys[at] == q
+        out[hit, k] = heights[order[at[hit]]]
+    return out
+
+
+def _plane_at_centre(heights: np.ndarray) -> np.ndarray:
+    """(q,) float64: the least-squares plane through the finite entries of ``heights``
+    (q, 9) float64 — a cell (column 0, offset (0, 0)) and its 8 neighbours (:data:`_NEIGHBOURS`),
+    NaN where absent — evaluated at the cell's centre. Unlike a median it is unbiased on a
+    slope with neighbours on one side only; a small ridge on the slopes keeps one or two
+    collinear cells well-posed (their mean)."""
+    offsets = np.vstack([[0, 0], _NEIGHBOURS]).astype(np.float64)                # (9, 2)
+    design = np.column_stack([np.ones(9), offsets])                                # (9, 3)
+    w = np.isfinite(heights).astype(np.float64)
+    z = np.where(w > 0, heights, 0.0)
+    normal = np.einsum("qk,ki,kj->qij", w, design, design) + np.diag([0.0, 1e-6, 1e-6])
+    rhs = np.einsum("qk,ki->qi", w * z, design)
+    return np.linalg.solve(normal, rhs[..., None])[:, 0, 0]
+
+
+def _nearest_height(xy: np.ndarray, viewpoints: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """(m,) float64: the height of the viewpoint horizontally nearest each of ``xy`` (m, 2)."""
+    out = np.empty(len(xy))
+    for a in range(0, len(xy), chunk):
+        d = ((xy[a:a + chunk, None, :] - viewpoints[None, :, :2]) ** 2).sum(-1)
+        out[a:a + chunk] = viewpoints[np.argmin(d, axis=1), 2]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Ground:
+    """The ground blocks of a capture.
+
+    centres (g, 3) float64 block centres; base_yaw (g,) float64 world yaw their rows run away
+    from; point_block (N,) int64 the block each cloud point lies on (−1: none); continued (g,)
+    bool blocks continued between measured ground (no cloud points of their own); synthesised
+    (g,) bool continued blocks no camera sees (their texture is synthesised).
+    """
+
+    centres: np.ndarray
+    base_yaw: np.ndarray
+    point_block: np.ndarray
+    continued: np.ndarray
+    synthesised: np.ndarray
+
+    @staticmethod
+    def empty(num_points: int) -> "Ground":
+        return Ground(np.zeros((0, 3)), np.zeros(0), np.full(num_points, -1, np.int64), np.zeros(0, bool),
+                      np.zeros(0, bool))
+
+
+def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, size: float,
+                  viewpoints: np.ndarray, *, tolerance: float, min_points: int, step: float,
+                  fill_neighbours: int, fill_passes: int, reach: float, walls: np.ndarray | None = None,
+                  cameras: tuple | None = None, max_distance: float = 60.0) -> Ground:
+    """Horizontal blocks on the ground grid (cells of ``size`` from ``grid_origin``) where the
+    lowest cloud points of a cell (among ``free`` ones) form a flat surface, and the ground
+    continued between them.
+
+    cloud (N, 3) float64 world; free (N,) bool points not explained by a facade; viewpoints
+    (v, 3) float64 camera centres; walls (w, 3) float64 facade block centres (the ground is
+    not continued through them); cameras: (K (v, 3, 3), world_from_cam (v, 4, 4), sizes (v, 2))
+    or None (then no block is taken for unseen: nothing is synthesised).
+
+    A cell's height is the plane through its own and its neighbours' within ``step`` (noise
+    would show as steps, and steps as cracks at grazing views; kerbs stay). Cells without a
+    flat surface but with at least ``fill_neighbours`` ground neighbours get a block on the
+    plane through theirs, ``fill_passes`` times; then :func:`continue_ground` bridges gaps up
+    to ``reach`` metres (0: none). A block's rows run away from the cameras within
+    ``max_distance`` that see its centre (else the nearest viewpoint)."""
+    idx = np.flatnonzero(free)
+    if len(idx) == 0 or len(viewpoints) == 0:
+        return Ground.empty(len(cloud))
+    p = cloud[idx]
+    cell = np.floor((p[:, :2] - grid_origin[:2]) / size).astype(np.int64)
+    key = _cell_keys(cell)
+    order = np.lexsort((p[:, 2], key))
+    key, idx, p, cell = key[order], idx[order], p[order], cell[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, len(key)])
+    # Ground height: the 10th percentile of the cell's heights (robust to a few low outliers).
+    pick = starts + (counts * 0.1).astype(np.int64)
+    height = p[pick, 2]
+    cell_of = np.repeat(np.arange(len(starts)), counts)
+    on = np.abs(p[:, 2] - height[cell_of]) <= tolerance
+    n_on = np.bincount(cell_of[on], minlength=len(starts))
+    cells = cell[starts]
+    centre_xy = grid_origin[:2] + (cells + 0.5) * size
+    # Only surfaces below the nearest camera can be ground (the road may climb along the path).
+    good = (n_on >= min_points) & (height < _nearest_height(centre_xy, viewpoints) - 0.5)
+    sums = np.bincount(cell_of[on], weights=p[on, 2], minlength=len(starts))
+    ground_z = sums[good] / np.maximum(n_on[good], 1)
+    ground_cells = cells[good]
+    near = _neighbour_heights(ground_cells, ground_z, ground_cells)
+    near[np.abs(near - ground_z[:, None]) > step] = np.nan
+    ground_z = _plane_at_centre(np.concatenate([ground_z[:, None], near], axis=1))
+    block_of_cell = np.where(good, np.cumsum(good) - 1, -1)
+    for _ in range(fill_passes):
+        lo, hi = ground_cells.min(axis=0) - 1, ground_cells.max(axis=0) + 1
+        around = (ground_cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 2)
+        around = np.unique(around[np.all((around >= lo) & (around <= hi), axis=1)], axis=0)
+        taken = np.isin(_cell_keys(around), _cell_keys(ground_cells))
+        around = around[~taken]
+        near = _neighbour_heights(ground_cells, ground_z, around)
+        fill = np.isfinite(near).sum(axis=1) >= fill_neighbours
+        if not fill.any():
+            break
+        ground_cells = np.concatenate([ground_cells, around[fill]])
+        own = np.full((int(fill.sum()), 1), np.nan)
+        ground_z = np.concatenate([ground_z, _plane_at_centre(np.concatenate([own, near[fill]], axis=1))])
+    measured = len(ground_cells)
+    if reach > 0 and measured:
+        # Cells whose points rise from their ground (a wall, a car, a trunk), and facades, stop it.
+        spread = p[starts + (counts * 0.9).astype(np.int64), 2] - height
+        barriers = cells[~good & (counts >= min_points) & (spread > _BARRIER_RISE)]
+        if walls is not None and len(walls):
+            wall_cells = np.floor((np.asarray(walls)[:, :2] - grid_origin[:2]) / size).astype(np.int64)
+            barriers = np.concatenate([barriers, wall_cells])
+        more, more_z = continue_ground(ground_cells, ground_z, barriers, int(reach // size))
+        ground_cells = np.concatenate([ground_cells, more])
+        ground_z = np.concatenate([ground_z, more_z])
+    continued = np.arange(len(ground_cells)) >= measured
+    centres = np.empty((len(ground_cells), 3))
+    centres[:, :2] = grid_origin[:2] + (ground_cells + 0.5) * size
+    centres[:, 2] = ground_z
+    # Rows run away from the cameras that see the block (its textures' directions centre
+    # there), snapped to the grid (blocks tile without gaps).
+    if cameras is None:
+        yaw, seen = base_yaw_toward(centres, viewpoints), np.ones(len(centres), bool)
+    else:
+        yaw, seen = toward_cameras(centres, *cameras, max_distance=max_distance)
+    yaw = np.round(yaw / (np.pi / 2)) * (np.pi / 2)
+    point_block = np.full(len(cloud), -1, np.int64)
+    mine = on & good[cell_of]
+    point_block[idx[mine]] = block_of_cell[cell_of[mine]]
+    return Ground(centres, yaw, point_block, continued, continued & ~seen)
+
+
+def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray, reach: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Ground cells between ground cells: along each grid axis, the cells between two ground
+    cells of one row (or column) at most ``reach`` cells apart, with no barrier cell between
+    them, on the straight line between their heights; a cell bridged along both axes takes
+    the shorter bridge.
+
+    cells (m, 2) int64 ground cells (distinct), heights (m,) float64; barriers (k, 2) int64.
+    Returns the new cells (q, 2) int64 (none of ``cells``) and their heights (q,) float64."""
+    cells = np.asarray(cells, np.int64).reshape(-1, 2)
+    heights = np.asarray(heights, np.float64).reshape(-1)
+    barrier_keys = np.unique(_cell_keys(np.asarray(barriers, np.int64).reshape(-1, 2)))
+    found_cells, found_z, found_span = [], [], []
+    for axis in (0, 1):   # along x (rows of fixed y), then along y
+        other = 1 - axis
+        order = np.lexsort((cells[:, axis], cells[:, other]))
+        c, z = cells[order], heights[order]
+        same_row = c[1:, other] == c[:-1, other]
+        gap = c[1:, axis] - c[:-1, axis] - 1
+        bridge = np.flatnonzero(same_row & (gap >= 1) & (gap <= reach))
+        if len(bridge) == 0:
+            continue
+        g = gap[bridge]
+        owner = np.repeat(np.arange(len(bridge)), g)
+        k = np.arange(int(g.sum())) - np.repeat(np.cumsum(g) - g, g) + 1          # 1 … gap
+        new = np.empty((len(owner), 2), np.int64)
+        new[:, other] = c[bridge[owner], other]
+        new[:, axis] = c[bridge[owner], axis] + k
+        frac = k / (g[owner] + 1.0)
+        new_z = z[bridge[owner]] * (1 - frac) + z[bridge[owner] + 1] * frac
+        # A bridge with a barrier cell anywhere on it is dropped whole.
+        blocked = np.zeros(len(bridge), bool)
+        if len(barrier_keys):
+            hit = np.isin(_cell_keys(new), barrier_keys)
+            blocked[owner[hit]] = True
+        keep = ~blocked[owner]
+        found_cells.append(new[keep])
+        found_z.append(new_z[keep])
+        found_span.append(g[owner][keep])
+    new, new_z, span = (np.concatenate(found_cells) if found_cells else np.zeros((0, 2), np.int64),
+                        np.concatenate(found_z) if found_z else np.zeros(0),
+                        np.concatenate(found_span) if found_span else np.zeros(0, np.int64))
+    if len(new) == 0:
+        return new, new_z
+    order = np.lexsort((span, _cell_keys(new)))           # per cell, the shortest bridge first
+    new, new_z, keys = new[order], new_z[order], _cell_keys(new[order])
+    first = np.r_[True, keys[1:] != keys[:-1]]
+    return new[first], new_z[first]
+
+
+def synthesis_sources(centres: np.ndarray, synthesised: np.ndarray, donors: np.ndarray, k: int = 8,
+                      seed: int = 0) -> np.ndarray:
+    """(n,) int64: for each synthesised item, the index of one of the ``k`` ``donors`` nearest
+    to it (horizontally), drawn at random (seeded, so a build is reproducible) so that a
+    stretch of synthesised ground does not repeat one texture; −1 elsewhere, and everywhere
+    when there is no donor. centres (n, 3) float64; synthesised, donors (n,) bool."""
+    n = len(centres)
+    out = np.full(n, -1, np.int64)
+    want, have = np.flatnonzero(synthesised), np.flatnonzero(donors & ~synthesised)
+    if len(want) == 0 or len(have) == 0:
+        return out
+    k = min(k, len(have))
+    _, near = cKDTree(np.asarray(centres, np.float64)[have, :2]).query(centres[want, :2], k=k)
+    near = np.asarray(near).reshape(len(want), k)
+    pick = np.random.default_rng(seed).integers(0, k, len(want))
+    out[want] = have[near[np.arange(len(want)), pick]]
+    return out

@@ -1,0 +1,130 @@
+"""The ground of the facade layer: continued between measured ground, synthesised where no camera saw it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from billboards.geometry import GROUND
+from billboards.ground import continue_ground, ground_blocks, synthesis_sources
+from billboards.layer import LayerConfig, build_layer
+
+
+def _cells(pairs) -> np.ndarray:
+    return np.asarray(pairs, np.int64).reshape(-1, 2)
+
+
+def _as_dict(cells, z) -> dict:
+    return {(int(a), int(b)): float(h) for (a, b), h in zip(cells, z)}
+
+
+def test_a_gap_along_a_row_is_bridged_on_the_line_between_its_ends():
+    cells = _cells([(0, 0), (5, 0)])
+    new, z = continue_ground(cells, np.array([0.0, 0.5]), _cells([]), reach=4)
+    assert _as_dict(new, z) == pytest.approx({(1, 0): 0.1, (2, 0): 0.2, (3, 0): 0.3, (4, 0): 0.4})
+    # wider than the reach, or a barrier anywhere on it: no bridge at all
+    assert len(continue_ground(cells, np.array([0.0, 0.5]), _cells([]), reach=3)[0]) == 0
+    assert len(continue_ground(cells, np.array([0.0, 0.5]), _cells([(3, 0)]), reach=4)[0]) == 0
+    # a barrier elsewhere does not matter; neither do cells of other rows
+    new, _ = continue_ground(np.vstack([cells, [(2, 7)]]), np.array([0.0, 0.5, 9.0]), _cells([(3, 1)]), reach=4)
+    assert sorted(map(tuple, new.tolist())) == [(1, 0), (2, 0), (3, 0), (4, 0)]
+
+
+def test_a_cell_bridged_along_both_axes_takes_the_shorter_bridge():
+    # along x: (0,0)…(9,0) at heights 0 and 0.9; along y: (4,-1)…(4,1) at 5 and 5 (shorter)
+    cells = _cells([(0, 0), (9, 0), (4, -1), (4, 1)])
+    new, z = continue_ground(cells, np.array([0.0, 0.9, 5.0, 5.0]), _cells([]), reach=10)
+    got = _as_dict(new, z)
+    assert got[(4, 0)] == pytest.approx(5.0)
+    assert got[(3, 0)] == pytest.approx(0.3)
+    assert len(got) == len(new)                                  # every cell once
+    assert not set(got) & {(0, 0), (9, 0), (4, -1), (4, 1)}     # never one of the given cells
+
+
+def test_degenerate_inputs_give_no_cells():
+    new, z = continue_ground(_cells([]), np.zeros(0), _cells([]), reach=5)
+    assert new.shape == (0, 2) and z.shape == (0,)
+    new, _ = continue_ground(_cells([(0, 0), (1, 0)]), np.zeros(2), _cells([]), reach=5)   # adjacent: no gap
+    assert len(new) == 0
+    new, _ = continue_ground(_cells([(0, 0), (3, 0)]), np.zeros(2), _cells([]), reach=0)
+    assert len(new) == 0
+
+
+def test_synthesis_sources_are_nearby_donors_drawn_reproducibly():
+    rng = np.random.default_rng(0)
+    centres = np.column_stack([rng.uniform(0, 20, 400), rng.uniform(0, 20, 400), np.zeros(400)])
+    synthesised = centres[:, 0] > 15
+    donors = ~synthesised
+    a = synthesis_sources(centres, synthesised, donors, k=4)
+    assert np.array_equal(a, synthesis_sources(centres, synthesised, donors, k=4))
+    assert np.all(a[~synthesised] == -1) and np.all(a[synthesised] >= 0)
+    assert np.all(donors[a[synthesised]])
+    # each donor is among the 4 donors nearest its block
+    d = np.linalg.norm(centres[synthesised][:, None, :2] - centres[donors][None, :, :2], axis=-1)
+    fourth = np.sort(d, axis=1)[:, 3]
+    assert np.all(np.linalg.norm(centres[a[synthesised], :2] - centres[synthesised, :2], axis=1) <= fourth + 1e-12)
+    assert len(np.unique(a[synthesised])) > 10                     # not one texture repeated
+    assert np.all(synthesis_sources(centres, synthesised, np.zeros(400, bool)) == -1)
+
+
+def _sideways_cameras(xs, lanes=(-2.0, 2.0), height=2.0, f=300.0, size=(240, 320)):
+    """Cameras on two lanes looking away from the street's axis (y = 0): lane y < 0 looks to −y,
+    lane y > 0 to +y, pitched down 50° (they see the ground from 0.43 m beside their lane on):
+    K, world_from_cam, sizes."""
+    from render.camera import look_at
+
+    w, h = size
+    poses = []
+    for lane in lanes:
+        out = np.sign(lane)
+        for x in xs:
+            poses.append(look_at([x, lane, height], [x, lane + out * 10.0, height - 10.0 * np.tan(np.radians(50))]))
+    poses = np.stack(poses)
+    K = np.repeat(np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])[None], len(poses), axis=0)
+    return K, poses, np.repeat([[w, h]], len(poses), axis=0)
+
+
+def test_the_road_between_two_outward_looking_passes_is_continued_and_synthesised():
+    """Ground points beside each lane (|y| ≥ 3 m) and none between (what a sideways rig sees):
+    the band between is continued on the line between its sides; the part of it no camera
+    sees is synthesised; a car on the band (points rising from it) stops the bridges through it."""
+    size = 0.5
+    rng = np.random.default_rng(3)
+    xy = np.stack([rng.uniform(0, 20, 80000), rng.uniform(-8, 8, 80000)], axis=1)
+    xy = xy[np.abs(xy[:, 1]) >= 3.0]
+    z = np.where(xy[:, 1] > 0, 0.1, 0.0) + rng.normal(0, 0.003, len(xy))   # one side 10 cm higher
+    car = np.column_stack([rng.uniform(14.1, 15.9, 600), rng.uniform(-0.9, 0.9, 600), rng.uniform(0.3, 1.4, 600)])
+    cloud = np.vstack([np.column_stack([xy, z]), car])
+    K, poses, sizes = _sideways_cameras(np.arange(0.0, 20.0, 1.0))
+    layer = build_layer(cloud, [], size, np.array([0.0, -8.0, 0.0]), poses[:, :3, 3], LayerConfig(facades=False),
+                        cameras=(K, poses, sizes))
+    g = layer.kind == GROUND
+    c = layer.centres[g]
+    cont, synth = layer.continued[g], layer.synthesised[g]
+    band = np.abs(c[:, 1]) < 3.0
+    assert np.all(cont[band]) and not np.any(cont[np.abs(c[:, 1]) > 3.5])
+    # on the line between the sides: 0 at y = −3, 0.1 at y = +3
+    expected = 0.1 * (c[band, 1] + 3.0) / 6.0
+    np.testing.assert_allclose(c[band, 2], expected, atol=0.02)
+    # no block under the car's cross-street bridges (the car's cells are barriers); elsewhere the band is whole
+    under_car = (c[:, 0] > 14.0) & (c[:, 0] < 16.0) & band
+    cells_x = np.floor(c[band, 0] / size).astype(int)
+    assert len(np.unique(cells_x)) >= 36
+    assert not np.any(under_car & (np.abs(c[:, 1]) < 0.75))
+    # what the cameras look at beside their lanes is seen, the strip between the lanes is not
+    assert np.all(synth[np.abs(c[:, 1]) < 2.0]) and not np.any(synth[np.abs(c[:, 1]) > 2.5])
+    assert np.all(cont[synth])
+    # without cameras nothing can be taken for unseen; with reach 0 nothing is continued
+    assert not build_layer(cloud, [], size, np.array([0.0, -8.0, 0.0]), poses[:, :3, 3],
+                           LayerConfig(facades=False)).synthesised.any()
+    off = build_layer(cloud, [], size, np.array([0.0, -8.0, 0.0]), poses[:, :3, 3],
+                      LayerConfig(facades=False, ground_reach=0.0), cameras=(K, poses, sizes))
+    assert not off.continued.any() and not np.any(np.abs(off.centres[:, 1]) < 2.0)
+    with pytest.raises(ValueError, match="ground_reach"):
+        LayerConfig(ground_reach=float("nan"))
+
+
+def test_ground_blocks_of_an_empty_cloud():
+    g = ground_blocks(np.zeros((0, 3)), np.zeros(0, bool), np.zeros(3), 0.5, np.zeros((1, 3)), tolerance=0.06,
+                      min_points=20, step=0.05, fill_neighbours=5, fill_passes=2, reach=12.0)
+    assert len(g.centres) == 0 and len(g.continued) == 0 and len(g.synthesised) == 0
