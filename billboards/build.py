@@ -96,8 +96,10 @@ class Billboards:
     voxels: the points grouped by billboard (cube centres, for z-buffers and slabs);
     base_yaw (n,) float64 world yaw toward the capture path; quads (n, 3) float64
     quad centres on the surface (:func:`sampling.quad_centres`); kind (n,) uint8 quad
-    kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node; synthesised
-    (n,) bool ground blocks no camera saw, each sampled at its ``donor`` (n,) int64 (−1: itself).
+    kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node; donor (n,)
+    int64 a measured ground block a camera sees, whose texture a ground block takes when its own
+    sampling gives it none (−1: none), and ``synthesised`` (n,) bool always (a continued block
+    no camera sees).
     Without a facade layer there is one billboard per voxel leaf, in leaf order; with one,
     a leaf holds its billboard (if its own points make one) and the layer blocks whose
     centres lie in it, so that culling by the octree covers both.
@@ -116,9 +118,9 @@ class Billboards:
 
     def __post_init__(self):
         if self.synthesised is None:
-            self.synthesised = np.zeros(len(self.kind), bool)
+            object.__setattr__(self, "synthesised", np.zeros(len(self.kind), bool))
         if self.donor is None:
-            self.donor = np.full(len(self.kind), -1, np.int64)
+            object.__setattr__(self, "donor", np.full(len(self.kind), -1, np.int64))
 
     @property
     def num_billboards(self) -> int:
@@ -199,14 +201,15 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     quads[blocks] = box_centres[blocks]
     item_begin = np.searchsorted(item_leaf, np.arange(n_leaves + 1))
     node_range = item_begin[octree.node_range]
-    # Ground no camera saw takes the texture of measured ground nearby (continued ground when none is).
-    synthesised = np.zeros(len(item_kind), bool)
-    continued = np.zeros(len(item_kind), bool)
+    # Continued ground that no camera sees, and any ground whose sampling finds nothing, takes the
+    # texture of measured ground nearby that a camera sees.
+    synthesised, continued, seen = (np.zeros(len(item_kind), bool) for _ in range(3))
     synthesised[blocks] = layer.synthesised[source[blocks]]
     continued[blocks] = layer.continued[source[blocks]]
+    seen[blocks] = layer.seen[source[blocks]]
     ground = item_kind == GROUND
-    measured = ground & ~continued
-    donor = synthesis_sources(quads, synthesised, measured if measured.any() else ground)
+    donors = ground & ~continued & seen
+    donor = synthesis_sources(quads, ground & ~donors, donors)
     synthesised &= donor >= 0
     return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, synthesised, donor)
 
@@ -246,6 +249,7 @@ def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views:
     np.save(state / "base_yaw.npy", placed.base_yaw)
     np.save(state / "kind.npy", placed.kind)
     np.save(state / "donor.npy", placed.donor)
+    np.save(state / "unseen.npy", placed.synthesised)
     if conf.source == "points":
         np.save(state / "colours.npy", placed.voxel_colours(colours))
     meta = {"config": _config_to_json(conf), "origin": placed.octree.origin.tolist(),
@@ -302,14 +306,21 @@ def _worker_state(state_dir: str):
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)
     _WORKER.clear()
-    _WORKER.update(dir=state_dir, sampler=sampler, conf=conf, donor=np.load(root / "donor.npy"))
+    _WORKER.update(dir=state_dir, sampler=sampler, conf=conf, donor=np.load(root / "donor.npy"),
+                   unseen=np.load(root / "unseen.npy"))
     return sampler, conf
 
 
 def _sample(sampler, ids: np.ndarray):
-    """The sampled textures of billboards ``ids`` (B,) int64; a synthesised block's are its donor's."""
-    donor = _WORKER["donor"][ids]
-    return sampler.sample(np.where(donor >= 0, donor, ids))
+    """The sampled textures of billboards ``ids`` (B,) int64 and which of them are synthesised
+    (B,) bool: continued ground that no camera sees, or whose own sampling is all transparent,
+    takes its donor's texture."""
+    donor, unseen = _WORKER["donor"][ids], _WORKER["unseen"][ids]
+    sampled = sampler.sample(np.where(unseen, donor, ids))
+    empty = (donor >= 0) & ~unseen & ~np.any(sampled.rgba[..., 3] > 0, axis=(1, 2, 3))
+    if empty.any():
+        sampled.rgba[empty] = sampler.sample(donor[empty]).rgba
+    return sampled, unseen | empty
 
 
 def compress_chunk(rgba: np.ndarray, conf: BuildConfig, eig: EigenTextures | None = None) -> tuple[dict, dict]:
@@ -403,13 +414,16 @@ def _run_task(task: _Task):
     root = Path(task.state)
     if task.stage == "sample":
         rgba = np.load(root / "rgba.npy", mmap_mode="r+")
+        synthesised = np.load(root / "synthesised.npy", mmap_mode="r+")
         stats = []
         for s in range(task.begin, task.end, conf.chunk):
             t0 = time.perf_counter()
-            sampled = _sample(sampler, np.arange(s, min(task.end, s + conf.chunk)))
+            e = min(task.end, s + conf.chunk)
+            sampled, synthesised[s:e] = _sample(sampler, np.arange(s, e))
             rgba[s:s + len(sampled.rgba)] = sampled.rgba
             stats.append({"sampling_s": time.perf_counter() - t0, "sampling": sampled.stats})
         rgba.flush()
+        synthesised.flush()
         return stats
     if task.stage == "fit":
         rgba = np.load(root / "rgba.npy", mmap_mode="r")
@@ -418,15 +432,22 @@ def _run_task(task: _Task):
         fit = conf.fit if conf.sampling.transients else replace(conf.fit, transients=None)
         eig, fit_stats = fit_range(_fit_quads(task.state, conf), rgba, task.begin, task.end, records, fit,
                                    time.time() + task.seconds, conf.pca)
-        return [compress_chunk(rgba[task.begin + s:task.begin + s + conf.chunk], conf, eig.slice(s, s + conf.chunk))
-                for s in range(0, task.end - task.begin, conf.chunk)], fit_stats
+        synthesised = np.load(root / "synthesised.npy", mmap_mode="r")
+        out = []
+        for s in range(0, task.end - task.begin, conf.chunk):
+            arrays, stats = compress_chunk(rgba[task.begin + s:task.begin + s + conf.chunk], conf,
+                                           eig.slice(s, s + conf.chunk))
+            arrays["synthesised"] = np.array(synthesised[task.begin + s:task.begin + s + len(arrays["rank"])])
+            out.append((arrays, stats))
+        return out, fit_stats
     out = []
     for s in range(task.begin, task.end, conf.chunk):
         ids = np.arange(s, min(task.end, s + conf.chunk))
         t0 = time.perf_counter()
-        sampled = _sample(sampler, ids)
+        sampled, synthesised = _sample(sampler, ids)
         t1 = time.perf_counter()
         arrays, stats = compress_chunk(sampled.rgba, conf)
+        arrays["synthesised"] = synthesised
         stats["sampling_s"] = t1 - t0
         stats["sampling"] = sampled.stats
         out.append((arrays, stats))
@@ -564,7 +585,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     try:
         if placed is None:
             placed = place_billboards(points, octree, views.centres if views is not None else None)
-        base_yaw, quads, kind, synthesised = placed.base_yaw, placed.quads, placed.kind, placed.synthesised
+        base_yaw, quads, kind = placed.base_yaw, placed.quads, placed.kind
         node_range = placed.node_range
         save_worker_state(state, conf, placed, views, colours)
         stages["prepare_s"] = time.perf_counter() - t2
@@ -592,7 +613,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                     b = len(arrays["rank"])
                     writer.append(centres=(quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=base_yaw[done:done + b].astype(np.float32), kind=kind[done:done + b],
-                                  synthesised=synthesised[done:done + b], **arrays)
+                                  **arrays)
                     done += b
                     totals.add(stats)
 
@@ -649,6 +670,7 @@ def _fit(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: int, n: 
     s = conf.sampling
     np.lib.format.open_memmap(state / "rgba.npy", mode="w+", dtype=np.uint8,
                               shape=(n, s.directions.num_directions, s.tile, s.tile, 4)).flush()
+    np.lib.format.open_memmap(state / "synthesised.npy", mode="w+", dtype=np.uint8, shape=(n,)).flush()
     for stats in ordered_results(_run_task, [replace(t, stage="sample") for t in tasks], executor, window=window,
                                  desc="sampling", progress=progress):
         for st in stats:
@@ -715,7 +737,7 @@ def _layer_report(layer: Layer, passes, points: np.ndarray, dataset, config: Lay
     report = {"enabled": True, "passes": len(passes), "epi_points": int(sum(len(p.points) for p in passes)),
               "facade_blocks": int((layer.kind != GROUND).sum()), "ground_blocks": int((layer.kind == GROUND).sum()),
               "ground_blocks_continued": int(layer.continued.sum()),
-              "ground_blocks_synthesised": int(layer.synthesised.sum()),
+              "ground_blocks_unseen": int(layer.synthesised.sum()),
               "explained_points": int(layer.explained.sum()), "points": int(len(points))}
     if layer.columns and dataset.has_ground_truth:
         report["facade_depth"] = facade_depth_report(layer.columns, points, load_scene(dataset.root), config)
@@ -757,6 +779,7 @@ class _Totals:
         last = int(np.max(np.flatnonzero(self.ranks))) if self.ranks.any() else 0
         return {
             "billboards": model.num_billboards, "voxels": octree.num_voxels, "octree_depth": octree.depth, "voxel_size": octree.voxel_size,
+            "synthesised": int(np.count_nonzero(model.synthesised)),
             "nodes": int(octree.num_nodes), "views": num_views, "directions": conf.sampling.directions.num_directions,
             "tile": conf.sampling.tile, "slots": model.num_slots, "pages": len(model.pages),
             "rank_histogram": {str(r): int(c) for r, c in enumerate(self.ranks[:last + 1])},

@@ -118,7 +118,7 @@ def own_layer(layer: Layer, own_block: np.ndarray, own_point: np.ndarray) -> tup
     keep = own_point & ~foreign
     point_block = renumber[np.where(pb[keep] >= 0, pb[keep], len(layer.centres))]
     return Layer(layer.centres[own_block], layer.base_yaw[own_block], layer.kind[own_block], point_block,
-                 layer.columns, layer.continued[own_block], layer.synthesised[own_block]), keep
+                 layer.columns, layer.continued[own_block], layer.seen[own_block]), keep
 
 
 def _anchored(passes: list[EpiPass], anchor: np.ndarray) -> list[EpiPass]:
@@ -258,8 +258,7 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
                     b = len(arrays["rank"])
                     writer.append(centres=(placed.quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=placed.base_yaw[done:done + b].astype(np.float32),
-                                  kind=placed.kind[done:done + b],
-                                  synthesised=placed.synthesised[done:done + b], **arrays)
+                                  kind=placed.kind[done:done + b], **arrays)
                     done += b
                     stats.append(chunk_stats)
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,

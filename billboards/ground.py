@@ -11,7 +11,9 @@ from its ground, or a facade) gets a block on the line between their heights
 (:func:`continue_ground`): asphalt without texture gives stereo no points, and the road
 between a sideways rig's two passes is never in any image, yet the road continues there.
 A continued block that no camera sees is *synthesised*: its texture is copied from a
-measured ground block nearby (:func:`synthesis_sources`), and the model marks it.
+measured ground block nearby that a camera sees (:func:`synthesis_sources`), and the model
+marks it; so is any other ground block whose own sampling finds nothing (a block at the
+bottom edge of every image, or behind something from every camera).
 """
 
 from __future__ import annotations
@@ -82,15 +84,20 @@ class Ground:
 
     centres (g, 3) float64 block centres; base_yaw (g,) float64 world yaw their rows run away
     from; point_block (N,) int64 the block each cloud point lies on (−1: none); continued (g,)
-    bool blocks continued between measured ground (no cloud points of their own); synthesised
-    (g,) bool continued blocks no camera sees (their texture is synthesised).
+    bool blocks continued between measured ground (no cloud points of their own); seen (g,) bool
+    blocks whose centre some camera sees; synthesised (g,) bool continued blocks none sees
+    (their texture is synthesised).
     """
 
     centres: np.ndarray
     base_yaw: np.ndarray
     point_block: np.ndarray
     continued: np.ndarray
-    synthesised: np.ndarray
+    seen: np.ndarray
+
+    @property
+    def synthesised(self) -> np.ndarray:
+        return self.continued & ~self.seen
 
     @staticmethod
     def empty(num_points: int) -> "Ground":
@@ -182,7 +189,7 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
     point_block = np.full(len(cloud), -1, np.int64)
     mine = on & good[cell_of]
     point_block[idx[mine]] = block_of_cell[cell_of[mine]]
-    return Ground(centres, yaw, point_block, continued, continued & ~seen)
+    return Ground(centres, yaw, point_block, continued, seen)
 
 
 def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray, reach: int
@@ -235,15 +242,15 @@ def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray
     return new[first], new_z[first]
 
 
-def synthesis_sources(centres: np.ndarray, synthesised: np.ndarray, donors: np.ndarray, k: int = 8,
+def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, k: int = 8,
                       seed: int = 0) -> np.ndarray:
-    """(n,) int64: for each synthesised item, the index of one of the ``k`` ``donors`` nearest
-    to it (horizontally), drawn at random (seeded, so a build is reproducible) so that a
-    stretch of synthesised ground does not repeat one texture; −1 elsewhere, and everywhere
-    when there is no donor. centres (n, 3) float64; synthesised, donors (n,) bool."""
+    """(n,) int64: for each ``wanted`` item, the index of one of the ``k`` ``donors`` nearest to
+    it (horizontally; never itself), drawn at random (seeded, so a build is reproducible) so
+    that a stretch of synthesised ground does not repeat one texture; −1 elsewhere, and
+    everywhere when there is no donor. centres (n, 3) float64; wanted, donors (n,) bool."""
     n = len(centres)
     out = np.full(n, -1, np.int64)
-    want, have = np.flatnonzero(synthesised), np.flatnonzero(donors & ~synthesised)
+    want, have = np.flatnonzero(wanted), np.flatnonzero(donors & ~wanted)
     if len(want) == 0 or len(have) == 0:
         return out
     k = min(k, len(have))

@@ -199,7 +199,8 @@ class Layer:
     block faces (FACADE) or that its rows run away from (GROUND); kind (b,) uint8;
     point_block (N,) int64 the block that explains each cloud point (−1: none);
     columns: the facade of each pass; continued (b,) bool ground blocks continued between
-    measured ground, synthesised (b,) bool those no camera sees (None: none).
+    measured ground; seen (b,) bool blocks whose centre some camera sees (None: all); the
+    synthesised ones are continued and unseen.
     """
 
     centres: np.ndarray
@@ -208,12 +209,18 @@ class Layer:
     point_block: np.ndarray
     columns: list[FacadeColumns]
     continued: np.ndarray | None = None
-    synthesised: np.ndarray | None = None
+    seen: np.ndarray | None = None
 
     def __post_init__(self):
-        for name in ("continued", "synthesised"):
-            if getattr(self, name) is None:
-                object.__setattr__(self, name, np.zeros(len(self.centres), bool))
+        if self.continued is None:
+            object.__setattr__(self, "continued", np.zeros(len(self.centres), bool))
+        if self.seen is None:
+            object.__setattr__(self, "seen", np.ones(len(self.centres), bool))
+
+    @property
+    def synthesised(self) -> np.ndarray:
+        """(b,) bool continued ground blocks no camera sees."""
+        return self.continued & ~self.seen
 
     @property
     def explained(self) -> np.ndarray:
@@ -289,7 +296,7 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
             yaws.append(y)
             kinds.append(np.full(len(c), FACADE, np.uint8))
             total += len(c)
-    continued, synthesised = [np.zeros(total, bool)], [np.zeros(total, bool)]
+    continued, seen = [np.zeros(total, bool)], [np.ones(total, bool)]
     if config.ground:
         walls = np.concatenate(centres) if centres else None
         g = ground_blocks(cloud, point_block < 0, np.asarray(grid_origin, np.float64), size,
@@ -303,12 +310,12 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
         yaws.append(g.base_yaw)
         kinds.append(np.full(len(g.centres), GROUND, np.uint8))
         continued.append(g.continued)
-        synthesised.append(g.synthesised)
+        seen.append(g.seen)
         total += len(g.centres)
     if total == 0:
         return Layer.empty(len(cloud))
     layer = Layer(np.concatenate(centres), np.concatenate(yaws), np.concatenate(kinds), point_block, columns,
-                  np.concatenate(continued), np.concatenate(synthesised))
+                  np.concatenate(continued), np.concatenate(seen))
     logger.info("facade layer: %d facade blocks in %d passes, %d ground blocks (%d continued, %d of them "
                 "synthesised); %.0f %% of the cloud explained", int((layer.kind == FACADE).sum()), len(columns),
                 int((layer.kind == GROUND).sum()), int(layer.continued.sum()), int(layer.synthesised.sum()),

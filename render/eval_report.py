@@ -140,6 +140,12 @@ def markdown(report: dict) -> str:
             lines.append(f"| {name} | {_f(m.get('psnr_seen_facade'), '.2f')} | {_f(m.get('psnr_seen_ground'), '.2f')} | "
                          f"{_f(m.get('psnr_seen_billboard'), '.2f')} | {_f(m.get('psnr_geometry_synthesised'), '.2f')} | "
                          f"{_f(m.get('synthesised_fraction'), '.1%')} |")
+    near = {name: m["psnr_seen_near"] for name, m in report["summary"].items()
+            if isinstance(m.get("psnr_seen_near"), float) and math.isfinite(m["psnr_seen_near"])}
+    if near:
+        lines += ["", f"## The near field: seen pixels nearer than {report.get('config', {}).get('near', 5.0):g} m "
+                  "(PSNR, dB)", "", "| method, viewpoints | PSNR |", "|---|---|"]
+        lines += [f"| {name} | {value:.2f} |" for name, value in near.items()]
     wp = report.get("work_precision", [])
     if wp:
         lines += ["", "## Work-precision (workprecision.png)", "",

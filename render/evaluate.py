@@ -93,6 +93,7 @@ class EvalConfig:
     model_sky: bool = True                  # draw models over their sky (False: on black, like the baselines)
     training_views: int = 4                 # also this many viewpoints of frames the textures came from ("training",
                                             # the capture camera itself; none when no frame was held out)
+    near: float = 5.0                       # the near field: seen pixels of a synthetic view nearer than this (m)
 
     def __post_init__(self):
         if self.views is not None and self.views < 1:
@@ -109,6 +110,8 @@ class EvalConfig:
             raise ValueError(f"training_views must be an integer ≥ 0, got {self.training_views!r}")
         if not (math.isfinite(self.sideways) and math.isfinite(self.up)):
             raise ValueError("sideways and up must be finite")
+        if not (math.isfinite(self.near) and self.near > 0):
+            raise ValueError(f"near must be a finite distance > 0 (m), got {self.near}")
 
 
 # --------------------------------------------------------------------------- viewpoints
@@ -132,7 +135,8 @@ def off_path(world_from_cam: np.ndarray, sideways: float = 2.0, up: float = 1.0)
 class EvalView:
     """One viewpoint with its ground truth: truth (h, w, 3) uint8; geometry (h, w) bool
     (the ground truth hits a surface); seen (h, w) bool (a capture camera saw it); real:
-    the truth is a captured image (geometry and seen: the pixels below the horizon)."""
+    the truth is a captured image (geometry and seen: the pixels below the horizon); near
+    (h, w) bool: seen pixels nearer than :attr:`EvalConfig.near` (None: not known)."""
 
     frame: int
     where: str              # "on path" | "off path"
@@ -143,6 +147,7 @@ class EvalView:
     geometry: np.ndarray
     seen: np.ndarray
     real: bool = False
+    near: np.ndarray | None = None
 
 
 def choose_frames(info: dict | None, num_frames: int, views: int | None,
@@ -199,7 +204,8 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
     for f, where, pose in poses:
         truth, depth = truth_view(scene, K, pose, size)
         seen = seen_in_dataset(depth, K, pose, ds, texture_frames, config.seen)
-        views.append(EvalView(int(f), where, K, pose, size, truth, np.isfinite(depth), seen))
+        near = seen & (np.nan_to_num(depth, nan=np.inf) < config.near)
+        views.append(EvalView(int(f), where, K, pose, size, truth, np.isfinite(depth), seen, near=near))
         if progress is not None:
             progress(f"frame {int(f)} {where}: {seen.mean():.0%} of the pixels seen")
     return views
@@ -252,6 +258,8 @@ def score(image: np.ndarray, view: EvalView, covered: np.ndarray | None = None, 
     for suffix, mask in masks:
         out["psnr" + suffix] = psnr(image, view.truth, mask)
         out["ssim" + suffix] = ssim(image, view.truth, mask)
+    if view.near is not None:
+        out["psnr_seen_near"] = psnr(image, view.truth, view.near)
     if real and covered is not None:
         out["psnr_covered_exposure"] = (psnr(exposure_matched(image, view.truth, covered), view.truth, covered)
                                         if covered.any() else float("nan"))
@@ -436,7 +444,8 @@ def summarise(rows: list[dict]) -> dict[str, dict]:
             if not sel:
                 continue
             summary[f"{method}, {where}"] = {k: _nanmean([r.get(k, float("nan")) for r in sel])
-                                             for k in (*METRICS, "psnr_covered_exposure", "seen_fraction",
+                                             for k in (*METRICS, "psnr_covered_exposure", "psnr_seen_near",
+                                                       "seen_fraction",
                                                        "coverage_seen", *SPLIT_METRICS)}
     return summary
 
@@ -523,7 +532,7 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         "training_frames": training.tolist(),
         "config": {"sideways": config.sideways, "up": config.up, "poisson_depth": config.poisson_depth,
                    "workprecision_depths": list(config.workprecision_depths),
-                   "trim_quantile": config.trim_quantile, "seen": config.seen.__dict__},
+                   "trim_quantile": config.trim_quantile, "seen": config.seen.__dict__, "near": config.near},
         "sky": sky is not None,
         "bytes": {name: i["bytes"] for name, i in method_info.items()},
         "methods": method_info,

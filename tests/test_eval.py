@@ -194,6 +194,12 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     assert any(v is not None for v in split) and all(v is None or 5 < v <= 100 for v in split)
     assert report["summary"]["Poisson mesh, on path"]["psnr_seen_facade"] is None   # (a model's quads only)
     assert "kind of quad" in (out / "eval.md").read_text()
+    # synthesised ground (none in this model) is scored apart: no pixel, no score
+    assert on["synthesised_fraction"] == 0 and on["psnr_geometry_synthesised"] is None
+    # the near field: seen pixels nearer than 5 m, for every method
+    assert report["config"]["near"] == 5.0 and "The near field" in (out / "eval.md").read_text()
+    assert all(m["psnr_seen_near"] is None or 5 < m["psnr_seen_near"] <= 100 for m in report["summary"].values())
+    assert any(m["psnr_seen_near"] is not None for m in report["summary"].values())
     assert len(report["images"]) == 5 and report["images"][-1].endswith("_training.png")
     panel = read_png(out / report["images"][0])
     assert panel.shape == (90, 480, 3)  # ground truth | model | model: model | Poisson mesh, 120×90 each

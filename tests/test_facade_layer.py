@@ -188,6 +188,13 @@ def test_slits_on_a_street_match_the_ground_truth(layer_street, layer_cloud, tmp
     assert layer["facade_depth"]["epi"]["median_pct"] <= 2.0
     model = billboard_model.load(result.model)
     assert set(np.unique(model.kind)) <= {BILLBOARD, FACADE, GROUND} and (model.kind == FACADE).any()
+    # the road between the two passes is in no image: continued, synthesised, marked, opaque
+    from billboards.decode import decode_directions
+
+    synthesised = np.flatnonzero(model.synthesised)
+    assert len(synthesised) > 50 and np.all(model.kind[synthesised] == GROUND)
+    assert result.report["synthesised"] == len(synthesised) >= layer["ground_blocks_unseen"] > 0
+    assert decode_directions(model, synthesised)[..., 3].mean() > 0.9
 
     ds = load_dataset(layer_street)
     scene = load_scene(layer_street)
