@@ -151,7 +151,8 @@ def place_billboards(points: np.ndarray, octree: Octree, viewpoints: np.ndarray 
 
 
 def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarray, layer: Layer,
-                 block_size: float | None = None, grid_origin: np.ndarray | None = None) -> Billboards:
+                 block_size: float | None = None, grid_origin: np.ndarray | None = None,
+                 colours: np.ndarray | None = None) -> Billboards:
     """Billboards where the cloud departs from the facade ``layer``, and the layer's blocks.
 
     points (N, 3) float64 world; viewpoints (v, 3) float64 camera centres; block_size: edge of
@@ -209,7 +210,15 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     seen[blocks] = layer.seen[source[blocks]]
     ground = item_kind == GROUND
     donors = ground & ~continued & seen
-    donor = synthesis_sources(quads, ground & ~donors, donors)
+    block_colour = None
+    if colours is not None:   # the mean colour of each item's own points (NaN: none)
+        mine = owner >= 0
+        count = np.bincount(owner[mine], minlength=len(item_kind)).astype(np.float64)
+        block_colour = np.stack([np.bincount(owner[mine], weights=np.asarray(colours)[mine, ch],
+                                             minlength=len(item_kind)) for ch in range(3)], axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            block_colour = np.where(count[:, None] > 0, block_colour / count[:, None], np.nan)
+    donor = synthesis_sources(quads, ground & ~donors, donors, block_colour)
     synthesised &= donor >= 0
     return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, synthesised, donor)
 
@@ -560,7 +569,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     t1 = time.perf_counter()
     if layer is not None and len(layer.centres):
         octree_conf = replace(conf.octree, voxel_size=size, depth=None)
-        placed = place_hybrid(points, octree_conf, views.centres, layer, block_size)
+        placed = place_hybrid(points, octree_conf, views.centres, layer, block_size, colours=colours)
         octree = placed.octree
     else:
         octree = build_octree(points, conf.octree)

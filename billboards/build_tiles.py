@@ -204,7 +204,8 @@ class _TileBuild:
         if layer is not None and len(layer.centres):
             own_block = np.all(self.grid.tile_of(layer.centres) == np.asarray(index), axis=1)
             mine, keep = own_layer(layer, own_block, own)
-            placed = place_hybrid(points[keep], octree_conf, viewpoints, mine, self.block_size, self.grid_origin)
+            placed = place_hybrid(points[keep], octree_conf, viewpoints, mine, self.block_size, self.grid_origin,
+                                  colours=colours[keep])
             context = place_hybrid(points, octree_conf, viewpoints, layer, self.block_size, self.grid_origin)
             counts = {"facade_blocks": int((mine.kind == FACADE).sum()),
                       "ground_blocks": int((mine.kind == GROUND).sum())}

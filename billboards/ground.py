@@ -242,20 +242,39 @@ def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray
     return new[first], new_z[first]
 
 
-def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, k: int = 8,
-                      seed: int = 0) -> np.ndarray:
-    """(n,) int64: for each ``wanted`` item, the index of one of the ``k`` ``donors`` nearest to
-    it (horizontally; never itself), drawn at random (seeded, so a build is reproducible) so
-    that a stretch of synthesised ground does not repeat one texture; −1 elsewhere, and
-    everywhere when there is no donor. centres (n, 3) float64; wanted, donors (n,) bool."""
+def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, colours: np.ndarray | None = None,
+                      k: int = 8, pool: int = 64, seed: int = 0) -> np.ndarray:
+    """(n,) int64: for each ``wanted`` item, the index of a donor (one of ``donors``, never itself)
+    near it whose texture it takes; −1 elsewhere, and everywhere when there is no donor.
+
+    centres (n, 3) float64; wanted, donors (n,) bool; colours (n, 3) float64: the mean colour of
+    each item's own cloud points (NaN: none). Without colours the donor is drawn at random
+    among the ``k`` nearest (horizontally). With them it is drawn among the ``k`` of the
+    ``pool`` nearest donors whose colour is nearest the ground's around the wanted item (the
+    median colour of the 3·``k`` nearest items that have one): stereo finds points on lane
+    markings and kerbs more readily than on plain asphalt, so the nearest donors are often
+    markings, and the road between them would come out striped. Random draws are seeded (a
+    build is reproducible) so that a stretch of synthesised ground does not repeat one texture."""
     n = len(centres)
     out = np.full(n, -1, np.int64)
     want, have = np.flatnonzero(wanted), np.flatnonzero(donors & ~wanted)
     if len(want) == 0 or len(have) == 0:
         return out
-    k = min(k, len(have))
-    _, near = cKDTree(np.asarray(centres, np.float64)[have, :2]).query(centres[want, :2], k=k)
-    near = np.asarray(near).reshape(len(want), k)
-    pick = np.random.default_rng(seed).integers(0, k, len(want))
-    out[want] = have[near[np.arange(len(want)), pick]]
+    xy = np.asarray(centres, np.float64)[:, :2]
+    rng = np.random.default_rng(seed)
+    m = min(pool if colours is not None else k, len(have))
+    _, near = cKDTree(xy[have]).query(xy[want], k=m)
+    near = have[np.asarray(near).reshape(len(want), m)]                      # (w, m) donor indices
+    if colours is not None:
+        colours = np.asarray(colours, np.float64).reshape(n, 3)
+        coloured = np.flatnonzero(np.all(np.isfinite(colours), axis=1))
+        if len(coloured):
+            c = min(3 * k, len(coloured))
+            _, around = cKDTree(xy[coloured]).query(xy[want], k=c)
+            target = np.median(colours[coloured[np.asarray(around).reshape(len(want), c)]], axis=1)   # (w, 3)
+            distance = np.linalg.norm(colours[near] - target[:, None, :], axis=-1)
+            distance = np.where(np.isfinite(distance), distance, np.inf)
+            near = np.take_along_axis(near, np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)], axis=1)
+    pick = rng.integers(0, near.shape[1], len(want))
+    out[want] = near[np.arange(len(want)), pick]
     return out

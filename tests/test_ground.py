@@ -67,6 +67,25 @@ def test_synthesis_sources_are_nearby_donors_drawn_reproducibly():
     assert np.all(synthesis_sources(centres, synthesised, np.zeros(400, bool)) == -1)
 
 
+def test_donors_match_the_colour_of_the_ground_around_and_skip_markings():
+    """Measured ground beside a band: dark asphalt, with bright markings in the rows 3–4 and 6–7 m out;
+    the asphalt rows right beside the band are no donors (no camera sees their centres). The
+    band's donors come from asphalt (the colour around it), not the nearest donors, markings."""
+    xs, ys = np.meshgrid(np.arange(20) + 0.5, np.arange(-8, 9) + 0.5, indexing="ij")
+    centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    y = np.abs(centres[:, 1])
+    band, beside, marking = y < 2.0, (y > 2.0) & (y < 3.0), (np.floor(y) == 3) | (np.floor(y) == 6)
+    colours = np.where(marking[:, None], 230.0, 60.0) * np.ones((1, 3))
+    colours[band] = np.nan
+    donors = ~band & ~beside
+    blind = synthesis_sources(centres, band, donors)
+    matched = synthesis_sources(centres, band, donors, colours)
+    assert np.all(matched[band] >= 0) and np.all(donors[matched[band]])
+    assert not np.any(marking[matched[band]])
+    assert np.mean(marking[blind[band]]) > 0.5   # the nearest donors alone are mostly markings
+    assert np.array_equal(matched, synthesis_sources(centres, band, donors, colours))   # reproducible
+
+
 def _sideways_cameras(xs, lanes=(-2.0, 2.0), height=2.0, f=300.0, size=(240, 320)):
     """Cameras on two lanes looking away from the street's axis (y = 0): lane y < 0 looks to −y,
     lane y > 0 to +y, pitched down 50° (they see the ground from 0.43 m beside their lane on):
