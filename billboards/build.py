@@ -210,15 +210,17 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     seen[blocks] = layer.seen[source[blocks]]
     ground = item_kind == GROUND
     donors = ground & ~continued & seen
-    block_colour = None
-    if colours is not None:   # the mean colour of each item's own points (NaN: none)
+    block_colour = block_spread = None
+    if colours is not None:   # the mean colour of each item's own points (NaN: none) and their variance
         mine = owner >= 0
+        c = np.asarray(colours, np.float64)[mine]
         count = np.bincount(owner[mine], minlength=len(item_kind)).astype(np.float64)
-        block_colour = np.stack([np.bincount(owner[mine], weights=np.asarray(colours)[mine, ch],
-                                             minlength=len(item_kind)) for ch in range(3)], axis=1)
+        sums = np.stack([np.bincount(owner[mine], weights=c[:, ch], minlength=len(item_kind)) for ch in range(3)], 1)
+        squares = np.bincount(owner[mine], weights=(c * c).sum(axis=1), minlength=len(item_kind))
         with np.errstate(invalid="ignore", divide="ignore"):
-            block_colour = np.where(count[:, None] > 0, block_colour / count[:, None], np.nan)
-    donor = synthesis_sources(quads, ground & ~donors, donors, block_colour)
+            block_colour = np.where(count[:, None] > 0, sums / count[:, None], np.nan)
+            block_spread = np.maximum(squares / count - (block_colour ** 2).sum(axis=1), 0.0)
+    donor = synthesis_sources(quads, ground & ~donors, donors, block_colour, block_spread)
     synthesised &= donor >= 0
     return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, synthesised, donor)
 

@@ -28,6 +28,9 @@ from .geometry import base_yaw_toward, toward_cameras
 #: a cell whose points rise this far (m, 10th to 90th percentile of their heights) stands on the ground
 _BARRIER_RISE = 0.25
 
+#: a donor whose points are this close to the best donor's match (grey levels RMS) is as good
+_MATCH = 20.0
+
 #: The 8 neighbours of a grid cell, (8, 2) int64.
 _NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)], np.int64)
 
@@ -243,15 +246,19 @@ def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray
 
 
 def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, colours: np.ndarray | None = None,
-                      k: int = 8, pool: int = 64, seed: int = 0) -> np.ndarray:
+                      spread: np.ndarray | None = None, k: int = 8, pool: int = 64, seed: int = 0) -> np.ndarray:
     """(n,) int64: for each ``wanted`` item, the index of a donor (one of ``donors``, never itself)
     near it whose texture it takes; −1 elsewhere, and everywhere when there is no donor.
 
     centres (n, 3) float64; wanted, donors (n,) bool; colours (n, 3) float64: the mean colour of
-    each item's own cloud points (NaN: none). Without colours the donor is drawn at random
-    among the ``k`` nearest (horizontally). With them it is drawn among the ``k`` of the
-    ``pool`` nearest donors whose colour is nearest the ground's around the wanted item (the
-    median colour of the 3·``k`` nearest items that have one): stereo finds points on lane
+    each item's own cloud points (NaN: none); spread (n,) float64 their variance (summed over
+    the channels; None: 0). Without colours the donor is drawn at random among the ``k``
+    nearest (horizontally). With them it is drawn among the ``k`` of the ``pool`` nearest
+    donors whose points lie nearest the colour of the ground around the wanted item (the
+    median colour of the plainer half, by spread, of the 3·``k`` nearest items that have one), in
+    the mean squared sense
+    (|mean − target|² + spread: a block half marking, half asphalt is no match for asphalt
+    although its mean may be close): stereo finds points on lane
     markings and kerbs more readily than on plain asphalt, so the nearest donors are often
     markings, and the road between them would come out striped. Random draws are seeded (a
     build is reproducible) so that a stretch of synthesised ground does not repeat one texture."""
@@ -271,10 +278,21 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
         if len(coloured):
             c = min(3 * k, len(coloured))
             _, around = cKDTree(xy[coloured]).query(xy[want], k=c)
-            target = np.median(colours[coloured[np.asarray(around).reshape(len(want), c)]], axis=1)   # (w, 3)
-            distance = np.linalg.norm(colours[near] - target[:, None, :], axis=-1)
+            around = coloured[np.asarray(around).reshape(len(want), c)]                       # (w, c)
+            if spread is not None:   # the plainer half: a block with a marking in it is no measure of the road
+                around = np.take_along_axis(around, np.argsort(np.asarray(spread, np.float64)[around], axis=1,
+                                                               kind="stable")[:, :max(1, c // 2)], axis=1)
+            target = np.median(colours[around], axis=1)                                        # (w, 3)
+            distance = ((colours[near] - target[:, None, :]) ** 2).sum(axis=-1)
+            if spread is not None:
+                distance = distance + np.asarray(spread, np.float64)[near]
             distance = np.where(np.isfinite(distance), distance, np.inf)
-            near = np.take_along_axis(near, np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)], axis=1)
-    pick = rng.integers(0, near.shape[1], len(want))
-    out[want] = near[np.arange(len(want)), pick]
+            order = np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)]
+            near, distance = np.take_along_axis(near, order, axis=1), np.take_along_axis(distance, order, axis=1)
+            # only as good a match as the best (within MATCH grey levels RMS): rather one texture
+            # repeated than sidewalk on the road
+            usable = (distance <= distance[:, :1] + 3 * _MATCH ** 2).sum(axis=1)
+            out[want] = near[np.arange(len(want)), (rng.random(len(want)) * usable).astype(np.int64)]
+            return out
+    out[want] = near[np.arange(len(want)), rng.integers(0, near.shape[1], len(want))]
     return out

@@ -86,6 +86,23 @@ def test_donors_match_the_colour_of_the_ground_around_and_skip_markings():
     assert np.array_equal(matched, synthesis_sources(centres, band, donors, colours))   # reproducible
 
 
+def test_donors_are_plain_blocks_of_the_road_not_marked_ones_nor_the_sidewalk():
+    """Beside the band: asphalt (60) right next to it (no donors), then blocks half marking, half
+    asphalt (mean 145, a wide spread), one row of plain asphalt, then sidewalk (130, plain). The
+    mean colours alone would pick the sidewalk (nearer the marked blocks' mean); the spread
+    leaves the marked blocks out of the road's colour and out of the donors."""
+    xs, ys = np.meshgrid(np.arange(20) + 0.5, np.arange(-8, 9) + 0.5, indexing="ij")
+    centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    y = np.floor(np.abs(centres[:, 1]))
+    band, beside, marked, plain = y < 2, y == 2, y == 3, y == 4
+    colours = np.select([marked, plain | beside], [145.0, 60.0], 130.0)[:, None] * np.ones((1, 3))
+    spread = np.where(marked, 3 * 85.0 ** 2, 30.0)
+    colours[band], spread[band] = np.nan, np.nan
+    donors = ~band & ~beside
+    got = synthesis_sources(centres, band, donors, colours, spread)
+    assert np.all(plain[got[band]])
+
+
 def _sideways_cameras(xs, lanes=(-2.0, 2.0), height=2.0, f=300.0, size=(240, 320)):
     """Cameras on two lanes looking away from the street's axis (y = 0): lane y < 0 looks to −y,
     lane y > 0 to +y, pitched down 50° (they see the ground from 0.43 m beside their lane on):
