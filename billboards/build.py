@@ -325,13 +325,20 @@ def _worker_state(state_dir: str):
 def _sample(sampler, ids: np.ndarray):
     """The sampled textures of billboards ``ids`` (B,) int64 and which of them are synthesised
     (B,) bool: continued ground that no camera sees, or whose own sampling is all transparent,
-    takes its donor's texture."""
+    takes its donor's texture as seen from the donor's base yaw, in every direction."""
     donor, unseen = _WORKER["donor"][ids], _WORKER["unseen"][ids]
     sampled = sampler.sample(np.where(unseen, donor, ids))
     empty = (donor >= 0) & ~unseen & ~np.any(sampled.rgba[..., 3] > 0, axis=(1, 2, 3))
     if empty.any():
         sampled.rgba[empty] = sampler.sample(donor[empty]).rgba
-    return sampled, unseen | empty
+    synthesised = unseen | empty
+    if synthesised.any():
+        # The donor as its cameras saw it (the direction of its base yaw), in every direction: seen
+        # from elsewhere its texture is another place's grazing view, not how ground looks there.
+        dirs = sampler.config.directions
+        front = int(np.argmin(np.abs(dirs.yaw_offsets)))
+        sampled.rgba[synthesised] = sampled.rgba[synthesised][:, [front]]
+    return sampled, synthesised
 
 
 def compress_chunk(rgba: np.ndarray, conf: BuildConfig, eig: EigenTextures | None = None) -> tuple[dict, dict]:
