@@ -161,7 +161,7 @@ def base_yaw_seen(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray
 
 
 def toward_cameras(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, sizes: np.ndarray,
-                   max_distance: float = 60.0, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray]:
+                   max_distance: float = 60.0, chunk: int = 1024, reach: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Base yaw of each item toward the cameras that see it: the yaw of the mean horizontal
     unit vector from it to the centres of the cameras (within ``max_distance``) in whose
     image it lies, in front. Items no camera sees face the nearest camera
@@ -169,8 +169,9 @@ def toward_cameras(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarra
 
     centres (n, 3) float64; K (v, 3, 3), world_from_cam (v, 4, 4) float64; sizes (v, 2)
     (width, height) → yaw (n,) float64 radians and seen (n,) bool (some camera sees the item;
-    a frustum test, not occlusion). A forward-looking camera sees the road ahead, not below
-    itself: the nearest camera is the wrong side to face.
+    a frustum test, not occlusion; an item of ``reach`` metres radius is seen while any of it is
+    in the image). A forward-looking camera sees the road ahead, not below itself: the nearest
+    camera is the wrong side to face.
     """
     centres = np.asarray(centres, dtype=np.float64)
     out = base_yaw_toward(centres, world_from_cam[:, :3, 3])
@@ -191,7 +192,9 @@ def toward_cameras(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarra
             u = Kn[None, :, 0, 0] * cam[..., 0] / z + Kn[None, :, 0, 2]
             v = Kn[None, :, 1, 1] * cam[..., 1] / z + Kn[None, :, 1, 2]
         flat = np.linalg.norm(to_cam[..., :2], axis=-1)
-        seen = (z > 0.3) & (u >= 0) & (u <= w_n - 1) & (v >= 0) & (v <= h_n - 1) \
+        with np.errstate(divide="ignore", invalid="ignore"):
+            m = Kn[None, :, 0, 0] * reach / np.maximum(z, 1e-9)
+        seen = (z > 0.3) & (u >= -m) & (u <= w_n - 1 + m) & (v >= -m) & (v <= h_n - 1 + m) \
             & (np.linalg.norm(to_cam, axis=-1) < max_distance)
         seen_any[s:s + chunk] = seen.any(axis=1)
         seen &= flat > 1e-6

@@ -187,7 +187,7 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
     if cameras is None:
         yaw, seen = base_yaw_toward(centres, viewpoints), np.ones(len(centres), bool)
     else:
-        yaw, seen = toward_cameras(centres, *cameras, max_distance=max_distance)
+        yaw, seen = toward_cameras(centres, *cameras, max_distance=max_distance, reach=0.71 * size)
     yaw = np.round(yaw / (np.pi / 2)) * (np.pi / 2)
     point_block = np.full(len(cloud), -1, np.int64)
     mine = on & good[cell_of]

@@ -365,7 +365,12 @@ class ImageSampler:
         # a limit (symmetric synthetic scenes) decides the same way at any coordinate magnitude.
         u, v = np.round(u, 3), np.round(v, 3)
         w, h = self.views.sizes[near, 0], self.views.sizes[near, 1]
-        usable = ((z > 0.3) & (dist < cfg.max_distance) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1))
+        # A layer block is usable while any of it is in the image (its centre within its projected
+        # half diagonal of the image): ground right beside the path lies at the images' lower edge.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            m = np.where((self.kind[ids] != BILLBOARD)[:, None],
+                         np.round(K[None, :, 0, 0] * 0.71 * self.sizes[ids][:, None] / np.maximum(z, 1e-9), 3), 0.0)
+        usable = ((z > 0.3) & (dist < cfg.max_distance) & (u >= -m) & (u <= w - 1 + m) & (v >= -m) & (v <= h - 1 + m))
         dyaw = np.round(np.angle(np.exp(1j * (cam_yaw[:, None, :] - yaw[:, :, None]))), 6)  # (B, d, V), wrapped
         several_rows = len(cfg.directions.pitches_deg) > 1
         dpitch = np.round(cam_pitch[:, None, :] - pitch[:, :, None], 6)
