@@ -30,6 +30,10 @@ _BARRIER_RISE = 0.25
 
 #: a donor whose points are this close to the best donor's match (grey levels RMS) is as good
 _MATCH = 20.0
+#: donors more than this far (m) above or below a block are on another level (past a kerb) …
+_LEVEL = 0.05
+#: … and rank behind every donor on its level (a squared colour distance no match reaches)
+_OTHER_LEVEL = 1e9
 
 #: The 8 neighbours of a grid cell, (8, 2) int64.
 _NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)], np.int64)
@@ -258,7 +262,8 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
     median colour of the plainer half, by spread, of the 3·``k`` nearest items that have one), in
     the mean squared sense
     (|mean − target|² + spread: a block half marking, half asphalt is no match for asphalt
-    although its mean may be close): stereo finds points on lane
+    although its mean may be close), on the wanted item's level (within 5 cm of its height)
+    where the pool has a donor there: stereo finds points on lane
     markings and kerbs more readily than on plain asphalt, so the nearest donors are often
     markings, and the road between them would come out striped. Random draws are seeded (a
     build is reproducible) so that a stretch of synthesised ground does not repeat one texture."""
@@ -287,6 +292,11 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
             if spread is not None:
                 distance = distance + np.asarray(spread, np.float64)[near]
             distance = np.where(np.isfinite(distance), distance, np.inf)
+            # A donor on another level (the sidewalk beside the road, past the kerb) is another surface:
+            # taken only where no donor of the pool lies within _LEVEL of the wanted item's height.
+            z = np.asarray(centres, np.float64)[:, 2]
+            other = np.abs(z[near] - z[want][:, None]) > _LEVEL
+            distance = np.where(other & ~np.all(other, axis=1, keepdims=True), distance + _OTHER_LEVEL, distance)
             order = np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)]
             near, distance = np.take_along_axis(near, order, axis=1), np.take_along_axis(distance, order, axis=1)
             # only as good a match as the best (within MATCH grey levels RMS): rather one texture

@@ -101,6 +101,14 @@ def test_donors_are_plain_blocks_of_the_road_not_marked_ones_nor_the_sidewalk():
     donors = ~band & ~beside
     got = synthesis_sources(centres, band, donors, colours, spread)
     assert np.all(plain[got[band]])
+    # the road's level: with the plain asphalt on the sidewalk's level (past a 15 cm kerb) and a
+    # brighter plain road on the band's, the band takes the road on its own level
+    raised = centres.copy()
+    raised[plain | (y >= 5), 2] = 0.15
+    colours[y == 3] = 100.0
+    spread[y == 3] = 30.0
+    got = synthesis_sources(raised, band, donors, colours, spread)
+    assert np.all(np.floor(np.abs(centres[got[band], 1])) == 3)
 
 
 def _sideways_cameras(xs, lanes=(-2.0, 2.0), height=2.0, f=300.0, size=(240, 320)):
