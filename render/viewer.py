@@ -56,6 +56,10 @@ keys:
   H              print this help
   Esc            quit"""
 
+#: the moderngl-window key names the viewer answers (every key of KEYS_HELP)
+KEY_NAMES = ("W", "A", "S", "D", "Q", "E", "M", "G", "L", "C", "I", "U", "F", "Y", "P", "H", "F12", "ESCAPE",
+             "LEFT_SHIFT", "RIGHT_SHIFT", "EQUAL", "MINUS", "NUMPAD_ADD", "NUMPAD_SUBTRACT")
+
 UP = np.array([0.0, 0.0, 1.0])
 MAX_PITCH = np.deg2rad(89.0)
 
@@ -333,8 +337,7 @@ class ViewerApp(_WindowConfig):
     # -- input
     def _name(self, key) -> str | None:
         k = self.wnd.keys
-        for name in ("W", "A", "S", "D", "Q", "E", "M", "G", "L", "C", "I", "U", "F", "P", "H", "F12", "ESCAPE",
-                     "LEFT_SHIFT", "RIGHT_SHIFT", "EQUAL", "MINUS", "NUMPAD_ADD", "NUMPAD_SUBTRACT"):
+        for name in KEY_NAMES:
             if getattr(k, name, None) == key and key != "undefined":
                 return name
         return None

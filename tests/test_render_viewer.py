@@ -98,6 +98,20 @@ def test_drive_path_for_model_without_dataset():
 # in-process, headless window: the key toggles
 
 
+def test_every_key_the_help_names_reaches_the_viewer():
+    """A key in the help that the window's key handler does not map is a key that does nothing."""
+    import re
+
+    from render.viewer import KEY_NAMES, KEYS_HELP
+
+    named = set()
+    for line in KEYS_HELP.splitlines()[1:]:
+        keys = line.strip().split("  ")[0]
+        named |= {k for k in re.split(r"[/ ]+", keys) if re.fullmatch(r"[A-Z]|F\d+", k)}
+    assert {"Y", "F", "U", "P", "F12"} <= named
+    assert named <= set(KEY_NAMES), sorted(named - set(KEY_NAMES))
+
+
 def test_viewer_toggles_headless(tmp_path):
     mglw = pytest.importorskip("moderngl_window")
     from render.viewer import ViewerApp, _make_window
