@@ -33,7 +33,7 @@ from recon.epi import EpiConfig, epi_points
 from .fit import FitConfig, Quads, quads_of
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
-from .ground import synthesis_sources
+from .ground import owned_colours, synthesis_sources
 from .layer import Layer, LayerConfig, build_layer, facade_depth_report
 from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
@@ -98,8 +98,8 @@ class Billboards:
     quad centres on the surface (:func:`sampling.quad_centres`); kind (n,) uint8 quad
     kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node; donor (n,)
     int64 a measured ground block a camera sees, whose texture a ground block takes when its own
-    sampling gives it none (−1: none), and ``synthesised`` (n,) bool always (a continued block
-    no camera sees).
+    sampling gives it none (−1: none); synthesised (n,) bool the continued blocks no camera
+    sees, which take it whatever their sampling gives.
     Without a facade layer there is one billboard per voxel leaf, in leaf order; with one,
     a leaf holds its billboard (if its own points make one) and the layer blocks whose
     centres lie in it, so that culling by the octree covers both.
@@ -210,17 +210,8 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     seen[blocks] = layer.seen[source[blocks]]
     ground = item_kind == GROUND
     donors = ground & ~continued & seen
-    block_colour = block_spread = None
-    if colours is not None:   # the mean colour of each item's own points (NaN: none) and their variance
-        mine = owner >= 0
-        c = np.asarray(colours, np.float64)[mine]
-        count = np.bincount(owner[mine], minlength=len(item_kind)).astype(np.float64)
-        sums = np.stack([np.bincount(owner[mine], weights=c[:, ch], minlength=len(item_kind)) for ch in range(3)], 1)
-        squares = np.bincount(owner[mine], weights=(c * c).sum(axis=1), minlength=len(item_kind))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            block_colour = np.where(count[:, None] > 0, sums / count[:, None], np.nan)
-            block_spread = np.maximum(squares / count - (block_colour ** 2).sum(axis=1), 0.0)
-    donor = synthesis_sources(quads, ground & ~donors, donors, block_colour, block_spread)
+    stats = (None, None) if colours is None else owned_colours(owner, colours, len(item_kind))
+    donor = synthesis_sources(quads, ground & ~donors, donors, *stats)
     synthesised &= donor >= 0
     return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, synthesised, donor)
 

@@ -249,6 +249,21 @@ def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray
     return new[first], new_z[first]
 
 
+def owned_colours(owner: np.ndarray, colours: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mean colour (n, 3) float64 of each of ``n`` items' own points (NaN: none) and their
+    variance (n,) float64, summed over the channels; owner (N,) int64 the item of each point
+    (−1: none), colours (N, 3) uint8 or float."""
+    mine = owner >= 0
+    c = np.asarray(colours, np.float64)[mine]
+    count = np.bincount(owner[mine], minlength=n).astype(np.float64)
+    sums = np.stack([np.bincount(owner[mine], weights=c[:, ch], minlength=n) for ch in range(3)], axis=1)
+    squares = np.bincount(owner[mine], weights=(c * c).sum(axis=1), minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count[:, None] > 0, sums / count[:, None], np.nan)
+        spread = np.maximum(squares / count - (mean ** 2).sum(axis=1), 0.0)
+    return mean, spread
+
+
 def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, colours: np.ndarray | None = None,
                       spread: np.ndarray | None = None, k: int = 8, pool: int = 64, seed: int = 0) -> np.ndarray:
     """(n,) int64: for each ``wanted`` item, the index of a donor (one of ``donors``, never itself)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from billboards.geometry import GROUND
-from billboards.ground import continue_ground, ground_blocks, synthesis_sources
+from billboards.ground import continue_ground, ground_blocks, owned_colours, synthesis_sources
 from billboards.layer import LayerConfig, build_layer
 
 
@@ -109,6 +109,21 @@ def test_donors_are_plain_blocks_of_the_road_not_marked_ones_nor_the_sidewalk():
     spread[y == 3] = 30.0
     got = synthesis_sources(raised, band, donors, colours, spread)
     assert np.all(np.floor(np.abs(centres[got[band], 1])) == 3)
+
+
+def test_owned_colours_against_a_loop():
+    rng = np.random.default_rng(5)
+    owner = rng.integers(-1, 6, 500)
+    colours = rng.integers(0, 256, (500, 3)).astype(np.uint8)
+    mean, spread = owned_colours(owner, colours, 7)
+    for i in range(7):
+        c = colours[owner == i].astype(np.float64)
+        if len(c) == 0:
+            assert np.all(np.isnan(mean[i]))
+            continue
+        np.testing.assert_allclose(mean[i], c.mean(axis=0))
+        np.testing.assert_allclose(spread[i], c.var(axis=0).sum(), rtol=1e-9, atol=1e-6)
+    assert np.all(np.isnan(mean[6]))   # item 6 owns no point
 
 
 def _sideways_cameras(xs, lanes=(-2.0, 2.0), height=2.0, f=300.0, size=(240, 320)):
