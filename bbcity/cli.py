@@ -422,6 +422,9 @@ def _add_build(sub) -> None:
                    help="continue the ground across gaps up to this wide (m) between ground cells where nothing "
                         "stands; blocks no camera saw get a texture synthesised from ground nearby, marked in the "
                         f"model (0: off; default {LayerConfig.ground_reach:g})")
+    p.add_argument("--side-walls", choices=("on", "off"), default="on" if LayerConfig.side_walls else "off",
+                   help="slits on the walls at the ends of the facades (a building's side seen from the path), "
+                        "instead of billboards (default on)")
     p.add_argument("--photometry", choices=("on", "off"), default="on",
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
                         "out before sampling textures (default on)")
@@ -465,7 +468,8 @@ def build_config_from_args(args):
                           min_points=args.min_points)
     sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
     layer = None if args.layer == "none" else LayerConfig(facades="facades" in args.layer, ground="ground" in args.layer,
-                                                          block_size=args.block_size, ground_reach=args.ground_reach)
+                                                          block_size=args.block_size, ground_reach=args.ground_reach,
+                                                          side_walls=args.side_walls == "on")
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,

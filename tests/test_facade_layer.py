@@ -345,3 +345,34 @@ def test_the_shader_draws_ground_blocks_with_the_overlap_culling_assumes():
     glsl = (Path(render.__file__).parent / "shaders" / "billboard_quad.glsl").read_text()
     value = re.search(r"const float GROUND_OVERLAP = ([0-9.]+);", glsl)
     assert value is not None and float(value.group(1)) == GROUND_OVERLAP
+
+
+def test_side_walls_on_a_street_stand_on_the_ground_truth_walls_facing_out(layer_street, layer_cloud):
+    """The street's building ends that its passes see obliquely become side-wall slits: each
+    block on a building's side face, with open air in front of it and the building behind."""
+    from billboards.sampling import views_from_dataset
+    from data_synth.scene import Kind
+    from recon.cloud_io import read_cloud_arrays
+
+    points, _ = read_cloud_arrays(layer_cloud)
+    ds = load_dataset(layer_street)
+    views = views_from_dataset(ds, list(range(ds.num_frames)))
+    passes = epi_points(views.K, views.world_from_cam, views.image, ds.rig.num_cameras, EpiConfig())
+    cameras = (views.K, views.world_from_cam, views.sizes)
+    layer = build_layer(points, passes, 0.5, points.min(axis=0), views.centres, LayerConfig(), cameras=cameras)
+    wall = layer.side_wall
+    assert wall.sum() > 100 and np.all(layer.kind[wall] == FACADE)
+    scene = load_scene(layer_street)
+    boxes = scene.object_bounds[scene.object_kind == Kind.BUILDING]
+    yaw = layer.base_yaw[wall]
+    normal = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], 1)
+
+    def solid(p):
+        return np.any(np.all((p[:, None] >= boxes[None, :, 0]) & (p[:, None] <= boxes[None, :, 1]), -1), 1)
+
+    centres = layer.centres[wall]
+    right = ~solid(centres + 0.05 * normal) & solid(centres - 0.05 * normal)
+    assert right.mean() > 0.9, f"{right.mean():.0%} of the side-wall blocks on a building's side, facing out"
+    without = build_layer(points, passes, 0.5, points.min(axis=0), views.centres,
+                          LayerConfig(side_walls=False), cameras=cameras)
+    assert not without.side_wall.any() and without.explained.sum() < layer.explained.sum()
