@@ -21,8 +21,10 @@ Per pass (pure numpy):
    occupied cell. A wall needs two columns and two rows at least.
 4. Facing: a block is *hidden* on one side when the front on that side (one metre
    beyond the wall) is nearer to the path than the block and rises above it — the
-   neighbouring building stands against the wall there. The wall faces the side on
-   which more of its blocks are open; the blocks hidden on that side are dropped.
+   neighbouring building stands against the wall there. A block faces its one open
+   side; one hidden both ways (a party wall) or open both ways (not a building's end)
+   is dropped. One plane can hold two faces: a low building's end toward a set-back
+   neighbour, and above its roof the neighbour's end facing the other way.
 """
 
 from __future__ import annotations
@@ -157,21 +159,18 @@ def side_walls(columns, cloud: np.ndarray, free: np.ndarray, grid_z0: float, con
             continue
         oc = corner + (jj + 0.5) * s
         zc = grid_z0 + (rr + 0.5) * s
-        # hidden on a side: the front there is nearer than the block and rises above it (NaN: open)
+        # hidden on a side: the front there is nearer than the block and rises above it (NaN: open);
+        # a block faces its one open side (two buildings' faces can share the plane), else none
         open_side = np.stack([~((f < oc) & (t > zc)) for f, t in sides])         # (2, b)
-        votes = open_side.sum(axis=1)
-        if votes[0] == votes[1]:
-            continue   # open both ways or neither: not a building's end
-        side = int(np.argmax(votes))
-        keep = open_side[side]
-        jj, rr, oc, zc = jj[keep], rr[keep], oc[keep], zc[keep]
+        keep = open_side[0] != open_side[1]
+        jj, rr, oc, zc, side = jj[keep], rr[keep], oc[keep], zc[keep], open_side[1, keep]
         if len(jj) == 0:
             continue
-        normal = epi.axis * (1.0 if side == 1 else -1.0)
         c = epi.origin[None, :] + position * epi.axis[None, :] + oc[:, None] * epi.facing[None, :]
         c[:, 2] = zc
         centres.append(c)
-        yaws.append(np.full(len(c), float(np.arctan2(normal[1], normal[0]))))
+        normal = np.where(side[:, None], 1.0, -1.0) * epi.axis[None, :2]
+        yaws.append(np.arctan2(normal[:, 1], normal[:, 0]))
         # the wall's points in a kept block's column, half a block beyond its ends too
         r0 = int(rr.min())
         grid = np.full((int(jj.max()) + 1, int(rr.max()) - r0 + 1), -1, np.int64)

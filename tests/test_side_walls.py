@@ -89,6 +89,21 @@ def test_a_wall_above_a_lower_neighbour_keeps_only_its_exposed_part():
     assert len(centres) and np.allclose(yaw, 0.0) and centres[:, 2].min() > 4.0
 
 
+def test_one_plane_holds_two_faces_a_low_end_and_the_set_back_neighbour_above_it():
+    """A low building (front 5 m, 8 m high) ends where a tall one set back to 8 m begins:
+    the low one's end faces +x in front of the tall one; above the low roof the tall one's
+    end faces −x; between them, below the low roof and behind 8 m, the party wall shows none."""
+    rng = np.random.default_rng(5)
+    cols = _two_fronts(near_top=8.0, far_top=20.0)
+    cloud = np.concatenate([_wall_points(rng, offsets=(5.0, 8.0), heights=(0.0, 8.0)),
+                            _wall_points(rng, offsets=(8.0, 13.0), heights=(8.0, 20.0))])
+    centres, yaw, _ = side_walls(cols, cloud, np.ones(len(cloud), bool), 0.0)
+    plus, minus = np.isclose(yaw, 0.0), np.isclose(np.abs(yaw), np.pi)
+    assert plus.sum() == 6 * 16 and minus.sum() == 10 * 24 and (plus | minus).all()
+    assert np.all(-centres[plus, 1] < 8.0) and np.all(centres[plus, 2] < 8.0)
+    assert np.all(-centres[minus, 1] > 8.0) and np.all(centres[minus, 2] > 8.0)
+
+
 def test_points_in_front_of_the_fronts_and_hidden_walls_make_no_side_wall():
     rng = np.random.default_rng(4)
     # a pole 2 m from the path, in front of every front: a billboard, not a wall
