@@ -49,6 +49,8 @@ class LayerConfig:
     far_peak_share: float = 0.3     # a farther offset peak this strong (share of the strongest) is the facade
     max_gap_columns: int = 12       # a gap of up to this many columns between equal offsets is filled
     top_fraction: float = 0.25      # a row of blocks is kept when the facade covers this share of it
+    top_columns: int = 2            # a column's top is the highest of ± this many columns on its plane ...
+    top_raise: float = 2.0          # ... that is at most this much (m) higher (a taller neighbour is another building)
     ground_tolerance: float = 0.06  # ground points lie this close (m) to their cell's ground height
     ground_min_points: int = 20     # cloud points a ground cell needs
     ground_step: float = 0.05       # neighbouring ground cells this close in height (m) are one smooth surface
@@ -64,12 +66,14 @@ class LayerConfig:
             raise ValueError(f"block_size must be a finite number > 0 or None, got {self.block_size}")
         if not (np.isfinite(self.ground_reach) and self.ground_reach >= 0):
             raise ValueError(f"ground_reach must be a finite number ≥ 0 (m), got {self.ground_reach}")
+        if not (np.isfinite(self.top_raise) and self.top_raise >= 0):
+            raise ValueError(f"top_raise must be a finite number ≥ 0 (m), got {self.top_raise}")
         if not (self.slab > 0 and self.histogram_bin > 0 and self.ground_tolerance > 0 and self.min_depth > 0):
             raise ValueError("slab, histogram_bin, ground_tolerance and min_depth must be > 0")
         if not (self.ground_step >= 0 and 1 <= self.ground_fill_neighbours <= 8 and self.ground_fill_passes >= 0):
             raise ValueError("ground_step ≥ 0, ground_fill_neighbours in [1, 8] and ground_fill_passes ≥ 0 required")
-        if self.min_points < 1 or self.ground_min_points < 1 or self.smooth_columns < 0:
-            raise ValueError("min_points, ground_min_points ≥ 1 and smooth_columns ≥ 0 required")
+        if self.min_points < 1 or self.ground_min_points < 1 or self.smooth_columns < 0 or self.top_columns < 0:
+            raise ValueError("min_points, ground_min_points ≥ 1 and smooth_columns, top_columns ≥ 0 required")
         if not (0 <= self.top_fraction < 1):
             raise ValueError(f"top_fraction must be in [0, 1), got {self.top_fraction}")
 
@@ -120,6 +124,37 @@ def _fill_gaps(values: np.ndarray, max_gap: int, tolerance: float) -> np.ndarray
     for a, b in zip(known[:-1], known[1:]):
         if 1 < b - a <= max_gap + 1 and abs(values[a] - values[b]) <= tolerance:
             out[a + 1:b] = np.linspace(values[a], values[b], b - a + 1)[1:-1]
+    return out
+
+
+def plane_max(values: np.ndarray, offset: np.ndarray, radius: int, tolerance: float, raise_: float = np.inf
+              ) -> np.ndarray:
+    """(c,) float64: each column's value raised to the highest of the columns within ± radius
+    whose offset agrees with its own within ``tolerance`` and whose value is at most ``raise_``
+    higher (one building's front: a roof line the cloud has few points on — bright sky behind
+    it — comes out level, not ragged; a much taller neighbour in the same plane is another
+    building). NaN values and offsets are ignored; a NaN value stays NaN."""
+    out = values.copy()
+    c = len(values)
+    for d in range(-radius, radius + 1):
+        if d == 0 or abs(d) >= c:
+            continue
+        lo, hi = max(0, -d), min(c, c - d)          # columns k with k + d in range
+        other, other_offset = values[lo + d:hi + d], offset[lo + d:hi + d]
+        same = (np.abs(other_offset - offset[lo:hi]) <= tolerance) & (other <= values[lo:hi] + raise_)
+        out[lo:hi] = np.where(same & (other > out[lo:hi]) & np.isfinite(values[lo:hi]), other, out[lo:hi])
+    return out
+
+
+def plane_max_reference(values, offset, radius: int, tolerance: float, raise_: float = np.inf) -> np.ndarray:
+    """Slow, obvious :func:`plane_max`: every column against each neighbour in turn."""
+    out = np.array(values, np.float64)
+    for k in range(len(values)):
+        if not np.isfinite(values[k]):
+            continue
+        for j in range(max(0, k - radius), min(len(values), k + radius + 1)):
+            if abs(offset[j] - offset[k]) <= tolerance and out[k] < values[j] <= values[k] + raise_:
+                out[k] = values[j]
     return out
 
 
@@ -191,6 +226,7 @@ def facade_columns(epi: EpiPass, cloud: np.ndarray, size: float, config: LayerCo
         np.fmax.at(top, all_col, all_z)
     bottom[np.isnan(offset)] = np.nan
     top[np.isnan(offset)] = np.nan
+    top = plane_max(top, offset, config.top_columns, config.slab / 3, config.top_raise)
     return FacadeColumns(epi, float(size), first, offset, bottom, top)
 
 

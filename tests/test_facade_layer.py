@@ -9,7 +9,7 @@ import pytest
 
 from billboards.build import BuildConfig, main as build_main, place_hybrid
 from billboards.geometry import BILLBOARD, FACADE, GROUND, DirectionConfig, kind_frames
-from billboards.layer import LayerConfig, build_layer, facade_columns
+from billboards.layer import LayerConfig, build_layer, facade_columns, plane_max, plane_max_reference
 from billboards.octree import OctreeConfig
 from billboards.pca import PcaConfig
 from billboards.sampling import SamplingConfig, close_holes
@@ -64,6 +64,25 @@ def test_epi_depth_of_a_known_plane():
     assert np.median(err) < 0.002 and np.mean(err < 0.01) > 0.9   # repeated texture misleads a few edges
     cols = facade_columns(p, p.points, 0.5)
     assert np.nanmax(np.abs(cols.offset - depth)) < 0.01 * depth    # ... never a column
+
+
+def test_plane_max_matches_the_reference_loop():
+    rng = np.random.default_rng(0)
+    for trial in range(30):
+        c = int(rng.integers(0, 40))
+        values = np.where(rng.random(c) < 0.2, np.nan, rng.uniform(0, 20, c))
+        offset = np.where(rng.random(c) < 0.1, np.nan, rng.choice([4.0, 4.05, 7.0], c))
+        radius = int(rng.integers(0, 4))
+        raise_ = float(rng.choice([np.inf, 2.0, 0.0]))
+        assert np.array_equal(plane_max(values, offset, radius, 0.1, raise_),
+                              plane_max_reference(values, offset, radius, 0.1, raise_), equal_nan=True), trial
+    # one front's ragged roof line comes out level; the next front (another plane) keeps its own
+    top = np.array([7.2, 5.3, 6.9, 5.9, 7.1, 12.0, 11.5])
+    offset = np.array([5.0, 5.0, 5.0, 5.0, 5.0, 8.0, 8.0])
+    assert np.allclose(plane_max(top, offset, 2, 0.1), [7.2, 7.2, 7.2, 7.1, 7.1, 12.0, 12.0])
+    # a taller building in the same plane is not a roof line to follow
+    top = np.array([8.0, 7.1, 8.0, 23.0, 22.5, 23.0])
+    assert np.allclose(plane_max(top, np.full(6, 5.0), 2, 0.1, 2.0), [8.0, 8.0, 8.0, 23.0, 23.0, 23.0])
 
 
 def test_hough_votes_match_the_reference_loop():
