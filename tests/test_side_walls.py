@@ -128,3 +128,12 @@ def test_side_wall_config_is_validated():
         SideWallConfig(contrast=0.5)
     with pytest.raises(ValueError):
         SideWallConfig(slab=0.0)
+
+
+def test_build_option_side_walls_reaches_the_layer_config():
+    from bbcity.cli import build_config_from_args, build_parser
+
+    parser = build_parser()
+    base = ["build", "work", "--out", "model", "--holdout", "0"]
+    assert build_config_from_args(parser.parse_args(base)).layer.side_walls is LayerConfig().side_walls is True
+    assert build_config_from_args(parser.parse_args(base + ["--side-walls", "off"])).layer.side_walls is False
