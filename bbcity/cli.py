@@ -425,6 +425,9 @@ def _add_build(sub) -> None:
     p.add_argument("--side-walls", choices=("on", "off"), default="on" if LayerConfig.side_walls else "off",
                    help="slits on the walls at the ends of the facades (a building's side seen from the path), "
                         "instead of billboards (default on)")
+    p.add_argument("--kerbs", choices=("on", "off"), default="on" if LayerConfig.kerbs else "off",
+                   help="a fixed face on each step between two ground levels (a kerb) instead of billboards "
+                        "(default on)")
     p.add_argument("--photometry", choices=("on", "off"), default="on",
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
                         "out before sampling textures (default on)")
@@ -469,7 +472,7 @@ def build_config_from_args(args):
     sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
     layer = None if args.layer == "none" else LayerConfig(facades="facades" in args.layer, ground="ground" in args.layer,
                                                           block_size=args.block_size, ground_reach=args.ground_reach,
-                                                          side_walls=args.side_walls == "on")
+                                                          side_walls=args.side_walls == "on", kerbs=args.kerbs == "on")
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,

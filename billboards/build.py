@@ -745,7 +745,8 @@ def _layer_report(layer: Layer, passes, points: np.ndarray, dataset, config: Lay
     """Counts of the facade layer and, when ``dataset`` has ground truth, its facade depth against it."""
     report = {"enabled": True, "passes": len(passes), "epi_points": int(sum(len(p.points) for p in passes)),
               "facade_blocks": int((layer.kind != GROUND).sum()), "ground_blocks": int((layer.kind == GROUND).sum()),
-              "side_wall_blocks": int(layer.side_wall.sum()), "ground_blocks_continued": int(layer.continued.sum()),
+              "side_wall_blocks": int(layer.side_wall.sum()), "kerb_blocks": int(layer.kerb.sum()),
+              "ground_blocks_continued": int(layer.continued.sum()),
               "ground_blocks_unseen": int(layer.synthesised.sum()),
               "explained_points": int(layer.explained.sum()), "points": int(len(points))}
     if layer.columns and dataset.has_ground_truth:

@@ -118,7 +118,8 @@ def own_layer(layer: Layer, own_block: np.ndarray, own_point: np.ndarray) -> tup
     keep = own_point & ~foreign
     point_block = renumber[np.where(pb[keep] >= 0, pb[keep], len(layer.centres))]
     return Layer(layer.centres[own_block], layer.base_yaw[own_block], layer.kind[own_block], point_block,
-                 layer.columns, layer.continued[own_block], layer.seen[own_block], layer.side_wall[own_block]), keep
+                 layer.columns, layer.continued[own_block], layer.seen[own_block], layer.side_wall[own_block],
+                 layer.kerb[own_block]), keep
 
 
 def _anchored(passes: list[EpiPass], anchor: np.ndarray) -> list[EpiPass]:

@@ -29,6 +29,7 @@ from recon.epi import EpiConfig, EpiPass
 
 from .geometry import FACADE, GROUND
 from .ground import ground_blocks
+from .kerbs import KerbConfig, kerb_blocks
 from .side_walls import SideWallConfig, side_walls
 
 logger = logging.getLogger(__name__)
@@ -39,6 +40,7 @@ class LayerConfig:
     facades: bool = True            # slits on the facades found in the EPIs
     ground: bool = True             # horizontal blocks where the cloud shows flat ground
     side_walls: bool = True         # slits on the walls at the fronts' ends (billboards.side_walls)
+    kerbs: bool = True              # a fixed face on each step between two ground levels (billboards.kerbs)
     block_size: float | None = None # block edge (m; None: the voxel size); larger blocks are cheaper, with
                                     # coarser texels and a coarser outline
     slab: float = 0.3               # cloud points this close to a facade plane (m) are explained by it
@@ -60,6 +62,7 @@ class LayerConfig:
                                     # where nothing stands (0: not); blocks no camera sees are synthesised
     epi: EpiConfig = field(default_factory=EpiConfig)
     side_wall: SideWallConfig = field(default_factory=SideWallConfig)
+    kerb: KerbConfig = field(default_factory=KerbConfig)
 
     def __post_init__(self):
         if self.block_size is not None and not (np.isfinite(self.block_size) and self.block_size > 0):
@@ -238,7 +241,8 @@ class Layer:
     block faces (FACADE) or that its rows run away from (GROUND); kind (b,) uint8;
     point_block (N,) int64 the block that explains each cloud point (−1: none);
     columns: the facade of each pass; continued (b,) bool ground blocks continued between
-    measured ground; side_wall (b,) bool facade blocks on a side wall (:mod:`billboards.side_walls`); seen (b,) bool blocks whose centre some camera sees (None: all); the
+    measured ground; side_wall (b,) bool facade blocks on a side wall (:mod:`billboards.side_walls`); kerb (b,) bool
+    facade blocks on a kerb (:mod:`billboards.kerbs`); seen (b,) bool blocks whose centre some camera sees (None: all); the
     synthesised ones are continued and unseen.
     """
 
@@ -250,12 +254,15 @@ class Layer:
     continued: np.ndarray | None = None
     seen: np.ndarray | None = None
     side_wall: np.ndarray | None = None
+    kerb: np.ndarray | None = None
 
     def __post_init__(self):
         if self.continued is None:
             object.__setattr__(self, "continued", np.zeros(len(self.centres), bool))
         if self.side_wall is None:
             object.__setattr__(self, "side_wall", np.zeros(len(self.centres), bool))
+        if self.kerb is None:
+            object.__setattr__(self, "kerb", np.zeros(len(self.centres), bool))
         if self.seen is None:
             object.__setattr__(self, "seen", np.ones(len(self.centres), bool))
 
@@ -366,13 +373,27 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
         seen.append(g.seen)
         on_wall.append(np.zeros(len(g.centres), bool))
         total += len(g.centres)
+    on_kerb = [np.zeros(total, bool)]
+    if config.ground and config.kerbs and total:
+        ground = np.concatenate(centres)[np.concatenate(kinds) == GROUND]
+        c, y, pb = kerb_blocks(ground, cloud, point_block < 0, np.asarray(grid_origin, np.float64), size, config.kerb)
+        take = pb >= 0
+        point_block[take] = pb[take] + total
+        centres.append(c)
+        yaws.append(y)
+        kinds.append(np.full(len(c), FACADE, np.uint8))
+        continued.append(np.zeros(len(c), bool))
+        seen.append(np.ones(len(c), bool))
+        on_wall.append(np.zeros(len(c), bool))
+        on_kerb.append(np.ones(len(c), bool))
+        total += len(c)
     if total == 0:
         return Layer.empty(len(cloud))
     layer = Layer(np.concatenate(centres), np.concatenate(yaws), np.concatenate(kinds), point_block, columns,
-                  np.concatenate(continued), np.concatenate(seen), np.concatenate(on_wall))
-    logger.info("facade layer: %d facade blocks in %d passes (%d on side walls), %d ground blocks (%d continued, "
-                "%d of them synthesised); %.0f %% of the cloud explained", int((layer.kind == FACADE).sum()), len(columns),
-                int(layer.side_wall.sum()),
+                  np.concatenate(continued), np.concatenate(seen), np.concatenate(on_wall), np.concatenate(on_kerb))
+    logger.info("facade layer: %d facade blocks in %d passes (%d on side walls, %d on kerbs), %d ground blocks "
+                "(%d continued, %d of them synthesised); %.0f %% of the cloud explained", int((layer.kind == FACADE).sum()),
+                len(columns), int(layer.side_wall.sum()), int(layer.kerb.sum()),
                 int((layer.kind == GROUND).sum()), int(layer.continued.sum()), int(layer.synthesised.sum()),
                 100 * layer.explained.mean() if len(cloud) else 0)
     return layer
