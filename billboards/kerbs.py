@@ -16,7 +16,9 @@ on one line across the pair (the face: their spread along the pair's axis within
   above the lower level and up to the upper level plus ``tolerance`` (the face, and the
   upper surface's edge in the lower cell), which make no billboard.
 
-A ramp (a sloping street: points between the levels spread over both cells) gets none.
+A ramp (a sloping street: points between the levels spread over both cells) gets none, nor
+does the edge of a raised flat thing the ground layer took for ground (a bench, a car's
+roof: its lower level more than ``max_step`` above the lowest ground within two cells).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: the lower level of a kerb is at most max_step above the lowest ground within this many cells
+_AROUND = 2
 
 @dataclass(frozen=True)
 class KerbConfig:
@@ -87,14 +91,24 @@ def kerb_blocks(ground: np.ndarray, cloud: np.ndarray, free: np.ndarray, grid_or
     low = np.where(step > 0, a, b)
     high = np.where(step > 0, b, a)
     z_low, z_high = ground[low, 2], ground[high, 2]
+    # the lower level is the ground around it: not the top of a bench, a car or a shelter
+    ground_keys = _keys(cells)
+    by_key = np.argsort(ground_keys)
+    around = np.full(len(low), np.inf)
+    for di in range(-_AROUND, _AROUND + 1):
+        for dj in range(-_AROUND, _AROUND + 1):
+            q = _keys(cells[low] + np.array([di, dj]))
+            at = np.minimum(np.searchsorted(ground_keys[by_key], q), len(ground_keys) - 1)
+            hit = ground_keys[by_key][at] == q
+            around[hit] = np.minimum(around[hit], ground[by_key[at[hit]], 2])
+    keep = z_low <= around + config.max_step
+    a, b, axis, low, high, z_low, z_high = (v[keep] for v in (a, b, axis, low, high, z_low, z_high))
     # free points by cell
     idx = np.flatnonzero(free)
     p = np.asarray(cloud, np.float64)[idx]
     pc = np.floor((p[:, :2] - origin[:2]) / size).astype(np.int64)
-    keys = _keys(cells)
-    by_key = np.argsort(keys)
-    at = np.minimum(np.searchsorted(keys[by_key], _keys(pc)), len(keys) - 1)
-    have = keys[by_key][at] == _keys(pc)
+    at = np.minimum(np.searchsorted(ground_keys[by_key], _keys(pc)), len(ground_keys) - 1)
+    have = ground_keys[by_key][at] == _keys(pc)
     point_cell = by_key[at]
     idx, p, point_cell = idx[have], p[have], point_cell[have]
     order = np.argsort(point_cell, kind="stable")

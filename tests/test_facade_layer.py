@@ -393,5 +393,6 @@ def test_side_walls_on_a_street_stand_on_the_ground_truth_walls_facing_out(layer
     right = ~solid(centres + 0.05 * normal) & solid(centres - 0.05 * normal)
     assert right.mean() > 0.9, f"{right.mean():.0%} of the side-wall blocks on a building's side, facing out"
     without = build_layer(points, passes, 0.5, points.min(axis=0), views.centres,
-                          LayerConfig(side_walls=False), cameras=cameras)
-    assert not without.side_wall.any() and without.explained.sum() < layer.explained.sum()
+                          LayerConfig(side_walls=False, kerbs=False), cameras=cameras)
+    assert not without.side_wall.any() and not without.kerb.any()
+    assert without.explained.sum() < layer.explained.sum()

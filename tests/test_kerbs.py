@@ -60,6 +60,22 @@ def test_a_ramp_and_a_flat_or_explained_ground_get_no_kerb():
     assert len(kerb_blocks(ground[:1], cloud, np.ones(len(cloud), bool), np.zeros(3), 0.5)[0]) == 0
 
 
+def test_the_edge_of_a_raised_flat_thing_is_no_kerb():
+    """A bench top 0.45 m above the road, its cells taken for ground, next to a cell where the
+    top is 0.2 m lower (a step within the kerb range, with points between): not a kerb, since the
+    lower level is not the ground around it."""
+    rng = np.random.default_rng(2)
+    ground, cloud = _street(rng, kerb=0.0)
+    raised = (ground[:, 0] > 2.0) & (ground[:, 0] < 3.0) & (ground[:, 1] > 1.0) & (ground[:, 1] < 2.0)
+    ground[raised, 2] = np.where(ground[raised, 0] < 2.5, 0.45, 0.65)
+    top = np.column_stack([rng.uniform(2.0, 3.0, 4000), rng.uniform(1.0, 2.0, 4000), np.zeros(4000)])
+    top[:, 2] = np.where(top[:, 0] < 2.5, 0.45, 0.65)
+    face = np.column_stack([np.full(500, 2.5), rng.uniform(1.0, 2.0, 500), rng.uniform(0.45, 0.65, 500)])
+    cloud = np.concatenate([cloud, top, face])
+    centres, _, _ = kerb_blocks(ground, cloud, np.ones(len(cloud), bool), np.zeros(3), 0.5)
+    assert len(centres) == 0
+
+
 def test_kerb_config_is_validated():
     with pytest.raises(ValueError):
         KerbConfig(min_step=0.4, max_step=0.3)
