@@ -213,6 +213,9 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     stats = (None, None) if colours is None else owned_colours(owner, colours, len(item_kind))
     donor = synthesis_sources(quads, ground & ~donors, donors, *stats)
     synthesised &= donor >= 0
+    # the donor's texture is copied texel for texel: its rows must run the same way (a lane
+    # marking along the road would otherwise come out across it)
+    base_yaw[synthesised] = base_yaw[donor[synthesised]]
     return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, synthesised, donor)
 
 
