@@ -329,68 +329,52 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
     ground blocks face the cameras that see them (None: the nearest viewpoint).
     """
     cloud = np.asarray(cloud, np.float64)
+    origin = np.asarray(grid_origin, np.float64)
     point_block = np.full(len(cloud), -1, np.int64)
-    centres, yaws, kinds, columns = [], [], [], []
-    total = 0
+    parts: list[dict] = []      # blocks in the order they are added, with their flags
+    columns = []
+
+    def add(centres, base_yaw, kind, pb, **flags) -> None:
+        """Blocks centres (b, 3), base_yaw (b,) of one kind, explaining the points pb (N,) int64
+        (a local block index, −1: none) not explained yet."""
+        total = sum(len(q["centres"]) for q in parts)
+        take = (pb >= 0) & (point_block < 0)
+        point_block[take] = pb[take] + total
+        parts.append({"centres": centres, "base_yaw": base_yaw, "kind": np.full(len(centres), kind, np.uint8),
+                      **{k: np.full(len(centres), v, bool) if np.isscalar(v) else v for k, v in flags.items()}})
+
     if config.facades:
         for epi in passes:
             cols = facade_columns(epi, cloud, size, config)
             if cols is None or not np.isfinite(cols.offset).any():
                 continue
             columns.append(cols)
-            c, y, pb = _facade_blocks(cols, cloud, float(grid_origin[2]), config)
-            take = (pb >= 0) & (point_block < 0)
-            point_block[take] = pb[take] + total
-            centres.append(c)
-            yaws.append(y)
-            kinds.append(np.full(len(c), FACADE, np.uint8))
-            total += len(c)
-    on_wall = [np.zeros(total, bool)]
-    if config.facades and config.side_walls:
-        for cols in columns:
-            c, y, pb = side_walls(cols, cloud, point_block < 0, float(grid_origin[2]), config.side_wall)
-            take = pb >= 0
-            point_block[take] = pb[take] + total
-            centres.append(c)
-            yaws.append(y)
-            kinds.append(np.full(len(c), FACADE, np.uint8))
-            on_wall.append(np.ones(len(c), bool))
-            total += len(c)
-    continued, seen = [np.zeros(total, bool)], [np.ones(total, bool)]
+            c, y, pb = _facade_blocks(cols, cloud, float(origin[2]), config)
+            add(c, y, FACADE, pb)
+        if config.side_walls:
+            for cols in columns:
+                c, y, pb = side_walls(cols, cloud, point_block < 0, float(origin[2]), config.side_wall)
+                add(c, y, FACADE, pb, side_wall=True)
     if config.ground:
-        walls = np.concatenate(centres) if centres else None
-        g = ground_blocks(cloud, point_block < 0, np.asarray(grid_origin, np.float64), size,
-                          np.asarray(viewpoints, np.float64).reshape(-1, 3), tolerance=config.ground_tolerance,
-                          min_points=config.ground_min_points, step=config.ground_step,
-                          fill_neighbours=config.ground_fill_neighbours, fill_passes=config.ground_fill_passes,
-                          reach=config.ground_reach, walls=walls, cameras=cameras)
-        take = g.point_block >= 0
-        point_block[take] = g.point_block[take] + total
-        centres.append(g.centres)
-        yaws.append(g.base_yaw)
-        kinds.append(np.full(len(g.centres), GROUND, np.uint8))
-        continued.append(g.continued)
-        seen.append(g.seen)
-        on_wall.append(np.zeros(len(g.centres), bool))
-        total += len(g.centres)
-    on_kerb = [np.zeros(total, bool)]
-    if config.ground and config.kerbs and total:
-        ground = np.concatenate(centres)[np.concatenate(kinds) == GROUND]
-        c, y, pb = kerb_blocks(ground, cloud, point_block < 0, np.asarray(grid_origin, np.float64), size, config.kerb)
-        take = pb >= 0
-        point_block[take] = pb[take] + total
-        centres.append(c)
-        yaws.append(y)
-        kinds.append(np.full(len(c), FACADE, np.uint8))
-        continued.append(np.zeros(len(c), bool))
-        seen.append(np.ones(len(c), bool))
-        on_wall.append(np.zeros(len(c), bool))
-        on_kerb.append(np.ones(len(c), bool))
-        total += len(c)
-    if total == 0:
+        walls = np.concatenate([q["centres"] for q in parts]) if parts else None
+        g = ground_blocks(cloud, point_block < 0, origin, size, np.asarray(viewpoints, np.float64).reshape(-1, 3),
+                          tolerance=config.ground_tolerance, min_points=config.ground_min_points,
+                          step=config.ground_step, fill_neighbours=config.ground_fill_neighbours,
+                          fill_passes=config.ground_fill_passes, reach=config.ground_reach, walls=walls,
+                          cameras=cameras)
+        add(g.centres, g.base_yaw, GROUND, g.point_block, continued=g.continued, seen=g.seen)
+        if config.kerbs:
+            c, y, pb = kerb_blocks(g.centres, cloud, point_block < 0, origin, size, config.kerb)
+            add(c, y, FACADE, pb, kerb=True)
+    if not any(len(q["centres"]) for q in parts):
         return Layer.empty(len(cloud))
-    layer = Layer(np.concatenate(centres), np.concatenate(yaws), np.concatenate(kinds), point_block, columns,
-                  np.concatenate(continued), np.concatenate(seen), np.concatenate(on_wall), np.concatenate(on_kerb))
+
+    def join(name, default):
+        return np.concatenate([q.get(name, np.full(len(q["centres"]), default, bool)) for q in parts])
+
+    layer = Layer(np.concatenate([q["centres"] for q in parts]), np.concatenate([q["base_yaw"] for q in parts]),
+                  np.concatenate([q["kind"] for q in parts]), point_block, columns, join("continued", False),
+                  join("seen", True), join("side_wall", False), join("kerb", False))
     logger.info("facade layer: %d facade blocks in %d passes (%d on side walls, %d on kerbs), %d ground blocks "
                 "(%d continued, %d of them synthesised); %.0f %% of the cloud explained", int((layer.kind == FACADE).sum()),
                 len(columns), int(layer.side_wall.sum()), int(layer.kerb.sum()),
