@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from billboards.geometry import FACADE
-from billboards.layer import FacadeColumns, LayerConfig, build_layer
+from billboards.layer import FacadeColumns, LayerConfig
 from billboards.side_walls import SideWallConfig, side_walls, wall_blocks, wall_blocks_reference, wall_peaks
 from recon.epi import EpiPass
 
