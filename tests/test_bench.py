@@ -87,6 +87,10 @@ def test_quick_bench_writes_every_section(tmp_path):
     for png in ("scaling.png", "stereo_sweep.png", "texture_sweep.png", "novel_views_workprecision.png"):
         assert (tmp_path / png).stat().st_size > 1000
     assert "## Scaling" in (tmp_path / "report.md").read_text()
+    executors = {r["executor"]: r for r in sections["Executors: Dask against the local pool"]}
+    assert set(executors) == {"local process pool (baseline)", "Dask LocalCluster"}
+    assert executors["Dask LocalCluster"]["outputs"] == "byte-identical"      # the same cloud and model
+    assert all(r["total s"] > 0 and r["speed vs local"] > 0 for r in executors.values())
 
 
 @pytest.mark.slow
