@@ -39,7 +39,7 @@ _OTHER_LEVEL = 1e9
 _NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)], np.int64)
 
 
-def _cell_keys(cells: np.ndarray) -> np.ndarray:
+def cell_keys(cells: np.ndarray) -> np.ndarray:
     """(m, 2) int64 grid cells → (m,) int64 keys (cells within ±2³¹)."""
     return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
 
@@ -47,14 +47,14 @@ def _cell_keys(cells: np.ndarray) -> np.ndarray:
 def _neighbour_heights(cells: np.ndarray, heights: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """(q, 8) float64: the heights of the 8 neighbours of each query cell (q, 2) int64 among
     ``cells`` (m, 2) int64 with ``heights`` (m,); NaN where a neighbour is not a cell."""
-    keys = _cell_keys(cells)
+    keys = cell_keys(cells)
     order = np.argsort(keys)
     sorted_keys = keys[order]
     out = np.full((len(queries), len(_NEIGHBOURS)), np.nan)
     if len(cells) == 0:
         return out
     for k, step in enumerate(_NEIGHBOURS):
-        q = _cell_keys(queries + step)
+        q = cell_keys(queries + step)
         at = np.minimum(np.searchsorted(sorted_keys, q), len(keys) - 1)
         hit = sorted_keys[at] == q
         out[hit, k] = heights[order[at[hit]]]
@@ -136,7 +136,7 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
         return Ground.empty(len(cloud))
     p = cloud[idx]
     cell = np.floor((p[:, :2] - grid_origin[:2]) / size).astype(np.int64)
-    key = _cell_keys(cell)
+    key = cell_keys(cell)
     order = np.lexsort((p[:, 2], key))
     key, idx, p, cell = key[order], idx[order], p[order], cell[order]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
@@ -162,7 +162,7 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
         lo, hi = ground_cells.min(axis=0) - 1, ground_cells.max(axis=0) + 1
         around = (ground_cells[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 2)
         around = np.unique(around[np.all((around >= lo) & (around <= hi), axis=1)], axis=0)
-        taken = np.isin(_cell_keys(around), _cell_keys(ground_cells))
+        taken = np.isin(cell_keys(around), cell_keys(ground_cells))
         around = around[~taken]
         near = _neighbour_heights(ground_cells, ground_z, around)
         fill = np.isfinite(near).sum(axis=1) >= fill_neighbours
@@ -210,7 +210,7 @@ def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray
     Returns the new cells (q, 2) int64 (none of ``cells``) and their heights (q,) float64."""
     cells = np.asarray(cells, np.int64).reshape(-1, 2)
     heights = np.asarray(heights, np.float64).reshape(-1)
-    barrier_keys = np.unique(_cell_keys(np.asarray(barriers, np.int64).reshape(-1, 2)))
+    barrier_keys = np.unique(cell_keys(np.asarray(barriers, np.int64).reshape(-1, 2)))
     found_cells, found_z, found_span = [], [], []
     for axis in (0, 1):   # along x (rows of fixed y), then along y
         other = 1 - axis
@@ -232,7 +232,7 @@ def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray
         # A bridge with a barrier cell anywhere on it is dropped whole.
         blocked = np.zeros(len(bridge), bool)
         if len(barrier_keys):
-            hit = np.isin(_cell_keys(new), barrier_keys)
+            hit = np.isin(cell_keys(new), barrier_keys)
             blocked[owner[hit]] = True
         keep = ~blocked[owner]
         found_cells.append(new[keep])
@@ -243,8 +243,8 @@ def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray
                         np.concatenate(found_span) if found_span else np.zeros(0, np.int64))
     if len(new) == 0:
         return new, new_z
-    order = np.lexsort((span, _cell_keys(new)))           # per cell, the shortest bridge first
-    new, new_z, keys = new[order], new_z[order], _cell_keys(new[order])
+    order = np.lexsort((span, cell_keys(new)))           # per cell, the shortest bridge first
+    new, new_z, keys = new[order], new_z[order], cell_keys(new[order])
     first = np.r_[True, keys[1:] != keys[:-1]]
     return new[first], new_z[first]
 

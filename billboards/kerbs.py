@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .ground import cell_keys
+
 #: the lower level of a kerb is at most max_step above the lowest ground within this many cells
 _AROUND = 2
 
@@ -45,11 +47,6 @@ class KerbConfig:
             raise ValueError(f"0 < min_step < max_step required, got {self.min_step}, {self.max_step}")
         if self.face_points < 1 or not (self.face_width > 0 and self.tolerance >= 0):
             raise ValueError("face_points ≥ 1, face_width > 0 and tolerance ≥ 0 required")
-
-
-def _keys(cells: np.ndarray) -> np.ndarray:
-    """(m, 2) int64 grid cells → (m,) int64 keys (cells within ±2³¹)."""
-    return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
 
 
 def neighbour_pairs(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -92,12 +89,12 @@ def kerb_blocks(ground: np.ndarray, cloud: np.ndarray, free: np.ndarray, grid_or
     high = np.where(step > 0, b, a)
     z_low, z_high = ground[low, 2], ground[high, 2]
     # the lower level is the ground around it: not the top of a bench, a car or a shelter
-    ground_keys = _keys(cells)
+    ground_keys = cell_keys(cells)
     by_key = np.argsort(ground_keys)
     around = np.full(len(low), np.inf)
     for di in range(-_AROUND, _AROUND + 1):
         for dj in range(-_AROUND, _AROUND + 1):
-            q = _keys(cells[low] + np.array([di, dj]))
+            q = cell_keys(cells[low] + np.array([di, dj]))
             at = np.minimum(np.searchsorted(ground_keys[by_key], q), len(ground_keys) - 1)
             hit = ground_keys[by_key][at] == q
             around[hit] = np.minimum(around[hit], ground[by_key[at[hit]], 2])
@@ -107,8 +104,8 @@ def kerb_blocks(ground: np.ndarray, cloud: np.ndarray, free: np.ndarray, grid_or
     idx = np.flatnonzero(free)
     p = np.asarray(cloud, np.float64)[idx]
     pc = np.floor((p[:, :2] - origin[:2]) / size).astype(np.int64)
-    at = np.minimum(np.searchsorted(ground_keys[by_key], _keys(pc)), len(ground_keys) - 1)
-    have = ground_keys[by_key][at] == _keys(pc)
+    at = np.minimum(np.searchsorted(ground_keys[by_key], cell_keys(pc)), len(ground_keys) - 1)
+    have = ground_keys[by_key][at] == cell_keys(pc)
     point_cell = by_key[at]
     idx, p, point_cell = idx[have], p[have], point_cell[have]
     order = np.argsort(point_cell, kind="stable")
