@@ -6,19 +6,19 @@ from the path. Its cloud points, left unexplained by the fronts, stand on one pl
 across the path's axis. Those walls become slits like the fronts: columns of FACADE
 blocks, fixed, facing along the path toward the open side.
 
-Per pass (pure numpy):
+Per pass (pure numpy; the names are :class:`SideWallConfig`'s):
 
 1. Candidate points: cloud points not yet explained, behind the nearest front within
-   ``wall_search`` metres along the path (what stands in front of the fronts — poles,
+   ``search`` metres along the path (what stands in front of the fronts — poles,
    cars, people — stays a billboard).
 2. Walls: peaks of a histogram of the candidates' positions along the path
-   (``histogram_bin`` wide) that stand ``wall_contrast`` times above the median over
-   ± ``wall_search`` and hold ``wall_min_points``; the plane is at the median position
+   (``histogram_bin`` wide) that stand ``contrast`` times above the median over
+   ± ``search`` and hold ``min_points``; the plane is at the median position
    of the points near the peak.
-3. Blocks: the wall's points (within ``wall_slab`` of the plane) binned on a grid of
+3. Blocks: the wall's points (within ``slab`` of the plane) binned on a grid of
    the block edge, from the corner with the nearer front backwards and on the facade
    rows' grid upwards; a grid column holds blocks from its lowest to its highest
-   occupied cell. A wall needs two columns and two rows at least.
+   cell with ``cell_points``. A wall needs two columns and two rows at least.
 4. Facing: a block is *hidden* on one side when the front on that side (one metre
    beyond the wall) is nearer to the path than the block and rises above it — the
    neighbouring building stands against the wall there. A block faces its one open
