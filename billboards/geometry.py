@@ -35,6 +35,10 @@ KINDS = (BILLBOARD, FACADE, GROUND)
 #: GROUND_OVERLAP), hiding the small steps between blocks of a sloping road.
 GROUND_OVERLAP = 0.08
 
+#: A square quad reaches this many edges from its centre (its half diagonal, √½, rounded up): a
+#: layer block is in an image while its centre is within this of the image's border.
+HALF_DIAGONAL = 0.71
+
 
 @dataclass(frozen=True)
 class DirectionConfig:

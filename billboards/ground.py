@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .geometry import base_yaw_toward, toward_cameras
+from .geometry import HALF_DIAGONAL, base_yaw_toward, toward_cameras
 
 #: a cell whose points rise this far (m, 10th to 90th percentile of their heights) stands on the ground
 _BARRIER_RISE = 0.25
@@ -191,7 +191,7 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
     if cameras is None:
         yaw, seen = base_yaw_toward(centres, viewpoints), np.ones(len(centres), bool)
     else:
-        yaw, seen = toward_cameras(centres, *cameras, max_distance=max_distance, reach=0.71 * size)
+        yaw, seen = toward_cameras(centres, *cameras, max_distance=max_distance, reach=HALF_DIAGONAL * size)
     yaw = np.round(yaw / (np.pi / 2)) * (np.pi / 2)
     point_block = np.full(len(cloud), -1, np.int64)
     mine = on & good[cell_of]

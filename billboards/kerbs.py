@@ -50,18 +50,19 @@ class KerbConfig:
 
 
 def neighbour_pairs(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The 4-neighbour pairs among grid cells (g, 2) int64: (a, b, axis) (p,) int64 with
-    cells[b] = cells[a] + unit step along ``axis`` (0: x, 1: y)."""
-    index = {tuple(c): n for n, c in enumerate(cells.tolist())}
+    """The 4-neighbour pairs among grid cells (g, 2) int64 (distinct): (a, b, axis) (p,) int64
+    with cells[b] = cells[a] + unit step along ``axis`` (0: x, 1: y)."""
+    keys = cell_keys(cells)
+    order = np.argsort(keys)
     a, b, axis = [], [], []
-    for n, (i, j) in enumerate(cells.tolist()):
-        for ax, step in ((0, (i + 1, j)), (1, (i, j + 1))):
-            m = index.get(step)
-            if m is not None:
-                a.append(n)
-                b.append(m)
-                axis.append(ax)
-    return np.asarray(a, np.int64), np.asarray(b, np.int64), np.asarray(axis, np.int64)
+    for ax, step in ((0, (1, 0)), (1, (0, 1))):
+        q = cell_keys(cells + np.array(step))
+        at = np.minimum(np.searchsorted(keys[order], q), max(len(keys) - 1, 0))
+        hit = np.flatnonzero(keys[order][at] == q) if len(keys) else np.zeros(0, np.int64)
+        a.append(hit)
+        b.append(order[at[hit]])
+        axis.append(np.full(len(hit), ax, np.int64))
+    return np.concatenate(a), np.concatenate(b), np.concatenate(axis)
 
 
 def kerb_blocks(ground: np.ndarray, cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, size: float,
