@@ -38,14 +38,14 @@ import numpy as np
 
 from core.fileio import DataFormatError, read_json, replace_dir, write_json
 from core.memory import peak_memory
-from core.tasks import executor_workers, ordered_results
 from data_synth import load_dataset
 from data_synth.dataset import held_out_frames
 from recon.cloud_io import CloudTiles, PlyStreamWriter, TileGrid, read_cloud_arrays, read_cloud_tiles
 from recon.epi import EpiPass, epi_points
 
-from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table, _psnr_db, _run_task, _Task,
-                    _Totals, place_billboards, place_hybrid, save_worker_state)
+from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table, _psnr_db, _Totals,
+                    compressed_textures, place_billboards, place_hybrid, sample_textures, save_worker_state,
+                    texture_tasks)
 from .geometry import FACADE, GROUND
 from .layer import Layer, build_layer
 from .model_reader import load
@@ -205,8 +205,7 @@ class _TileBuild:
         if layer is not None and len(layer.centres):
             own_block = np.all(self.grid.tile_of(layer.centres) == np.asarray(index), axis=1)
             mine, keep = own_layer(layer, own_block, own)
-            placed = place_hybrid(points[keep], octree_conf, viewpoints, mine, self.block_size, self.grid_origin,
-                                  colours=colours[keep])
+            placed = place_hybrid(points[keep], octree_conf, viewpoints, mine, self.block_size, self.grid_origin)
             context = place_hybrid(points, octree_conf, viewpoints, layer, self.block_size, self.grid_origin)
             counts = {"facade_blocks": int((mine.kind == FACADE).sum()),
                       "ground_blocks": int((mine.kind == GROUND).sum())}
@@ -246,16 +245,16 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
         save_worker_state(state, conf, placed, views, colours, occluders=occluders)
         del occluders
         n = placed.num_billboards
-        step = conf.chunk * conf.task_chunks
-        tasks = [_Task(str(state), b, min(n, b + step)) for b in range(0, n, step)]
+        tasks = texture_tasks(state, conf, n)
         d = conf.sampling.directions.num_directions
         octree = placed.octree
-        stats = []
+        desc = f"tile {index[0]},{index[1]}"
+        stats, _ = sample_textures(state, conf, tasks, placed.kind, placed.quads, placed.base_yaw, placed.unseen,
+                                   executor, progress, desc=f"{desc}: sampling")
         with ModelWriter(out, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
                          coef_mode=conf.coef_mode, num_directions=d) as writer:
             done = 0
-            for chunks in ordered_results(_run_task, tasks, executor, window=2 * executor_workers(executor),
-                                          desc=f"tile {index[0]},{index[1]}", progress=progress):
+            for chunks in compressed_textures(tasks, executor, progress, desc=desc):
                 for arrays, chunk_stats in chunks:
                     b = len(arrays["rank"])
                     writer.append(centres=(placed.quads[done:done + b] - octree.origin).astype(np.float32),

@@ -10,10 +10,10 @@ no farther apart than ``reach`` with nothing standing between them (a cell whose
 from its ground, or a facade) gets a block on the line between their heights
 (:func:`continue_ground`): asphalt without texture gives stereo no points, and the road
 between a sideways rig's two passes is never in any image, yet the road continues there.
-A continued block that no camera sees is *synthesised*: its texture is copied from a
-measured ground block nearby that a camera sees (:func:`synthesis_sources`), and the model
-marks it; so is any other ground block whose own sampling finds nothing (a block at the
-bottom edge of every image, or behind something from every camera).
+A continued block that no camera sees is *synthesised*: its texture is copied from seen ground
+nearby (:mod:`billboards.synthesis`), and the model marks it; so is any other ground block
+whose own sampling finds nothing (a block at the bottom edge of every image, or behind
+something from every camera).
 """
 
 from __future__ import annotations
@@ -21,19 +21,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .geometry import HALF_DIAGONAL, base_yaw_toward, toward_cameras
 
 #: a cell whose points rise this far (m, 10th to 90th percentile of their heights) stands on the ground
 _BARRIER_RISE = 0.25
-
-#: a donor whose points are this close to the best donor's match (grey levels RMS) is as good
-_MATCH = 20.0
-#: donors more than this far (m) above or below a block are on another level (past a kerb) …
-_LEVEL = 0.05
-#: … and rank behind every donor on its level (a squared colour distance no match reaches)
-_OTHER_LEVEL = 1e9
 
 #: The 8 neighbours of a grid cell, (8, 2) int64.
 _NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)], np.int64)
@@ -247,77 +239,3 @@ def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray
     new, new_z, keys = new[order], new_z[order], cell_keys(new[order])
     first = np.r_[True, keys[1:] != keys[:-1]]
     return new[first], new_z[first]
-
-
-def owned_colours(owner: np.ndarray, colours: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The mean colour (n, 3) float64 of each of ``n`` items' own points (NaN: none) and their
-    variance (n,) float64, summed over the channels; owner (N,) int64 the item of each point
-    (−1: none), colours (N, 3) uint8 or float."""
-    mine = owner >= 0
-    c = np.asarray(colours, np.float64)[mine]
-    count = np.bincount(owner[mine], minlength=n).astype(np.float64)
-    sums = np.stack([np.bincount(owner[mine], weights=c[:, ch], minlength=n) for ch in range(3)], axis=1)
-    squares = np.bincount(owner[mine], weights=(c * c).sum(axis=1), minlength=n)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(count[:, None] > 0, sums / count[:, None], np.nan)
-        spread = np.maximum(squares / count - (mean ** 2).sum(axis=1), 0.0)
-    return mean, spread
-
-
-def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, colours: np.ndarray | None = None,
-                      spread: np.ndarray | None = None, k: int = 8, pool: int = 64, seed: int = 0) -> np.ndarray:
-    """(n,) int64: for each ``wanted`` item, the index of a donor (one of ``donors``, never itself)
-    near it whose texture it takes; −1 elsewhere, and everywhere when there is no donor.
-
-    centres (n, 3) float64; wanted, donors (n,) bool; colours (n, 3) float64: the mean colour of
-    each item's own cloud points (NaN: none); spread (n,) float64 their variance (summed over
-    the channels; None: 0). Without colours the donor is drawn at random among the ``k``
-    nearest (horizontally). With them it is drawn among the ``k`` of the ``pool`` nearest
-    donors whose points lie nearest the colour of the ground around the wanted item (the
-    median colour of the plainer half, by spread, of the 3·``k`` nearest items that have one), in
-    the mean squared sense
-    (|mean − target|² + spread: a block half marking, half asphalt is no match for asphalt
-    although its mean may be close), on the wanted item's level (within 5 cm of its height)
-    where the pool has a donor there: stereo finds points on lane
-    markings and kerbs more readily than on plain asphalt, so the nearest donors are often
-    markings, and the road between them would come out striped. Random draws are seeded (a
-    build is reproducible) so that a stretch of synthesised ground does not repeat one texture."""
-    n = len(centres)
-    out = np.full(n, -1, np.int64)
-    want, have = np.flatnonzero(wanted), np.flatnonzero(donors & ~wanted)
-    if len(want) == 0 or len(have) == 0:
-        return out
-    xy = np.asarray(centres, np.float64)[:, :2]
-    rng = np.random.default_rng(seed)
-    m = min(pool if colours is not None else k, len(have))
-    _, near = cKDTree(xy[have]).query(xy[want], k=m)
-    near = have[np.asarray(near).reshape(len(want), m)]                      # (w, m) donor indices
-    if colours is not None:
-        colours = np.asarray(colours, np.float64).reshape(n, 3)
-        coloured = np.flatnonzero(np.all(np.isfinite(colours), axis=1))
-        if len(coloured):
-            c = min(3 * k, len(coloured))
-            _, around = cKDTree(xy[coloured]).query(xy[want], k=c)
-            around = coloured[np.asarray(around).reshape(len(want), c)]                       # (w, c)
-            if spread is not None:   # the plainer half: a block with a marking in it is no measure of the road
-                around = np.take_along_axis(around, np.argsort(np.asarray(spread, np.float64)[around], axis=1,
-                                                               kind="stable")[:, :max(1, c // 2)], axis=1)
-            target = np.median(colours[around], axis=1)                                        # (w, 3)
-            distance = ((colours[near] - target[:, None, :]) ** 2).sum(axis=-1)
-            if spread is not None:
-                distance = distance + np.asarray(spread, np.float64)[near]
-            distance = np.where(np.isfinite(distance), distance, np.inf)
-            # A donor on another level (the sidewalk beside the road, past the kerb) is another surface:
-            # taken only where no donor of the pool lies within _LEVEL of the wanted item's height.
-            z = np.asarray(centres, np.float64)[:, 2]
-            other = np.abs(z[near] - z[want][:, None]) > _LEVEL
-            distance = np.where(other & ~np.all(other, axis=1, keepdims=True), distance + _OTHER_LEVEL, distance)
-            order = np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)]
-            near, distance = np.take_along_axis(near, order, axis=1), np.take_along_axis(distance, order, axis=1)
-            # only as good a match as the best (within MATCH grey levels RMS): rather one texture
-            # repeated than sidewalk on the road
-            usable = (distance <= distance[:, :1] + 3 * _MATCH ** 2).sum(axis=1)
-            out[want] = near[np.arange(len(want)), (rng.random(len(want)) * usable).astype(np.int64)]
-            return out
-    out[want] = near[np.arange(len(want)), rng.integers(0, near.shape[1], len(want))]
-    return out

@@ -396,29 +396,3 @@ def test_side_walls_on_a_street_stand_on_the_ground_truth_walls_facing_out(layer
                           LayerConfig(side_walls=False, kerbs=False), cameras=cameras)
     assert not without.side_wall.any() and not without.kerb.any()
     assert without.explained.sum() < layer.explained.sum()
-
-
-def test_a_synthesised_block_turns_its_rows_the_way_its_donors_run():
-    """The donor's texture is copied texel for texel: a synthesised block takes its donor's base
-    yaw (a lane marking along the road stays along it)."""
-    from billboards.layer import Layer
-
-    rng = np.random.default_rng(0)
-    xy = np.array([(i + 0.25, j + 0.25) for i in np.arange(0, 4, 0.5) for j in np.arange(0, 2, 0.5)])
-    measured = xy[:, 1] < 1.0                                   # two rows measured and seen, two continued, unseen
-    centres = np.column_stack([xy, np.zeros(len(xy))])
-    yaw = np.where(measured, 0.0, np.pi / 2)
-    points, owner = [], []
-    for b in np.flatnonzero(measured):
-        p = centres[b] + np.column_stack([rng.uniform(-0.25, 0.25, (40, 2)), rng.normal(0, 0.005, 40)])
-        points.append(p)
-        owner.append(np.full(40, b))
-    points, owner = np.concatenate(points), np.concatenate(owner)
-    layer = Layer(centres, yaw, np.full(len(xy), GROUND, np.uint8), owner, [], continued=~measured, seen=measured)
-    viewpoints = np.array([[2.0, -3.0, 2.0]])
-    placed = place_hybrid(points, OctreeConfig(voxel_size=0.5, min_points=5), viewpoints, layer, 0.5,
-                          colours=np.full((len(points), 3), 128, np.uint8))
-    synthesised = np.flatnonzero(placed.synthesised)
-    assert len(synthesised) == int((~measured).sum())
-    assert np.allclose(placed.base_yaw[synthesised], placed.base_yaw[placed.donor[synthesised]])
-    assert np.allclose(placed.base_yaw[synthesised], 0.0)

@@ -1,4 +1,4 @@
-"""The ground of the facade layer: continued between measured ground, synthesised where no camera saw it."""
+"""The ground of the facade layer: measured, and continued between measured ground."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from billboards.geometry import GROUND
-from billboards.ground import continue_ground, ground_blocks, owned_colours, synthesis_sources
+from billboards.ground import continue_ground, ground_blocks
 from billboards.layer import LayerConfig, build_layer
 
 
@@ -48,82 +48,6 @@ def test_degenerate_inputs_give_no_cells():
     assert len(new) == 0
     new, _ = continue_ground(_cells([(0, 0), (3, 0)]), np.zeros(2), _cells([]), reach=0)
     assert len(new) == 0
-
-
-def test_synthesis_sources_are_nearby_donors_drawn_reproducibly():
-    rng = np.random.default_rng(0)
-    centres = np.column_stack([rng.uniform(0, 20, 400), rng.uniform(0, 20, 400), np.zeros(400)])
-    synthesised = centres[:, 0] > 15
-    donors = ~synthesised
-    a = synthesis_sources(centres, synthesised, donors, k=4)
-    assert np.array_equal(a, synthesis_sources(centres, synthesised, donors, k=4))
-    assert np.all(a[~synthesised] == -1) and np.all(a[synthesised] >= 0)
-    assert np.all(donors[a[synthesised]])
-    # each donor is among the 4 donors nearest its block
-    d = np.linalg.norm(centres[synthesised][:, None, :2] - centres[donors][None, :, :2], axis=-1)
-    fourth = np.sort(d, axis=1)[:, 3]
-    assert np.all(np.linalg.norm(centres[a[synthesised], :2] - centres[synthesised, :2], axis=1) <= fourth + 1e-12)
-    assert len(np.unique(a[synthesised])) > 10                     # not one texture repeated
-    assert np.all(synthesis_sources(centres, synthesised, np.zeros(400, bool)) == -1)
-
-
-def test_donors_match_the_colour_of_the_ground_around_and_skip_markings():
-    """Measured ground beside a band: dark asphalt, with bright markings in the rows 3–4 and 6–7 m out;
-    the asphalt rows right beside the band are no donors (no camera sees their centres). The
-    band's donors come from asphalt (the colour around it), not the nearest donors, markings."""
-    xs, ys = np.meshgrid(np.arange(20) + 0.5, np.arange(-8, 9) + 0.5, indexing="ij")
-    centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
-    y = np.abs(centres[:, 1])
-    band, beside, marking = y < 2.0, (y > 2.0) & (y < 3.0), (np.floor(y) == 3) | (np.floor(y) == 6)
-    colours = np.where(marking[:, None], 230.0, 60.0) * np.ones((1, 3))
-    colours[band] = np.nan
-    donors = ~band & ~beside
-    blind = synthesis_sources(centres, band, donors)
-    matched = synthesis_sources(centres, band, donors, colours)
-    assert np.all(matched[band] >= 0) and np.all(donors[matched[band]])
-    assert not np.any(marking[matched[band]])
-    assert np.mean(marking[blind[band]]) > 0.5   # the nearest donors alone are mostly markings
-    assert np.array_equal(matched, synthesis_sources(centres, band, donors, colours))   # reproducible
-
-
-def test_donors_are_plain_blocks_of_the_road_not_marked_ones_nor_the_sidewalk():
-    """Beside the band: asphalt (60) right next to it (no donors), then blocks half marking, half
-    asphalt (mean 145, a wide spread), one row of plain asphalt, then sidewalk (130, plain). The
-    mean colours alone would pick the sidewalk (nearer the marked blocks' mean); the spread
-    leaves the marked blocks out of the road's colour and out of the donors."""
-    xs, ys = np.meshgrid(np.arange(20) + 0.5, np.arange(-8, 9) + 0.5, indexing="ij")
-    centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
-    y = np.floor(np.abs(centres[:, 1]))
-    band, beside, marked, plain = y < 2, y == 2, y == 3, y == 4
-    colours = np.select([marked, plain | beside], [145.0, 60.0], 130.0)[:, None] * np.ones((1, 3))
-    spread = np.where(marked, 3 * 85.0 ** 2, 30.0)
-    colours[band], spread[band] = np.nan, np.nan
-    donors = ~band & ~beside
-    got = synthesis_sources(centres, band, donors, colours, spread)
-    assert np.all(plain[got[band]])
-    # the road's level: with the plain asphalt on the sidewalk's level (past a 15 cm kerb) and a
-    # brighter plain road on the band's, the band takes the road on its own level
-    raised = centres.copy()
-    raised[plain | (y >= 5), 2] = 0.15
-    colours[y == 3] = 100.0
-    spread[y == 3] = 30.0
-    got = synthesis_sources(raised, band, donors, colours, spread)
-    assert np.all(np.floor(np.abs(centres[got[band], 1])) == 3)
-
-
-def test_owned_colours_against_a_loop():
-    rng = np.random.default_rng(5)
-    owner = rng.integers(-1, 6, 500)
-    colours = rng.integers(0, 256, (500, 3)).astype(np.uint8)
-    mean, spread = owned_colours(owner, colours, 7)
-    for i in range(7):
-        c = colours[owner == i].astype(np.float64)
-        if len(c) == 0:
-            assert np.all(np.isnan(mean[i]))
-            continue
-        np.testing.assert_allclose(mean[i], c.mean(axis=0))
-        np.testing.assert_allclose(spread[i], c.var(axis=0).sum(), rtol=1e-9, atol=1e-6)
-    assert np.all(np.isnan(mean[6]))   # item 6 owns no point
 
 
 def _sideways_cameras(xs, lanes=(-2.0, 2.0), height=2.0, f=300.0, size=(240, 320)):

@@ -1,0 +1,155 @@
+"""Synthesised ground: a texture for ground that no camera saw, copied from seen ground nearby.
+
+The facade layer continues the ground where no camera gave points (:mod:`billboards.ground`):
+the road between a sideways rig's two passes is in no image, and ground at the bottom edge of
+every image or behind something from every camera samples to nothing. Once every texture is
+sampled, each such block takes the texture of a ground block nearby that a camera saw whole
+(:func:`synthesise`), and the model marks it as synthesised.
+
+The donor is chosen by what its sampled texture looks like (:func:`texture_colours`), not by
+its cloud points: stereo finds points on lane markings and kerbs far more readily than on plain
+asphalt, so the points of a block that is mostly asphalt are mostly its marking, and donors
+ranked by them paint the road with light patches.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .geometry import GROUND
+
+#: a donor whose texture is this close to the best donor's match (grey levels RMS) is as good
+_MATCH = 20.0
+#: donors more than this far (m) above or below a block are on another level (past a kerb) …
+_LEVEL = 0.05
+#: … and rank behind every donor on its level (a squared colour distance no match reaches)
+_OTHER_LEVEL = 1e9
+#: blocks whose textures are read from the sampled textures at a time (bounds the memory)
+_CHUNK = 4096
+
+
+def texture_colours(textures: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What each texture looks like: textures (g, t, t, 4) uint8 → the mean colour of its
+    opaque texels (g, 3) float64 (NaN: none), their variance (g,) float64 summed over the
+    channels (NaN: none), and the share of its texels that are opaque (g,) float64."""
+    textures = np.asarray(textures)
+    g, texels = len(textures), int(np.prod(textures.shape[1:3]))
+    rgb = textures[..., :3].reshape(g, texels, 3).astype(np.float64)
+    opaque = textures[..., 3].reshape(g, texels) > 0
+    count = opaque.sum(axis=1).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = (rgb * opaque[..., None]).sum(axis=1) / count[:, None]
+        spread = (((rgb - mean[:, None, :]) ** 2).sum(axis=2) * opaque).sum(axis=1) / count
+    return mean, spread, count / max(1, texels)
+
+
+def texture_colours_reference(textures: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`texture_colours` one texture at a time (the slow, obvious twin for tests)."""
+    g = len(textures)
+    mean, spread, share = np.full((g, 3), np.nan), np.full(g, np.nan), np.zeros(g)
+    for i, tex in enumerate(textures):
+        texels = tex.reshape(-1, 4)
+        c = texels[texels[:, 3] > 0, :3].astype(np.float64)
+        share[i] = len(c) / len(texels)
+        if len(c):
+            mean[i] = c.mean(axis=0)
+            spread[i] = c.var(axis=0).sum()
+    return mean, spread, share
+
+
+def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, colours: np.ndarray | None = None,
+                      spread: np.ndarray | None = None, k: int = 8, pool: int = 64, seed: int = 0) -> np.ndarray:
+    """(n,) int64: for each ``wanted`` item, the index of a donor (one of ``donors``, never itself)
+    near it whose texture it takes; −1 elsewhere, and everywhere when there is no donor.
+
+    centres (n, 3) float64; wanted, donors (n,) bool; colours (n, 3) float64: the mean colour of
+    each item's texture (NaN: none); spread (n,) float64 its variance (summed over the
+    channels; None: 0). Without colours the donor is drawn at random among the ``k``
+    nearest (horizontally). With them it is drawn among the ``k`` of the ``pool`` nearest
+    donors that lie nearest the colour of the ground around the wanted item (the median colour
+    of the plainer half, by spread, of the 3·``k`` nearest items that have one), in the mean
+    squared sense (|mean − target|² + spread: a block half marking, half asphalt is no match
+    for asphalt although its mean may be close), on the wanted item's level (within 5 cm of its
+    height) where the pool has a donor there: the nearest donors are often markings or kerbs,
+    and the road between them would come out striped. Random draws are seeded (a build is
+    reproducible) so that a stretch of synthesised ground does not repeat one texture."""
+    n = len(centres)
+    out = np.full(n, -1, np.int64)
+    want, have = np.flatnonzero(wanted), np.flatnonzero(donors & ~wanted)
+    if len(want) == 0 or len(have) == 0:
+        return out
+    xy = np.asarray(centres, np.float64)[:, :2]
+    rng = np.random.default_rng(seed)
+    m = min(pool if colours is not None else k, len(have))
+    _, near = cKDTree(xy[have]).query(xy[want], k=m)
+    near = have[np.asarray(near).reshape(len(want), m)]                      # (w, m) donor indices
+    if colours is not None:
+        colours = np.asarray(colours, np.float64).reshape(n, 3)
+        coloured = np.flatnonzero(np.all(np.isfinite(colours), axis=1))
+        if len(coloured):
+            c = min(3 * k, len(coloured))
+            _, around = cKDTree(xy[coloured]).query(xy[want], k=c)
+            around = coloured[np.asarray(around).reshape(len(want), c)]                       # (w, c)
+            if spread is not None:   # the plainer half: a block with a marking in it is no measure of the road
+                around = np.take_along_axis(around, np.argsort(np.asarray(spread, np.float64)[around], axis=1,
+                                                               kind="stable")[:, :max(1, c // 2)], axis=1)
+            target = np.median(colours[around], axis=1)                                        # (w, 3)
+            distance = ((colours[near] - target[:, None, :]) ** 2).sum(axis=-1)
+            if spread is not None:
+                distance = distance + np.asarray(spread, np.float64)[near]
+            distance = np.where(np.isfinite(distance), distance, np.inf)
+            # A donor on another level (the sidewalk beside the road, past the kerb) is another surface:
+            # taken only where no donor of the pool lies within _LEVEL of the wanted item's height.
+            z = np.asarray(centres, np.float64)[:, 2]
+            other = np.abs(z[near] - z[want][:, None]) > _LEVEL
+            distance = np.where(other & ~np.all(other, axis=1, keepdims=True), distance + _OTHER_LEVEL, distance)
+            order = np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)]
+            near, distance = np.take_along_axis(near, order, axis=1), np.take_along_axis(distance, order, axis=1)
+            # only as good a match as the best (within MATCH grey levels RMS): rather one texture
+            # repeated than sidewalk on the road
+            usable = (distance <= distance[:, :1] + 3 * _MATCH ** 2).sum(axis=1)
+            out[want] = near[np.arange(len(want)), (rng.random(len(want)) * usable).astype(np.int64)]
+            return out
+    out[want] = near[np.arange(len(want)), rng.integers(0, near.shape[1], len(want))]
+    return out
+
+
+def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw: np.ndarray, unseen: np.ndarray,
+               front: int) -> tuple[np.ndarray, np.ndarray]:
+    """Give each ground block without a texture of its own one from seen ground nearby, in place.
+
+    rgba (n, d, t, t, 4) uint8 the sampled textures (a memory map will do; rows are read and
+    written a chunk at a time); kind (n,) uint8; centres (n, 3) float64 quad centres; base_yaw
+    (n,) float64, changed: a synthesised block takes its donor's (the texture is copied texel
+    for texel, so its rows must run the same way: a lane marking along the road stays along
+    it); unseen (n,) bool blocks that no camera sees, whatever their sampling gave; front: the
+    direction nearest each block's base yaw, how its cameras saw it.
+
+    A ground block wants a texture when it is unseen or its sampling is transparent in every
+    direction; a donor is a ground block that does not, whose front texture is opaque in every
+    texel (:func:`synthesis_sources` picks among them). A synthesised block takes its donor's
+    front texture in every direction: seen from elsewhere, the donor's texture is another
+    place's grazing view, not how ground looks there.
+    Returns synthesised (n,) bool and donor (n,) int64 (−1: none)."""
+    n = len(kind)
+    synthesised, donor = np.zeros(n, bool), np.full(n, -1, np.int64)
+    ground = np.flatnonzero(kind == GROUND)
+    if len(ground) == 0:
+        return synthesised, donor
+    parts = [np.asarray(rgba[ground[s:s + _CHUNK]]) for s in range(0, len(ground), _CHUNK)]
+    textures = np.concatenate([p[:, front] for p in parts])                             # (g, t, t, 4)
+    empty = np.concatenate([~np.any(p[..., 3] > 0, axis=(1, 2, 3)) for p in parts])
+    del parts
+    mean, spread, share = texture_colours(textures)
+    wanted = np.asarray(unseen, bool)[ground] | empty
+    mean[wanted], spread[wanted] = np.nan, np.nan
+    donors = ~wanted & (share >= 1.0)
+    chosen = synthesis_sources(np.asarray(centres, np.float64)[ground], wanted, donors, mean, spread)
+    got = chosen >= 0
+    blocks, sources = ground[got], ground[chosen[got]]
+    for s in range(0, len(blocks), _CHUNK):
+        rgba[blocks[s:s + _CHUNK]] = textures[chosen[got][s:s + _CHUNK]][:, None]
+    synthesised[blocks], donor[blocks] = True, sources
+    base_yaw[blocks] = base_yaw[sources]
+    return synthesised, donor
