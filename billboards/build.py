@@ -1,12 +1,14 @@
 """The billboard stage: coloured cloud (+ images and poses) → ``model/`` + ``build_report.json``.
 
-1. read the cloud; 2. octree → voxel leaves (the billboards, in Morton order);
-3. per chunk of billboards, in worker processes: angular sampling (from the
-images, occlusion-aware, or from the cloud's own points), PCA eigen-textures,
-quantisation, and the decode error of what will be stored; 4. the chunks are
-streamed, in order, into the atlas pages of a model written atomically.
-Memory is bounded by the chunks in flight, not by the street's length.
-"""
+1. read the cloud; 2. the facade layer and the octree → blocks and voxel leaves (the
+billboards, in Morton order); 3. per chunk of billboards, in worker processes: angular
+sampling (from the images, occlusion-aware, or from the cloud's own points) into a memory
+map on disk; 4. ground no camera saw takes the texture of seen ground nearby
+(:mod:`billboards.synthesis`); 5. per chunk, in workers: the fit against the training
+views (:mod:`billboards.fit_tasks`), PCA eigen-textures, quantisation, and the decode error
+of what will be stored; 6. the chunks are streamed, in order, into the atlas pages of a
+model written atomically. Memory is bounded by the chunks in flight, not by the street's
+length; the sampled textures are on disk."""
 
 from __future__ import annotations
 

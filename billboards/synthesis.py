@@ -68,8 +68,8 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
     channels; None: 0). Without colours the donor is drawn at random among the ``k``
     nearest (horizontally). With them it is drawn among the ``k`` of the ``pool`` nearest
     donors that lie nearest the colour of the ground around the wanted item (the median colour
-    of the plainer half, by spread, of the 3·``k`` nearest items that have one), in the mean
-    squared sense (|mean − target|² + spread: a block half marking, half asphalt is no match
+    of the plainer half, by spread, of the 3·``k`` nearest items on its level that have one;
+    others only where the ``pool`` nearest hold fewer), in the mean squared sense (|mean − target|² + spread: a block half marking, half asphalt is no match
     for asphalt although its mean may be close), on the wanted item's level (within 5 cm of its
     height) where the pool has a donor there: the nearest donors are often markings or kerbs,
     and the road between them would come out striped. Random draws are seeded (a build is
@@ -84,13 +84,18 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
     m = min(pool if colours is not None else k, len(have))
     _, near = cKDTree(xy[have]).query(xy[want], k=m)
     near = have[np.asarray(near).reshape(len(want), m)]                      # (w, m) donor indices
+    z = np.asarray(centres, np.float64)[:, 2]
     if colours is not None:
         colours = np.asarray(colours, np.float64).reshape(n, 3)
         coloured = np.flatnonzero(np.all(np.isfinite(colours), axis=1))
         if len(coloured):
-            c = min(3 * k, len(coloured))
-            _, around = cKDTree(xy[coloured]).query(xy[want], k=c)
-            around = coloured[np.asarray(around).reshape(len(want), c)]                       # (w, c)
+            c, q = min(3 * k, len(coloured)), min(max(pool, 3 * k), len(coloured))
+            _, around = cKDTree(xy[coloured]).query(xy[want], k=q)
+            around = coloured[np.asarray(around).reshape(len(want), q)]                       # (w, q)
+            # the ground on the wanted item's level: the sidewalk past the kerb is plainer than
+            # asphalt, and would make the road's colour its own
+            off_level = np.abs(z[around] - z[want][:, None]) > _LEVEL
+            around = np.take_along_axis(around, np.argsort(off_level, axis=1, kind="stable")[:, :c], axis=1)
             if spread is not None:   # the plainer half: a block with a marking in it is no measure of the road
                 around = np.take_along_axis(around, np.argsort(np.asarray(spread, np.float64)[around], axis=1,
                                                                kind="stable")[:, :max(1, c // 2)], axis=1)
@@ -101,7 +106,6 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
             distance = np.where(np.isfinite(distance), distance, np.inf)
             # A donor on another level (the sidewalk beside the road, past the kerb) is another surface:
             # taken only where no donor of the pool lies within _LEVEL of the wanted item's height.
-            z = np.asarray(centres, np.float64)[:, 2]
             other = np.abs(z[near] - z[want][:, None]) > _LEVEL
             distance = np.where(other & ~np.all(other, axis=1, keepdims=True), distance + _OTHER_LEVEL, distance)
             order = np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)]

@@ -141,3 +141,22 @@ def test_donors_are_plain_blocks_of_the_road_not_marked_ones_nor_the_sidewalk():
     spread[y == 3] = 30.0
     got = synthesis_sources(raised, band, donors, colours, spread)
     assert np.all(np.floor(np.abs(centres[got[band], 1])) == 3)
+
+
+def test_the_colour_of_the_ground_around_is_taken_on_the_wanted_level():
+    """Beside the band, on its level: plain asphalt (60, spread 300) and blocks with a marking
+    (150, spread 3000); past a kerb, 15 cm up, a sidewalk plainer than both (130, spread 30).
+    Taken over every level, the plainer half would be the sidewalk, and the donors on the
+    band's level nearest its colour the marked blocks: the road would be painted with light
+    patches."""
+    xs, ys = np.meshgrid(np.arange(30) + 0.5, np.arange(-8, 9) + 0.5, indexing="ij")
+    centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    y = np.floor(np.abs(centres[:, 1]))
+    band, marked, sidewalk = y < 2, (y == 2) & (centres[:, 0] % 2 < 1), y >= 4
+    centres[sidewalk, 2] = 0.15
+    colours = np.select([marked, sidewalk], [150.0, 130.0], 60.0)[:, None] * np.ones((1, 3))
+    spread = np.select([marked, sidewalk], [3000.0, 30.0], 300.0)
+    colours[band], spread[band] = np.nan, np.nan
+    got = synthesis_sources(centres, band, ~band, colours, spread)
+    assert np.all(got[band] >= 0)
+    assert not np.any(marked[got[band]]) and not np.any(sidewalk[got[band]])
