@@ -32,6 +32,7 @@ from data_synth.dataset import held_out_frames
 from recon.cloud_io import read_cloud_arrays
 from recon.epi import EpiConfig, epi_points
 
+from .atlas import reserved_memmap
 from .fit import FitConfig, Quads, quads_of
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
@@ -441,8 +442,8 @@ def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np
     blocks are synthesised are saved for the next tasks). Returns the tasks' sampling
     statistics and synthesised (n,) bool."""
     s, n = conf.sampling, len(kind)
-    np.lib.format.open_memmap(state / "rgba.npy", mode="w+", dtype=np.uint8,
-                              shape=(n, s.directions.num_directions, s.tile, s.tile, 4)).flush()
+    # its blocks reserved: a full disk is an OSError naming the file, not a worker killed by SIGBUS
+    reserved_memmap(state / "rgba.npy", np.uint8, (n, s.directions.num_directions, s.tile, s.tile, 4)).flush()
     stats = [st for chunk in ordered_results(_run_task, tasks, executor, window=2 * executor_workers(executor),
                                              desc=desc, progress=progress) for st in chunk]
     rgba = np.load(state / "rgba.npy", mmap_mode="r+")
