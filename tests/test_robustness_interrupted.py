@@ -208,11 +208,11 @@ def test_build_interrupted_keeps_the_old_model_and_the_next_run_starts_clean(wal
     calls = [0]
     real_compress = build_mod.compress_chunk
 
-    def dying_compress(rgba, conf):
+    def dying_compress(rgba, conf, eig=None):
         calls[0] += 1
         if calls[0] == 3:
             raise KeyboardInterrupt("killed mid-build")
-        return real_compress(rgba, conf)
+        return real_compress(rgba, conf, eig)
 
     monkeypatch.setattr(build_mod, "compress_chunk", dying_compress)
     with pytest.raises(KeyboardInterrupt):
