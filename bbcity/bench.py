@@ -35,7 +35,7 @@ SCENES = ("all", "street", "town", "executor", "city")
 
 @dataclass(frozen=True)
 class BenchConfig:
-    quick: bool = False  # small inputs for a smoke run (under 3 minutes)
+    quick: bool = False  # small inputs for a smoke run (under 3 minutes; "all" leaves the executors out)
     scene: str = "all"  # "street" (the pipeline and everything on its model), "town" (culling), "executor" or "all"
     repeats: int = 3  # each timing is the median of this many runs
     workers: int = 2  # process pool size
@@ -410,7 +410,9 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
         from .bench_city import bench_city
 
         section("city", bench_city, cfg, report, out, cfg.city_scales)
-    if cfg.scene in ("all", "executor"):
+    if cfg.scene == "executor" or (cfg.scene == "all" and not cfg.quick):
+        # (a quick run of everything leaves it out: two more recons and builds, whose outputs'
+        # byte identity the executor's own tests check; --scene executor --quick runs it)
         from .bench_executor import bench_executor
 
         section("executor", bench_executor, cfg, report, out)
