@@ -141,10 +141,12 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     ground = np.flatnonzero(kind == GROUND)
     if len(ground) == 0:
         return synthesised, donor
-    parts = [np.asarray(rgba[ground[s:s + _CHUNK]]) for s in range(0, len(ground), _CHUNK)]
-    textures = np.concatenate([p[:, front] for p in parts])                             # (g, t, t, 4)
-    empty = np.concatenate([~np.any(p[..., 3] > 0, axis=(1, 2, 3)) for p in parts])
-    del parts
+    textures = np.empty((len(ground),) + rgba.shape[2:], rgba.dtype)                  # (g, t, t, 4) front
+    empty = np.empty(len(ground), bool)
+    for s in range(0, len(ground), _CHUNK):
+        part = np.asarray(rgba[ground[s:s + _CHUNK]])
+        textures[s:s + len(part)] = part[:, front]
+        empty[s:s + len(part)] = ~np.any(part[..., 3] > 0, axis=(1, 2, 3))
     mean, spread, share = texture_colours(textures)
     wanted = np.asarray(unseen, bool)[ground] | empty
     mean[wanted], spread[wanted] = np.nan, np.nan
