@@ -36,20 +36,28 @@ def cell_keys(cells: np.ndarray) -> np.ndarray:
     return (cells[:, 0] << 32) + (cells[:, 1] & 0xFFFFFFFF)
 
 
+def cell_index(cells: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """(q,) int64: the index in ``cells`` (m, 2) int64 (distinct) of each query cell (q, 2)
+    int64; −1 where it is not one of them."""
+    keys = cell_keys(np.asarray(cells, np.int64).reshape(-1, 2))
+    q = cell_keys(np.asarray(queries, np.int64).reshape(-1, 2))
+    out = np.full(len(q), -1, np.int64)
+    if len(keys) == 0:
+        return out
+    order = np.argsort(keys)
+    at = np.minimum(np.searchsorted(keys[order], q), len(keys) - 1)
+    hit = keys[order][at] == q
+    out[hit] = order[at[hit]]
+    return out
+
+
 def _neighbour_heights(cells: np.ndarray, heights: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """(q, 8) float64: the heights of the 8 neighbours of each query cell (q, 2) int64 among
     ``cells`` (m, 2) int64 with ``heights`` (m,); NaN where a neighbour is not a cell."""
-    keys = cell_keys(cells)
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
     out = np.full((len(queries), len(_NEIGHBOURS)), np.nan)
-    if len(cells) == 0:
-        return out
     for k, step in enumerate(_NEIGHBOURS):
-        q = cell_keys(queries + step)
-        at = np.minimum(np.searchsorted(sorted_keys, q), len(keys) - 1)
-        hit = sorted_keys[at] == q
-        out[hit, k] = heights[order[at[hit]]]
+        at = cell_index(cells, queries + step)
+        out[at >= 0, k] = heights[at[at >= 0]]
     return out
 
 

@@ -27,10 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ground import cell_keys
+from .ground import cell_index
 
 #: the lower level of a kerb is at most max_step above the lowest ground within this many cells
 _AROUND = 2
+
 
 @dataclass(frozen=True)
 class KerbConfig:
@@ -52,15 +53,12 @@ class KerbConfig:
 def neighbour_pairs(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The 4-neighbour pairs among grid cells (g, 2) int64 (distinct): (a, b, axis) (p,) int64
     with cells[b] = cells[a] + unit step along ``axis`` (0: x, 1: y)."""
-    keys = cell_keys(cells)
-    order = np.argsort(keys)
     a, b, axis = [], [], []
     for ax, step in ((0, (1, 0)), (1, (0, 1))):
-        q = cell_keys(cells + np.array(step))
-        at = np.minimum(np.searchsorted(keys[order], q), max(len(keys) - 1, 0))
-        hit = np.flatnonzero(keys[order][at] == q) if len(keys) else np.zeros(0, np.int64)
+        at = cell_index(cells, cells + np.array(step))
+        hit = np.flatnonzero(at >= 0)
         a.append(hit)
-        b.append(order[at[hit]])
+        b.append(at[hit])
         axis.append(np.full(len(hit), ax, np.int64))
     return np.concatenate(a), np.concatenate(b), np.concatenate(axis)
 
@@ -90,24 +88,19 @@ def kerb_blocks(ground: np.ndarray, cloud: np.ndarray, free: np.ndarray, grid_or
     high = np.where(step > 0, b, a)
     z_low, z_high = ground[low, 2], ground[high, 2]
     # the lower level is the ground around it: not the top of a bench, a car or a shelter
-    ground_keys = cell_keys(cells)
-    by_key = np.argsort(ground_keys)
     around = np.full(len(low), np.inf)
     for di in range(-_AROUND, _AROUND + 1):
         for dj in range(-_AROUND, _AROUND + 1):
-            q = cell_keys(cells[low] + np.array([di, dj]))
-            at = np.minimum(np.searchsorted(ground_keys[by_key], q), len(ground_keys) - 1)
-            hit = ground_keys[by_key][at] == q
-            around[hit] = np.minimum(around[hit], ground[by_key[at[hit]], 2])
+            at = cell_index(cells, cells[low] + np.array([di, dj]))
+            hit = at >= 0
+            around[hit] = np.minimum(around[hit], ground[at[hit], 2])
     keep = z_low <= around + config.max_step
     a, b, axis, low, high, z_low, z_high = (v[keep] for v in (a, b, axis, low, high, z_low, z_high))
     # free points by cell
     idx = np.flatnonzero(free)
     p = np.asarray(cloud, np.float64)[idx]
-    pc = np.floor((p[:, :2] - origin[:2]) / size).astype(np.int64)
-    at = np.minimum(np.searchsorted(ground_keys[by_key], cell_keys(pc)), len(ground_keys) - 1)
-    have = ground_keys[by_key][at] == cell_keys(pc)
-    point_cell = by_key[at]
+    point_cell = cell_index(cells, np.floor((p[:, :2] - origin[:2]) / size).astype(np.int64))
+    have = point_cell >= 0
     idx, p, point_cell = idx[have], p[have], point_cell[have]
     order = np.argsort(point_cell, kind="stable")
     idx, p, point_cell = idx[order], p[order], point_cell[order]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from billboards.geometry import GROUND
-from billboards.ground import continue_ground, ground_blocks
+from billboards.ground import cell_index, continue_ground, ground_blocks
 from billboards.layer import LayerConfig, build_layer
 
 
@@ -111,3 +111,15 @@ def test_ground_blocks_of_an_empty_cloud():
     g = ground_blocks(np.zeros((0, 3)), np.zeros(0, bool), np.zeros(3), 0.5, np.zeros((1, 3)), tolerance=0.06,
                       min_points=20, step=0.05, fill_neighbours=5, fill_passes=2, reach=12.0)
     assert len(g.centres) == 0 and len(g.continued) == 0 and len(g.synthesised) == 0
+
+
+def test_cell_index_against_a_dictionary():
+    rng = np.random.default_rng(2)
+    cells = np.unique(rng.integers(-40, 40, (300, 2)), axis=0)
+    cells = cells[rng.permutation(len(cells))]
+    queries = np.concatenate([rng.integers(-45, 45, (500, 2)), [[2**31 - 1, -2**31]]])
+    where = {tuple(c): i for i, c in enumerate(cells)}
+    want = np.array([where.get(tuple(q), -1) for q in queries])
+    np.testing.assert_array_equal(cell_index(cells, queries), want)
+    assert np.all(cell_index(np.zeros((0, 2), np.int64), queries) == -1)
+    assert cell_index(cells, np.zeros((0, 2), np.int64)).shape == (0,)
