@@ -37,7 +37,8 @@ import numpy as np
 
 from core.fileio import read_png
 
-from .geometry import BILLBOARD, GROUND, HALF_DIAGONAL, DirectionConfig, direction_angles, kind_frames, texel_offsets, unit_vectors
+from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, DirectionConfig, direction_angles, kind_frames,
+                       texel_offsets, unit_vectors)
 
 logger = logging.getLogger(__name__)
 
@@ -369,7 +370,8 @@ class ImageSampler:
         # half diagonal of the image): ground right beside the path lies at the images' lower edge.
         with np.errstate(divide="ignore", invalid="ignore"):
             m = np.where((self.kind[ids] != BILLBOARD)[:, None],
-                         np.round(K[None, :, 0, 0] * HALF_DIAGONAL * self.sizes[ids][:, None] / np.maximum(z, 1e-9), 3), 0.0)
+                         np.round(K[None, :, 0, 0] * HALF_DIAGONAL * self.sizes[ids][:, None]
+                                  / np.maximum(z, 1e-9), 3), 0.0)
         usable = ((z > 0.3) & (dist < cfg.max_distance) & (u >= -m) & (u <= w - 1 + m) & (v >= -m) & (v <= h - 1 + m))
         dyaw = np.round(np.angle(np.exp(1j * (cam_yaw[:, None, :] - yaw[:, :, None]))), 6)  # (B, d, V), wrapped
         several_rows = len(cfg.directions.pitches_deg) > 1
