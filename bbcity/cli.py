@@ -361,7 +361,9 @@ def _run_recon(args) -> int:
 
 def _add_build(sub) -> None:
     from billboards.fit import FitConfig
+    from billboards.geometry import MAX_SPLIT
     from billboards.layer import LayerConfig
+    from billboards.resolution import ResolutionConfig
     from billboards.octree import MAX_DEPTH
 
     p = sub.add_parser(
@@ -422,6 +424,11 @@ def _add_build(sub) -> None:
                    help="continue the ground across gaps up to this wide (m) between ground cells where nothing "
                         "stands; blocks no camera saw get a texture synthesised from ground nearby, marked in the "
                         f"model (0: off; default {LayerConfig.ground_reach:g})")
+    res = ResolutionConfig()
+    p.add_argument("--ground-splits", type=int, choices=range(0, MAX_SPLIT + 1), default=res.max_split,
+                   help="halve ground blocks up to this many times where the capture saw them finer than their "
+                        f"texels (a texel at most {res.texel_pixels:g} capture pixels wide; 0: never; default "
+                        f"{res.max_split})")
     p.add_argument("--side-walls", choices=("on", "off"), default="on" if LayerConfig.side_walls else "off",
                    help="slits on the walls at the ends of the facades (a building's side seen from the path), "
                         "instead of billboards (default on)")
@@ -449,6 +456,7 @@ def build_config_from_args(args):
     from billboards.fit import FitConfig
     from billboards.geometry import DirectionConfig
     from billboards.layer import LayerConfig
+    from billboards.resolution import ResolutionConfig
     from billboards.octree import OctreeConfig
     from billboards.pca import PcaConfig
     from billboards.photometry import PhotometryConfig
@@ -472,7 +480,8 @@ def build_config_from_args(args):
     sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
     layer = None if args.layer == "none" else LayerConfig(facades="facades" in args.layer, ground="ground" in args.layer,
                                                           block_size=args.block_size, ground_reach=args.ground_reach,
-                                                          side_walls=args.side_walls == "on", kerbs=args.kerbs == "on")
+                                                          side_walls=args.side_walls == "on", kerbs=args.kerbs == "on",
+                                                          resolution=ResolutionConfig(max_split=args.ground_splits))
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,

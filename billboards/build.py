@@ -36,7 +36,7 @@ from .atlas import reserved_memmap
 from .fit import FitConfig, Quads, quads_of
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
-from .layer import Layer, LayerConfig, build_layer, facade_depth_report
+from .layer import Layer, LayerConfig, build_layer, facade_depth_report, refine_ground
 from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
 from .pca import EigenTextures, PcaConfig, eigen_textures
@@ -101,7 +101,8 @@ class Billboards:
     quad centres on the surface (:func:`sampling.quad_centres`); kind (n,) uint8 quad
     kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node; unseen (n,)
     bool the continued ground blocks no camera sees (their textures are synthesised,
-    :mod:`billboards.synthesis`).
+    :mod:`billboards.synthesis`); split (n,) uint8 a quad's edge is its kind's halved this many
+    times (:mod:`billboards.resolution`).
     Without a facade layer there is one billboard per voxel leaf, in leaf order; with one,
     a leaf holds its billboard (if its own points make one) and the layer blocks whose
     centres lie in it, so that culling by the octree covers both.
@@ -116,10 +117,13 @@ class Billboards:
     node_range: np.ndarray
     block_size: float | None = None
     unseen: np.ndarray | None = None
+    split: np.ndarray | None = None
 
     def __post_init__(self):
         if self.unseen is None:
             object.__setattr__(self, "unseen", np.zeros(len(self.kind), bool))
+        if self.split is None:
+            object.__setattr__(self, "split", np.zeros(len(self.kind), np.uint8))
 
     @property
     def num_billboards(self) -> int:
@@ -127,7 +131,8 @@ class Billboards:
 
     def image_sampler(self, views: Views, config: SamplingConfig) -> ImageSampler:
         return ImageSampler(views, self.quads, self.octree.voxel_size, self.base_yaw, self.voxels, config,
-                            box_centres=self.voxels.centres, kind=self.kind, block_size=self.block_size)
+                            box_centres=self.voxels.centres, kind=self.kind, block_size=self.block_size,
+                            split=self.split)
 
     def voxel_colours(self, colours: np.ndarray) -> np.ndarray:
         """(N', 3) uint8 colours of the points in voxels, in the order of ``voxels.points``."""
@@ -202,7 +207,9 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     node_range = item_begin[octree.node_range]
     unseen = np.zeros(len(item_kind), bool)
     unseen[blocks] = layer.synthesised[source[blocks]]
-    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen)
+    split = np.zeros(len(item_kind), np.uint8)
+    split[blocks] = layer.split[source[blocks]]
+    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen, split)
 
 
 # --------------------------------------------------------------------------- worker side
@@ -239,6 +246,7 @@ def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views:
     np.save(state / "centres.npy", grouped.centres)
     np.save(state / "base_yaw.npy", placed.base_yaw)
     np.save(state / "kind.npy", placed.kind)
+    np.save(state / "split.npy", placed.split)
     if conf.source == "points":
         np.save(state / "colours.npy", placed.voxel_colours(colours))
     meta = {"config": _config_to_json(conf), "origin": placed.octree.origin.tolist(),
@@ -290,7 +298,8 @@ def _worker_state(state_dir: str):
                                     np.load(root / "occluder_begin.npy"), np.load(root / "occluder_centres.npy"),
                                     meta["voxel_size"], meta["occluders"]["reach"])
         sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres,
-                               kind=kind, block_size=meta["block_size"], occluders=occluders)
+                               kind=kind, block_size=meta["block_size"], occluders=occluders,
+                               split=np.load(root / "split.npy"))
     else:
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)
@@ -372,7 +381,8 @@ def _fit_quads(state_dir: str, conf: BuildConfig) -> Quads:
         _WORKER.update(quads_dir=state_dir, quads=quads_of(
             origin, (np.load(root / "quads.npy") - origin).astype(np.float32),
             np.load(root / "base_yaw.npy").astype(np.float32), np.load(root / "kind.npy"), meta["voxel_size"],
-            meta["block_size"] or meta["voxel_size"], conf.sampling.tile, d.yaw_offsets, d.pitches, d.pitched_quads))
+            meta["block_size"] or meta["voxel_size"], conf.sampling.tile, d.yaw_offsets, d.pitches, d.pitched_quads,
+            split=np.load(root / "split.npy")))
     return _WORKER["quads"]
 
 
@@ -433,10 +443,10 @@ def texture_tasks(state: Path, conf: BuildConfig, n: int) -> list[_Task]:
 
 
 def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np.ndarray, quads: np.ndarray,
-                    base_yaw: np.ndarray, unseen: np.ndarray, executor: Executor | None, progress: bool | None,
-                    desc: str = "sampling") -> tuple[list[dict], np.ndarray]:
+                    base_yaw: np.ndarray, unseen: np.ndarray, split: np.ndarray, executor: Executor | None,
+                    progress: bool | None, desc: str = "sampling") -> tuple[list[dict], np.ndarray]:
     """Sample every texture of the billboards saved in ``state`` (kind (n,) uint8, quads (n, 3)
-    float64, base_yaw (n,) float64, unseen (n,) bool: :class:`Billboards`) into the memory map
+    float64, base_yaw (n,) float64, unseen (n,) bool, split (n,) uint8: :class:`Billboards`) into the memory map
     ``state/rgba.npy``, then give the ground blocks that have none one from seen ground nearby
     (:func:`~billboards.synthesis.synthesise`: changes ``base_yaw`` in place; it and which
     blocks are synthesised are saved for the next tasks). Returns the tasks' sampling
@@ -448,7 +458,7 @@ def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np
                                              desc=desc, progress=progress) for st in chunk]
     rgba = np.load(state / "rgba.npy", mmap_mode="r+")
     front = int(np.argmin(np.abs(s.directions.yaw_offsets)))
-    synthesised, _ = synthesise(rgba, kind, quads, base_yaw, unseen, front)
+    synthesised, _ = synthesise(rgba, kind, quads, base_yaw, unseen, front, split)
     rgba.flush()
     del rgba
     np.save(state / "synthesised.npy", synthesised.astype(np.uint8))
@@ -563,6 +573,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         layer = build_layer(points, passes, block_size, points.min(axis=0), views.centres, conf.layer,
                             cameras=(views.K, views.world_from_cam, views.sizes))
         stages["layer_s"] = time.perf_counter() - t1
+        layer = refine_ground(layer, points, block_size, (views.K, views.world_from_cam, views.sizes),
+                              conf.layer.resolution, conf.sampling.tile)
         layer_report = _layer_report(layer, passes, points, dataset, conf.layer)
         layer_report["block_size"] = block_size
 
@@ -594,7 +606,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     try:
         if placed is None:
             placed = place_billboards(points, octree, views.centres if views is not None else None)
-        base_yaw, quads, kind, unseen = placed.base_yaw, placed.quads, placed.kind, placed.unseen
+        base_yaw, quads, kind, unseen, split = placed.base_yaw, placed.quads, placed.kind, placed.unseen, placed.split
         node_range = placed.node_range
         save_worker_state(state, conf, placed, views, colours)
         stages["prepare_s"] = time.perf_counter() - t2
@@ -620,11 +632,11 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                     b = len(arrays["rank"])
                     writer.append(centres=(quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=base_yaw[done:done + b].astype(np.float32), kind=kind[done:done + b],
-                                  **arrays)
+                                  split=split[done:done + b], **arrays)
                     done += b
                     totals.add(stats)
 
-            sampled, _ = sample_textures(state, conf, tasks, kind, quads, base_yaw, unseen, executor, progress)
+            sampled, _ = sample_textures(state, conf, tasks, kind, quads, base_yaw, unseen, split, executor, progress)
             for st in sampled:
                 totals.add(st)
             stages["sample_s"] = time.perf_counter() - t3
@@ -741,6 +753,8 @@ def _layer_report(layer: Layer, passes, points: np.ndarray, dataset, config: Lay
               "side_wall_blocks": int(layer.side_wall.sum()), "kerb_blocks": int(layer.kerb.sum()),
               "ground_blocks_continued": int(layer.continued.sum()),
               "ground_blocks_unseen": int(layer.synthesised.sum()),
+              "ground_blocks_by_times_split": np.bincount(layer.split[layer.kind == GROUND],
+                                                          minlength=config.resolution.max_split + 1).tolist(),
               "explained_points": int(layer.explained.sum()), "points": int(len(points))}
     if layer.columns and dataset.has_ground_truth:
         report["facade_depth"] = facade_depth_report(layer.columns, points, load_scene(dataset.root), config)

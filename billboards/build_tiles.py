@@ -47,7 +47,7 @@ from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table,
                     compressed_textures, place_billboards, place_hybrid, sample_textures, save_worker_state,
                     texture_tasks)
 from .geometry import FACADE, GROUND
-from .layer import Layer, build_layer
+from .layer import Layer, build_layer, refine_ground
 from .model_reader import load
 from .model_set import load_model_set, quad_bounds, tile_name, write_model_set
 from .model_writer import ModelWriter, temp_dir
@@ -119,7 +119,7 @@ def own_layer(layer: Layer, own_block: np.ndarray, own_point: np.ndarray) -> tup
     point_block = renumber[np.where(pb[keep] >= 0, pb[keep], len(layer.centres))]
     return Layer(layer.centres[own_block], layer.base_yaw[own_block], layer.kind[own_block], point_block,
                  layer.columns, layer.continued[own_block], layer.seen[own_block], layer.side_wall[own_block],
-                 layer.kerb[own_block]), keep
+                 layer.kerb[own_block], layer.split[own_block]), keep
 
 
 def _anchored(passes: list[EpiPass], anchor: np.ndarray) -> list[EpiPass]:
@@ -200,8 +200,10 @@ class _TileBuild:
             passes = [] if near is None else epi_points(near.K, near.world_from_cam, near.image, self.cameras,
                                                         conf.layer.epi)
             passes = _cropped(_anchored(passes, self.grid_origin), lo - margin, hi + margin)
+            cameras = (views.K, views.world_from_cam, views.sizes)
             layer = build_layer(points, passes, self.block_size, self.grid_origin, viewpoints, conf.layer,
-                                cameras=(views.K, views.world_from_cam, views.sizes))
+                                cameras=cameras)
+            layer = refine_ground(layer, points, self.block_size, cameras, conf.layer.resolution, conf.sampling.tile)
         if layer is not None and len(layer.centres):
             own_block = np.all(self.grid.tile_of(layer.centres) == np.asarray(index), axis=1)
             mine, keep = own_layer(layer, own_block, own)
@@ -249,7 +251,7 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
         d = conf.sampling.directions.num_directions
         octree = placed.octree
         desc = f"tile {index[0]},{index[1]}"
-        stats, _ = sample_textures(state, conf, tasks, placed.kind, placed.quads, placed.base_yaw, placed.unseen,
+        stats, _ = sample_textures(state, conf, tasks, placed.kind, placed.quads, placed.base_yaw, placed.unseen, placed.split,
                                    executor, progress, desc=f"{desc}: sampling")
         with ModelWriter(out, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
                          coef_mode=conf.coef_mode, num_directions=d) as writer:
@@ -259,7 +261,7 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
                     b = len(arrays["rank"])
                     writer.append(centres=(placed.quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=placed.base_yaw[done:done + b].astype(np.float32),
-                                  kind=placed.kind[done:done + b], **arrays)
+                                  kind=placed.kind[done:done + b], split=placed.split[done:done + b], **arrays)
                     done += b
                     stats.append(chunk_stats)
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,

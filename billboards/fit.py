@@ -46,7 +46,7 @@ import numpy as np
 from scipy import sparse
 
 from .decode import direction_corners, view_direction_index
-from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP, kind_frames
+from .geometry import GROUND, GROUND_OVERLAP, kind_frames, quad_edges
 from .slits import Slits, build_slits
 
 #: Rows of one view's measurements (see :class:`Records`), as a structured dtype for files.
@@ -92,7 +92,7 @@ class Quads:
 
     centres (n, 3) float64 world; base_yaw (n,) float64 radians; kind (n,) uint8
     (:data:`~billboards.geometry.KINDS`); size: a billboard's edge (m); block_size: a layer
-    block's edge (m); tile: texels per side t; yaw_offsets (d_yaw,), pitches (d_pitch,)
+    block's edge (m), both halved ``split`` times per quad; tile: texels per side t; yaw_offsets (d_yaw,), pitches (d_pitch,)
     radians; pitched: billboards also tilt toward the eye's elevation; slits: the facade
     columns the renderer draws as one quad each (:func:`quads_of`)."""
 
@@ -106,6 +106,7 @@ class Quads:
     pitches: np.ndarray
     pitched: bool
     slits: Slits
+    split: np.ndarray | None = None   # (n,) uint8 each quad's edge halved this many times (None: never)
 
     @property
     def corners(self) -> int:
@@ -118,7 +119,7 @@ class Quads:
 
     def sizes(self, ids: np.ndarray) -> np.ndarray:
         """(m,) float64 edge of quads ``ids`` that their t texels span (m)."""
-        return np.where(self.kind[ids] == BILLBOARD, self.size, self.block_size)
+        return quad_edges(self.kind[ids], None if self.split is None else self.split[ids], self.size, self.block_size)
 
     def edges(self, ids: np.ndarray) -> np.ndarray:
         """(m,) float64 edge of quads ``ids`` as drawn: a ground block with its overlap, where
@@ -146,14 +147,15 @@ class Quads:
 
 def quads_of(origin: np.ndarray, centres: np.ndarray, base_yaw: np.ndarray, kind: np.ndarray, size: float,
              block_size: float, tile: int, yaw_offsets: np.ndarray, pitches: np.ndarray,
-             pitched: bool = False) -> Quads:
+             pitched: bool = False, split: np.ndarray | None = None) -> Quads:
     """:class:`Quads` of a model's arrays: origin (3,) float64; centres (n, 3) float32 relative to
     it; base_yaw (n,) float32; kind (n,) uint8; the rest as in :class:`Quads`. The slits are made
     from the model's own float32 arrays, as the renderer makes them."""
     slits = build_slits(centres, kind, base_yaw, block_size, merge=len(pitches) == 1)
     return Quads(np.asarray(centres, np.float64) + np.asarray(origin, np.float64), np.asarray(base_yaw, np.float64),
                  np.asarray(kind, np.uint8), float(size), float(block_size), int(tile),
-                 np.asarray(yaw_offsets, np.float64), np.asarray(pitches, np.float64), bool(pitched), slits)
+                 np.asarray(yaw_offsets, np.float64), np.asarray(pitches, np.float64), bool(pitched), slits,
+                 None if split is None else np.asarray(split, np.uint8))
 
 
 def column_taps(quads: Quads, quad: np.ndarray, texel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -203,7 +205,7 @@ def visible_quads(quads: Quads, K: np.ndarray, world_from_cam: np.ndarray, size,
     w, h = int(size[0]), int(size[1])
     R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
     cam = (quads.centres - C) @ R
-    radius = 0.75 * np.where(quads.kind == BILLBOARD, quads.size, quads.block_size * (1 + 2 * GROUND_OVERLAP))
+    radius = 0.75 * quads.edges(np.arange(len(quads.kind)))
     z = cam[:, 2]
     ok = (z > -radius) & (np.linalg.norm(cam, axis=1) < max_distance + radius)
     zc = np.maximum(z, 1e-6)

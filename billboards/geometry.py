@@ -39,6 +39,10 @@ GROUND_OVERLAP = 0.08
 #: layer block is in an image while its centre is within this of the image's border.
 HALF_DIAGONAL = 0.71
 
+#: A quad split L times has the edge of its kind · 2^−L (ground blocks split near the capture
+#: path, :mod:`billboards.resolution`); at most this many times.
+MAX_SPLIT = 3
+
 
 @dataclass(frozen=True)
 class DirectionConfig:
@@ -120,6 +124,16 @@ def kind_frames(kind: np.ndarray, base_yaw: np.ndarray, yaw: np.ndarray, pitch: 
     f_normal = np.where(ground, np.array([0.0, 0.0, 1.0]), f_normal)
     fixed = fixed[..., None]
     return np.where(fixed, f_normal, normal), np.where(fixed, f_right, right), np.where(fixed, f_up, up)
+
+
+def quad_edges(kind: np.ndarray, split: np.ndarray | None, voxel_size: float, block_size: float) -> np.ndarray:
+    """(n,) float64 edge (m) of each quad: ``voxel_size`` for a billboard, ``block_size`` for a
+    layer block, halved ``split`` (n,) uint8 times (None: never). kind (n,) uint8."""
+    kind = np.asarray(kind)
+    edge = np.where(kind == BILLBOARD, float(voxel_size), float(block_size))
+    if split is None:
+        return edge
+    return np.ldexp(edge, -np.asarray(split, np.int64))
 
 
 def texel_offsets(tile: int) -> np.ndarray:

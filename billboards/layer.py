@@ -27,9 +27,10 @@ import numpy as np
 
 from recon.epi import EpiConfig, EpiPass
 
-from .geometry import FACADE, GROUND
+from .geometry import FACADE, GROUND, HALF_DIAGONAL
 from .ground import ground_blocks
 from .kerbs import KerbConfig, kerb_blocks
+from .resolution import ResolutionConfig, capture_footprint, split_blocks, splits_for
 from .side_walls import SideWallConfig, side_walls
 
 logger = logging.getLogger(__name__)
@@ -63,6 +64,7 @@ class LayerConfig:
     epi: EpiConfig = field(default_factory=EpiConfig)
     side_wall: SideWallConfig = field(default_factory=SideWallConfig)
     kerb: KerbConfig = field(default_factory=KerbConfig)
+    resolution: ResolutionConfig = field(default_factory=ResolutionConfig)
 
     def __post_init__(self):
         if self.block_size is not None and not (np.isfinite(self.block_size) and self.block_size > 0):
@@ -243,7 +245,8 @@ class Layer:
     columns: the facade of each pass; continued (b,) bool ground blocks continued between
     measured ground; side_wall (b,) bool facade blocks on a side wall (:mod:`billboards.side_walls`); kerb (b,) bool
     facade blocks on a kerb (:mod:`billboards.kerbs`); seen (b,) bool blocks whose centre some camera sees (None: all); the
-    synthesised ones are continued and unseen.
+    synthesised ones are continued and unseen; split (b,) uint8 the block's edge is the layer's
+    halved this many times (ground split near the path, :mod:`billboards.resolution`; None: 0).
     """
 
     centres: np.ndarray
@@ -255,8 +258,11 @@ class Layer:
     seen: np.ndarray | None = None
     side_wall: np.ndarray | None = None
     kerb: np.ndarray | None = None
+    split: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.split is None:
+            object.__setattr__(self, "split", np.zeros(len(self.centres), np.uint8))
         if self.continued is None:
             object.__setattr__(self, "continued", np.zeros(len(self.centres), bool))
         if self.side_wall is None:
@@ -381,6 +387,27 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
                 int((layer.kind == GROUND).sum()), int(layer.continued.sum()), int(layer.synthesised.sum()),
                 100 * layer.explained.mean() if len(cloud) else 0)
     return layer
+
+
+def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, config: ResolutionConfig,
+                  tile: int) -> Layer:
+    """``layer`` with its ground blocks split where the capture saw them finer than their texels
+    (:mod:`billboards.resolution`): cameras (K, world_from_cam, sizes) of the capture; size: the
+    blocks' edge (m); tile: texels per side. The children of a block take its place in the order."""
+    ground = np.flatnonzero((layer.kind == GROUND) & (layer.split == 0))
+    split = layer.split.copy()
+    footprint = capture_footprint(layer.centres[ground], HALF_DIAGONAL * size, *cameras)
+    split[ground] = splits_for(footprint, size / tile, config)
+    if np.array_equal(split, layer.split):
+        return layer
+    parent, centres, point_block = split_blocks(layer.centres, layer.base_yaw, size, split - layer.split, cloud,
+                                                layer.point_block)
+    logger.info("ground at the capture's resolution: %d of %d ground blocks split into %d (by times split: %s)",
+                int((split[ground] > 0).sum()), len(ground), int(np.isin(parent, ground).sum()),
+                np.bincount(split[ground], minlength=config.max_split + 1).tolist())
+    return Layer(centres, layer.base_yaw[parent], layer.kind[parent], point_block, layer.columns,
+                 layer.continued[parent], layer.seen[parent], layer.side_wall[parent], layer.kerb[parent],
+                 split[parent])
 
 
 def facade_truth(columns: FacadeColumns, scene, height: float = 3.0) -> np.ndarray:

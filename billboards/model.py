@@ -14,6 +14,9 @@ Layout of a model directory::
     rank.npy             (n,) uint8 eigen images per billboard
     synthesised.npy      (n,) uint8 1: a ground block no camera saw, its texture synthesised from
                          ground nearby (optional: a model without it has none)
+    split.npy            (n,) uint8 the quad's edge is its kind's (voxel size, block size) halved
+                         this many times, at most MAX_SPLIT; only ground blocks split (optional:
+                         a model without it has no quad split)
     first_slot.npy       (n,) int32 slot of the billboard's mean tile
     slot_scale.npy       (m, 4) float32 tile dequantisation: value = offset + scale·q
     slot_offset.npy      (m, 4) float32
@@ -54,7 +57,7 @@ import numpy as np
 
 from core.fileio import DataFormatError
 
-from .geometry import KINDS
+from .geometry import GROUND, KINDS, MAX_SPLIT, quad_edges
 from .atlas import AtlasLayout, atlas_layout, row_layout
 
 FORMAT = "bbcity-billboards"
@@ -72,6 +75,7 @@ ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
     "kind": (np.dtype(np.uint8), ("n",)),
     "rank": (np.dtype(np.uint8), ("n",)),
     "synthesised": (np.dtype(np.uint8), ("n",)),
+    "split": (np.dtype(np.uint8), ("n",)),
     "first_slot": (np.dtype(np.int32), ("n",)),
     "slot_scale": (np.dtype(np.float32), ("m", 4)),
     "slot_offset": (np.dtype(np.float32), ("m", 4)),
@@ -82,9 +86,9 @@ ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
     "node_children": (np.dtype(np.int32), ("k", 8)),
     "node_range": (np.dtype(np.int32), ("k", 2)),
 }
-_BILLBOARD_ARRAYS = ("centres", "base_yaw", "kind", "rank", "synthesised")
+_BILLBOARD_ARRAYS = ("centres", "base_yaw", "kind", "rank", "synthesised", "split")
 #: arrays a model written before them lacks (read as zeros)
-OPTIONAL_ARRAYS = ("synthesised",)
+OPTIONAL_ARRAYS = ("synthesised", "split")
 _SLOT_ARRAYS = ("slot_scale", "slot_offset", "coef_scale", "coef_offset")
 
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,200}\.npy")
@@ -123,18 +127,25 @@ class BillboardModel:
     kind: np.ndarray | None = None  # (n,) uint8 BILLBOARD | FACADE | GROUND; None: all BILLBOARD
     block_size: float | None = None  # edge of FACADE and GROUND blocks (m); None: voxel_size
     synthesised: np.ndarray | None = None  # (n,) uint8 1: texture synthesised (no camera saw it); None: none
+    split: np.ndarray | None = None  # (n,) uint8 edge halved this many times (ground near the path); None: never
 
     def __post_init__(self):
         if self.kind is None:
             self.kind = np.zeros(len(self.centres), dtype=np.uint8)
         if self.synthesised is None:
             self.synthesised = np.zeros(len(self.centres), dtype=np.uint8)
+        if self.split is None:
+            self.split = np.zeros(len(self.centres), dtype=np.uint8)
         if self.block_size is None:
             self.block_size = self.voxel_size
 
     @property
     def num_billboards(self) -> int:
         return len(self.centres)
+
+    def edges(self) -> np.ndarray:
+        """(n,) float64 edge of each quad (m): its kind's, halved ``split`` times."""
+        return quad_edges(self.kind, self.split, self.voxel_size, self.block_size)
 
     @property
     def num_slots(self) -> int:
@@ -467,6 +478,11 @@ def _table_problem(a: dict[str, np.ndarray], d: int) -> tuple[str, str] | None:
     if bad.size:
         i = int(bad[0])
         return "synthesised", f"billboard {i} has synthesised = {int(a['synthesised'][i])}, valid are 0 and 1"
+    bad = np.flatnonzero((a["split"] > MAX_SPLIT) | ((a["split"] > 0) & (a["kind"] != GROUND)))
+    if bad.size:
+        i = int(bad[0])
+        return "split", (f"billboard {i} of kind {int(a['kind'][i])} is split {int(a['split'][i])} times; "
+                         f"only ground blocks split, at most {MAX_SPLIT} times")
     if n and rank.max() > d:
         i = int(np.argmax(rank))
         return "rank", f"billboard {i} has rank {rank[i]}, more than the {d} view directions"

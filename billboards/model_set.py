@@ -399,6 +399,7 @@ def sub_model(model: BillboardModel, keep: np.ndarray, origin, info: dict | None
         pitched_quads=model.pitched_quads, tile_mode=model.tile_mode, coef_mode=model.coef_mode,
         centres=(np.asarray(model.centres, np.float64)[keep] + shift).astype(np.float32),
         base_yaw=np.asarray(model.base_yaw)[keep], kind=np.asarray(model.kind)[keep],
+        synthesised=np.asarray(model.synthesised)[keep], split=np.asarray(model.split)[keep],
         rank=rank.astype(np.uint8), first_slot=new_first.astype(np.int32),
         slot_scale=np.asarray(model.slot_scale)[slots], slot_offset=np.asarray(model.slot_offset)[slots],
         coef_scale=np.asarray(model.coef_scale)[slots], coef_offset=np.asarray(model.coef_offset)[slots],

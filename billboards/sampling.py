@@ -38,7 +38,7 @@ import numpy as np
 from core.fileio import read_png
 
 from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, DirectionConfig, direction_angles, kind_frames,
-                       texel_offsets, unit_vectors)
+                       quad_edges, texel_offsets, unit_vectors)
 
 logger = logging.getLogger(__name__)
 
@@ -318,14 +318,15 @@ class ImageSampler:
     (:data:`geometry.KINDS`, default all billboards). A layer block (kind ≠ BILLBOARD)
     is a surface: every texel shows what the camera sees through it unless something
     stands in front of its cube (then the next camera is tried), never see-through;
-    its edge is ``block_size`` (default: ``size``). occluders: the points the z-buffers
+    its edge is ``block_size`` (default: ``size``) halved ``split`` (n,) uint8 times (default never). occluders: the points the z-buffers
     are made of, when more than ``voxels`` (a tile of a street with its neighbours' points).
     """
 
     def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,
                  voxels: VoxelPoints, config: SamplingConfig = SamplingConfig(),
                  box_centres: np.ndarray | None = None, kind: np.ndarray | None = None,
-                 block_size: float | None = None, occluders: VoxelPoints | None = None):
+                 block_size: float | None = None, occluders: VoxelPoints | None = None,
+                 split: np.ndarray | None = None):
         self.views, self.config = views, config
         self.centres = np.asarray(centres, dtype=np.float64)
         # The voxel cubes (the slab of each billboard); the quads may sit off their centres.
@@ -334,8 +335,8 @@ class ImageSampler:
         self.base_yaw = np.asarray(base_yaw, dtype=np.float64)
         self.kind = (np.full(len(self.centres), BILLBOARD, np.uint8) if kind is None
                      else np.asarray(kind, dtype=np.uint8))
-        # Quad edge per billboard (m): the voxel's, or the layer block's.
-        self.sizes = np.where(self.kind == BILLBOARD, self.size, self.size if block_size is None else float(block_size))
+        # Quad edge per billboard (m): the voxel's, or the layer block's, halved each time it was split.
+        self.sizes = quad_edges(self.kind, split, self.size, self.size if block_size is None else block_size)
         self.voxels = voxels
         self.cache = _ViewCache(views, voxels if occluders is None else occluders, config)
 

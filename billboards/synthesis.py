@@ -120,7 +120,7 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
 
 
 def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw: np.ndarray, unseen: np.ndarray,
-               front: int) -> tuple[np.ndarray, np.ndarray]:
+               front: int, split: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Give each ground block without a texture of its own one from seen ground nearby, in place.
 
     rgba (n, d, t, t, 4) uint8 the sampled textures (a memory map will do; rows are read and
@@ -128,7 +128,9 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     (n,) float64, changed: a synthesised block takes its donor's (the texture is copied texel
     for texel, so its rows must run the same way: a lane marking along the road stays along
     it); unseen (n,) bool blocks that no camera sees, whatever their sampling gave; front: the
-    direction nearest each block's base yaw, how its cameras saw it.
+    direction nearest each block's base yaw, how its cameras saw it; split (n,) uint8 times each
+    block was split (:mod:`billboards.resolution`; None: never): a block takes a donor split as
+    many times, whose texels are as large as its own, where there is one.
 
     A ground block wants a texture when it is unseen or its sampling is transparent in every
     direction; a donor is a ground block that does not, whose front texture is opaque in every
@@ -141,6 +143,7 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     ground = np.flatnonzero(kind == GROUND)
     if len(ground) == 0:
         return synthesised, donor
+    split = np.zeros(len(ground), np.uint8) if split is None else np.asarray(split)[ground]
     textures = np.empty((len(ground),) + rgba.shape[2:], rgba.dtype)                  # (g, t, t, 4) front
     empty = np.empty(len(ground), bool)
     for s in range(0, len(ground), _CHUNK):
@@ -151,7 +154,16 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     wanted = np.asarray(unseen, bool)[ground] | empty
     mean[wanted], spread[wanted] = np.nan, np.nan
     donors = ~wanted & (share >= 1.0)
-    chosen = synthesis_sources(np.asarray(centres, np.float64)[ground], wanted, donors, mean, spread)
+    centres = np.asarray(centres, np.float64)[ground]
+    chosen = np.full(len(ground), -1, np.int64)
+    for times in np.unique(split):   # a donor split as many times: texels as large
+        same = np.flatnonzero(split == times)
+        pick = synthesis_sources(centres[same], wanted[same], donors[same], mean[same], spread[same])
+        chosen[same[pick >= 0]] = same[pick[pick >= 0]]
+    left = wanted & (chosen < 0)     # none split as many times (a small tile): any donor
+    if left.any():
+        pick = synthesis_sources(centres, left, donors, mean, spread)
+        chosen[left] = pick[left]
     got = chosen >= 0
     blocks, sources = ground[got], ground[chosen[got]]
     for s in range(0, len(blocks), _CHUNK):

@@ -28,8 +28,9 @@ from .resources import InstanceStream, check_billboards, release_all, set_unifor
 
 logger = logging.getLogger(__name__)
 
-CPU_INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("tile", "<i4"), ("kind", "<i4")])
-CPU_INSTANCE_FORMAT = "3f 1f 1i 1i/i"
+CPU_INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("tile", "<i4"), ("kind", "<i4"),
+                               ("size", "<f4")])
+CPU_INSTANCE_FORMAT = "3f 1f 1i 1i 1f/i"
 
 
 def decode_for_eye(model: BillboardModel, billboards: np.ndarray, eye: np.ndarray, chunk: int = 512,
@@ -74,6 +75,7 @@ class CpuDecoder:
         self.ctx = ctx
         self.linear = bool(linear)
         self.model = model
+        self.edges = model.edges().astype(np.float32)
         self.spherical = bool(spherical)
         self.interpolate = bool(interpolate)
         self.chunk = int(chunk)
@@ -88,7 +90,7 @@ class CpuDecoder:
             self.stream = InstanceStream(ctx, CPU_INSTANCE_DTYPE.itemsize)
             self._objects.append(self.stream)
             self.vao = ctx.vertex_array(self.program, [vertex_binding(
-                self.program, self.stream.buffer, CPU_INSTANCE_FORMAT, ("in_centre", "in_base_yaw", "in_tile", "in_kind"))])
+                self.program, self.stream.buffer, CPU_INSTANCE_FORMAT, ("in_centre", "in_base_yaw", "in_tile", "in_kind", "in_size"))])
             self._objects.append(self.vao)
         except BaseException:
             self.release()
@@ -150,6 +152,7 @@ class CpuDecoder:
         rec["base_yaw"] = self.model.base_yaw[b]
         rec["tile"] = np.arange(len(b))
         rec["kind"] = self.model.kind[b]
+        rec["size"] = self.edges[b]
         sent += self.stream.write(rec)
         stats.update(upload_bytes=sent, decode_s=t1 - t0, upload_s=time.perf_counter() - t1)
         prog = self.program
@@ -157,8 +160,7 @@ class CpuDecoder:
         set_uniform(prog, "u_frame_tiles", 0)
         lay = atlas_layout(0, self.model.tile, self.page_size)
         for name, value in (("u_tiles_per_row", lay.tiles_per_row), ("u_tiles_per_page", lay.tiles_per_page),
-                            ("u_tile", int(self.model.tile)), ("u_size", float(self.model.voxel_size)),
-                            ("u_block_size", float(self.model.block_size)),
+                            ("u_tile", int(self.model.tile)),
                             ("u_spherical", self.spherical), ("u_linear", self.linear),
                             ("u_eye", tuple(np.asarray(camera.eye, np.float32).tolist()))):
             set_uniform(prog, name, value)

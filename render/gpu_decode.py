@@ -40,10 +40,11 @@ from billboards.slits import build_slits, exact_runs, pack_columns, whole_runs
 from .view_brackets import storage_slots, view_brackets
 
 #: Per-quad record of the draw pass (billboard.glsl).
-QUAD_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("kind", "<i4"), ("blocks", "<i4"),
+QUAD_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("kind", "<i4"), ("size", "<f4"), ("blocks", "<i4"),
                        ("origin", "<f4", 2), ("weights", "<f4", 4), ("view", "<i4")])
-QUAD_FORMAT = "3f 1f 1i 1i 2f 4f 1i/i"
-QUAD_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_kind", "in_blocks", "in_origin", "in_weights", "in_view")
+QUAD_FORMAT = "3f 1f 1i 1f 1i 2f 4f 1i/i"
+QUAD_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_kind", "in_size", "in_blocks", "in_origin", "in_weights",
+                   "in_view")
 MAX_VIEWS = 32  # views per draw of draw_views (billboard.glsl MULTIVIEW)
 
 #: Per-run record of the pre-blend pass (billboard_blend.glsl).
@@ -106,6 +107,7 @@ class _Plan(NamedTuple):
     top: np.ndarray              # (R,) int64 billboard at each run's top
     centre: np.ndarray           # (R, 3) float64 run centres (model coordinates)
     kind: np.ndarray             # (R,) uint8
+    edge: np.ndarray             # (R,) float64 edge of the run's blocks (m)
     weight: np.ndarray           # (R, S) float32 weight of each storage slot
     level: np.ndarray            # (R,) int8 level of detail
     texel_px: np.ndarray         # (R,) float64 texel width in pixels
@@ -146,6 +148,7 @@ class GpuDecoder(GpuOwner):
         self.slits = build_slits(model.centres, model.kind, model.base_yaw, model.block_size,
                                  merge=len(model.pitches) == 1, max_blocks=BAND_ROWS)
         n = model.num_billboards
+        self._edges = model.edges()
         self.storage_slots = storage_slots(len(model.pitches))
         self._held = np.full((n, self.storage_slots), -1, np.int32)  # direction each position's slot holds
         self._held_level = np.full((n, self.storage_slots), -1, np.int8)  # its level of detail
@@ -320,7 +323,7 @@ class GpuDecoder(GpuOwner):
         firsts = np.cumsum(count) - count
         positions = np.repeat(start - firsts, count) + np.arange(int(count.sum()))
         kind = model.kind[top]
-        edge = np.where(kind == 0, model.voxel_size, model.block_size)
+        edge = self._edges[top]
         focal_px = float(camera.projection[0, 0]) * camera.size[0] / 2
         # the level follows the whole column, so a slit cut by a selection keeps its blocks' level
         column_centre = self._column_centre[self.slits.column[start]]
@@ -335,7 +338,7 @@ class GpuDecoder(GpuOwner):
         mean_block = block_level == 2
         held0 = self._held[positions[mean_block], 0]
         block_direction[mean_block, 0] = np.where(self._held_level[positions[mean_block], 0] == 2, held0, 0)
-        return _Plan(start, count, top, centre, kind, weight, level, texel_px, positions, block_direction,
+        return _Plan(start, count, top, centre, kind, edge, weight, level, texel_px, positions, block_direction,
                      block_level)
 
     def _emit(self, camera: GLCamera, plan: _Plan, preblend: bool, stats: dict, views=None) -> None:
@@ -353,6 +356,7 @@ class GpuDecoder(GpuOwner):
         quads["centre"] = plan.centre
         quads["base_yaw"] = model.base_yaw[plan.top]
         quads["kind"] = plan.kind
+        quads["size"] = plan.edge
         quads["blocks"] = count
         quads["origin"] = np.where(blend[:, None], self._view_origin[start], self._origin[start])
         quads["weights"][:, :self.storage_slots] = plan.weight

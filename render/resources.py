@@ -175,7 +175,7 @@ class ModelResources(GpuOwner):
         self.slot_table = self._keep(ctx.texture((table.shape[1], table.shape[0]), 4, table, dtype="f4"))
         self.slot_table.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.uniforms = {
-            "u_size": float(model.voxel_size), "u_block_size": float(model.block_size), "u_tile": int(model.tile),
+            "u_tile": int(model.tile),
             "u_slots_per_row": self.slots_per_row,
             "u_tiles_per_row": tiles.tiles_per_row, "u_tiles_per_page": tiles.tiles_per_page,
             "u_d": model.num_directions, "u_rows_per_line": rows.tiles_per_row,

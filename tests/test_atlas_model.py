@@ -604,6 +604,9 @@ CORRUPTIONS = {
     "rank above d": (_npy("rank.npy", _assign(0, 11)), "rank.npy"),
     "synthesised not a flag": (_npy("synthesised.npy", _assign(3, 2)), "synthesised.npy"),
     "synthesised listed, file missing": (_unlink("synthesised.npy"), "synthesised.npy"),
+    "split a billboard": (_npy("split.npy", _assign(3, 1)), "split.npy"),
+    "split too often": (_npy("split.npy", _assign(3, 9)), "split.npy"),
+    "split listed, file missing": (_unlink("split.npy"), "split.npy"),
     "rank sum": (_npy("rank.npy", lambda a: _assign(0, (a[0] + 1) % 11)(a)), "rank.npy"),
     "first_slot order": (_npy("first_slot.npy", lambda a: a[[1, 0, *range(2, len(a))]]), "first_slot.npy"),
     "child out of range": (_npy("node_children.npy", _assign((0, 2), 3)), "node_children.npy"),
@@ -653,6 +656,24 @@ def test_a_model_written_before_the_synthesised_flags_loads_without_any(saved_mo
     marked, _ = make_model()
     marked.synthesised = (np.arange(12) % 3 == 0).astype(np.uint8)
     assert np.array_equal(load(save(marked, tmp_path / "marked")).synthesised, marked.synthesised)
+
+
+def test_a_model_written_before_split_quads_loads_with_none_split(saved_model, tmp_path):
+    """split.npy is optional: a model whose manifest does not list it has every quad at its
+    kind's edge; a ground block split L times is 2^−L of the block size wide."""
+    path = Path(shutil.copytree(saved_model, tmp_path / "m"))
+    _delete("arrays", "split")(path)
+    (path / "split.npy").unlink()
+    model = load(path)
+    assert np.array_equal(model.split, np.zeros(12, np.uint8))
+    np.testing.assert_array_equal(model.edges(), np.where(model.kind == 0, model.voxel_size, model.block_size))
+    marked, _ = make_model()
+    marked.kind = np.full(12, 2, np.uint8)
+    marked.block_size = 0.5
+    marked.split = (np.arange(12) % 4).astype(np.uint8)
+    again = load(save(marked, tmp_path / "marked"))
+    assert np.array_equal(again.split, marked.split)
+    np.testing.assert_array_equal(again.edges(), 0.5 / 2.0 ** (np.arange(12) % 4))
 
 
 def test_load_missing_directory(tmp_path):

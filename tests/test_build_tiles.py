@@ -59,9 +59,11 @@ def test_own_layer_keeps_the_tile_blocks_and_drops_points_of_foreign_ones():
 def built(tiny_dataset, tiled_cloud, tmp_path_factory):
     """(one model's build result, the tiled build's (8 m tiles), their parent directory)."""
     root = tmp_path_factory.mktemp("built")
-    # a tiled build is not fitted (its tiles would need their neighbours in front): one model unfitted is its equal
-    one = build_main(BuildConfig(fit=None), tiled_cloud, tiny_dataset, root / "one", progress=False)
-    tiled = build_main(BuildConfig(tile_metres=8.0), tiled_cloud, tiny_dataset, root / "set", progress=False)
+    # a tiled build is not fitted (its tiles would need their neighbours in front): one model unfitted is its equal;
+    # every billboard's decode error measured (error_stride 1): a stride picks other billboards in each tile
+    one = build_main(BuildConfig(fit=None, error_stride=1), tiled_cloud, tiny_dataset, root / "one", progress=False)
+    tiled = build_main(BuildConfig(tile_metres=8.0, error_stride=1), tiled_cloud, tiny_dataset, root / "set",
+                       progress=False)
     return one, tiled, root
 
 

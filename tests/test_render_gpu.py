@@ -188,6 +188,39 @@ def test_facing_billboard_shows_its_decoded_texture(ctx, case, mode):
     assert np.all(image[outside] == SKY_U8)
 
 
+@pytest.mark.parametrize("mode", ["gpu", "cpu"])
+def test_a_split_ground_block_is_drawn_at_its_own_edge(ctx, mode):
+    """Ground blocks split once and twice are drawn exactly like unsplit blocks of a half and a
+    quarter the block size, beside an unsplit one: every quad's edge comes from its own split."""
+    centres = [[0.0, 0.0, 0.0], [1.2, 0.3, 0.0], [-1.1, -0.2, 0.0]]
+    split = make_model(centres, base_yaw=0.4, rank=0, seed=4)
+    split.kind, split.split = np.full(3, 2, np.uint8), np.array([0, 1, 2], np.uint8)
+    split.block_size = 1.0
+    split.check()
+    K, pose = intrinsics(200.0, 160, 120), look_at(np.array([0.0, -3.0, 2.5]), np.zeros(3))
+    images = []
+    for i, edge in enumerate((1.0, 0.5, 0.25)):  # each block alone, unsplit at its edge
+        alone = make_model([centres[i]], base_yaw=0.4, rank=0, seed=4)
+        alone.pages = [p.copy() for p in split.pages]   # the same tiles: slot i holds block i's mean
+        alone.first_slot = np.array([i], np.int32)
+        alone.slot_scale, alone.slot_offset = split.slot_scale, split.slot_offset
+        alone.coef_scale, alone.coef_offset = split.coef_scale, split.coef_offset
+        alone.coef_pages = split.coef_pages
+        alone.kind, alone.block_size = np.full(1, 2, np.uint8), edge
+        renderer = BillboardRenderer(ctx, alone, mode, background=SKY, linear=False)
+        images.append(renderer.render(K, pose, (160, 120)).astype(int))
+        renderer.release()
+    renderer = BillboardRenderer(ctx, split, mode, background=SKY, linear=False)
+    whole = renderer.render(K, pose, (160, 120)).astype(int)
+    renderer.release()
+    drawn = [np.any(im != SKY_U8, axis=-1) for im in images]
+    areas = [int(d.sum()) for d in drawn]
+    assert areas[0] > 2 * areas[1] > 4 * areas[2] > 0, areas   # (in perspective, at other places)
+    for im, d in zip(images, drawn):
+        np.testing.assert_array_equal(whole[d], im[d])
+    assert np.all(whole[~np.any(drawn, axis=0)] == SKY_U8)
+
+
 @pytest.mark.parametrize("decoded_format", ["f16", "u8"])
 def test_decoded_atlas_format_decides_where_the_blend_clips(ctx, decoded_format):
     """Level of detail with every eigen image everywhere: "f16" shows the reference decode,

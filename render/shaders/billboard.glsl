@@ -3,7 +3,7 @@
 // per quad, corners from gl_VertexID; no vertex buffer, only instances).
 //
 // Per instance: a run of a column of billboards.slits — a billboard, a ground block or a slit of
-// `blocks` facade blocks — with its centre (model coordinates), base yaw and kind, the position
+// `blocks` facade blocks — with its centre (model coordinates), base yaw, kind and edge, the position
 // of its first block in the decoded atlas, and the weights of the sampled directions held in
 // each storage slot (render.view_brackets; computed for this view on the CPU). The vertex stage
 // turns a billboard toward the eye and leaves layer blocks fixed. The fragment stage blends the
@@ -36,6 +36,7 @@ in int in_view;
 in vec3 in_centre;       // model coordinates (m)
 in float in_base_yaw;    // world yaw (radians) a layer block faces
 in int in_kind;          // 0 billboard, 1 facade block (or slit), 2 ground block
+in float in_size;        // edge of the quad (a slit: of each of its blocks), m
 in int in_blocks;        // blocks in the run (1 unless a slit)
 in vec2 in_origin;       // top-left texel of the run's top block in the atlas drawn from (slot 0)
 in vec4 in_weights;      // weight of each storage slot's direction (unused with VIEW)
@@ -55,7 +56,7 @@ void main() {
     v_origin = in_origin;
     v_texel_max = vec2(float(u_tile), float(u_tile * in_blocks)) - 0.5;   // the run's last texel centre
     v_weights = in_weights;
-    gl_Position = quad_vertex_run(in_centre, quad_angles(in_centre, in_base_yaw, in_kind), in_kind,
+    gl_Position = quad_vertex_run(in_centre, quad_angles(in_centre, in_base_yaw, in_kind), in_kind, in_size,
                                   quad_corner(gl_VertexID), in_blocks, v_texel);
 }
 

@@ -11,13 +11,14 @@ in vec3 in_centre;     // model coordinates (m)
 in float in_base_yaw;  // world yaw (radians) a layer block faces
 in int in_tile;        // tile index in the frame atlas
 in int in_kind;        // 0 billboard, 1 facade block, 2 ground block
+in float in_size;      // edge of the quad (m)
 
 out vec2 v_texel;
 flat out int v_tile;
 
 void main() {
     v_tile = in_tile;
-    gl_Position = quad_vertex(in_centre, quad_angles(in_centre, in_base_yaw, in_kind), in_kind,
+    gl_Position = quad_vertex(in_centre, quad_angles(in_centre, in_base_yaw, in_kind), in_kind, in_size,
                               quad_corner(gl_VertexID), v_texel);
 }
 

@@ -1,8 +1,9 @@
 // Shared by billboard.glsl (GPU decode) and billboard_cpu.glsl (CPU decode): the quad
 // geometry of billboards.geometry, so that both paths rasterise exactly the same pixels.
 //
-// Every quad is a square centred at its centre, of edge u_size for a billboard and u_block_size
-// for a block of the facade layer. A billboard (kind 0) turns
+// Every quad is a square centred at its centre, of its own edge `size` (the model's voxel size
+// for a billboard and block size for a block of the facade layer, halved each time the quad was
+// split: ground near the path, billboards.resolution). A billboard (kind 0) turns
 // toward the eye:
 //   normal n = (cos φ cos ψ, cos φ sin ψ, sin φ)   (toward the eye)
 //   right  r = (−sin ψ, cos ψ, 0)
@@ -19,8 +20,6 @@
 uniform mat4 u_projection;   // GL clip from GL eye
 uniform mat4 u_view;         // GL eye from model coordinates (world − origin)
 uniform vec3 u_eye;          // camera centre in model coordinates
-uniform float u_size;        // billboard edge (m)
-uniform float u_block_size;  // facade and ground block edge (m)
 uniform bool u_spherical;    // quads also pitch toward the eye
 uniform int u_tile;          // texels per tile side t
 
@@ -48,10 +47,10 @@ vec2 quad_corner(int vertex_id) {
     return vec2(float(vertex_id & 1), float((vertex_id >> 1) & 1));
 }
 
-// Clip-space position of `corner` of the quad of `kind` at `centre` facing `angles`, `blocks`
-// blocks tall (a slit of the facade layer: a column of facade blocks, billboards.slits; 1 otherwise);
+// Clip-space position of `corner` of the quad of `kind` and edge `size` (m) at `centre` facing
+// `angles`, `blocks` blocks tall (a slit of the facade layer: a column of facade blocks, billboards.slits; 1 otherwise);
 // `texel` receives the continuous tile coordinate (x = col, 0..t; y = row, 0..blocks·t from the top).
-vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, vec2 corner, int blocks, out vec2 texel) {
+vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, float size, vec2 corner, int blocks, out vec2 texel) {
     float yaw = angles.x, pitch = angles.y;
     vec3 right = vec3(-sin(yaw), cos(yaw), 0.0);
     vec3 up = vec3(0.0, 0.0, 1.0);
@@ -61,7 +60,6 @@ vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, vec2 corner, int blocks
         vec3 n = vec3(cos(pitch) * cos(yaw), cos(pitch) * sin(yaw), sin(pitch));
         up = cross(n, right);
     }
-    float size = kind == KIND_BILLBOARD ? u_size : u_block_size;
     if (kind == KIND_GROUND) corner = (corner - 0.5) * (1.0 + 2.0 * GROUND_OVERLAP) + 0.5;
     vec3 p = centre + (corner.x - 0.5) * size * right + (corner.y - 0.5) * (size * float(blocks)) * up;
     texel = vec2(corner.x, 1.0 - corner.y) * vec2(float(u_tile), float(u_tile * blocks));
@@ -73,8 +71,8 @@ vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, vec2 corner, int blocks
 }
 
 // quad_vertex_run of a single block.
-vec4 quad_vertex(vec3 centre, vec2 angles, int kind, vec2 corner, out vec2 texel) {
-    return quad_vertex_run(centre, angles, kind, corner, 1, texel);
+vec4 quad_vertex(vec3 centre, vec2 angles, int kind, float size, vec2 corner, out vec2 texel) {
+    return quad_vertex_run(centre, angles, kind, size, corner, 1, texel);
 }
 
 // Integer texel (x = col, y = row) of an interpolated tile coordinate, clamped to the tile.
