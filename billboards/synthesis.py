@@ -119,6 +119,21 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
     return out
 
 
+def at_scale(textures: np.ndarray, finer: np.ndarray) -> np.ndarray:
+    """Textures (m, t, t, 4) uint8 of donors whose texels are 2^finer (m,) int times smaller than
+    the block's that takes them, brought to its scale: each averaged over 2^k × 2^k texels and
+    repeated 2^k × 2^k times (k = finer, at most log2 t), so that the pattern keeps its size on the
+    larger block; finer ≤ 0: as they are (a coarser donor's pattern shrinks)."""
+    out = np.array(textures, copy=True)
+    t = textures.shape[1]
+    for k in np.unique(finer[finer > 0]):
+        f = 1 << min(int(k), int(np.log2(t)))
+        rows = np.flatnonzero(finer == k)
+        pooled = textures[rows].reshape(len(rows), t // f, f, t // f, f, 4).astype(np.float64).mean(axis=(2, 4))
+        out[rows] = np.tile(np.rint(pooled).astype(textures.dtype), (1, f, f, 1))
+    return out
+
+
 def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw: np.ndarray, unseen: np.ndarray,
                front: int, split: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Give each ground block without a texture of its own one from seen ground nearby, in place.
@@ -129,8 +144,8 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     for texel, so its rows must run the same way: a lane marking along the road stays along
     it); unseen (n,) bool blocks that no camera sees, whatever their sampling gave; front: the
     direction nearest each block's base yaw, how its cameras saw it; split (n,) uint8 times each
-    block was split (:mod:`billboards.resolution`; None: never): a block takes a donor split as
-    many times, whose texels are as large as its own, where there is one.
+    block was split (:mod:`billboards.resolution`; None: never): a donor split more often than
+    the block has smaller texels, and its texture is brought to the block's scale (:func:`at_scale`).
 
     A ground block wants a texture when it is unseen or its sampling is transparent in every
     direction; a donor is a ground block that does not, whose front texture is opaque in every
@@ -143,7 +158,7 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     ground = np.flatnonzero(kind == GROUND)
     if len(ground) == 0:
         return synthesised, donor
-    split = np.zeros(len(ground), np.uint8) if split is None else np.asarray(split)[ground]
+    split = np.zeros(len(ground), np.int64) if split is None else np.asarray(split, np.int64)[ground]
     textures = np.empty((len(ground),) + rgba.shape[2:], rgba.dtype)                  # (g, t, t, 4) front
     empty = np.empty(len(ground), bool)
     for s in range(0, len(ground), _CHUNK):
@@ -154,20 +169,12 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     wanted = np.asarray(unseen, bool)[ground] | empty
     mean[wanted], spread[wanted] = np.nan, np.nan
     donors = ~wanted & (share >= 1.0)
-    centres = np.asarray(centres, np.float64)[ground]
-    chosen = np.full(len(ground), -1, np.int64)
-    for times in np.unique(split):   # a donor split as many times: texels as large
-        same = np.flatnonzero(split == times)
-        pick = synthesis_sources(centres[same], wanted[same], donors[same], mean[same], spread[same])
-        chosen[same[pick >= 0]] = same[pick[pick >= 0]]
-    left = wanted & (chosen < 0)     # none split as many times (a small tile): any donor
-    if left.any():
-        pick = synthesis_sources(centres, left, donors, mean, spread)
-        chosen[left] = pick[left]
-    got = chosen >= 0
+    chosen = synthesis_sources(np.asarray(centres, np.float64)[ground], wanted, donors, mean, spread)
+    got = np.flatnonzero(chosen >= 0)
     blocks, sources = ground[got], ground[chosen[got]]
-    for s in range(0, len(blocks), _CHUNK):
-        rgba[blocks[s:s + _CHUNK]] = textures[chosen[got][s:s + _CHUNK]][:, None]
+    for s in range(0, len(got), _CHUNK):
+        part = got[s:s + _CHUNK]
+        rgba[blocks[s:s + _CHUNK]] = at_scale(textures[chosen[part]], split[chosen[part]] - split[part])[:, None]
     synthesised[blocks], donor[blocks] = True, sources
     base_yaw[blocks] = base_yaw[sources]
     return synthesised, donor

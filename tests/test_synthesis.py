@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from billboards.geometry import FACADE, GROUND
-from billboards.synthesis import synthesis_sources, synthesise, texture_colours, texture_colours_reference
+from billboards.synthesis import at_scale, synthesis_sources, synthesise, texture_colours, texture_colours_reference
 
 
 def test_texture_colours_against_a_loop():
@@ -68,6 +68,33 @@ def test_synthesised_ground_takes_plain_asphalt_from_its_own_level_in_every_dire
     np.testing.assert_array_equal(base_yaw[synthesised], yaw_before[d])
     np.testing.assert_array_equal(rgba[~synthesised], before[~synthesised])
     np.testing.assert_array_equal(base_yaw[~synthesised], yaw_before[~synthesised])
+
+
+def test_a_finer_donor_is_brought_to_the_blocks_scale():
+    rng = np.random.default_rng(5)
+    t = 8
+    textures = rng.integers(0, 256, (4, t, t, 4)).astype(np.uint8)
+    out = at_scale(textures, np.array([0, 1, 2, 5]))
+    np.testing.assert_array_equal(out[0], textures[0])                 # as large: as it is
+    for i, f in ((1, 2), (2, 4), (3, t)):                               # 2×, 4× finer; finer than the tile
+        pooled = textures[i].reshape(t // f, f, t // f, f, 4).mean(axis=(1, 3))
+        np.testing.assert_array_equal(out[i, :t // f, :t // f], np.rint(pooled))
+        np.testing.assert_array_equal(out[i], np.tile(out[i, :t // f, :t // f], (f, f, 1)))
+        np.testing.assert_allclose(out[i].reshape(-1, 4).mean(0), textures[i].reshape(-1, 4).mean(0), atol=0.5)
+    np.testing.assert_array_equal(at_scale(textures, np.array([-1, 0, 0, -2])), textures)  # coarser donors too
+    assert at_scale(textures[:0], np.zeros(0, int)).shape == (0, t, t, 4)
+
+
+def test_a_block_whose_donors_were_split_takes_their_texture_at_its_scale():
+    centres, row, rgba, unseen = _road()
+    kind = np.full(len(centres), GROUND, np.uint8)
+    split = np.where(unseen, 0, 1).astype(np.uint8)                      # every seen block split once
+    before = rgba.copy()
+    synthesised, donor = synthesise(rgba, kind, centres, np.zeros(len(centres)), unseen, front=1, split=split)
+    assert np.array_equal(synthesised, unseen)
+    d = donor[synthesised]
+    np.testing.assert_array_equal(rgba[synthesised][:, 0], at_scale(before[d][:, 1], np.ones(len(d), int)))
+    np.testing.assert_array_equal(rgba[~synthesised], before[~synthesised])
 
 
 def test_synthesis_without_ground_or_donors_changes_nothing():
