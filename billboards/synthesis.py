@@ -59,17 +59,21 @@ def texture_colours_reference(textures: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, colours: np.ndarray | None = None,
-                      spread: np.ndarray | None = None, k: int = 8, pool: int = 64, seed: int = 0) -> np.ndarray:
+                      spread: np.ndarray | None = None, k: int = 8, pool: int = 64, seed: int = 0,
+                      area: np.ndarray | None = None) -> np.ndarray:
     """(n,) int64: for each ``wanted`` item, the index of a donor (one of ``donors``, never itself)
     near it whose texture it takes; −1 elsewhere, and everywhere when there is no donor.
 
     centres (n, 3) float64; wanted, donors (n,) bool; colours (n, 3) float64: the mean colour of
     each item's texture (NaN: none); spread (n,) float64 its variance (summed over the
-    channels; None: 0). Without colours the donor is drawn at random among the ``k``
-    nearest (horizontally). With them it is drawn among the ``k`` of the ``pool`` nearest
-    donors that lie nearest the colour of the ground around the wanted item (the median colour
-    of the plainer half, by spread, of the 3·``k`` nearest items on its level that have one;
-    others only where the ``pool`` nearest hold fewer), in the mean squared sense (|mean − target|² + spread: a block half marking, half asphalt is no match
+    channels; None: 0); area (n,) float64 each item's area in unsplit blocks (a block split L
+    times: 4^−L; None: 1), by which the neighbourhoods below are counted, so that the children
+    of a split block weigh what their parent did. Without colours the donor is drawn at random
+    among the ``k`` nearest (horizontally). With them it is drawn among the ``k`` of the ``pool``
+    nearest donors that lie nearest the colour of the ground around the wanted item (the median
+    colour of the plainer half, by spread, of the 3·``k`` nearest items on its level that have
+    one; others only where the ``pool`` nearest hold fewer), in the mean squared sense
+    (|mean − target|² + spread: a block half marking, half asphalt is no match
     for asphalt although its mean may be close), on the wanted item's level (within 5 cm of its
     height) where the pool has a donor there: the nearest donors are often markings or kerbs,
     and the road between them would come out striped. Random draws are seeded (a build is
@@ -79,44 +83,69 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
     want, have = np.flatnonzero(wanted), np.flatnonzero(donors & ~wanted)
     if len(want) == 0 or len(have) == 0:
         return out
+    area = np.ones(n) if area is None else np.asarray(area, np.float64)
+    per_unit = max(1, int(np.ceil(1.0 / area.min())))   # items an area of one block may hold
     xy = np.asarray(centres, np.float64)[:, :2]
     rng = np.random.default_rng(seed)
-    m = min(pool if colours is not None else k, len(have))
-    _, near = cKDTree(xy[have]).query(xy[want], k=m)
-    near = have[np.asarray(near).reshape(len(want), m)]                      # (w, m) donor indices
     z = np.asarray(centres, np.float64)[:, 2]
-    if colours is not None:
-        colours = np.asarray(colours, np.float64).reshape(n, 3)
-        coloured = np.flatnonzero(np.all(np.isfinite(colours), axis=1))
-        if len(coloured):
-            c, q = min(3 * k, len(coloured)), min(max(pool, 3 * k), len(coloured))
-            _, around = cKDTree(xy[coloured]).query(xy[want], k=q)
-            around = coloured[np.asarray(around).reshape(len(want), q)]                       # (w, q)
-            # the ground on the wanted item's level: the sidewalk past the kerb is plainer than
-            # asphalt, and would make the road's colour its own
-            off_level = np.abs(z[around] - z[want][:, None]) > _LEVEL
-            around = np.take_along_axis(around, np.argsort(off_level, axis=1, kind="stable")[:, :c], axis=1)
-            if spread is not None:   # the plainer half: a block with a marking in it is no measure of the road
-                around = np.take_along_axis(around, np.argsort(np.asarray(spread, np.float64)[around], axis=1,
-                                                               kind="stable")[:, :max(1, c // 2)], axis=1)
-            target = np.median(colours[around], axis=1)                                        # (w, 3)
-            distance = ((colours[near] - target[:, None, :]) ** 2).sum(axis=-1)
-            if spread is not None:
-                distance = distance + np.asarray(spread, np.float64)[near]
-            distance = np.where(np.isfinite(distance), distance, np.inf)
-            # A donor on another level (the sidewalk beside the road, past the kerb) is another surface:
-            # taken only where no donor of the pool lies within _LEVEL of the wanted item's height.
-            other = np.abs(z[near] - z[want][:, None]) > _LEVEL
-            distance = np.where(other & ~np.all(other, axis=1, keepdims=True), distance + _OTHER_LEVEL, distance)
-            order = np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)]
-            near, distance = np.take_along_axis(near, order, axis=1), np.take_along_axis(distance, order, axis=1)
-            # only as good a match as the best (within MATCH grey levels RMS): rather one texture
-            # repeated than sidewalk on the road
-            usable = (distance <= distance[:, :1] + 3 * _MATCH ** 2).sum(axis=1)
-            out[want] = near[np.arange(len(want)), (rng.random(len(want)) * usable).astype(np.int64)]
-            return out
-    out[want] = near[np.arange(len(want)), rng.integers(0, near.shape[1], len(want))]
+    if colours is None:
+        m = min(k, len(have))
+        _, near = cKDTree(xy[have]).query(xy[want], k=m)
+        near = have[np.asarray(near).reshape(len(want), m)]
+        out[want] = near[np.arange(len(want)), rng.integers(0, m, len(want))]
+        return out
+    colours = np.asarray(colours, np.float64).reshape(n, 3)
+    spread = np.zeros(n) if spread is None else np.asarray(spread, np.float64)
+    coloured = np.flatnonzero(np.all(np.isfinite(colours), axis=1))
+    donor_tree = cKDTree(xy[have])
+    colour_tree = cKDTree(xy[coloured]) if len(coloured) else None
+    draws = rng.random(len(want))
+    for s in range(0, len(want), _CHUNK):
+        w = want[s:s + _CHUNK]
+        m = min(pool * per_unit, len(have))
+        _, near = donor_tree.query(xy[w], k=m)
+        near = have[np.asarray(near).reshape(len(w), m)]                      # (w, m) donor indices
+        in_pool = _first_by_area(area[near], pool)
+        if colour_tree is None:   # no texture to match: the nearest k
+            keep = _first_by_area(area[near], k) & in_pool
+            count = keep.sum(axis=1)
+            out[w] = near[np.arange(len(w)), (draws[s:s + _CHUNK] * count).astype(np.int64)]
+            continue
+        c, q = 3 * k, min(max(pool, 3 * k) * per_unit, len(coloured))
+        _, around = colour_tree.query(xy[w], k=q)
+        around = coloured[np.asarray(around).reshape(len(w), q)]                               # (w, q)
+        # the ground on the wanted item's level: the sidewalk past the kerb is plainer than
+        # asphalt, and would make the road's colour its own
+        off_level = np.abs(z[around] - z[w][:, None]) > _LEVEL
+        around = np.take_along_axis(around, np.argsort(off_level, axis=1, kind="stable"), axis=1)
+        taken = _first_by_area(area[around], c)
+        # the plainer half: a block with a marking in it is no measure of the road
+        key = np.where(taken, spread[around], np.inf)
+        order = np.argsort(key, axis=1, kind="stable")
+        around, taken = np.take_along_axis(around, order, axis=1), np.take_along_axis(taken, order, axis=1)
+        half = np.maximum(np.where(taken, area[around], 0).sum(axis=1) // 2, 1)
+        plain = taken & _first_by_area(area[around], half[:, None])
+        target = np.nanmedian(np.where(plain[..., None], colours[around], np.nan), axis=1)       # (w, 3)
+        distance = ((colours[near] - target[:, None, :]) ** 2).sum(axis=-1) + spread[near]
+        distance = np.where(np.isfinite(distance) & in_pool, distance, np.inf)
+        # A donor on another level (the sidewalk beside the road, past the kerb) is another surface:
+        # taken only where no donor of the pool lies within _LEVEL of the wanted item's height.
+        other = (np.abs(z[near] - z[w][:, None]) > _LEVEL) | ~in_pool
+        distance = np.where(other & ~np.all(other, axis=1, keepdims=True), distance + _OTHER_LEVEL, distance)
+        order = np.argsort(distance, axis=1, kind="stable")
+        near, distance = np.take_along_axis(near, order, axis=1), np.take_along_axis(distance, order, axis=1)
+        best = _first_by_area(area[near], k) & np.isfinite(distance)
+        # only as good a match as the best (within MATCH grey levels RMS): rather one texture
+        # repeated than sidewalk on the road
+        usable = (best & (distance <= distance[:, :1] + 3 * _MATCH ** 2)).sum(axis=1)
+        out[w] = np.where(usable > 0, near[np.arange(len(w)), (draws[s:s + _CHUNK] * usable).astype(np.int64)], -1)
     return out
+
+
+def _first_by_area(area: np.ndarray, total) -> np.ndarray:
+    """(w, m) bool: along each row, the items before the cumulative ``area`` (w, m) reaches
+    ``total`` (a number, or (w, 1)): the first ``total`` items when every area is 1."""
+    return (np.cumsum(area, axis=1) - area) < total - 1e-9
 
 
 def at_scale(textures: np.ndarray, finer: np.ndarray) -> np.ndarray:
@@ -169,7 +198,8 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     wanted = np.asarray(unseen, bool)[ground] | empty
     mean[wanted], spread[wanted] = np.nan, np.nan
     donors = ~wanted & (share >= 1.0)
-    chosen = synthesis_sources(np.asarray(centres, np.float64)[ground], wanted, donors, mean, spread)
+    chosen = synthesis_sources(np.asarray(centres, np.float64)[ground], wanted, donors, mean, spread,
+                               area=np.ldexp(1.0, -2 * split))
     got = np.flatnonzero(chosen >= 0)
     blocks, sources = ground[got], ground[chosen[got]]
     for s in range(0, len(got), _CHUNK):

@@ -187,3 +187,24 @@ def test_the_colour_of_the_ground_around_is_taken_on_the_wanted_level():
     got = synthesis_sources(centres, band, ~band, colours, spread)
     assert np.all(got[band] >= 0)
     assert not np.any(marked[got[band]]) and not np.any(sidewalk[got[band]])
+
+
+def test_split_donors_count_by_their_area():
+    """A split block's children weigh what their parent did: a row of light, mixed children (the
+    kerb's edge, split near the path) as near as a plain dark road row does not fill the ground
+    around and make the road's colour its own, as it does when each child counts as a block."""
+    xs = np.arange(-6, 7) + 0.5
+    road = np.array([[x, y, 0.0] for x in xs for y in (1.5, 2.5, 3.5, -2.5, -3.5)])
+    strip = np.array([[x + dx, -1.5 + dy, 0.0] for x in xs for dx in (-0.375, -0.125, 0.125, 0.375)
+                      for dy in (-0.375, -0.125, 0.125, 0.375)])
+    wanted_at = np.array([[x, 0.0, 0.0] for x in xs])
+    centres = np.concatenate([road, strip, wanted_at])
+    area = np.concatenate([np.ones(len(road)), np.full(len(strip), 1 / 16), np.ones(len(wanted_at))])
+    colours = np.concatenate([np.full((len(road), 3), 65.0), np.full((len(strip), 3), 135.0),
+                              np.full((len(wanted_at), 3), np.nan)])
+    spread = np.concatenate([np.full(len(road), 10.0), np.full(len(strip), 50.0), np.full(len(wanted_at), np.nan)])
+    wanted = np.arange(len(centres)) >= len(road) + len(strip)
+    by_area = synthesis_sources(centres, wanted, ~wanted, colours, spread, area=area)
+    by_count = synthesis_sources(centres, wanted, ~wanted, colours, spread)
+    assert np.all(by_area[wanted] < len(road))                       # the dark road
+    assert np.all(by_count[wanted] >= len(road))                     # the light strip
