@@ -35,7 +35,7 @@ from recon.epi import EpiConfig, epi_points
 from .atlas import reserved_memmap
 from .fit import FitConfig, Quads, quads_of
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
-from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward
+from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward, quad_edges
 from .layer import Layer, LayerConfig, build_layer, facade_depth_report, refine_ground
 from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
@@ -102,7 +102,8 @@ class Billboards:
     kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node; unseen (n,)
     bool the continued ground blocks no camera sees (their textures are synthesised,
     :mod:`billboards.synthesis`); split (n,) uint8 a quad's edge is its kind's halved this many
-    times (:mod:`billboards.resolution`).
+    times (:mod:`billboards.resolution`); cells (n, 3) float64 the centre of the unsplit block a
+    ground block was split from (None: the quads).
     Without a facade layer there is one billboard per voxel leaf, in leaf order; with one,
     a leaf holds its billboard (if its own points make one) and the layer blocks whose
     centres lie in it, so that culling by the octree covers both.
@@ -118,8 +119,11 @@ class Billboards:
     block_size: float | None = None
     unseen: np.ndarray | None = None
     split: np.ndarray | None = None
+    cells: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.cells is None:
+            object.__setattr__(self, "cells", np.asarray(self.quads, np.float64).copy())
         if self.unseen is None:
             object.__setattr__(self, "unseen", np.zeros(len(self.kind), bool))
         if self.split is None:
@@ -209,7 +213,9 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     unseen[blocks] = layer.synthesised[source[blocks]]
     split = np.zeros(len(item_kind), np.uint8)
     split[blocks] = layer.split[source[blocks]]
-    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen, split)
+    cells = quads.copy()
+    cells[blocks] = layer.cell[source[blocks]]
+    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen, split, cells)
 
 
 # --------------------------------------------------------------------------- worker side
@@ -247,6 +253,7 @@ def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views:
     np.save(state / "base_yaw.npy", placed.base_yaw)
     np.save(state / "kind.npy", placed.kind)
     np.save(state / "split.npy", placed.split)
+    np.save(state / "cells.npy", placed.cells)
     if conf.source == "points":
         np.save(state / "colours.npy", placed.voxel_colours(colours))
     meta = {"config": _config_to_json(conf), "origin": placed.octree.origin.tolist(),
@@ -443,10 +450,10 @@ def texture_tasks(state: Path, conf: BuildConfig, n: int) -> list[_Task]:
 
 
 def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np.ndarray, quads: np.ndarray,
-                    base_yaw: np.ndarray, unseen: np.ndarray, split: np.ndarray, executor: Executor | None,
+                    base_yaw: np.ndarray, unseen: np.ndarray, executor: Executor | None,
                     progress: bool | None, desc: str = "sampling") -> tuple[list[dict], np.ndarray]:
     """Sample every texture of the billboards saved in ``state`` (kind (n,) uint8, quads (n, 3)
-    float64, base_yaw (n,) float64, unseen (n,) bool, split (n,) uint8: :class:`Billboards`) into the memory map
+    float64, base_yaw (n,) float64, unseen (n,) bool: :class:`Billboards`; their splits and cells are read from ``state``) into the memory map
     ``state/rgba.npy``, then give the ground blocks that have none one from seen ground nearby
     (:func:`~billboards.synthesis.synthesise`: changes ``base_yaw`` in place; it and which
     blocks are synthesised are saved for the next tasks). Returns the tasks' sampling
@@ -458,7 +465,10 @@ def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np
                                              desc=desc, progress=progress) for st in chunk]
     rgba = np.load(state / "rgba.npy", mmap_mode="r+")
     front = int(np.argmin(np.abs(s.directions.yaw_offsets)))
-    synthesised, _ = synthesise(rgba, kind, quads, base_yaw, unseen, front, split)
+    meta = json.loads((state / "meta.json").read_text())
+    split = np.load(state / "split.npy")
+    edges = quad_edges(kind, split, meta["voxel_size"], meta["block_size"] or meta["voxel_size"])
+    synthesised, _ = synthesise(rgba, kind, quads, base_yaw, unseen, front, split, np.load(state / "cells.npy"), edges)
     rgba.flush()
     del rgba
     np.save(state / "synthesised.npy", synthesised.astype(np.uint8))
@@ -636,7 +646,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                     done += b
                     totals.add(stats)
 
-            sampled, _ = sample_textures(state, conf, tasks, kind, quads, base_yaw, unseen, split, executor, progress)
+            sampled, _ = sample_textures(state, conf, tasks, kind, quads, base_yaw, unseen, executor, progress)
             for st in sampled:
                 totals.add(st)
             stages["sample_s"] = time.perf_counter() - t3

@@ -119,7 +119,8 @@ def own_layer(layer: Layer, own_block: np.ndarray, own_point: np.ndarray) -> tup
     point_block = renumber[np.where(pb[keep] >= 0, pb[keep], len(layer.centres))]
     return Layer(layer.centres[own_block], layer.base_yaw[own_block], layer.kind[own_block], point_block,
                  layer.columns, layer.continued[own_block], layer.seen[own_block], layer.side_wall[own_block],
-                 layer.kerb[own_block], layer.split[own_block]), keep
+                 layer.kerb[own_block], layer.split[own_block],
+                 layer.cell[own_block]), keep
 
 
 def _anchored(passes: list[EpiPass], anchor: np.ndarray) -> list[EpiPass]:
@@ -251,7 +252,7 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
         d = conf.sampling.directions.num_directions
         octree = placed.octree
         desc = f"tile {index[0]},{index[1]}"
-        stats, _ = sample_textures(state, conf, tasks, placed.kind, placed.quads, placed.base_yaw, placed.unseen, placed.split,
+        stats, _ = sample_textures(state, conf, tasks, placed.kind, placed.quads, placed.base_yaw, placed.unseen,
                                    executor, progress, desc=f"{desc}: sampling")
         with ModelWriter(out, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
                          coef_mode=conf.coef_mode, num_directions=d) as writer:

@@ -246,7 +246,8 @@ class Layer:
     measured ground; side_wall (b,) bool facade blocks on a side wall (:mod:`billboards.side_walls`); kerb (b,) bool
     facade blocks on a kerb (:mod:`billboards.kerbs`); seen (b,) bool blocks whose centre some camera sees (None: all); the
     synthesised ones are continued and unseen; split (b,) uint8 the block's edge is the layer's
-    halved this many times (ground split near the path, :mod:`billboards.resolution`; None: 0).
+    halved this many times (ground split near the path, :mod:`billboards.resolution`; None: 0);
+    cell (b, 3) float64 the centre of the unsplit block each block was split from (None: its own).
     """
 
     centres: np.ndarray
@@ -259,8 +260,11 @@ class Layer:
     side_wall: np.ndarray | None = None
     kerb: np.ndarray | None = None
     split: np.ndarray | None = None
+    cell: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.cell is None:
+            object.__setattr__(self, "cell", np.asarray(self.centres, np.float64).copy())
         if self.split is None:
             object.__setattr__(self, "split", np.zeros(len(self.centres), np.uint8))
         if self.continued is None:
@@ -407,7 +411,7 @@ def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, 
                 np.bincount(split[ground], minlength=config.max_split + 1).tolist())
     return Layer(centres, layer.base_yaw[parent], layer.kind[parent], point_block, layer.columns,
                  layer.continued[parent], layer.seen[parent], layer.side_wall[parent], layer.kerb[parent],
-                 split[parent])
+                 split[parent], layer.cell[parent])
 
 
 def facade_truth(columns: FacadeColumns, scene, height: float = 3.0) -> np.ndarray:

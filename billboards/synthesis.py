@@ -59,21 +59,17 @@ def texture_colours_reference(textures: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarray, colours: np.ndarray | None = None,
-                      spread: np.ndarray | None = None, k: int = 8, pool: int = 64, seed: int = 0,
-                      area: np.ndarray | None = None) -> np.ndarray:
+                      spread: np.ndarray | None = None, k: int = 8, pool: int = 64, seed: int = 0) -> np.ndarray:
     """(n,) int64: for each ``wanted`` item, the index of a donor (one of ``donors``, never itself)
     near it whose texture it takes; −1 elsewhere, and everywhere when there is no donor.
 
     centres (n, 3) float64; wanted, donors (n,) bool; colours (n, 3) float64: the mean colour of
     each item's texture (NaN: none); spread (n,) float64 its variance (summed over the
-    channels; None: 0); area (n,) float64 each item's area in unsplit blocks (a block split L
-    times: 4^−L; None: 1), by which the neighbourhoods below are counted, so that the children
-    of a split block weigh what their parent did. Without colours the donor is drawn at random
-    among the ``k`` nearest (horizontally). With them it is drawn among the ``k`` of the ``pool``
-    nearest donors that lie nearest the colour of the ground around the wanted item (the median
-    colour of the plainer half, by spread, of the 3·``k`` nearest items on its level that have
-    one; others only where the ``pool`` nearest hold fewer), in the mean squared sense
-    (|mean − target|² + spread: a block half marking, half asphalt is no match
+    channels; None: 0). Without colours the donor is drawn at random among the ``k``
+    nearest (horizontally). With them it is drawn among the ``k`` of the ``pool`` nearest
+    donors that lie nearest the colour of the ground around the wanted item (the median colour
+    of the plainer half, by spread, of the 3·``k`` nearest items on its level that have one;
+    others only where the ``pool`` nearest hold fewer), in the mean squared sense (|mean − target|² + spread: a block half marking, half asphalt is no match
     for asphalt although its mean may be close), on the wanted item's level (within 5 cm of its
     height) where the pool has a donor there: the nearest donors are often markings or kerbs,
     and the road between them would come out striped. Random draws are seeded (a build is
@@ -83,88 +79,92 @@ def synthesis_sources(centres: np.ndarray, wanted: np.ndarray, donors: np.ndarra
     want, have = np.flatnonzero(wanted), np.flatnonzero(donors & ~wanted)
     if len(want) == 0 or len(have) == 0:
         return out
-    area = np.ones(n) if area is None else np.asarray(area, np.float64)
-    per_unit = max(1, int(np.ceil(1.0 / area.min())))   # items an area of one block may hold
     xy = np.asarray(centres, np.float64)[:, :2]
     rng = np.random.default_rng(seed)
+    m = min(pool if colours is not None else k, len(have))
+    _, near = cKDTree(xy[have]).query(xy[want], k=m)
+    near = have[np.asarray(near).reshape(len(want), m)]                      # (w, m) donor indices
     z = np.asarray(centres, np.float64)[:, 2]
-    if colours is None:
-        m = min(k, len(have))
-        _, near = cKDTree(xy[have]).query(xy[want], k=m)
-        near = have[np.asarray(near).reshape(len(want), m)]
-        out[want] = near[np.arange(len(want)), rng.integers(0, m, len(want))]
-        return out
-    colours = np.asarray(colours, np.float64).reshape(n, 3)
-    spread = np.zeros(n) if spread is None else np.asarray(spread, np.float64)
-    coloured = np.flatnonzero(np.all(np.isfinite(colours), axis=1))
-    donor_tree = cKDTree(xy[have])
-    colour_tree = cKDTree(xy[coloured]) if len(coloured) else None
-    draws = rng.random(len(want))
-    for s in range(0, len(want), _CHUNK):
-        w = want[s:s + _CHUNK]
-        m = min(pool * per_unit, len(have))
-        _, near = donor_tree.query(xy[w], k=m)
-        near = have[np.asarray(near).reshape(len(w), m)]                      # (w, m) donor indices
-        in_pool = _first_by_area(area[near], pool)
-        if colour_tree is None:   # no texture to match: the nearest k
-            keep = _first_by_area(area[near], k) & in_pool
-            count = keep.sum(axis=1)
-            out[w] = near[np.arange(len(w)), (draws[s:s + _CHUNK] * count).astype(np.int64)]
-            continue
-        c, q = 3 * k, min(max(pool, 3 * k) * per_unit, len(coloured))
-        _, around = colour_tree.query(xy[w], k=q)
-        around = coloured[np.asarray(around).reshape(len(w), q)]                               # (w, q)
-        # the ground on the wanted item's level: the sidewalk past the kerb is plainer than
-        # asphalt, and would make the road's colour its own
-        off_level = np.abs(z[around] - z[w][:, None]) > _LEVEL
-        around = np.take_along_axis(around, np.argsort(off_level, axis=1, kind="stable"), axis=1)
-        taken = _first_by_area(area[around], c)
-        # the plainer half: a block with a marking in it is no measure of the road
-        key = np.where(taken, spread[around], np.inf)
-        order = np.argsort(key, axis=1, kind="stable")
-        around, taken = np.take_along_axis(around, order, axis=1), np.take_along_axis(taken, order, axis=1)
-        half = np.maximum(np.where(taken, area[around], 0).sum(axis=1) // 2, 1)
-        plain = taken & _first_by_area(area[around], half[:, None])
-        target = np.nanmedian(np.where(plain[..., None], colours[around], np.nan), axis=1)       # (w, 3)
-        distance = ((colours[near] - target[:, None, :]) ** 2).sum(axis=-1) + spread[near]
-        distance = np.where(np.isfinite(distance) & in_pool, distance, np.inf)
-        # A donor on another level (the sidewalk beside the road, past the kerb) is another surface:
-        # taken only where no donor of the pool lies within _LEVEL of the wanted item's height.
-        other = (np.abs(z[near] - z[w][:, None]) > _LEVEL) | ~in_pool
-        distance = np.where(other & ~np.all(other, axis=1, keepdims=True), distance + _OTHER_LEVEL, distance)
-        order = np.argsort(distance, axis=1, kind="stable")
-        near, distance = np.take_along_axis(near, order, axis=1), np.take_along_axis(distance, order, axis=1)
-        best = _first_by_area(area[near], k) & np.isfinite(distance)
-        # only as good a match as the best (within MATCH grey levels RMS): rather one texture
-        # repeated than sidewalk on the road
-        usable = (best & (distance <= distance[:, :1] + 3 * _MATCH ** 2)).sum(axis=1)
-        out[w] = np.where(usable > 0, near[np.arange(len(w)), (draws[s:s + _CHUNK] * usable).astype(np.int64)], -1)
+    if colours is not None:
+        colours = np.asarray(colours, np.float64).reshape(n, 3)
+        coloured = np.flatnonzero(np.all(np.isfinite(colours), axis=1))
+        if len(coloured):
+            c, q = min(3 * k, len(coloured)), min(max(pool, 3 * k), len(coloured))
+            _, around = cKDTree(xy[coloured]).query(xy[want], k=q)
+            around = coloured[np.asarray(around).reshape(len(want), q)]                       # (w, q)
+            # the ground on the wanted item's level: the sidewalk past the kerb is plainer than
+            # asphalt, and would make the road's colour its own
+            off_level = np.abs(z[around] - z[want][:, None]) > _LEVEL
+            around = np.take_along_axis(around, np.argsort(off_level, axis=1, kind="stable")[:, :c], axis=1)
+            if spread is not None:   # the plainer half: a block with a marking in it is no measure of the road
+                around = np.take_along_axis(around, np.argsort(np.asarray(spread, np.float64)[around], axis=1,
+                                                               kind="stable")[:, :max(1, c // 2)], axis=1)
+            target = np.median(colours[around], axis=1)                                        # (w, 3)
+            distance = ((colours[near] - target[:, None, :]) ** 2).sum(axis=-1)
+            if spread is not None:
+                distance = distance + np.asarray(spread, np.float64)[near]
+            distance = np.where(np.isfinite(distance), distance, np.inf)
+            # A donor on another level (the sidewalk beside the road, past the kerb) is another surface:
+            # taken only where no donor of the pool lies within _LEVEL of the wanted item's height.
+            other = np.abs(z[near] - z[want][:, None]) > _LEVEL
+            distance = np.where(other & ~np.all(other, axis=1, keepdims=True), distance + _OTHER_LEVEL, distance)
+            order = np.argsort(distance, axis=1, kind="stable")[:, :min(k, m)]
+            near, distance = np.take_along_axis(near, order, axis=1), np.take_along_axis(distance, order, axis=1)
+            # only as good a match as the best (within MATCH grey levels RMS): rather one texture
+            # repeated than sidewalk on the road
+            usable = (distance <= distance[:, :1] + 3 * _MATCH ** 2).sum(axis=1)
+            out[want] = near[np.arange(len(want)), (rng.random(len(want)) * usable).astype(np.int64)]
+            return out
+    out[want] = near[np.arange(len(want)), rng.integers(0, near.shape[1], len(want))]
     return out
 
 
-def _first_by_area(area: np.ndarray, total) -> np.ndarray:
-    """(w, m) bool: along each row, the items before the cumulative ``area`` (w, m) reaches
-    ``total`` (a number, or (w, 1)): the first ``total`` items when every area is 1."""
-    return (np.cumsum(area, axis=1) - area) < total - 1e-9
+def cell_positions(centres: np.ndarray, cells: np.ndarray, base_yaw: np.ndarray, edges: np.ndarray,
+                   split: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, col) (n,) int64 of each ground block in its cell (the unsplit block it was split
+    from, :mod:`billboards.resolution`): centres, cells (n, 3) float64; base_yaw (n,) float64
+    (the rows run away from it); edges (n,) float64 the blocks' edges; split (n,) int. An
+    unsplit block is (0, 0) of its own cell."""
+    side = np.left_shift(1, np.asarray(split, np.int64))
+    cell_edge = np.asarray(edges, np.float64) * side
+    off = np.asarray(centres, np.float64) - np.asarray(cells, np.float64)
+    right = np.stack([-np.sin(base_yaw), np.cos(base_yaw)], axis=1)
+    up = -np.stack([np.cos(base_yaw), np.sin(base_yaw)], axis=1)
+    a = np.einsum("nk,nk->n", off[:, :2], right) / cell_edge
+    b = np.einsum("nk,nk->n", off[:, :2], up) / cell_edge
+    col = np.clip(np.floor((a + 0.5) * side), 0, side - 1).astype(np.int64)
+    row = np.clip(np.floor((0.5 - b) * side), 0, side - 1).astype(np.int64)
+    return row, col
 
 
-def at_scale(textures: np.ndarray, finer: np.ndarray) -> np.ndarray:
-    """Textures (m, t, t, 4) uint8 of donors whose texels are 2^finer (m,) int times smaller than
-    the block's that takes them, brought to its scale: each averaged over 2^k × 2^k texels and
-    repeated 2^k × 2^k times (k = finer, at most log2 t), so that the pattern keeps its size on the
-    larger block; finer ≤ 0: as they are (a coarser donor's pattern shrinks)."""
-    out = np.array(textures, copy=True)
+def cell_texture(textures: np.ndarray, children: np.ndarray, donor_split: int, split: int, row: np.ndarray,
+                 col: np.ndarray) -> np.ndarray:
+    """Textures (w, t, t, 4) of blocks split ``split`` times at (row, col) (w,) of their cells, cut
+    from donor cells split ``donor_split`` times: children (w, 2^donor_split, 2^donor_split) int64
+    the donor cell's blocks by (row, col) (indices into ``textures`` (g, t, t, 4)). The donor cell's
+    blocks side by side make one picture of the cell, 2^donor_split·t texels a side; each block
+    takes its square of it, averaged down or repeated up to t texels (a pattern keeps its size)."""
     t = textures.shape[1]
-    for k in np.unique(finer[finer > 0]):
-        f = 1 << min(int(k), int(np.log2(t)))
-        rows = np.flatnonzero(finer == k)
-        pooled = textures[rows].reshape(len(rows), t // f, f, t // f, f, 4).astype(np.float64).mean(axis=(2, 4))
-        out[rows] = np.tile(np.rint(pooled).astype(textures.dtype), (1, f, f, 1))
-    return out
+    k = 1 << donor_split
+    w = len(row)
+    picture = textures[children].transpose(0, 1, 3, 2, 4, 5).reshape(w, k * t, k * t, 4)
+    if donor_split >= split:       # 2^(donor_split − split) picture texels to a texel
+        f = 1 << (donor_split - split)
+        span = f * t
+        ii = row[:, None] * span + np.arange(span)[None, :]
+        jj = col[:, None] * span + np.arange(span)[None, :]
+        sub = picture[np.arange(w)[:, None, None], ii[:, :, None], jj[:, None, :]]
+        return np.rint(sub.reshape(w, t, f, t, f, 4).astype(np.float64).mean(axis=(2, 4))).astype(textures.dtype)
+    span = (k * t) >> split        # fewer picture texels than t across the block: each repeated
+    step = (np.arange(t) * max(span, 1)) // t
+    ii = row[:, None] * span + step[None, :]
+    jj = col[:, None] * span + step[None, :]
+    return picture[np.arange(w)[:, None, None], ii[:, :, None], jj[:, None, :]]
 
 
 def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw: np.ndarray, unseen: np.ndarray,
-               front: int, split: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               front: int, split: np.ndarray | None = None, cells: np.ndarray | None = None,
+               edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Give each ground block without a texture of its own one from seen ground nearby, in place.
 
     rgba (n, d, t, t, 4) uint8 the sampled textures (a memory map will do; rows are read and
@@ -172,22 +172,30 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     (n,) float64, changed: a synthesised block takes its donor's (the texture is copied texel
     for texel, so its rows must run the same way: a lane marking along the road stays along
     it); unseen (n,) bool blocks that no camera sees, whatever their sampling gave; front: the
-    direction nearest each block's base yaw, how its cameras saw it; split (n,) uint8 times each
-    block was split (:mod:`billboards.resolution`; None: never): a donor split more often than
-    the block has smaller texels, and its texture is brought to the block's scale (:func:`at_scale`).
+    direction nearest each block's base yaw, how its cameras saw it.
+
+    Blocks split near the path (:mod:`billboards.resolution`; split (n,) uint8 times, cells (n, 3)
+    float64 the centre of the unsplit block each came from, edges (n,) float64 their edges; None:
+    nothing split) are chosen for and chosen from by their *cell*, the unsplit block: its colour
+    and spread are its blocks', it wants a texture when any of its blocks does, and it is a donor
+    when all of its blocks are. A block then takes its square of the donor cell's picture
+    (:func:`cell_texture`), so that a pattern keeps its size whatever either was split into.
 
     A ground block wants a texture when it is unseen or its sampling is transparent in every
     direction; a donor is a ground block that does not, whose front texture is opaque in every
     texel (:func:`synthesis_sources` picks among them). A synthesised block takes its donor's
     front texture in every direction: seen from elsewhere, the donor's texture is another
     place's grazing view, not how ground looks there.
-    Returns synthesised (n,) bool and donor (n,) int64 (−1: none)."""
+    Returns synthesised (n,) bool and donor (n,) int64 (−1: none; for a split donor cell, its
+    first block)."""
     n = len(kind)
     synthesised, donor = np.zeros(n, bool), np.full(n, -1, np.int64)
     ground = np.flatnonzero(kind == GROUND)
     if len(ground) == 0:
         return synthesised, donor
-    split = np.zeros(len(ground), np.int64) if split is None else np.asarray(split, np.int64)[ground]
+    centres = np.asarray(centres, np.float64)
+    g_split = np.zeros(len(ground), np.int64) if split is None else np.asarray(split, np.int64)[ground]
+    g_cells = centres[ground] if cells is None else np.asarray(cells, np.float64)[ground]
     textures = np.empty((len(ground),) + rgba.shape[2:], rgba.dtype)                  # (g, t, t, 4) front
     empty = np.empty(len(ground), bool)
     for s in range(0, len(ground), _CHUNK):
@@ -196,15 +204,46 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
         empty[s:s + len(part)] = ~np.any(part[..., 3] > 0, axis=(1, 2, 3))
     mean, spread, share = texture_colours(textures)
     wanted = np.asarray(unseen, bool)[ground] | empty
-    mean[wanted], spread[wanted] = np.nan, np.nan
     donors = ~wanted & (share >= 1.0)
-    chosen = synthesis_sources(np.asarray(centres, np.float64)[ground], wanted, donors, mean, spread,
-                               area=np.ldexp(1.0, -2 * split))
-    got = np.flatnonzero(chosen >= 0)
-    blocks, sources = ground[got], ground[chosen[got]]
-    for s in range(0, len(got), _CHUNK):
-        part = got[s:s + _CHUNK]
-        rgba[blocks[s:s + _CHUNK]] = at_scale(textures[chosen[part]], split[chosen[part]] - split[part])[:, None]
-    synthesised[blocks], donor[blocks] = True, sources
-    base_yaw[blocks] = base_yaw[sources]
+    # the cells: one per unsplit block
+    _, first, cell = np.unique(np.round(g_cells, 4), axis=0, return_index=True, return_inverse=True)
+    cell = cell.reshape(-1)
+    m = len(first)
+    count = np.bincount(cell, minlength=m).astype(np.float64)
+    cell_wanted = np.bincount(cell, weights=wanted, minlength=m) > 0
+    cell_donor = (np.bincount(cell, weights=donors, minlength=m) == count) & ~cell_wanted
+    with np.errstate(invalid="ignore"):
+        c_mean = np.stack([np.bincount(cell, weights=np.nan_to_num(mean[:, ch]), minlength=m) / count
+                           for ch in range(3)], axis=1)
+        c_sq = np.bincount(cell, weights=np.nan_to_num((mean ** 2).sum(axis=1) + spread), minlength=m) / count
+    c_spread = np.maximum(c_sq - (c_mean ** 2).sum(axis=1), 0.0)   # the cell's variance: its blocks' and between them
+    known = np.bincount(cell, weights=np.isfinite(mean).all(axis=1), minlength=m) == count
+    c_mean[~known | cell_wanted], c_spread[~known | cell_wanted] = np.nan, np.nan
+    chosen = synthesis_sources(g_cells[first], cell_wanted, cell_donor, c_mean, c_spread)
+    items = np.flatnonzero(wanted & (chosen[cell] >= 0))                   # ground indices that get one
+    if len(items) == 0:
+        return synthesised, donor
+    # each donor cell's blocks by (row, col)
+    edge = np.ones(len(ground)) if edges is None else np.asarray(edges, np.float64)[ground]
+    yaw = np.asarray(base_yaw, np.float64)[ground]
+    row, col = cell_positions(centres[ground], g_cells, yaw, edge, g_split)
+    side = 1 << int(g_split.max())
+    table = np.zeros((m, side, side), np.int64)
+    table[cell, row, col] = np.arange(len(ground))
+    cell_split = np.zeros(m, np.int64)
+    cell_split[cell] = g_split
+    source_cell = chosen[cell[items]]
+    for ds in np.unique(cell_split[source_cell]):
+        for ws in np.unique(g_split[items]):
+            sel = items[(cell_split[source_cell] == ds) & (g_split[items] == ws)]
+            for s in range(0, len(sel), _CHUNK):
+                part = sel[s:s + _CHUNK]
+                k = 1 << int(ds)
+                children = table[chosen[cell[part]]][:, :k, :k]
+                rgba[ground[part]] = cell_texture(textures, children, int(ds), int(ws), row[part], col[part])[:, None]
+    src = table[source_cell, 0, 0]
+    synthesised[ground[items]] = True
+    donor[ground[items]] = ground[src]
+    base = np.asarray(base_yaw)
+    base[ground[items]] = base[ground[src]]
     return synthesised, donor

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from billboards.geometry import FACADE, GROUND
-from billboards.synthesis import at_scale, synthesis_sources, synthesise, texture_colours, texture_colours_reference
+from billboards.synthesis import (cell_positions, cell_texture, synthesis_sources, synthesise, texture_colours,
+                                  texture_colours_reference)
 
 
 def test_texture_colours_against_a_loop():
@@ -70,31 +71,74 @@ def test_synthesised_ground_takes_plain_asphalt_from_its_own_level_in_every_dire
     np.testing.assert_array_equal(base_yaw[~synthesised], yaw_before[~synthesised])
 
 
-def test_a_finer_donor_is_brought_to_the_blocks_scale():
+def test_a_cells_picture_cut_to_blocks_of_any_split():
     rng = np.random.default_rng(5)
-    t = 8
-    textures = rng.integers(0, 256, (4, t, t, 4)).astype(np.uint8)
-    out = at_scale(textures, np.array([0, 1, 2, 5]))
-    np.testing.assert_array_equal(out[0], textures[0])                 # as large: as it is
-    for i, f in ((1, 2), (2, 4), (3, t)):                               # 2×, 4× finer; finer than the tile
-        pooled = textures[i].reshape(t // f, f, t // f, f, 4).mean(axis=(1, 3))
-        np.testing.assert_array_equal(out[i, :t // f, :t // f], np.rint(pooled))
-        np.testing.assert_array_equal(out[i], np.tile(out[i, :t // f, :t // f], (f, f, 1)))
-        np.testing.assert_allclose(out[i].reshape(-1, 4).mean(0), textures[i].reshape(-1, 4).mean(0), atol=0.5)
-    np.testing.assert_array_equal(at_scale(textures, np.array([-1, 0, 0, -2])), textures)  # coarser donors too
-    assert at_scale(textures[:0], np.zeros(0, int)).shape == (0, t, t, 4)
+    t = 4
+    textures = rng.integers(0, 256, (21, t, t, 4)).astype(np.uint8)
+    one = np.array([[[0]]])                              # a donor cell of one block
+    four = np.arange(1, 5).reshape(1, 2, 2)              # a donor cell split once: blocks 1–4 by (row, col)
+    sixteen = np.arange(5, 21).reshape(1, 4, 4)          # split twice
+    picture = textures[1:5].reshape(2, 2, t, t, 4).transpose(0, 2, 1, 3, 4).reshape(2 * t, 2 * t, 4)
+    # as split as the donor: the block at the same place, texel for texel
+    got = cell_texture(textures, four, 1, 1, np.array([1]), np.array([0]))
+    np.testing.assert_array_equal(got[0], textures[3])
+    # an unsplit block from a cell split once: the picture averaged over 2×2 texels
+    got = cell_texture(textures, four, 1, 0, np.array([0]), np.array([0]))
+    np.testing.assert_array_equal(got[0], np.rint(picture.reshape(t, 2, t, 2, 4).mean(axis=(1, 3))))
+    # a block split once from an unsplit cell: its quarter of the texture, each texel repeated 2×2
+    got = cell_texture(textures, one, 0, 1, np.array([0]), np.array([1]))
+    quarter = textures[0, :t // 2, t // 2:]
+    np.testing.assert_array_equal(got[0], np.repeat(np.repeat(quarter, 2, 0), 2, 1))
+    # split twice from a cell split once: a quarter of one donor block
+    got = cell_texture(textures, four, 1, 2, np.array([3]), np.array([2]))
+    np.testing.assert_array_equal(got[0], np.repeat(np.repeat(textures[4, t // 2:, :t // 2], 2, 0), 2, 1))
+    # unsplit from a cell split twice: 4×4 texels averaged
+    got = cell_texture(textures, sixteen, 2, 0, np.array([0]), np.array([0]))
+    big = textures[5:21].reshape(4, 4, t, t, 4).transpose(0, 2, 1, 3, 4).reshape(4 * t, 4 * t, 4)
+    np.testing.assert_array_equal(got[0], np.rint(big.reshape(t, 4, t, 4, 4).mean(axis=(1, 3))))
 
 
-def test_a_block_whose_donors_were_split_takes_their_texture_at_its_scale():
+def test_cell_positions_find_each_block_in_its_cell():
+    from billboards.resolution import split_blocks
+
+    centres = np.array([[2.0, 1.0, 0.0], [5.0, -3.0, 0.1]])
+    yaw = np.array([0.7, -2.5])
+    parent, child, _ = split_blocks(centres, yaw, 0.5, np.array([2, 1]), np.zeros((0, 3)), np.zeros(0, np.int64))
+    split = np.array([2, 1])[parent]
+    row, col = cell_positions(child, centres[parent], yaw[parent], 0.5 / (1 << split), split)
+    local = np.arange(len(parent)) - np.array([0, 16])[parent]
+    side = 1 << split
+    assert np.array_equal(row, local // side) and np.array_equal(col, local % side)
+
+
+def test_blocks_of_split_cells_take_their_square_of_the_donor_cells_picture():
+    """Cells, not blocks, are chosen for and from: a road of unsplit blocks where the seen half is
+    split twice (near the path) and the unseen half not; a synthesised block takes the average of
+    a donor cell's 16 blocks, whose picture keeps its pattern's size."""
+    from billboards.resolution import split_blocks
+
     centres, row, rgba, unseen = _road()
-    kind = np.full(len(centres), GROUND, np.uint8)
-    split = np.where(unseen, 0, 1).astype(np.uint8)                      # every seen block split once
-    before = rgba.copy()
-    synthesised, donor = synthesise(rgba, kind, centres, np.zeros(len(centres)), unseen, front=1, split=split)
-    assert np.array_equal(synthesised, unseen)
+    yaw = np.zeros(len(centres))
+    times = np.where(unseen, 0, 2)
+    parent, child, _ = split_blocks(centres, yaw, 1.0, times, np.zeros((0, 3)), np.zeros(0, np.int64))
+    kind = np.full(len(parent), GROUND, np.uint8)
+    split = times[parent].astype(np.uint8)
+    edges = 1.0 / (1 << split)
+    small = rgba[parent].copy()          # each child shows its parent's texture (a pattern 4× smaller)
+    before = small.copy()
+    base_yaw = np.zeros(len(parent))
+    synthesised, donor = synthesise(small, kind, child, base_yaw, unseen[parent], front=1, split=split,
+                                    cells=centres[parent], edges=edges)
+    assert np.array_equal(synthesised, unseen[parent])
     d = donor[synthesised]
-    np.testing.assert_array_equal(rgba[synthesised][:, 0], at_scale(before[d][:, 1], np.ones(len(d), int)))
-    np.testing.assert_array_equal(rgba[~synthesised], before[~synthesised])
+    assert np.all(split[d] == 2) and np.all(np.isin(row[parent[d]], (2, 4, 5)))    # plain asphalt cells
+    # each took its donor cell's picture (16 copies of the parent texture) averaged 4×4: the parent's
+    # texture averaged over 4×4 texels, tiled
+    t = rgba.shape[2]
+    src = rgba[parent[d], 1]
+    pooled = np.rint(np.tile(src, (1, 4, 4, 1)).reshape(len(d), t, 4, t, 4, 4).mean(axis=(2, 4)))
+    np.testing.assert_array_equal(small[synthesised][:, 0], pooled)
+    np.testing.assert_array_equal(small[~synthesised], before[~synthesised])
 
 
 def test_synthesis_without_ground_or_donors_changes_nothing():
@@ -187,24 +231,3 @@ def test_the_colour_of_the_ground_around_is_taken_on_the_wanted_level():
     got = synthesis_sources(centres, band, ~band, colours, spread)
     assert np.all(got[band] >= 0)
     assert not np.any(marked[got[band]]) and not np.any(sidewalk[got[band]])
-
-
-def test_split_donors_count_by_their_area():
-    """A split block's children weigh what their parent did: a row of light, mixed children (the
-    kerb's edge, split near the path) as near as a plain dark road row does not fill the ground
-    around and make the road's colour its own, as it does when each child counts as a block."""
-    xs = np.arange(-6, 7) + 0.5
-    road = np.array([[x, y, 0.0] for x in xs for y in (1.5, 2.5, 3.5, -2.5, -3.5)])
-    strip = np.array([[x + dx, -1.5 + dy, 0.0] for x in xs for dx in (-0.375, -0.125, 0.125, 0.375)
-                      for dy in (-0.375, -0.125, 0.125, 0.375)])
-    wanted_at = np.array([[x, 0.0, 0.0] for x in xs])
-    centres = np.concatenate([road, strip, wanted_at])
-    area = np.concatenate([np.ones(len(road)), np.full(len(strip), 1 / 16), np.ones(len(wanted_at))])
-    colours = np.concatenate([np.full((len(road), 3), 65.0), np.full((len(strip), 3), 135.0),
-                              np.full((len(wanted_at), 3), np.nan)])
-    spread = np.concatenate([np.full(len(road), 10.0), np.full(len(strip), 50.0), np.full(len(wanted_at), np.nan)])
-    wanted = np.arange(len(centres)) >= len(road) + len(strip)
-    by_area = synthesis_sources(centres, wanted, ~wanted, colours, spread, area=area)
-    by_count = synthesis_sources(centres, wanted, ~wanted, colours, spread)
-    assert np.all(by_area[wanted] < len(road))                       # the dark road
-    assert np.all(by_count[wanted] >= len(road))                     # the light strip
