@@ -177,7 +177,8 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     Blocks split near the path (:mod:`billboards.resolution`; split (n,) uint8 times, cells (n, 3)
     float64 the centre of the unsplit block each came from, edges (n,) float64 their edges; None:
     nothing split) are chosen for and chosen from by their *cell*, the unsplit block: its colour
-    and spread are its blocks', it wants a texture when any of its blocks does, and it is a donor
+    and spread are those of its blocks that have their own texture, it wants a texture when any
+    of its blocks does (its blocks that have one keep it), and it is a donor
     when all of its blocks are. A block then takes its square of the donor cell's picture
     (:func:`cell_texture`), so that a pattern keeps its size whatever either was split into.
 
@@ -209,16 +210,19 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     _, first, cell = np.unique(np.round(g_cells, 4), axis=0, return_index=True, return_inverse=True)
     cell = cell.reshape(-1)
     m = len(first)
-    count = np.bincount(cell, minlength=m).astype(np.float64)
+    count = np.bincount(cell, minlength=m)
     cell_wanted = np.bincount(cell, weights=wanted, minlength=m) > 0
     cell_donor = (np.bincount(cell, weights=donors, minlength=m) == count) & ~cell_wanted
-    with np.errstate(invalid="ignore"):
-        c_mean = np.stack([np.bincount(cell, weights=np.nan_to_num(mean[:, ch]), minlength=m) / count
+    # a cell's colour and spread: over its blocks that have their own texture (a cell half
+    # under the camera is wanted, and its seen half still tells what the ground around looks like)
+    own = ~wanted & np.all(np.isfinite(mean), axis=1)
+    known = np.bincount(cell, weights=own, minlength=m)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c_mean = np.stack([np.bincount(cell, weights=np.where(own, mean[:, ch], 0.0), minlength=m) / known
                            for ch in range(3)], axis=1)
-        c_sq = np.bincount(cell, weights=np.nan_to_num((mean ** 2).sum(axis=1) + spread), minlength=m) / count
-    c_spread = np.maximum(c_sq - (c_mean ** 2).sum(axis=1), 0.0)   # the cell's variance: its blocks' and between them
-    known = np.bincount(cell, weights=np.isfinite(mean).all(axis=1), minlength=m) == count
-    c_mean[~known | cell_wanted], c_spread[~known | cell_wanted] = np.nan, np.nan
+        c_sq = np.bincount(cell, weights=np.where(own, (mean ** 2).sum(axis=1) + spread, 0.0), minlength=m) / known
+    c_spread = np.maximum(c_sq - (c_mean ** 2).sum(axis=1), 0.0)   # its blocks' variance and between them
+    c_mean[known == 0], c_spread[known == 0] = np.nan, np.nan
     chosen = synthesis_sources(g_cells[first], cell_wanted, cell_donor, c_mean, c_spread)
     items = np.flatnonzero(wanted & (chosen[cell] >= 0))                   # ground indices that get one
     if len(items) == 0:
