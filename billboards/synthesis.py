@@ -178,8 +178,9 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     float64 the centre of the unsplit block each came from, edges (n,) float64 their edges; None:
     nothing split) are chosen for and chosen from by their *cell*, the unsplit block: its colour
     and spread are those of its blocks that have their own texture, it wants a texture when any
-    of its blocks does (its blocks that have one keep it), and it is a donor
-    when all of its blocks are. A block then takes its square of the donor cell's picture
+    of its blocks does (its blocks that have one keep it), and it is a donor when its blocks that
+    have a texture are whole in front and cover a quarter of it or more (the rest of its picture
+    shows the nearest of them; a cell partly under the camera can give its own missing part). A block then takes its square of the donor cell's picture
     (:func:`cell_texture`), so that a pattern keeps its size whatever either was split into.
 
     A ground block wants a texture when it is unseen or its sampling is transparent in every
@@ -211,10 +212,12 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     cell = cell.reshape(-1)
     m = len(first)
     count = np.bincount(cell, minlength=m)
-    cell_wanted = np.bincount(cell, weights=wanted, minlength=m) > 0
-    cell_donor = (np.bincount(cell, weights=donors, minlength=m) == count) & ~cell_wanted
-    # a cell's colour and spread: over its blocks that have their own texture (a cell half
-    # under the camera is wanted, and its seen half still tells what the ground around looks like)
+    n_wanted = np.bincount(cell, weights=wanted, minlength=m)
+    n_donor = np.bincount(cell, weights=donors, minlength=m)
+    # a donor cell: its blocks that have a texture are whole in front, and cover a quarter of it or
+    # more (a cell under the camera gives its seen row; its picture fills the rest from them)
+    cell_donor = (n_donor + n_wanted == count) & (4 * n_donor >= count)
+    # a cell's colour and spread: over its blocks that have their own texture
     own = ~wanted & np.all(np.isfinite(mean), axis=1)
     known = np.bincount(cell, weights=own, minlength=m)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -222,12 +225,22 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
                            for ch in range(3)], axis=1)
         c_sq = np.bincount(cell, weights=np.where(own, (mean ** 2).sum(axis=1) + spread, 0.0), minlength=m) / known
     c_spread = np.maximum(c_sq - (c_mean ** 2).sum(axis=1), 0.0)   # its blocks' variance and between them
-    c_mean[known == 0], c_spread[known == 0] = np.nan, np.nan
-    chosen = synthesis_sources(g_cells[first], cell_wanted, cell_donor, c_mean, c_spread)
+    # cells wanting blocks, and cells that tell what the ground looks like (some are both)
+    takers, known_cells = np.flatnonzero(n_wanted > 0), np.flatnonzero(known > 0)
+    both = np.concatenate([takers, known_cells])
+    r = len(takers)
+    picked = synthesis_sources(g_cells[first][both], np.arange(len(both)) < r,
+                               np.concatenate([np.zeros(r, bool), cell_donor[known_cells]]),
+                               np.concatenate([np.full((r, 3), np.nan), c_mean[known_cells]]),
+                               np.concatenate([np.full(r, np.nan), c_spread[known_cells]]))[:r]
+    chosen = np.full(m, -1, np.int64)
+    if len(known_cells):
+        chosen[takers] = np.where(picked >= 0, known_cells[np.maximum(picked - r, 0)], -1)
     items = np.flatnonzero(wanted & (chosen[cell] >= 0))                   # ground indices that get one
     if len(items) == 0:
         return synthesised, donor
-    # each donor cell's blocks by (row, col)
+    # each cell's blocks by (row, col); a wanted block's place in a donor cell's picture shows the
+    # nearest of its blocks that has a texture
     edge = np.ones(len(ground)) if edges is None else np.asarray(edges, np.float64)[ground]
     yaw = np.asarray(base_yaw, np.float64)[ground]
     row, col = cell_positions(centres[ground], g_cells, yaw, edge, g_split)
@@ -236,6 +249,16 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     table[cell, row, col] = np.arange(len(ground))
     cell_split = np.zeros(m, np.int64)
     cell_split[cell] = g_split
+    for times in np.unique(cell_split):
+        k = 1 << int(times)
+        fill = np.flatnonzero(cell_donor & (n_wanted > 0) & (cell_split == times))
+        if len(fill) == 0:
+            continue
+        grid = np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), axis=-1).reshape(-1, 2)
+        apart = np.linalg.norm(grid[:, None, :] - grid[None, :, :], axis=-1)              # (k², k²)
+        blocks = table[fill, :k, :k].reshape(len(fill), -1)
+        far = np.where(donors[blocks], 0.0, np.inf)[:, None, :] + apart[None]             # (f, slot, block)
+        table[fill, :k, :k] = np.take_along_axis(blocks, np.argmin(far, axis=2), axis=1).reshape(-1, k, k)
     source_cell = chosen[cell[items]]
     for ds in np.unique(cell_split[source_cell]):
         for ws in np.unique(g_split[items]):
