@@ -180,7 +180,7 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     and spread are those of its blocks that have their own texture, it wants a texture when any
     of its blocks does (its blocks that have one keep it), and it is a donor when its blocks that
     have a texture are whole in front and cover a quarter of it or more (the rest of its picture
-    shows the nearest of them; a cell partly under the camera can give its own missing part). A block then takes its square of the donor cell's picture
+    shows the plainest of them; a cell partly under the camera can give its own missing part). A block then takes its square of the donor cell's picture
     (:func:`cell_texture`), so that a pattern keeps its size whatever either was split into.
 
     A ground block wants a texture when it is unseen or its sampling is transparent in every
@@ -240,7 +240,7 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     if len(items) == 0:
         return synthesised, donor
     # each cell's blocks by (row, col); a wanted block's place in a donor cell's picture shows the
-    # nearest of its blocks that has a texture
+    # plainest of its blocks that has a texture (not a marking drawn on into the road)
     edge = np.ones(len(ground)) if edges is None else np.asarray(edges, np.float64)[ground]
     yaw = np.asarray(base_yaw, np.float64)[ground]
     row, col = cell_positions(centres[ground], g_cells, yaw, edge, g_split)
@@ -254,11 +254,9 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
         fill = np.flatnonzero(cell_donor & (n_wanted > 0) & (cell_split == times))
         if len(fill) == 0:
             continue
-        grid = np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), axis=-1).reshape(-1, 2)
-        apart = np.linalg.norm(grid[:, None, :] - grid[None, :, :], axis=-1)              # (k², k²)
         blocks = table[fill, :k, :k].reshape(len(fill), -1)
-        far = np.where(donors[blocks], 0.0, np.inf)[:, None, :] + apart[None]             # (f, slot, block)
-        table[fill, :k, :k] = np.take_along_axis(blocks, np.argmin(far, axis=2), axis=1).reshape(-1, k, k)
+        plainest = blocks[np.arange(len(fill)), np.argmin(np.where(donors[blocks], spread[blocks], np.inf), axis=1)]
+        table[fill, :k, :k] = np.where(donors[blocks], blocks, plainest[:, None]).reshape(-1, k, k)
     source_cell = chosen[cell[items]]
     for ds in np.unique(cell_split[source_cell]):
         for ws in np.unique(g_split[items]):

@@ -233,22 +233,23 @@ def test_the_colour_of_the_ground_around_is_taken_on_the_wanted_level():
     assert not np.any(marked[got[band]]) and not np.any(sidewalk[got[band]])
 
 
-def test_a_cell_partly_seen_gives_its_missing_blocks_its_seen_ones():
+def test_a_cell_partly_seen_gives_its_missing_blocks_its_plainest_seen_one():
     """A cell split once whose top row a camera saw and whose bottom row it did not (under the
-    camera): alone on the road, it is its own donor; each missing block shows the seen block
-    above it (the nearest in the cell's picture)."""
+    camera): alone on the road, it is its own donor; both missing blocks show the plainer seen
+    block (a marking in the other is not drawn on into the road)."""
     from billboards.resolution import split_blocks
 
     parent, child, _ = split_blocks(np.array([[0.0, 0.0, 0.0]]), np.zeros(1), 1.0, np.array([1]), np.zeros((0, 3)),
                                     np.zeros(0, np.int64))
     rng = np.random.default_rng(2)
-    rgba = rng.integers(0, 256, (4, 2, 4, 4, 4)).astype(np.uint8)
-    rgba[..., 3] = 255
+    rgba = np.full((4, 2, 4, 4, 4), 255, np.uint8)
+    rgba[..., :3] = rng.integers(55, 66, (4, 2, 4, 4, 3))
+    rgba[1, :, :2, :, :3] = 230                             # block 1 holds a marking
     unseen = np.array([False, False, True, True])           # rows 0 (seen) and 1 (missing)
     before = rgba.copy()
     s, d = synthesise(rgba, np.full(4, GROUND, np.uint8), child, np.zeros(4), unseen, front=0,
                       split=np.ones(4, np.uint8), cells=np.zeros((4, 3)), edges=np.full(4, 0.5))
     assert s.tolist() == unseen.tolist()
-    np.testing.assert_array_equal(rgba[2], np.repeat(before[0][:1], 2, axis=0))   # below block 0
-    np.testing.assert_array_equal(rgba[3], np.repeat(before[1][:1], 2, axis=0))   # below block 1
+    for b in (2, 3):
+        np.testing.assert_array_equal(rgba[b], np.repeat(before[0][:1], 2, axis=0))
     np.testing.assert_array_equal(rgba[:2], before[:2])
