@@ -102,7 +102,7 @@ class Billboards:
     kinds; node_range (k, 2) int64 [begin, end) billboards under each octree node; unseen (n,)
     bool the continued ground blocks no camera sees (their textures are synthesised,
     :mod:`billboards.synthesis`); split (n,) uint8 a quad's edge is its kind's halved this many
-    times (:mod:`billboards.resolution`); cells (n, 3) float64 the centre of the unsplit block a
+    times (:mod:`billboards.resolution`); cell (n, 3) float64 the centre of the unsplit block a
     ground block was split from (None: the quads).
     Without a facade layer there is one billboard per voxel leaf, in leaf order; with one,
     a leaf holds its billboard (if its own points make one) and the layer blocks whose
@@ -119,11 +119,11 @@ class Billboards:
     block_size: float | None = None
     unseen: np.ndarray | None = None
     split: np.ndarray | None = None
-    cells: np.ndarray | None = None
+    cell: np.ndarray | None = None
 
     def __post_init__(self):
-        if self.cells is None:
-            object.__setattr__(self, "cells", np.asarray(self.quads, np.float64).copy())
+        if self.cell is None:
+            object.__setattr__(self, "cell", np.asarray(self.quads, np.float64).copy())
         if self.unseen is None:
             object.__setattr__(self, "unseen", np.zeros(len(self.kind), bool))
         if self.split is None:
@@ -213,9 +213,9 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     unseen[blocks] = layer.synthesised[source[blocks]]
     split = np.zeros(len(item_kind), np.uint8)
     split[blocks] = layer.split[source[blocks]]
-    cells = quads.copy()
-    cells[blocks] = layer.cell[source[blocks]]
-    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen, split, cells)
+    cell = quads.copy()
+    cell[blocks] = layer.cell[source[blocks]]
+    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen, split, cell)
 
 
 # --------------------------------------------------------------------------- worker side
@@ -253,7 +253,7 @@ def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views:
     np.save(state / "base_yaw.npy", placed.base_yaw)
     np.save(state / "kind.npy", placed.kind)
     np.save(state / "split.npy", placed.split)
-    np.save(state / "cells.npy", placed.cells)
+    np.save(state / "cell.npy", placed.cell)
     if conf.source == "points":
         np.save(state / "colours.npy", placed.voxel_colours(colours))
     meta = {"config": _config_to_json(conf), "origin": placed.octree.origin.tolist(),
@@ -453,11 +453,11 @@ def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np
                     base_yaw: np.ndarray, unseen: np.ndarray, executor: Executor | None,
                     progress: bool | None, desc: str = "sampling") -> tuple[list[dict], np.ndarray]:
     """Sample every texture of the billboards saved in ``state`` (kind (n,) uint8, quads (n, 3)
-    float64, base_yaw (n,) float64, unseen (n,) bool: :class:`Billboards`; their splits and cells are read from ``state``) into the memory map
-    ``state/rgba.npy``, then give the ground blocks that have none one from seen ground nearby
-    (:func:`~billboards.synthesis.synthesise`: changes ``base_yaw`` in place; it and which
-    blocks are synthesised are saved for the next tasks). Returns the tasks' sampling
-    statistics and synthesised (n,) bool."""
+    float64, base_yaw (n,) float64, unseen (n,) bool: :class:`Billboards`; their splits and cells are
+    read from ``state``) into the memory map ``state/rgba.npy``, then give the ground blocks that have
+    none one from seen ground nearby (:func:`~billboards.synthesis.synthesise`: changes ``base_yaw`` in
+    place; it and which blocks are synthesised are saved for the next tasks). Returns the tasks'
+    sampling statistics and synthesised (n,) bool."""
     s, n = conf.sampling, len(kind)
     # its blocks reserved: a full disk is an OSError naming the file, not a worker killed by SIGBUS
     reserved_memmap(state / "rgba.npy", np.uint8, (n, s.directions.num_directions, s.tile, s.tile, 4)).flush()
@@ -468,7 +468,7 @@ def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np
     meta = json.loads((state / "meta.json").read_text())
     split = np.load(state / "split.npy")
     edges = quad_edges(kind, split, meta["voxel_size"], meta["block_size"] or meta["voxel_size"])
-    synthesised, _ = synthesise(rgba, kind, quads, base_yaw, unseen, front, split, np.load(state / "cells.npy"), edges)
+    synthesised, _ = synthesise(rgba, kind, quads, base_yaw, unseen, front, split, np.load(state / "cell.npy"), edges)
     rgba.flush()
     del rgba
     np.save(state / "synthesised.npy", synthesised.astype(np.uint8))

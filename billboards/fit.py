@@ -91,9 +91,9 @@ class Quads:
     """The model's quads as the renderer places them.
 
     centres (n, 3) float64 world; base_yaw (n,) float64 radians; kind (n,) uint8
-    (:data:`~billboards.geometry.KINDS`); size: a billboard's edge (m); block_size: a layer
-    block's edge (m), both halved ``split`` times per quad; tile: texels per side t; yaw_offsets (d_yaw,), pitches (d_pitch,)
-    radians; pitched: billboards also tilt toward the eye's elevation; slits: the facade
+    (:data:`~billboards.geometry.KINDS`); size: a billboard's edge (m); block_size: a layer block's edge
+    (m), both halved ``split`` times per quad; tile: texels per side t; yaw_offsets (d_yaw,), pitches
+    (d_pitch,) radians; pitched: billboards also tilt toward the eye's elevation; slits: the facade
     columns the renderer draws as one quad each (:func:`quads_of`)."""
 
     centres: np.ndarray

@@ -311,15 +311,14 @@ class SampledTextures:
 class ImageSampler:
     """Samples billboard textures from ``views``; holds the per-process caches.
 
-    centres (n, 3) float64 world quad centres; size: voxel edge (m); base_yaw (n,)
-    float64; voxels: the cloud grouped by voxel (z-buffers and own points);
-    box_centres (n, 3) float64 voxel cube centres when the quads sit elsewhere
-    (see :func:`quad_centres`), default the quad centres; kind (n,) uint8 quad kinds
-    (:data:`geometry.KINDS`, default all billboards). A layer block (kind ≠ BILLBOARD)
-    is a surface: every texel shows what the camera sees through it unless something
-    stands in front of its cube (then the next camera is tried), never see-through;
-    its edge is ``block_size`` (default: ``size``) halved ``split`` (n,) uint8 times (default never). occluders: the points the z-buffers
-    are made of, when more than ``voxels`` (a tile of a street with its neighbours' points).
+    centres (n, 3) float64 world quad centres; size: voxel edge (m); base_yaw (n,) float64; voxels: the
+    cloud grouped by voxel (z-buffers and own points); box_centres (n, 3) float64 voxel cube centres
+    when the quads sit elsewhere (see :func:`quad_centres`), default the quad centres; kind (n,) uint8
+    quad kinds (:data:`geometry.KINDS`, default all billboards). A layer block (kind ≠ BILLBOARD) is a
+    surface: every texel shows what the camera sees through it unless something stands in front of its
+    cube (then the next camera is tried), never see-through; its edge is ``block_size`` (default:
+    ``size``) halved ``split`` (n,) uint8 times (default never). occluders: the points the z-buffers are
+    made of, when more than ``voxels`` (a tile of a street with its neighbours' points).
     """
 
     def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,

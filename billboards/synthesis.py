@@ -176,12 +176,13 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
 
     Blocks split near the path (:mod:`billboards.resolution`; split (n,) uint8 times, cells (n, 3)
     float64 the centre of the unsplit block each came from, edges (n,) float64 their edges; None:
-    nothing split) are chosen for and chosen from by their *cell*, the unsplit block: its colour
-    and spread are those of its blocks that have their own texture, it wants a texture when any
-    of its blocks does (its blocks that have one keep it), and it is a donor when its blocks that
-    have a texture are whole in front and cover a quarter of it or more (the rest of its picture
-    shows the plainest of them; a cell partly under the camera can give its own missing part). A block then takes its square of the donor cell's picture
-    (:func:`cell_texture`), so that a pattern keeps its size whatever either was split into.
+    nothing split) are chosen for and chosen from by their *cell*, the unsplit block: its colour and
+    spread are those of its blocks that have their own texture, it wants a texture when any of its
+    blocks does (its blocks that have one keep it), and it is a donor when its blocks that have a
+    texture are whole in front and cover a quarter of it or more (the rest of its picture shows the
+    plainest of them; a cell partly under the camera can give its own missing part). A block then takes
+    its square of the donor cell's picture (:func:`cell_texture`), so that a pattern keeps its size
+    whatever either was split into.
 
     A ground block wants a texture when it is unseen or its sampling is transparent in every
     direction; a donor is a ground block that does not, whose front texture is opaque in every

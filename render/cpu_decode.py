@@ -90,7 +90,8 @@ class CpuDecoder:
             self.stream = InstanceStream(ctx, CPU_INSTANCE_DTYPE.itemsize)
             self._objects.append(self.stream)
             self.vao = ctx.vertex_array(self.program, [vertex_binding(
-                self.program, self.stream.buffer, CPU_INSTANCE_FORMAT, ("in_centre", "in_base_yaw", "in_tile", "in_kind", "in_size"))])
+                self.program, self.stream.buffer, CPU_INSTANCE_FORMAT,
+                ("in_centre", "in_base_yaw", "in_tile", "in_kind", "in_size"))])
             self._objects.append(self.vao)
         except BaseException:
             self.release()

@@ -48,7 +48,8 @@ vec2 quad_corner(int vertex_id) {
 }
 
 // Clip-space position of `corner` of the quad of `kind` and edge `size` (m) at `centre` facing
-// `angles`, `blocks` blocks tall (a slit of the facade layer: a column of facade blocks, billboards.slits; 1 otherwise);
+// `angles`, `blocks` blocks tall (a slit of the facade layer: a column of facade blocks,
+// billboards.slits; 1 otherwise);
 // `texel` receives the continuous tile coordinate (x = col, 0..t; y = row, 0..blocks·t from the top).
 vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, float size, vec2 corner, int blocks, out vec2 texel) {
     float yaw = angles.x, pitch = angles.y;
