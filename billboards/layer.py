@@ -30,7 +30,7 @@ from recon.epi import EpiConfig, EpiPass
 from .geometry import FACADE, GROUND, HALF_DIAGONAL
 from .ground import ground_blocks
 from .kerbs import KerbConfig, kerb_blocks
-from .resolution import ResolutionConfig, capture_footprint, split_blocks, splits_for
+from .resolution import ResolutionConfig, capture_footprint, seamless, split_blocks, splits_for
 from .side_walls import SideWallConfig, side_walls
 
 logger = logging.getLogger(__name__)
@@ -401,7 +401,8 @@ def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, 
     ground = np.flatnonzero((layer.kind == GROUND) & (layer.split == 0))
     split = layer.split.copy()
     footprint = capture_footprint(layer.centres[ground], HALF_DIAGONAL * size, *cameras)
-    split[ground] = splits_for(footprint, size / tile, config)
+    split[ground] = np.where(seamless(layer.centres[ground], layer.base_yaw[ground], size, config),
+                             splits_for(footprint, size / tile, config), 0)
     if np.array_equal(split, layer.split):
         return layer
     parent, centres, point_block = split_blocks(layer.centres, layer.base_yaw, size, split - layer.split, cloud,

@@ -8,7 +8,7 @@ depth / focal length, over the cameras in whose image the block lies, in front, 
 reach); a block whose texel is more than ``texel_pixels`` footprints wide is split into
 2^L × 2^L children of edge block_size·2^−L in its own plane (split L times), L the smallest whose
 texel is at most ``texel_pixels`` footprints, at most ``max_split`` (the budget: each split
-makes four blocks of one).
+makes four blocks of one), where its neighbours lie in its plane (:func:`seamless`).
 
 A child keeps its parent's flags (continued, seen, …), base yaw and height, and the cloud
 points of the parent that fall in its square. The model stores how many times each quad was
@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import MAX_SPLIT
+from .ground import cell_index
 
 
 @dataclass(frozen=True)
@@ -31,12 +32,18 @@ class ResolutionConfig:
 
     max_split: int = 2              # a ground block splits into at most 2^L × 2^L children (0: never)
     texel_pixels: float = 4.0       # a texel up to this many capture pixels wide is fine enough
+    seam_height: float = 0.005      # a block splits only where its grid neighbours lie this close (m) ...
+    seam_yaw_deg: float = 0.5       # ... to its height and turned this little from it (its seams need no overlap)
 
     def __post_init__(self):
         if not (0 <= int(self.max_split) <= MAX_SPLIT) or int(self.max_split) != self.max_split:
             raise ValueError(f"max_split must be an integer in [0, {MAX_SPLIT}], got {self.max_split!r}")
         if not (np.isfinite(self.texel_pixels) and self.texel_pixels > 0):
             raise ValueError(f"texel_pixels must be a finite number > 0, got {self.texel_pixels!r}")
+        if not (np.isfinite(self.seam_height) and self.seam_height >= 0
+                and np.isfinite(self.seam_yaw_deg) and self.seam_yaw_deg >= 0):
+            raise ValueError(f"seam_height and seam_yaw_deg must be finite numbers ≥ 0, got {self.seam_height!r}, "
+                             f"{self.seam_yaw_deg!r}")
 
 
 def capture_footprint(centres: np.ndarray, reach: float, K: np.ndarray, world_from_cam: np.ndarray,
@@ -93,6 +100,26 @@ def capture_footprint_reference(centres, reach, K, world_from_cam, sizes, max_di
         if np.isfinite(best):
             out[i] = best
     return out
+
+
+def seamless(centres: np.ndarray, base_yaw: np.ndarray, size: float, config: ResolutionConfig) -> np.ndarray:
+    """(g,) bool: ground blocks (centres (g, 3) float64 on one grid of ``size`` m, base_yaw (g,)
+    float64) whose grid neighbours (of 4) that are ground lie within ``seam_height`` of their
+    height and ``seam_yaw_deg`` of their yaw. A block is drawn a little larger than itself to
+    hide the steps and turns between neighbours (the renderer's GROUND_OVERLAP, a share of its
+    own edge); its children would be too small to hide them, and the road would show cracks."""
+    centres = np.asarray(centres, np.float64).reshape(-1, 3)
+    if len(centres) == 0:
+        return np.zeros(0, bool)
+    keys = np.round((centres[:, :2] - centres[0, :2]) / size).astype(np.int64)
+    ok = np.ones(len(centres), bool)
+    limit = np.deg2rad(config.seam_yaw_deg)
+    for step in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        at = cell_index(keys, keys + np.asarray(step))
+        has = at >= 0
+        turn = np.abs(np.angle(np.exp(1j * (base_yaw[at[has]] - base_yaw[has]))))
+        ok[has] &= (np.abs(centres[at[has], 2] - centres[has, 2]) <= config.seam_height) & (turn <= limit)
+    return ok
 
 
 def splits_for(footprint: np.ndarray, texel: float, config: ResolutionConfig) -> np.ndarray:

@@ -121,3 +121,24 @@ def test_refine_ground_splits_only_near_ground_and_keeps_flags():
     assert np.all(fine.point_block[[0, 1, 2]] < 32) and fine.point_block[3] == 34
     assert np.array_equal(refine_ground(layer, cloud, 0.5, (K, poses, sizes), ResolutionConfig(max_split=0), 8).centres,
                           layer.centres)
+
+
+def test_only_blocks_in_their_neighbours_plane_split():
+    """A block beside a step (a kerb, a sloping road's next block) or a block turned otherwise
+    would show cracks at seams its children are too small to cover: it stays whole."""
+    from billboards.resolution import seamless
+
+    xs, ys = np.meshgrid(np.arange(6) * 0.5, np.arange(4) * 0.5, indexing="ij")
+    centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]) + [10.25, -3.75, 0.0]
+    yaw = np.full(len(centres), np.pi / 2)
+    centres[xs.ravel() >= 2.0, 2] = 0.12           # the last two columns: a sidewalk 12 cm up
+    turned = 2 * 4 + 1                             # column 2, row 1
+    yaw[turned] += np.deg2rad(3.0)
+    config = ResolutionConfig()
+    ok = seamless(centres, yaw, 0.5, config).reshape(6, 4)
+    expected = np.ones((6, 4), bool)
+    expected[3, :] = expected[4, :] = False        # on either side of the step
+    expected[2, 1] = expected[1, 1] = expected[3, 1] = expected[2, 0] = expected[2, 2] = False  # the turned one and its neighbours
+    assert np.array_equal(ok, expected), ok
+    assert seamless(centres, yaw, 0.5, ResolutionConfig(seam_height=0.2, seam_yaw_deg=5.0)).all()
+    assert seamless(np.zeros((0, 3)), np.zeros(0), 0.5, config).shape == (0,)
