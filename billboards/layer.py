@@ -30,7 +30,7 @@ from recon.epi import EpiConfig, EpiPass
 from .geometry import FACADE, GROUND, HALF_DIAGONAL
 from .ground import ground_blocks
 from .kerbs import KerbConfig, kerb_blocks
-from .resolution import ResolutionConfig, capture_footprint, seamless, split_blocks, splits_for
+from .resolution import ResolutionConfig, capture_footprint, seam_splits, split_blocks, splits_for
 from .side_walls import SideWallConfig, side_walls
 
 logger = logging.getLogger(__name__)
@@ -400,9 +400,9 @@ def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, 
     blocks' edge (m); tile: texels per side. The children of a block take its place in the order."""
     ground = np.flatnonzero((layer.kind == GROUND) & (layer.split == 0))
     split = layer.split.copy()
-    footprint = capture_footprint(layer.centres[ground], HALF_DIAGONAL * size, *cameras)
-    split[ground] = np.where(seamless(layer.centres[ground], layer.base_yaw[ground], size, config),
-                             splits_for(footprint, size / tile, config), 0)
+    footprint, slope = capture_footprint(layer.centres[ground], HALF_DIAGONAL * size, *cameras)
+    split[ground] = np.minimum(splits_for(footprint, size / tile, config),
+                               seam_splits(layer.centres[ground], layer.base_yaw[ground], size, slope))
     if np.array_equal(split, layer.split):
         return layer
     parent, centres, point_block = split_blocks(layer.centres, layer.base_yaw, size, split - layer.split, cloud,

@@ -8,7 +8,8 @@ depth / focal length, over the cameras in whose image the block lies, in front, 
 reach); a block whose texel is more than ``texel_pixels`` footprints wide is split into
 2^L × 2^L children of edge block_size·2^−L in its own plane (split L times), L the smallest whose
 texel is at most ``texel_pixels`` footprints, at most ``max_split`` (the budget: each split
-makes four blocks of one), where its neighbours lie in its plane (:func:`seamless`).
+makes four blocks of one), and only as far as its children still close the seams with its
+neighbours (:func:`seam_splits`).
 
 A child keeps its parent's flags (continued, seen, …), base yaw and height, and the cloud
 points of the parent that fall in its square. The model stores how many times each quad was
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import MAX_SPLIT
+from .geometry import GROUND_OVERLAP, HALF_DIAGONAL, MAX_SPLIT
 from .ground import cell_index
 
 
@@ -32,32 +33,30 @@ class ResolutionConfig:
 
     max_split: int = 2              # a ground block splits into at most 2^L × 2^L children (0: never)
     texel_pixels: float = 4.0       # a texel up to this many capture pixels wide is fine enough
-    seam_height: float = 0.005      # a block splits only where its grid neighbours lie this close (m) ...
-    seam_yaw_deg: float = 0.5       # ... to its height and turned this little from it (its seams need no overlap)
 
     def __post_init__(self):
         if not (0 <= int(self.max_split) <= MAX_SPLIT) or int(self.max_split) != self.max_split:
             raise ValueError(f"max_split must be an integer in [0, {MAX_SPLIT}], got {self.max_split!r}")
         if not (np.isfinite(self.texel_pixels) and self.texel_pixels > 0):
             raise ValueError(f"texel_pixels must be a finite number > 0, got {self.texel_pixels!r}")
-        if not (np.isfinite(self.seam_height) and self.seam_height >= 0
-                and np.isfinite(self.seam_yaw_deg) and self.seam_yaw_deg >= 0):
-            raise ValueError(f"seam_height and seam_yaw_deg must be finite numbers ≥ 0, got {self.seam_height!r}, "
-                             f"{self.seam_yaw_deg!r}")
 
 
 def capture_footprint(centres: np.ndarray, reach: float, K: np.ndarray, world_from_cam: np.ndarray,
-                      sizes: np.ndarray, max_distance: float = 60.0, chunk: int = 1024) -> np.ndarray:
+                      sizes: np.ndarray, max_distance: float = 60.0, chunk: int = 1024
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """(n,) float64 metres per pixel of the finest capture camera at each item: min over the
     cameras (within ``max_distance``) in whose image an item of ``reach`` metres radius around
     ``centres`` (n, 3) float64 lies, in front (depth > 0.3 m), of depth / focal length (the
-    larger of fx, fy: the finer axis). NaN where no camera sees the item.
+    larger of fx, fy: the finer axis); and (n,) float64 the slope at which that camera looks
+    down at the item (its height above it over its distance along the ground; the tangent of
+    its elevation). NaN where no camera sees the item.
 
     K (v, 3, 3), world_from_cam (v, 4, 4) float64; sizes (v, 2) (width, height). Memory is
     bounded by ``chunk`` items × the cameras near them.
     """
     centres = np.asarray(centres, np.float64).reshape(-1, 3)
     out = np.full(len(centres), np.inf)
+    slope = np.full(len(centres), np.nan)
     R, C = world_from_cam[:, :3, :3], world_from_cam[:, :3, 3]
     w, h = np.asarray(sizes, np.float64)[:, 0], np.asarray(sizes, np.float64)[:, 1]
     focal = np.maximum(K[:, 0, 0], K[:, 1, 1])
@@ -77,14 +76,19 @@ def capture_footprint(centres: np.ndarray, reach: float, K: np.ndarray, world_fr
         seen = ((z > 0.3) & (u >= -m) & (u <= w[near] - 1 + m) & (v >= -m) & (v <= h[near] - 1 + m)
                 & (np.linalg.norm(to_cam, axis=-1) < max_distance))
         metres = np.where(seen, z / focal[near][None, :], np.inf)
-        out[s:s + chunk] = metres.min(axis=1)
+        best = np.argmin(metres, axis=1)
+        out[s:s + chunk] = metres[np.arange(len(c)), best]
+        d = to_cam[np.arange(len(c)), best]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope[s:s + chunk] = d[:, 2] / np.hypot(d[:, 0], d[:, 1])
+    slope[~np.isfinite(out)] = np.nan
     out[~np.isfinite(out)] = np.nan
-    return out
+    return out, slope
 
 
 def capture_footprint_reference(centres, reach, K, world_from_cam, sizes, max_distance=60.0) -> np.ndarray:
     """:func:`capture_footprint` one item and one camera at a time (the tests' reference)."""
-    out = np.full(len(centres), np.nan)
+    out, slope = np.full(len(centres), np.nan), np.full(len(centres), np.nan)
     for i, c in enumerate(np.asarray(centres, np.float64)):
         best = np.inf
         for k in range(len(K)):
@@ -96,30 +100,41 @@ def capture_footprint_reference(centres, reach, K, world_from_cam, sizes, max_di
             v = K[k, 1, 1] * cam[1] / z + K[k, 1, 2]
             m = K[k, 0, 0] * reach / z
             if -m <= u <= sizes[k][0] - 1 + m and -m <= v <= sizes[k][1] - 1 + m:
-                best = min(best, z / max(K[k, 0, 0], K[k, 1, 1]))
+                metres = z / max(K[k, 0, 0], K[k, 1, 1])
+                if metres < best:
+                    d = world_from_cam[k, :3, 3] - c
+                    best, slope[i] = metres, d[2] / np.hypot(d[0], d[1])
         if np.isfinite(best):
             out[i] = best
-    return out
+    return out, slope
 
 
-def seamless(centres: np.ndarray, base_yaw: np.ndarray, size: float, config: ResolutionConfig) -> np.ndarray:
-    """(g,) bool: ground blocks (centres (g, 3) float64 on one grid of ``size`` m, base_yaw (g,)
-    float64) whose grid neighbours (of 4) that are ground lie within ``seam_height`` of their
-    height and ``seam_yaw_deg`` of their yaw. A block is drawn a little larger than itself to
-    hide the steps and turns between neighbours (the renderer's GROUND_OVERLAP, a share of its
-    own edge); its children would be too small to hide them, and the road would show cracks."""
+def seam_splits(centres: np.ndarray, base_yaw: np.ndarray, size: float, slope: np.ndarray) -> np.ndarray:
+    """(g,) int64 the most times each ground block (centres (g, 3) float64 on one grid of ``size``
+    m, base_yaw (g,) float64) may be halved with its seams still closed as the capture saw them.
+
+    A ground block is drawn GROUND_OVERLAP of its own edge larger on every side, to hide the
+    steps and turns between neighbours: a step of Δz seen at ``slope`` (g,) float64 (the tangent
+    of the capture's elevation at the block, :func:`capture_footprint`) opens Δz / slope along
+    the ground, and a turn Δψ about √½·size·Δψ at a corner. A child split L times overlaps only
+    GROUND_OVERLAP·size·2^−L: the road on KITTI (steps of 2–8 cm seen at 5–20°) would show
+    cracks, the demo's sidewalk beside its sideways rig not. The largest step and turn over the
+    4 grid neighbours that are ground count; a block seen from nowhere (NaN slope) stays whole."""
     centres = np.asarray(centres, np.float64).reshape(-1, 3)
     if len(centres) == 0:
-        return np.zeros(0, bool)
+        return np.zeros(0, np.int64)
     keys = np.round((centres[:, :2] - centres[0, :2]) / size).astype(np.int64)
-    ok = np.ones(len(centres), bool)
-    limit = np.deg2rad(config.seam_yaw_deg)
-    for step in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        at = cell_index(keys, keys + np.asarray(step))
-        has = at >= 0
-        turn = np.abs(np.angle(np.exp(1j * (base_yaw[at[has]] - base_yaw[has]))))
-        ok[has] &= (np.abs(centres[at[has], 2] - centres[has, 2]) <= config.seam_height) & (turn <= limit)
-    return ok
+    step, turn = np.zeros(len(centres)), np.zeros(len(centres))
+    for d in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        at = cell_index(keys, keys + np.asarray(d))
+        has = np.flatnonzero(at >= 0)
+        step[has] = np.maximum(step[has], np.abs(centres[at[has], 2] - centres[has, 2]))
+        turn[has] = np.maximum(turn[has], np.abs(np.angle(np.exp(1j * (base_yaw[at[has]] - base_yaw[has])))))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gap = step / np.asarray(slope, np.float64) + HALF_DIAGONAL * size * turn    # m, NaN: seen from nowhere
+        times = np.floor(np.log2(GROUND_OVERLAP * size / gap))
+    times = np.where(gap <= 0, MAX_SPLIT, times)
+    return np.clip(np.nan_to_num(times, nan=0.0, posinf=MAX_SPLIT, neginf=0.0), 0, MAX_SPLIT).astype(np.int64)
 
 
 def splits_for(footprint: np.ndarray, texel: float, config: ResolutionConfig) -> np.ndarray:

@@ -32,16 +32,19 @@ def test_footprint_matches_its_reference_and_grows_with_distance():
     K, poses, sizes = _cameras()
     rng = np.random.default_rng(0)
     centres = np.stack([rng.uniform(-4, 10, 300), rng.uniform(-2, 30, 300), np.zeros(300)], axis=1)
-    fast = capture_footprint(centres, 0.35, K, poses, sizes, max_distance=25.0, chunk=64)
-    slow = capture_footprint_reference(centres, 0.35, K, poses, sizes, max_distance=25.0)
+    fast, fast_slope = capture_footprint(centres, 0.35, K, poses, sizes, max_distance=25.0, chunk=64)
+    slow, slow_slope = capture_footprint_reference(centres, 0.35, K, poses, sizes, max_distance=25.0)
     np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))
     np.testing.assert_allclose(fast, slow, rtol=1e-12)
+    np.testing.assert_allclose(fast_slope, slow_slope, rtol=1e-12)
+    np.testing.assert_array_equal(np.isnan(fast_slope), np.isnan(fast))
     assert np.isnan(fast).any() and np.isfinite(fast).sum() > 50   # behind the cameras, too far: unseen
     # straight ahead of the middle camera, farther ground is seen coarser
     ahead = np.array([[3.0, y, 0.0] for y in (1.5, 2.5, 4.0, 6.0)])
-    f = capture_footprint(ahead, 0.0, K, poses, sizes)
+    f, slope = capture_footprint(ahead, 0.0, K, poses, sizes)
     assert np.all(np.diff(f) > 0)
-    assert capture_footprint(np.zeros((0, 3)), 0.3, K, poses, sizes).shape == (0,)
+    assert np.all(np.diff(slope) < 0) and np.all(slope <= 1.5 / ahead[:, 1] + 1e-12)   # cameras 1.5 m up
+    assert capture_footprint(np.zeros((0, 3)), 0.3, K, poses, sizes)[0].shape == (0,)
 
 
 def test_splits_follow_the_texel_width_in_pixels():
@@ -110,7 +113,7 @@ def test_refine_ground_splits_only_near_ground_and_keeps_flags():
     layer = Layer(centres, np.full(5, np.pi / 2), kind, np.array([0, 1, 1, 4]), [],
                   continued=np.array([False, True, False, True, False]),
                   seen=np.array([True, True, True, False, True]))
-    seen = np.isfinite(capture_footprint(centres[:4], 0.35, K, poses, sizes))
+    seen = np.isfinite(capture_footprint(centres[:4], 0.35, K, poses, sizes)[0])
     assert seen.tolist() == [True, True, True, False]   # the farther block is seen, coarser
     fine = refine_ground(layer, cloud, 0.5, (K, poses, sizes), ResolutionConfig(max_split=2, texel_pixels=4.0), 8)
     counts = np.bincount(np.repeat(np.arange(5), 4 ** np.array([2, 2, 0, 0, 0])))
@@ -123,22 +126,30 @@ def test_refine_ground_splits_only_near_ground_and_keeps_flags():
                           layer.centres)
 
 
-def test_only_blocks_in_their_neighbours_plane_split():
-    """A block beside a step (a kerb, a sloping road's next block) or a block turned otherwise
-    would show cracks at seams its children are too small to cover: it stays whole."""
-    from billboards.resolution import seamless
+def test_blocks_split_only_as_far_as_their_children_close_the_seams():
+    """A child overlaps its neighbours by GROUND_OVERLAP of its own edge: beside a step (a kerb,
+    a sloping road's next block) seen at a shallow slope, or a neighbour turned otherwise, it
+    would leave a crack, so the block splits less or not at all; a flat grid splits freely."""
+    from billboards.geometry import GROUND_OVERLAP, MAX_SPLIT
+    from billboards.resolution import seam_splits
 
     xs, ys = np.meshgrid(np.arange(6) * 0.5, np.arange(4) * 0.5, indexing="ij")
     centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]) + [10.25, -3.75, 0.0]
     yaw = np.full(len(centres), np.pi / 2)
-    centres[xs.ravel() >= 2.0, 2] = 0.12           # the last two columns: a sidewalk 12 cm up
-    turned = 2 * 4 + 1                             # column 2, row 1
-    yaw[turned] += np.deg2rad(3.0)
-    config = ResolutionConfig()
-    ok = seamless(centres, yaw, 0.5, config).reshape(6, 4)
-    expected = np.ones((6, 4), bool)
-    expected[3, :] = expected[4, :] = False        # on either side of the step
-    expected[2, 1] = expected[1, 1] = expected[3, 1] = expected[2, 0] = expected[2, 2] = False  # the turned one and its neighbours
-    assert np.array_equal(ok, expected), ok
-    assert seamless(centres, yaw, 0.5, ResolutionConfig(seam_height=0.2, seam_yaw_deg=5.0)).all()
-    assert seamless(np.zeros((0, 3)), np.zeros(0), 0.5, config).shape == (0,)
+    slope = np.full(len(centres), 0.5)
+    assert np.all(seam_splits(centres, yaw, 0.5, slope) == MAX_SPLIT)         # flat: no seam to hide
+    step = 0.003                                   # columns 4 and 5 3 mm up: a gap of 6 mm at slope 0.5
+    centres[xs.ravel() >= 2.0, 2] = step
+    times = seam_splits(centres, yaw, 0.5, slope).reshape(6, 4)
+    want = int(np.floor(np.log2(GROUND_OVERLAP * 0.5 / (step / 0.5))))       # 0.04 m / 6 mm: 2 halvings
+    assert want == 2 and np.all(times[3:5] == want) and np.all(times[[0, 1, 2, 5]] == MAX_SPLIT)
+    shallow = np.full(len(centres), 0.05)          # seen at 3°: a gap of 6 cm, more than a whole block covers
+    assert np.all(seam_splits(centres, yaw, 0.5, shallow).reshape(6, 4)[3:5] == 0)
+    turned = yaw.copy()
+    turned[9] += np.deg2rad(3.0)                   # column 2, row 1: 0.71·0.5 m·3° ≈ 19 mm at a corner
+    times = seam_splits(centres, turned, 0.5, slope).reshape(6, 4)
+    assert times[2, 1] == 1 and times[1, 1] == 1 and times[0, 0] == MAX_SPLIT
+    unseen = slope.copy()
+    unseen[0] = np.nan
+    assert seam_splits(centres, yaw, 0.5, unseen)[0] == 0
+    assert seam_splits(np.zeros((0, 3)), np.zeros(0), 0.5, np.zeros(0)).shape == (0,)
