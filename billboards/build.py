@@ -584,7 +584,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                             cameras=(views.K, views.world_from_cam, views.sizes))
         stages["layer_s"] = time.perf_counter() - t1
         layer = refine_ground(layer, points, block_size, (views.K, views.world_from_cam, views.sizes),
-                              conf.layer.resolution, conf.sampling.tile)
+                              conf.layer.resolution, conf.sampling.tile, conf.layer.kerb.min_step)
         layer_report = _layer_report(layer, passes, points, dataset, conf.layer)
         layer_report["block_size"] = block_size
 

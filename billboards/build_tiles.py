@@ -204,7 +204,8 @@ class _TileBuild:
             cameras = (views.K, views.world_from_cam, views.sizes)
             layer = build_layer(points, passes, self.block_size, self.grid_origin, viewpoints, conf.layer,
                                 cameras=cameras)
-            layer = refine_ground(layer, points, self.block_size, cameras, conf.layer.resolution, conf.sampling.tile)
+            layer = refine_ground(layer, points, self.block_size, cameras, conf.layer.resolution, conf.sampling.tile,
+                                  conf.layer.kerb.min_step)
         if layer is not None and len(layer.centres):
             own_block = np.all(self.grid.tile_of(layer.centres) == np.asarray(index), axis=1)
             mine, keep = own_layer(layer, own_block, own)

@@ -394,15 +394,17 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
 
 
 def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, config: ResolutionConfig,
-                  tile: int) -> Layer:
+                  tile: int, kerb_step: float = KerbConfig.min_step) -> Layer:
     """``layer`` with its ground blocks split where the capture saw them finer than their texels
     (:mod:`billboards.resolution`): cameras (K, world_from_cam, sizes) of the capture; size: the
-    blocks' edge (m); tile: texels per side. The children of a block take its place in the order."""
+    blocks' edge (m); tile: texels per side; kerb_step: a rise this high (m) between neighbours is
+    an edge (a kerb), not a seam the blocks' overlap must close. The children of a block take its place in the order."""
     ground = np.flatnonzero((layer.kind == GROUND) & (layer.split == 0))
     split = layer.split.copy()
     footprint, slope = capture_footprint(layer.centres[ground], HALF_DIAGONAL * size, *cameras)
     split[ground] = np.minimum(splits_for(footprint, size / tile, config),
-                               seam_splits(layer.centres[ground], layer.base_yaw[ground], size, slope))
+                               seam_splits(layer.centres[ground], layer.base_yaw[ground], size, slope,
+                                           edge_step=kerb_step))
     if np.array_equal(split, layer.split):
         return layer
     parent, centres, point_block = split_blocks(layer.centres, layer.base_yaw, size, split - layer.split, cloud,

@@ -109,7 +109,8 @@ def capture_footprint_reference(centres, reach, K, world_from_cam, sizes, max_di
     return out, slope
 
 
-def seam_splits(centres: np.ndarray, base_yaw: np.ndarray, size: float, slope: np.ndarray) -> np.ndarray:
+def seam_splits(centres: np.ndarray, base_yaw: np.ndarray, size: float, slope: np.ndarray,
+                edge_step: float = np.inf) -> np.ndarray:
     """(g,) int64 the most times each ground block (centres (g, 3) float64 on one grid of ``size``
     m, base_yaw (g,) float64) may be halved with its seams still closed as the capture saw them.
 
@@ -119,7 +120,9 @@ def seam_splits(centres: np.ndarray, base_yaw: np.ndarray, size: float, slope: n
     the ground, and a turn Δψ about √½·size·Δψ at a corner. A child split L times overlaps only
     GROUND_OVERLAP·size·2^−L: the road on KITTI (steps of 2–8 cm seen at 5–20°) would show
     cracks, the demo's sidewalk beside its sideways rig not. The largest step and turn over the
-    4 grid neighbours that are ground count; a block seen from nowhere (NaN slope) stays whole."""
+    4 grid neighbours that are ground count, but a step of ``edge_step`` m or more (a kerb: an
+    edge, not a seam, with a face of its own or a gap no overlap closes) does not; a block seen
+    from nowhere (NaN slope) stays whole."""
     centres = np.asarray(centres, np.float64).reshape(-1, 3)
     if len(centres) == 0:
         return np.zeros(0, np.int64)
@@ -128,7 +131,8 @@ def seam_splits(centres: np.ndarray, base_yaw: np.ndarray, size: float, slope: n
     for d in ((1, 0), (-1, 0), (0, 1), (0, -1)):
         at = cell_index(keys, keys + np.asarray(d))
         has = np.flatnonzero(at >= 0)
-        step[has] = np.maximum(step[has], np.abs(centres[at[has], 2] - centres[has, 2]))
+        rise = np.abs(centres[at[has], 2] - centres[has, 2])
+        step[has] = np.maximum(step[has], np.where(rise < edge_step, rise, 0.0))
         turn[has] = np.maximum(turn[has], np.abs(np.angle(np.exp(1j * (base_yaw[at[has]] - base_yaw[has])))))
     with np.errstate(divide="ignore", invalid="ignore"):
         gap = step / np.asarray(slope, np.float64) + HALF_DIAGONAL * size * turn    # m, NaN: seen from nowhere

@@ -149,6 +149,10 @@ def test_blocks_split_only_as_far_as_their_children_close_the_seams():
     turned[9] += np.deg2rad(3.0)                   # column 2, row 1: 0.71·0.5 m·3° ≈ 19 mm at a corner
     times = seam_splits(centres, turned, 0.5, slope).reshape(6, 4)
     assert times[2, 1] == 1 and times[1, 1] == 1 and times[0, 0] == MAX_SPLIT
+    kerb = centres.copy()
+    kerb[xs.ravel() >= 2.0, 2] = 0.12              # a kerb: an edge with a face of its own, not a seam
+    assert np.all(seam_splits(kerb, yaw, 0.5, slope, edge_step=0.06) == MAX_SPLIT)
+    assert np.all(seam_splits(kerb, yaw, 0.5, slope).reshape(6, 4)[3:5] == 0)
     unseen = slope.copy()
     unseen[0] = np.nan
     assert seam_splits(centres, yaw, 0.5, unseen)[0] == 0
