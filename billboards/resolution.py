@@ -115,11 +115,15 @@ def seam_splits(centres: np.ndarray, base_yaw: np.ndarray, size: float, slope: n
     m, base_yaw (g,) float64) may be halved with its seams still closed as the capture saw them.
 
     A ground block is drawn GROUND_OVERLAP of its own edge larger on every side, to hide the
-    steps and turns between neighbours: a step of Δz seen at ``slope`` (g,) float64 (the tangent
-    of the capture's elevation at the block, :func:`capture_footprint`) opens Δz / slope along
-    the ground, and a turn Δψ about √½·size·Δψ at a corner. A child split L times overlaps only
-    GROUND_OVERLAP·size·2^−L: the road on KITTI (steps of 2–8 cm seen at 5–20°) would show
-    cracks, the demo's sidewalk beside its sideways rig not. The largest step and turn over the
+    steps and turns between neighbours. Where the block beyond a seam is Δz higher than the one
+    before it, seen at ``slope`` (g,) float64 (the tangent of the capture's elevation at the
+    block, :func:`capture_footprint`), a ray that misses the higher block's overhang meets the
+    lower one within Δz / slope past its edge: the seam stays closed while Δz / slope is at most
+    the two overlaps together (a lower block beyond is hidden behind the edge; a capture that
+    passes both ways sees each seam from both sides). A turn Δψ opens about √½·size·Δψ at a
+    corner. A child split L times overlaps only GROUND_OVERLAP·size·2^−L: the road on KITTI
+    (steps of 2–8 cm seen at 5–20°) would show cracks, the demo's sidewalk beside its
+    sideways rig far fewer. The largest step and turn over the
     4 grid neighbours that are ground count, but a step of ``edge_step`` m or more (a kerb: an
     edge, not a seam, with a face of its own or a gap no overlap closes) does not; a block seen
     from nowhere (NaN slope) stays whole."""
@@ -136,7 +140,7 @@ def seam_splits(centres: np.ndarray, base_yaw: np.ndarray, size: float, slope: n
         turn[has] = np.maximum(turn[has], np.abs(np.angle(np.exp(1j * (base_yaw[at[has]] - base_yaw[has])))))
     with np.errstate(divide="ignore", invalid="ignore"):
         gap = step / np.asarray(slope, np.float64) + HALF_DIAGONAL * size * turn    # m, NaN: seen from nowhere
-        times = np.floor(np.log2(GROUND_OVERLAP * size / gap))
+        times = np.floor(np.log2(2 * GROUND_OVERLAP * size / gap))
     times = np.where(gap <= 0, MAX_SPLIT, times)
     return np.clip(np.nan_to_num(times, nan=0.0, posinf=MAX_SPLIT, neginf=0.0), 0, MAX_SPLIT).astype(np.int64)
 

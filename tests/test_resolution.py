@@ -127,9 +127,10 @@ def test_refine_ground_splits_only_near_ground_and_keeps_flags():
 
 
 def test_blocks_split_only_as_far_as_their_children_close_the_seams():
-    """A child overlaps its neighbours by GROUND_OVERLAP of its own edge: beside a step (a kerb,
-    a sloping road's next block) seen at a shallow slope, or a neighbour turned otherwise, it
-    would leave a crack, so the block splits less or not at all; a flat grid splits freely."""
+    """A child overlaps its neighbours by GROUND_OVERLAP of its own edge, and a seam closes while
+    the step seen at the capture's slope opens no more than the two overlaps: beside a larger
+    step or a neighbour turned otherwise it would leave a crack, so the block splits less or not
+    at all; a flat grid splits freely."""
     from billboards.geometry import GROUND_OVERLAP, MAX_SPLIT
     from billboards.resolution import seam_splits
 
@@ -138,15 +139,15 @@ def test_blocks_split_only_as_far_as_their_children_close_the_seams():
     yaw = np.full(len(centres), np.pi / 2)
     slope = np.full(len(centres), 0.5)
     assert np.all(seam_splits(centres, yaw, 0.5, slope) == MAX_SPLIT)         # flat: no seam to hide
-    step = 0.003                                   # columns 4 and 5 3 mm up: a gap of 6 mm at slope 0.5
+    step = 0.006                                   # columns 4 and 5 6 mm up: a gap of 12 mm at slope 0.5
     centres[xs.ravel() >= 2.0, 2] = step
     times = seam_splits(centres, yaw, 0.5, slope).reshape(6, 4)
-    want = int(np.floor(np.log2(GROUND_OVERLAP * 0.5 / (step / 0.5))))       # 0.04 m / 6 mm: 2 halvings
+    want = int(np.floor(np.log2(2 * GROUND_OVERLAP * 0.5 / (step / 0.5))))   # 2 × 0.04 m / 12 mm: 2 halvings
     assert want == 2 and np.all(times[3:5] == want) and np.all(times[[0, 1, 2, 5]] == MAX_SPLIT)
     shallow = np.full(len(centres), 0.05)          # seen at 3°: a gap of 6 cm, more than a whole block covers
     assert np.all(seam_splits(centres, yaw, 0.5, shallow).reshape(6, 4)[3:5] == 0)
     turned = yaw.copy()
-    turned[9] += np.deg2rad(3.0)                   # column 2, row 1: 0.71·0.5 m·3° ≈ 19 mm at a corner
+    turned[9] += np.deg2rad(6.0)                   # column 2, row 1: 0.71·0.5 m·6° ≈ 37 mm at a corner
     times = seam_splits(centres, turned, 0.5, slope).reshape(6, 4)
     assert times[2, 1] == 1 and times[1, 1] == 1 and times[0, 0] == MAX_SPLIT
     kerb = centres.copy()
