@@ -31,7 +31,7 @@ from .ground import cell_index
 class ResolutionConfig:
     """How finely ground blocks are split (see the module docstring)."""
 
-    max_split: int = 2              # a ground block splits into at most 2^L × 2^L children (0: never)
+    max_split: int = 1              # a ground block splits into at most 2^L × 2^L children (0: never)
     texel_pixels: float = 4.0       # a texel up to this many capture pixels wide is fine enough
 
     def __post_init__(self):

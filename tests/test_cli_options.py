@@ -235,7 +235,7 @@ def _commands(tmp):
                                       "--max-error": 1, "--rank": 1, "--max-rank": 1, "--page-size": 1,
                                       "--holdout": 1, "--block-size": 1, "--workers": 1,
                                       "--scheduler": 1, "--retries": 1, "--tile-metres": 1,
-                                      "--fit-seconds": 1, "--ground-reach": 1},
+                                      "--fit-seconds": 1, "--ground-reach": 1, "--ground-splits": 1},
         ("texture-sweep", nx, "--out", out): {"--count": 1, "--tiles": "+"},
         ("sampling-eval", nx, "--out", out): {"--count": 1, "--voxel-size": 1},
         ("stereo-sweep", nx, "--out", out): {"--frames": 1},
