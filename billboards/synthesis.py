@@ -180,7 +180,7 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     spread are those of its blocks that have their own texture, it wants a texture when any of its
     blocks does (its blocks that have one keep it), and it is a donor when its blocks that have a
     texture are whole in front and cover a quarter of it or more (the rest of its picture shows the
-    plainest of them; a cell partly under the camera can give its own missing part). A block then takes
+    plainest of them; a cell partly under the camera that can give fills its own missing part). A block then takes
     its square of the donor cell's picture (:func:`cell_texture`), so that a pattern keeps its size
     whatever either was split into.
 
@@ -237,6 +237,9 @@ def synthesise(rgba: np.ndarray, kind: np.ndarray, centres: np.ndarray, base_yaw
     chosen = np.full(m, -1, np.int64)
     if len(known_cells):
         chosen[takers] = np.where(picked >= 0, known_cells[np.maximum(picked - r, 0)], -1)
+    # a cell that can give takes from itself: its own seen blocks are the nearest ground there is
+    own_cell = takers[cell_donor[takers]]
+    chosen[own_cell] = own_cell
     items = np.flatnonzero(wanted & (chosen[cell] >= 0))                   # ground indices that get one
     if len(items) == 0:
         return synthesised, donor

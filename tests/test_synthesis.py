@@ -253,3 +253,26 @@ def test_a_cell_partly_seen_gives_its_missing_blocks_its_plainest_seen_one():
     for b in (2, 3):
         np.testing.assert_array_equal(rgba[b], np.repeat(before[0][:1], 2, axis=0))
     np.testing.assert_array_equal(rgba[:2], before[:2])
+
+
+def test_a_cell_that_can_give_fills_itself_before_any_other():
+    """Beside a plainer whole cell, a partly seen cell's missing blocks still show its own seen
+    block: the nearest ground there is."""
+    from billboards.resolution import split_blocks
+
+    parent, child, _ = split_blocks(np.array([[0.0, 0.0, 0.0]]), np.zeros(1), 1.0, np.array([1]), np.zeros((0, 3)),
+                                    np.zeros(0, np.int64))
+    centres = np.vstack([child, [[1.0, 0.0, 0.0]]])             # an unsplit cell beside it
+    rgba = np.full((5, 1, 4, 4, 4), 255, np.uint8)
+    rgba[:4, ..., :3] = 90
+    rgba[0, :, 0, 0, :3] = 100                                  # the seen blocks are not quite plain
+    rgba[1, :, 0, 0, :3] = 120
+    rgba[4, ..., :3] = 60                                       # a plain cell beside
+    unseen = np.array([False, False, True, True, False])
+    before = rgba.copy()
+    s, d = synthesise(rgba, np.full(5, GROUND, np.uint8), centres, np.zeros(5), unseen, front=0,
+                      split=np.array([1, 1, 1, 1, 0], np.uint8), cells=np.vstack([np.zeros((4, 3)), centres[4:]]),
+                      edges=np.array([0.5, 0.5, 0.5, 0.5, 1.0]))
+    assert s.tolist() == unseen.tolist() and np.all(d[s] == 0)
+    np.testing.assert_array_equal(rgba[2], before[0])           # the plainer of its own two
+    np.testing.assert_array_equal(rgba[3], before[0])
