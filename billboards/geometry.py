@@ -178,6 +178,35 @@ def base_yaw_seen(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray
     return toward_cameras(centres, K, world_from_cam, sizes, max_distance, chunk)[0]
 
 
+def seen_in_chunks(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, sizes: np.ndarray,
+                   max_distance: float, chunk: int, reach: float = 0.0):
+    """The frustum test of items against the cameras near them, a chunk of items at a time
+    (memory bounded by the chunk, not the capture). centres (n, 3) float64; K (v, 3, 3),
+    world_from_cam (v, 4, 4) float64; sizes (v, 2) (width, height). Yields (begin, near (k,)
+    int64 the cameras within ``max_distance`` of the chunk's box, to_cam (m, k, 3) float64 from
+    each item to each camera, z (m, k) float64 its depth in the camera, seen (m, k) bool: in
+    front (z > 0.3 m), within ``max_distance``, and an item of ``reach`` metres radius in the
+    image); chunks no camera is near are skipped."""
+    R, C = world_from_cam[:, :3, :3], world_from_cam[:, :3, 3]
+    w, h = np.asarray(sizes, np.float64)[:, 0], np.asarray(sizes, np.float64)[:, 1]
+    for s in range(0, len(centres), chunk):
+        c = centres[s:s + chunk]
+        near = np.flatnonzero(np.all((C >= c.min(axis=0) - max_distance) & (C <= c.max(axis=0) + max_distance), axis=1))
+        if len(near) == 0:
+            continue
+        to_cam = C[None, near, :] - c[:, None, :]                               # (m, v, 3)
+        cam = np.einsum("mvk,vkj->mvj", -to_cam, R[near])
+        z = cam[..., 2]
+        Kn = K[near]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = Kn[None, :, 0, 0] * cam[..., 0] / z + Kn[None, :, 0, 2]
+            v = Kn[None, :, 1, 1] * cam[..., 1] / z + Kn[None, :, 1, 2]
+            m = Kn[None, :, 0, 0] * reach / np.maximum(z, 1e-9)
+        seen = ((z > 0.3) & (u >= -m) & (u <= w[near] - 1 + m) & (v >= -m) & (v <= h[near] - 1 + m)
+                & (np.linalg.norm(to_cam, axis=-1) < max_distance))
+        yield s, near, to_cam, z, seen
+
+
 def toward_cameras(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, sizes: np.ndarray,
                    max_distance: float = 60.0, chunk: int = 1024, reach: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Base yaw of each item toward the cameras that see it: the yaw of the mean horizontal
@@ -194,26 +223,8 @@ def toward_cameras(centres: np.ndarray, K: np.ndarray, world_from_cam: np.ndarra
     centres = np.asarray(centres, dtype=np.float64)
     out = base_yaw_toward(centres, world_from_cam[:, :3, 3])
     seen_any = np.zeros(len(centres), bool)
-    R, C = world_from_cam[:, :3, :3], world_from_cam[:, :3, 3]
-    w, h = np.asarray(sizes, np.float64)[:, 0], np.asarray(sizes, np.float64)[:, 1]
-    for s in range(0, len(centres), chunk):
-        c = centres[s:s + chunk]
-        # only cameras near this chunk: memory stays bounded by the chunk, not the capture
-        near = np.flatnonzero(np.all((C >= c.min(axis=0) - max_distance) & (C <= c.max(axis=0) + max_distance), axis=1))
-        if len(near) == 0:
-            continue
-        to_cam = C[None, near, :] - c[:, None, :]                               # (m, v, 3)
-        cam = np.einsum("mvk,vkj->mvj", -to_cam, R[near])
-        z = cam[..., 2]
-        Kn, w_n, h_n = K[near], w[near], h[near]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = Kn[None, :, 0, 0] * cam[..., 0] / z + Kn[None, :, 0, 2]
-            v = Kn[None, :, 1, 1] * cam[..., 1] / z + Kn[None, :, 1, 2]
+    for s, _, to_cam, _, seen in seen_in_chunks(centres, K, world_from_cam, sizes, max_distance, chunk, reach):
         flat = np.linalg.norm(to_cam[..., :2], axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            m = Kn[None, :, 0, 0] * reach / np.maximum(z, 1e-9)
-        seen = (z > 0.3) & (u >= -m) & (u <= w_n - 1 + m) & (v >= -m) & (v <= h_n - 1 + m) \
-            & (np.linalg.norm(to_cam, axis=-1) < max_distance)
         seen_any[s:s + chunk] = seen.any(axis=1)
         seen &= flat > 1e-6
         unit = np.where(seen[..., None], to_cam[..., :2] / np.maximum(flat, 1e-12)[..., None], 0.0).sum(axis=1)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import GROUND_OVERLAP, HALF_DIAGONAL, MAX_SPLIT
+from .geometry import GROUND_OVERLAP, HALF_DIAGONAL, MAX_SPLIT, seen_in_chunks
 from .ground import cell_index
 
 
@@ -57,30 +57,15 @@ def capture_footprint(centres: np.ndarray, reach: float, K: np.ndarray, world_fr
     centres = np.asarray(centres, np.float64).reshape(-1, 3)
     out = np.full(len(centres), np.inf)
     slope = np.full(len(centres), np.nan)
-    R, C = world_from_cam[:, :3, :3], world_from_cam[:, :3, 3]
-    w, h = np.asarray(sizes, np.float64)[:, 0], np.asarray(sizes, np.float64)[:, 1]
     focal = np.maximum(K[:, 0, 0], K[:, 1, 1])
-    for s in range(0, len(centres), chunk):
-        c = centres[s:s + chunk]
-        near = np.flatnonzero(np.all((C >= c.min(axis=0) - max_distance) & (C <= c.max(axis=0) + max_distance), axis=1))
-        if len(near) == 0:
-            continue
-        to_cam = C[None, near, :] - c[:, None, :]                               # (m, v, 3)
-        cam = np.einsum("mvk,vkj->mvj", -to_cam, R[near])
-        z = cam[..., 2]
-        Kn = K[near]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = Kn[None, :, 0, 0] * cam[..., 0] / z + Kn[None, :, 0, 2]
-            v = Kn[None, :, 1, 1] * cam[..., 1] / z + Kn[None, :, 1, 2]
-            m = Kn[None, :, 0, 0] * reach / np.maximum(z, 1e-9)
-        seen = ((z > 0.3) & (u >= -m) & (u <= w[near] - 1 + m) & (v >= -m) & (v <= h[near] - 1 + m)
-                & (np.linalg.norm(to_cam, axis=-1) < max_distance))
+    for s, near, to_cam, z, seen in seen_in_chunks(centres, K, world_from_cam, sizes, max_distance, chunk, reach):
         metres = np.where(seen, z / focal[near][None, :], np.inf)
         best = np.argmin(metres, axis=1)
-        out[s:s + chunk] = metres[np.arange(len(c)), best]
-        d = to_cam[np.arange(len(c)), best]
+        rows = np.arange(len(metres))
+        out[s:s + len(metres)] = metres[rows, best]
+        d = to_cam[rows, best]
         with np.errstate(divide="ignore", invalid="ignore"):
-            slope[s:s + chunk] = d[:, 2] / np.hypot(d[:, 0], d[:, 1])
+            slope[s:s + len(metres)] = d[:, 2] / np.hypot(d[:, 0], d[:, 1])
     slope[~np.isfinite(out)] = np.nan
     out[~np.isfinite(out)] = np.nan
     return out, slope

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from billboards.geometry import GROUND, FACADE, quad_edges
+from billboards.geometry import FACADE, GROUND, GROUND_OVERLAP, MAX_SPLIT, quad_edges
 from billboards.layer import Layer, refine_ground
-from billboards.resolution import (ResolutionConfig, capture_footprint, capture_footprint_reference, split_blocks,
-                                   splits_for)
+from billboards.resolution import (ResolutionConfig, capture_footprint, capture_footprint_reference, seam_splits,
+                                   split_blocks, splits_for)
 
 
 def _cameras(n=7, seed=2):
@@ -131,9 +131,6 @@ def test_blocks_split_only_as_far_as_their_children_close_the_seams():
     the step seen at the capture's slope opens no more than the two overlaps: beside a larger
     step or a neighbour turned otherwise it would leave a crack, so the block splits less or not
     at all; a flat grid splits freely."""
-    from billboards.geometry import GROUND_OVERLAP, MAX_SPLIT
-    from billboards.resolution import seam_splits
-
     xs, ys = np.meshgrid(np.arange(6) * 0.5, np.arange(4) * 0.5, indexing="ij")
     centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]) + [10.25, -3.75, 0.0]
     yaw = np.full(len(centres), np.pi / 2)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from billboards.geometry import FACADE, GROUND
+from billboards.resolution import split_blocks
 from billboards.synthesis import (cell_positions, cell_texture, synthesis_sources, synthesise, texture_colours,
                                   texture_colours_reference)
 
@@ -99,8 +100,6 @@ def test_a_cells_picture_cut_to_blocks_of_any_split():
 
 
 def test_cell_positions_find_each_block_in_its_cell():
-    from billboards.resolution import split_blocks
-
     centres = np.array([[2.0, 1.0, 0.0], [5.0, -3.0, 0.1]])
     yaw = np.array([0.7, -2.5])
     parent, child, _ = split_blocks(centres, yaw, 0.5, np.array([2, 1]), np.zeros((0, 3)), np.zeros(0, np.int64))
@@ -115,8 +114,6 @@ def test_blocks_of_split_cells_take_their_square_of_the_donor_cells_picture():
     """Cells, not blocks, are chosen for and from: a road of unsplit blocks where the seen half is
     split twice (near the path) and the unseen half not; a synthesised block takes the average of
     a donor cell's 16 blocks, whose picture keeps its pattern's size."""
-    from billboards.resolution import split_blocks
-
     centres, row, rgba, unseen = _road()
     yaw = np.zeros(len(centres))
     times = np.where(unseen, 0, 2)
@@ -237,8 +234,6 @@ def test_a_cell_partly_seen_gives_its_missing_blocks_its_plainest_seen_one():
     """A cell split once whose top row a camera saw and whose bottom row it did not (under the
     camera): alone on the road, it is its own donor; both missing blocks show the plainer seen
     block (a marking in the other is not drawn on into the road)."""
-    from billboards.resolution import split_blocks
-
     parent, child, _ = split_blocks(np.array([[0.0, 0.0, 0.0]]), np.zeros(1), 1.0, np.array([1]), np.zeros((0, 3)),
                                     np.zeros(0, np.int64))
     rng = np.random.default_rng(2)
@@ -258,8 +253,6 @@ def test_a_cell_partly_seen_gives_its_missing_blocks_its_plainest_seen_one():
 def test_a_cell_that_can_give_fills_itself_before_any_other():
     """Beside a plainer whole cell, a partly seen cell's missing blocks still show its own seen
     block: the nearest ground there is."""
-    from billboards.resolution import split_blocks
-
     parent, child, _ = split_blocks(np.array([[0.0, 0.0, 0.0]]), np.zeros(1), 1.0, np.array([1]), np.zeros((0, 3)),
                                     np.zeros(0, np.int64))
     centres = np.vstack([child, [[1.0, 0.0, 0.0]]])             # an unsplit cell beside it
