@@ -580,7 +580,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         t1 = time.perf_counter()
         size = conf.octree.voxel_size or build_octree(points, conf.octree).voxel_size
         block_size = conf.layer.block_size or size
-        layer = build_layer(points, passes, block_size, points.min(axis=0), views.centres, conf.layer,
+        grid_origin = points.min(axis=0)   # one voxel grid for blocks and billboards (as in tiled builds)
+        layer = build_layer(points, passes, block_size, grid_origin, views.centres, conf.layer,
                             cameras=(views.K, views.world_from_cam, views.sizes))
         stages["layer_s"] = time.perf_counter() - t1
         layer = refine_ground(layer, points, block_size, (views.K, views.world_from_cam, views.sizes),
@@ -591,7 +592,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     t1 = time.perf_counter()
     if layer is not None and len(layer.centres):
         octree_conf = replace(conf.octree, voxel_size=size, depth=None)
-        placed = place_hybrid(points, octree_conf, views.centres, layer, block_size)
+        placed = place_hybrid(points, octree_conf, views.centres, layer, block_size, grid_origin)
         octree = placed.octree
     else:
         octree = build_octree(points, conf.octree)

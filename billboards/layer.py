@@ -54,6 +54,9 @@ class LayerConfig:
     top_fraction: float = 0.25      # a row of blocks is kept when the facade covers this share of it
     top_columns: int = 2            # a column's top is the highest of ± this many columns on its plane ...
     top_raise: float = 2.0          # ... that is at most this much (m) higher (a taller neighbour is another building)
+    end_reach: float = 12.0         # fronts continue this far (m) beyond those the EPIs hold (the path's ends),
+                                    # where the cloud's points show them (0: not)
+    end_min_points: int = 60        # cloud points a column there (with its neighbours) needs to hold a front
     ground_tolerance: float = 0.06  # ground points lie this close (m) to their cell's ground height
     ground_min_points: int = 20     # cloud points a ground cell needs
     ground_step: float = 0.05       # neighbouring ground cells this close in height (m) are one smooth surface
@@ -71,6 +74,9 @@ class LayerConfig:
             raise ValueError(f"block_size must be a finite number > 0 or None, got {self.block_size}")
         if not (np.isfinite(self.ground_reach) and self.ground_reach >= 0):
             raise ValueError(f"ground_reach must be a finite number ≥ 0 (m), got {self.ground_reach}")
+        if not (np.isfinite(self.end_reach) and self.end_reach >= 0) or self.end_min_points < 1:
+            raise ValueError(f"end_reach must be a finite number ≥ 0 (m) and end_min_points ≥ 1, got "
+                             f"{self.end_reach}, {self.end_min_points}")
         if not (np.isfinite(self.top_raise) and self.top_raise >= 0):
             raise ValueError(f"top_raise must be a finite number ≥ 0 (m), got {self.top_raise}")
         if not (self.slab > 0 and self.histogram_bin > 0 and self.ground_tolerance > 0 and self.min_depth > 0):
@@ -163,25 +169,14 @@ def plane_max_reference(values, offset, radius: int, tolerance: float, raise_: f
     return out
 
 
-def facade_columns(epi: EpiPass, cloud: np.ndarray, size: float, config: LayerConfig = LayerConfig()
-                   ) -> FacadeColumns | None:
-    """The dominant facade per column of one pass.
-
-    epi: tracked EPI points of the pass; cloud (N, 3) float64 world points (heights of the
-    facade's extent); size: column width = block edge (m). None without EPI points.
-    """
-    pts = epi.points
-    if len(pts) == 0:
-        return None
-    along, off = epi.along(pts), epi.offset(pts)
-    keep = off >= config.min_depth
-    along, off, z = along[keep], off[keep], pts[keep, 2]
-    if len(along) == 0:
-        return None
-    col = np.floor(along / size).astype(np.int64)
-    first = int(col.min()) - 1
-    c = int(col.max()) - first + 2
-    col -= first
+def dominant_offsets(col: np.ndarray, off: np.ndarray, c: int, config: LayerConfig, min_points: int) -> np.ndarray:
+    """(c,) float64 the facade offset of each of ``c`` columns (NaN: none) from points in column
+    col (n,) int64 in [0, c) at offsets off (n,) float64: the farthest strong peak of the offsets'
+    histogram over the column and its neighbours (``min_points`` there at least), refined by the
+    median of the points near it."""
+    offset = np.full(c, np.nan)
+    if len(col) == 0:
+        return offset
     # Offset histogram per column, summed over the column and its two neighbours.
     bins = np.floor(off / config.histogram_bin).astype(np.int64)
     b0 = int(bins.min())
@@ -205,21 +200,75 @@ def facade_columns(epi: EpiPass, cloud: np.ndarray, size: float, config: LayerCo
     peak = nb - 1 - np.argmax(is_peak[:, ::-1], axis=1)
     strength = wide.sum(axis=1)
     mode = (peak + b0 + 0.5) * config.histogram_bin
-    offset = np.full(c, np.nan)
     order = np.argsort(col, kind="stable")
     starts = np.searchsorted(col[order], np.arange(c + 1))
-    for k in np.flatnonzero(strength >= config.min_points):
+    for k in np.flatnonzero(strength >= min_points):
         # The points of the column and its neighbours near this column's peak.
         nearby = off[order[starts[max(k - 1, 0)]:starts[min(k + 2, c)]]]
         sel = nearby[np.abs(nearby - mode[k]) <= 2 * config.histogram_bin]
-        if len(sel) >= max(3, config.min_points // 4):
+        if len(sel) >= max(3, min_points // 4):
             offset[k] = np.median(sel)
-    offset = _fill_gaps(_running_median(offset, config.smooth_columns), config.max_gap_columns, config.slab / 3)
-    # Heights: EPI and cloud points on the plane, per column.
-    bottom, top = np.full(c, np.nan), np.full(c, np.nan)
+    return offset
+
+
+def run_extent(offset: np.ndarray, bottom: np.ndarray, top: np.ndarray, mask: np.ndarray, tolerance: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """bottom, top (c,) float64 with each run of consecutive ``mask`` (c,) bool columns whose
+    offsets (c,) float64 agree within ``tolerance`` (one plane) spanning the run's lowest bottom
+    to its highest top (NaN columns end a run and stay NaN)."""
+    bottom, top = bottom.copy(), top.copy()
+    ok = mask & np.isfinite(offset) & np.isfinite(bottom) & np.isfinite(top)
+    start = 0
+    while start < len(offset):
+        if not ok[start]:
+            start += 1
+            continue
+        end = start + 1
+        while end < len(offset) and ok[end] and abs(offset[end] - offset[end - 1]) <= tolerance:
+            end += 1
+        bottom[start:end], top[start:end] = bottom[start:end].min(), top[start:end].max()
+        start = end
+    return bottom, top
+
+
+def facade_columns(epi: EpiPass, cloud: np.ndarray, size: float, config: LayerConfig = LayerConfig()
+                   ) -> FacadeColumns | None:
+    """The dominant facade per column of one pass.
+
+    epi: tracked EPI points of the pass; cloud (N, 3) float64 world points (heights of the
+    facade's extent); size: column width = block edge (m). None without EPI points.
+    """
+    pts = epi.points
+    if len(pts) == 0:
+        return None
+    along, off = epi.along(pts), epi.offset(pts)
+    keep = off >= config.min_depth
+    along, off, z = along[keep], off[keep], pts[keep, 2]
+    if len(along) == 0:
+        return None
+    reach = int(np.ceil(config.end_reach / size))
+    col = np.floor(along / size).astype(np.int64)
+    first = int(col.min()) - 1 - reach
+    c = int(col.max()) - first + 2 + reach
+    col -= first
+    offset = dominant_offsets(col, off, c, config, config.min_points)
     cloud = np.asarray(cloud, np.float64)
     c_along, c_off = epi.along(cloud), epi.offset(cloud)
     c_col = np.floor(c_along / size).astype(np.int64) - first
+    known = np.flatnonzero(np.isfinite(offset))
+    ends = np.zeros(c, bool)
+    if reach and len(known):
+        # beyond the fronts the EPIs hold (the path's ends, seen obliquely): the cloud's own peaks
+        k0, k1 = known[0], known[-1]
+        beyond = (c_off >= config.min_depth) & (((c_col < k0) & (c_col >= k0 - reach))
+                                                | ((c_col > k1) & (c_col <= k1 + reach)))
+        k = np.arange(c)
+        ends = (k < k0) | (k > k1)
+        offset = np.where(ends, dominant_offsets(c_col[beyond], c_off[beyond], c, config, config.end_min_points),
+                          offset)
+    offset = _fill_gaps(_running_median(offset, config.smooth_columns), config.max_gap_columns, config.slab / 3)
+    # Heights: EPI and cloud points on the plane, per column.
+    bottom, top = np.full(c, np.nan), np.full(c, np.nan)
     inside = (c_col >= 0) & (c_col < c)
     on_plane = np.zeros(len(cloud), bool)
     on_plane[inside] = np.abs(c_off[inside] - offset[c_col[inside]]) <= config.slab
@@ -232,6 +281,9 @@ def facade_columns(epi: EpiPass, cloud: np.ndarray, size: float, config: LayerCo
     bottom[np.isnan(offset)] = np.nan
     top[np.isnan(offset)] = np.nan
     top = plane_max(top, offset, config.top_columns, config.slab / 3, config.top_raise)
+    # beyond the path the cloud sees a front at a grazing angle, ever less of it with distance:
+    # a run of columns on one plane there is one building's front, a rectangle
+    bottom, top = run_extent(offset, bottom, top, ends, config.slab / 3)
     return FacadeColumns(epi, float(size), first, offset, bottom, top)
 
 

@@ -47,6 +47,8 @@ class SideWallConfig:
     slab: float = 0.1               # points this close to the wall's plane (m) are on it
     cell_points: int = 8            # points a grid cell of the wall needs to hold a block
     histogram_bin: float = 0.05     # along-path histogram bin (m)
+    complete: bool = True           # a wall is the rectangle of its building's end: every column as deep and
+                                    # as high as the wall's deepest and highest, up to the taller front's roof
 
     def __post_init__(self):
         if self.min_points < 1 or self.cell_points < 1:
@@ -119,6 +121,14 @@ def wall_blocks(offset: np.ndarray, z: np.ndarray, corner: float, grid_z0: float
     return jj, rr
 
 
+def wall_rectangle(jj: np.ndarray, rr: np.ndarray, top: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rectangle a wall's blocks (j, r) (b,) int64 span: columns 0 (the corner) to the deepest,
+    rows from the lowest to the highest or ``top``, whichever is higher; (j, r) row-major."""
+    j = np.arange(int(jj.max()) + 1)
+    r = np.arange(int(rr.min()), max(int(rr.max()), int(top)) + 1)
+    return np.repeat(j, len(r)), np.tile(r, len(j))
+
+
 def side_walls(columns, cloud: np.ndarray, free: np.ndarray, grid_z0: float, config: SideWallConfig = SideWallConfig()
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The side walls of one pass's facade (a :class:`billboards.layer.FacadeColumns`).
@@ -157,6 +167,10 @@ def side_walls(columns, cloud: np.ndarray, free: np.ndarray, grid_z0: float, con
         jj, rr = wall_blocks(o[on], z[on], corner, grid_z0, s, config.cell_points)
         if len(jj) == 0:
             continue
+        if config.complete:
+            tops = np.array([t for f, t in sides if np.isfinite(t) and abs(f - corner) <= s])
+            top = int(np.ceil((tops.max() - grid_z0) / s)) - 1 if len(tops) else int(rr.max())
+            jj, rr = wall_rectangle(jj, rr, top)
         oc = corner + (jj + 0.5) * s
         zc = grid_z0 + (rr + 0.5) * s
         # hidden on a side: the front there is nearer than the block and rises above it (NaN: open);

@@ -66,6 +66,33 @@ def test_epi_depth_of_a_known_plane():
     assert np.nanmax(np.abs(cols.offset - depth)) < 0.01 * depth    # ... never a column
 
 
+def test_fronts_continue_beyond_the_path_where_the_cloud_shows_them():
+    """EPI points on a front 6 m away along x ∈ [0, 20) (the path); beyond its start the cloud
+    alone shows a front 8 m away, 5 m high, over x ∈ [−6, 0), ever less of its foot with distance
+    (seen at a grazing angle): it continues there whole, and not beyond ``end_reach`` or without it."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    epi_pts = np.stack([rng.uniform(0, 20, n), np.full(n, -6.0) + rng.normal(0, 0.01, n), rng.uniform(0, 6, n)], 1)
+    beyond = np.stack([rng.uniform(-6, 0, n), np.full(n, -8.0) + rng.normal(0, 0.01, n), rng.uniform(0, 5, n)], 1)
+    epi = EpiPass(np.array([0.0, 0, 2]), np.array([1.0, 0, 0]), np.array([0, -1.0, 0]), epi_pts,
+                  np.zeros(n), np.full(n, 5, np.int32))
+    beyond = beyond[beyond[:, 2] >= -beyond[:, 0] - 3.0]
+    cloud = np.concatenate([epi_pts, beyond])
+    cols = facade_columns(epi, cloud, 0.5)
+    along = cols.centre_along()
+    ends = (along > -5.5) & (along < -0.5)
+    assert np.allclose(cols.offset[ends], 8.0, atol=0.02) and np.allclose(cols.top[ends], 5.0, atol=0.05)
+    assert np.allclose(cols.bottom[ends], 0.0, atol=0.05)
+    assert np.allclose(cols.offset[(along > 0.5) & (along < 19.5)], 6.0, atol=0.02)
+    assert np.all(np.isnan(cols.offset[along < -6.5]))
+    short = facade_columns(epi, cloud, 0.5, LayerConfig(end_reach=2.0))
+    assert np.all(np.isnan(short.offset[short.centre_along() < -2.5]))
+    none = facade_columns(epi, cloud, 0.5, LayerConfig(end_reach=0.0))
+    assert np.all(np.isnan(none.offset[none.centre_along() < -0.5]))
+    with pytest.raises(ValueError):
+        LayerConfig(end_reach=-1.0)
+
+
 def test_plane_max_matches_the_reference_loop():
     rng = np.random.default_rng(0)
     for trial in range(30):

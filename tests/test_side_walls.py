@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from billboards.layer import FacadeColumns, LayerConfig
-from billboards.side_walls import SideWallConfig, side_walls, wall_blocks, wall_blocks_reference, wall_peaks
+from billboards.side_walls import (SideWallConfig, side_walls, wall_blocks, wall_blocks_reference, wall_peaks,
+                                   wall_rectangle)
 from recon.epi import EpiPass
 
 
@@ -118,6 +119,33 @@ def test_points_in_front_of_the_fronts_and_hidden_walls_make_no_side_wall():
     wall = _wall_points(rng)
     centres, _, _ = side_walls(_two_fronts(), wall, np.zeros(len(wall), bool), 0.0)
     assert len(centres) == 0
+
+
+def test_wall_rectangle_spans_the_corner_to_the_deepest_column_and_up_to_the_top():
+    jj, rr = wall_rectangle(np.array([1, 3, 3]), np.array([4, 2, 6]), 8)
+    assert {(int(j), int(r)) for j, r in zip(jj, rr)} == {(j, r) for j in range(4) for r in range(2, 9)}
+    # a top below the highest block does not cut the wall
+    jj, rr = wall_rectangle(np.array([0, 1]), np.array([0, 5]), 2)
+    assert len(jj) == 12 and rr.max() == 5
+
+
+def test_a_wall_whose_points_stop_short_is_completed_to_its_building_box():
+    """The tall building's end above a lower, set-back neighbour: stereo reached only the wall's
+    lower front part (ragged, 5–7 m deep, up to 14 m); the wall is the rectangle from the corner
+    to the deepest point and up to its front's roof (20 m), facing the open side."""
+    rng = np.random.default_rng(6)
+    cols = _two_fronts(near_top=20.0, far_top=4.0)
+    part = _wall_points(rng, offsets=(5.0, 7.0), heights=(4.0, 14.0))
+    ragged = part[~((-part[:, 1] > 6.0) & (part[:, 2] > 9.0))]     # a notch the points did not reach
+    centres, yaw, _ = side_walls(cols, ragged, np.ones(len(ragged), bool), 0.0)
+    assert np.allclose(yaw, 0.0)
+    depth, height = -centres[:, 1], centres[:, 2]
+    assert np.isclose(depth.min(), 5.25) and np.isclose(depth.max(), 6.75)
+    assert np.isclose(height.max(), 19.75)
+    assert len(centres) == 4 * len(np.unique(height))             # no notch: every column as high
+    # the points only, as before
+    centres, _, _ = side_walls(cols, ragged, np.ones(len(ragged), bool), 0.0, SideWallConfig(complete=False))
+    assert centres[:, 2].max() < 14.0 and len(centres) < 4 * len(np.unique(centres[:, 2]))
 
 
 def test_side_wall_config_is_validated():
