@@ -36,7 +36,7 @@ from .atlas import reserved_memmap
 from .fit import FitConfig, Quads, quads_of
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward, quad_edges
-from .layer import Layer, LayerConfig, build_layer, facade_depth_report, refine_ground
+from .layer import Layer, LayerConfig, build_layer, facade_depth_report, grow_side_walls, refine_ground
 from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
 from .pca import EigenTextures, PcaConfig, eigen_textures
@@ -571,6 +571,11 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         # which (frame, camera) each gain belongs to, in the order of views_from_dataset
         exposure = {"views": [[f, c] for f in frames for c in range(cameras)], "gains": photometry.gains.tolist()}
 
+    t1 = time.perf_counter()
+    # The sky behind the model, from the capture's own sky pixels (the whole cloud marks what is not sky).
+    sky = estimate_sky(views, points) if views is not None and conf.source == "images" else None
+    stages["sky_s"] = time.perf_counter() - t1
+
     layer = None
     layer_report: dict = {"enabled": False}
     if conf.layer is not None and views is not None and conf.source == "images" and len(views) and len(points):
@@ -584,9 +589,11 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         layer = build_layer(points, passes, block_size, grid_origin, views.centres, conf.layer,
                             cameras=(views.K, views.world_from_cam, views.sizes))
         stages["layer_s"] = time.perf_counter() - t1
+        layer, wall_depth = grow_side_walls(layer, points, views, sky, block_size, conf.layer.wall_depth)
         layer = refine_ground(layer, points, block_size, (views.K, views.world_from_cam, views.sizes),
                               conf.layer.resolution, conf.sampling.tile, conf.layer.kerb.min_step)
         layer_report = _layer_report(layer, passes, points, dataset, conf.layer)
+        layer_report["side_walls_deepened"] = wall_depth
         layer_report["block_size"] = block_size
 
     t1 = time.perf_counter()
@@ -621,10 +628,6 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         node_range = placed.node_range
         save_worker_state(state, conf, placed, views, colours)
         stages["prepare_s"] = time.perf_counter() - t2
-        t1 = time.perf_counter()
-        # The sky behind the model, from the capture's own sky pixels (the whole cloud marks what is not sky).
-        sky = estimate_sky(views, points) if views is not None and conf.source == "images" else None
-        stages["sky_s"] = time.perf_counter() - t1
         del points, colours, placed, layer
 
         n = len(kind)

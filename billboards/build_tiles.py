@@ -47,7 +47,7 @@ from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table,
                     compressed_textures, place_billboards, place_hybrid, sample_textures, save_worker_state,
                     texture_tasks)
 from .geometry import FACADE, GROUND
-from .layer import Layer, build_layer, refine_ground
+from .layer import Layer, build_layer, grow_side_walls, refine_ground
 from .model_reader import load
 from .model_set import load_model_set, quad_bounds, tile_name, write_model_set
 from .model_writer import ModelWriter, temp_dir
@@ -157,8 +157,9 @@ class _TileBuild:
     """What every tile of one build shares: the cloud's tiles, the views and the settings."""
 
     def __init__(self, conf: BuildConfig, cloud: CloudTiles, dataset, frames: list[int], views: Views | None,
-                 grid: TileGrid, grid_origin: np.ndarray, block_size: float | None):
+                 grid: TileGrid, grid_origin: np.ndarray, block_size: float | None, sky=None):
         self.conf, self.cloud, self.dataset, self.frames, self.views = conf, cloud, dataset, frames, views
+        self.sky = sky   # the set's sky (side walls grow where the images show no sky)
         self.grid, self.grid_origin, self.block_size = grid, grid_origin, block_size
         self.cameras = dataset.rig.num_cameras if dataset is not None else 0
 
@@ -204,6 +205,7 @@ class _TileBuild:
             cameras = (views.K, views.world_from_cam, views.sizes)
             layer = build_layer(points, passes, self.block_size, self.grid_origin, viewpoints, conf.layer,
                                 cameras=cameras)
+            layer, _ = grow_side_walls(layer, points, views, self.sky, self.block_size, conf.layer.wall_depth)
             layer = refine_ground(layer, points, self.block_size, cameras, conf.layer.resolution, conf.sampling.tile,
                                   conf.layer.kerb.min_step)
         if layer is not None and len(layer.centres):
@@ -372,7 +374,7 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
             info["exposure"] = exposure
         if poses is not None and dataset_dir is not None:
             info["poses"] = str(Path(poses).resolve())
-        shared = _TileBuild(conf, cloud, dataset, frames, views, grid, grid_origin, block_size)
+        shared = _TileBuild(conf, cloud, dataset, frames, views, grid, grid_origin, block_size, sky)
         indices = model_tiles(cloud, grid)
         reports, resumed = [], 0
         t0 = time.perf_counter()

@@ -32,6 +32,7 @@ from .ground import ground_blocks
 from .kerbs import KerbConfig, kerb_blocks
 from .resolution import ResolutionConfig, capture_footprint, seam_splits, split_blocks, splits_for
 from .side_walls import SideWallConfig, side_walls
+from .wall_depth import WallDepthConfig, deepen_side_walls
 
 logger = logging.getLogger(__name__)
 
@@ -66,6 +67,7 @@ class LayerConfig:
                                     # where nothing stands (0: not); blocks no camera sees are synthesised
     epi: EpiConfig = field(default_factory=EpiConfig)
     side_wall: SideWallConfig = field(default_factory=SideWallConfig)
+    wall_depth: WallDepthConfig = field(default_factory=WallDepthConfig)
     kerb: KerbConfig = field(default_factory=KerbConfig)
     resolution: ResolutionConfig = field(default_factory=ResolutionConfig)
 
@@ -467,6 +469,23 @@ def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, 
     return Layer(centres, layer.base_yaw[parent], layer.kind[parent], point_block, layer.columns,
                  layer.continued[parent], layer.seen[parent], layer.side_wall[parent], layer.kerb[parent],
                  split[parent], layer.cell[parent])
+
+
+def grow_side_walls(layer: Layer, cloud: np.ndarray, views, sky, size: float, config: WallDepthConfig
+                    ) -> tuple[Layer, dict]:
+    """``layer`` with its side walls as deep as the images show them (:mod:`billboards.wall_depth`;
+    views: the capture's :class:`~billboards.sampling.Views`, sky: the model's sky or None), and
+    the report of that."""
+    c, y, report = deepen_side_walls(layer.centres[layer.side_wall], layer.base_yaw[layer.side_wall], cloud, views,
+                                     sky, size, config)
+    if not len(c):
+        return layer, report
+    b = len(c)
+    return Layer(np.concatenate([layer.centres, c]), np.concatenate([layer.base_yaw, y]),
+                 np.concatenate([layer.kind, np.full(b, FACADE, np.uint8)]), layer.point_block, layer.columns,
+                 np.concatenate([layer.continued, np.zeros(b, bool)]), np.concatenate([layer.seen, np.ones(b, bool)]),
+                 np.concatenate([layer.side_wall, np.ones(b, bool)]), np.concatenate([layer.kerb, np.zeros(b, bool)]),
+                 np.concatenate([layer.split, np.zeros(b, np.uint8)]), np.concatenate([layer.cell, c])), report
 
 
 def facade_truth(columns: FacadeColumns, scene, height: float = 3.0) -> np.ndarray:

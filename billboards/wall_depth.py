@@ -1,0 +1,252 @@
+"""Side walls as deep as the images show them: where stereo stopped short of a wall's rear.
+
+A side wall (:mod:`billboards.side_walls`) is seen obliquely from the path; the farther its
+part, the more grazing the view and the sparser the stereo points, so the points of a
+tall building's end often stop metres before its rear. The images still show the wall
+there. A wall grows column by column away from the path while the images agree that
+something solid stands where its next column would be:
+
+1. Walls: the layer's side-wall blocks grouped by plane and facing; each is a rectangle of
+   columns (one block wide, across the wall) and rows.
+2. Candidates: the next ``reach`` metres of columns beyond the deepest, with the wall's rows.
+3. Votes (:func:`wall_votes`): each candidate block's centre is projected into the capture
+   cameras on the wall's open side (those that see the face no more grazing than
+   ``grazing``, within ``max_distance``). A camera whose cloud z-buffer holds something
+   nearer (by ``occlusion`` of the depth) does not vote; one that sees the centre votes
+   *solid* when the pixel's colour is farther than ``sky_distance`` from the model's sky at
+   that pixel's elevation.
+4. A block is observed with ``min_views`` votes and holds when ``agree`` of them are solid; a
+   column joins the wall when ``column_share`` of its observed blocks hold (its lower rows
+   are often hidden by the neighbour the wall rises above), and the wall stops at the first
+   column that does not or that no camera observes.
+
+New blocks explain no cloud point (there is none there); they are FACADE blocks on the
+side wall, facing its open side, textured like the rest by sampling and the fit.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .sampling import zbuffer
+from .sky import Sky, ray_elevation
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class WallDepthConfig:
+    """How far side walls grow into what only the images show (see the module docstring)."""
+
+    reach: float = 12.0             # a wall grows at most this far (m) beyond its deepest block (0: not)
+    sky_distance: float = 0.2       # a pixel this close (RGB in [0, 1]) to the sky at its elevation shows sky
+    min_views: int = 2              # cameras that see a candidate block's centre
+    agree: float = 0.75             # ... of which this share must show something solid
+    column_share: float = 0.5       # a column joins its wall when this share of its blocks hold
+    grazing: float = 0.2            # a camera votes when the cosine between its ray and the face's normal is this
+    max_distance: float = 40.0      # ... and it is this close (m)
+    max_views: int = 16             # cameras per wall at most (the nearest)
+    occlusion: float = 0.1          # a cloud point nearer than (1 − this) × the block's depth hides it
+    zbuffer_points: int = 2_000_000 # cloud points splatted into the occlusion z-buffers at most
+    zbuffer_scale: int = 4          # the z-buffers' downscale
+
+    def __post_init__(self):
+        if not (np.isfinite(self.reach) and self.reach >= 0):
+            raise ValueError(f"wall depth reach must be a finite number ≥ 0 (m), got {self.reach!r}")
+        if not (0 < self.sky_distance and 0 < self.agree <= 1 and 0 < self.column_share <= 1
+                and 0 < self.grazing <= 1 and 0 < self.occlusion < 1 and self.max_distance > 0):
+            raise ValueError("sky_distance, max_distance > 0, agree, column_share, grazing in (0, 1] "
+                             "and occlusion in (0, 1) required")
+        if min(self.min_views, self.max_views, self.zbuffer_points, self.zbuffer_scale) < 1:
+            raise ValueError("min_views, max_views, zbuffer_points and zbuffer_scale must be ≥ 1")
+
+
+@dataclass(frozen=True, eq=False)
+class Wall:
+    """One side wall's face: normal (3,) float64 unit horizontal (the open side); deeper (3,)
+    float64 unit horizontal along the wall away from the path; plane (3,) float64 a point on
+    it; columns: the positions (m) along ``deeper`` of its columns' centres; rows (r,) float64
+    its rows' centre heights; yaw: the face's base yaw."""
+
+    normal: np.ndarray
+    deeper: np.ndarray
+    plane: np.ndarray
+    columns: np.ndarray
+    rows: np.ndarray
+    yaw: float
+
+
+def side_wall_faces(centres: np.ndarray, base_yaw: np.ndarray, size: float, viewpoints: np.ndarray) -> list[Wall]:
+    """The walls of side-wall blocks centres (b, 3) float64, base_yaw (b,) float64 of edge
+    ``size``: blocks grouped by facing and plane; ``deeper`` points away from the nearest of
+    ``viewpoints`` (v, 3) float64 (the path)."""
+    walls = []
+    if len(centres) == 0 or len(viewpoints) == 0:
+        return walls
+    normal = np.stack([np.cos(base_yaw), np.sin(base_yaw), np.zeros(len(base_yaw))], 1)
+    key = np.stack([np.round(base_yaw, 3), np.round(np.einsum("ij,ij->i", centres, normal) / (size / 2))], 1)
+    _, group = np.unique(key, axis=0, return_inverse=True)
+    for g in range(int(group.max()) + 1):
+        ids = np.flatnonzero(group == g)
+        n = normal[ids[0]]
+        across = np.array([-n[1], n[0], 0.0])
+        mid = centres[ids].mean(axis=0)
+        nearest = viewpoints[np.argmin(np.linalg.norm(viewpoints[:, :2] - mid[:2], axis=1))]
+        deeper = across if (mid - nearest) @ across >= 0 else -across
+        along = centres[ids] @ deeper
+        walls.append(Wall(n, deeper, centres[ids[0]], np.unique(np.round(along / size * 2) / 2 * size),
+                          np.unique(np.round(centres[ids, 2], 6)), float(base_yaw[ids[0]])))
+    return walls
+
+
+def wall_votes(points: np.ndarray, normals: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
+               image: np.ndarray, depth: np.ndarray, sky: Sky, config: WallDepthConfig
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """One camera's votes on candidate block centres points (m, 3) float64 with face normals
+    (m, 3): (sees, solid) (m,) bool. image (h, w, 3) uint8; depth: the cloud's z-buffer
+    (ceil(h/s), ceil(w/s)) float32 (inf: empty) at s = ``config.zbuffer_scale``."""
+    h, w = image.shape[:2]
+    R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
+    ray = points - C
+    dist = np.linalg.norm(ray, axis=1)
+    cam = ray @ R
+    z = cam[:, 2]
+    facing = np.einsum("ij,ij->i", -ray, normals) >= config.grazing * dist
+    ok = facing & (z > 1e-3) & (dist <= config.max_distance)
+    u = np.where(ok, K[0, 0] * cam[:, 0] / np.where(ok, z, 1) + K[0, 2], -1)
+    v = np.where(ok, K[1, 1] * cam[:, 1] / np.where(ok, z, 1) + K[1, 2], -1)
+    ok &= (u >= 0) & (u < w - 0.5) & (v >= 0) & (v < h - 0.5)
+    px, py = np.rint(u[ok]).astype(np.int64), np.rint(v[ok]).astype(np.int64)
+    s = config.zbuffer_scale
+    nearer = depth[py // s, px // s] < (1 - config.occlusion) * z[ok]
+    sees = np.zeros(len(points), bool)
+    solid = np.zeros(len(points), bool)
+    idx = np.flatnonzero(ok)[~nearer]
+    px, py = px[~nearer], py[~nearer]
+    colour = image[py, px].astype(np.float64) / 255.0
+    sky_colour = sky.colour(ray_elevation(ray[idx])).astype(np.float64)
+    sees[idx] = True
+    solid[idx] = np.linalg.norm(colour - sky_colour, axis=1) > config.sky_distance
+    return sees, solid
+
+
+def wall_votes_reference(points, normals, K, world_from_cam, image, depth, sky: Sky, config: WallDepthConfig):
+    """Slow, obvious :func:`wall_votes`: one candidate at a time."""
+    h, w = image.shape[:2]
+    R, C = np.asarray(world_from_cam)[:3, :3], np.asarray(world_from_cam)[:3, 3]
+    sees = np.zeros(len(points), bool)
+    solid = np.zeros(len(points), bool)
+    for i, (p, n) in enumerate(zip(points, normals)):
+        ray = p - C
+        dist = float(np.linalg.norm(ray))
+        x, y, z = R.T @ ray
+        if -ray @ n < config.grazing * dist or z <= 1e-3 or dist > config.max_distance:
+            continue
+        u, v = K[0, 0] * x / z + K[0, 2], K[1, 1] * y / z + K[1, 2]
+        if not (0 <= u < w - 0.5 and 0 <= v < h - 0.5):
+            continue
+        col, row = int(np.rint(u)), int(np.rint(v))
+        if depth[row // config.zbuffer_scale, col // config.zbuffer_scale] < (1 - config.occlusion) * z:
+            continue
+        sees[i] = True
+        elevation = np.arctan2(ray[2], np.hypot(ray[0], ray[1]))
+        diff = image[row, col] / 255.0 - sky.colour(np.array([elevation]))[0].astype(np.float64)
+        solid[i] = float(np.sqrt(np.sum(diff ** 2))) > config.sky_distance
+    return sees, solid
+
+
+def grown_columns(observed: np.ndarray, holds: np.ndarray, config: WallDepthConfig) -> int:
+    """How many candidate columns join a wall: observed (k, r) bool the blocks ``min_views``
+    cameras see, holds (k, r) bool those that hold, column by column away from the path. A
+    column joins when ``column_share`` of its observed blocks hold (the lower rows are often
+    hidden by the neighbour the wall rises above); the wall stops at the first column that
+    does not, or that no camera sees."""
+    seen = observed.sum(axis=1)
+    share = holds.sum(axis=1) / np.maximum(seen, 1)
+    failing = np.flatnonzero((seen == 0) | (share < config.column_share))
+    return int(failing[0]) if len(failing) else len(observed)
+
+
+def column_blocks(holds: np.ndarray) -> np.ndarray:
+    """(k, r) bool the blocks of grown columns: in each, its rows from the lowest that holds to
+    the highest (what stood in front of the wall between them is the wall's too)."""
+    rows = np.arange(holds.shape[1])
+    lo = np.where(holds.any(axis=1), np.argmax(holds, axis=1), holds.shape[1])
+    hi = holds.shape[1] - 1 - np.argmax(holds[:, ::-1], axis=1)
+    return (rows[None, :] >= lo[:, None]) & (rows[None, :] <= hi[:, None])
+
+
+def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarray, views, sky: Sky | None,
+                      size: float, config: WallDepthConfig = WallDepthConfig()
+                      ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The blocks that side walls grow by where the images show them: centres (b, 3) float64,
+    base_yaw (b,) float64, and a JSON-ready report. centres (s, 3), base_yaw (s,): the side
+    walls' blocks; cloud (N, 3) float64 world points (occlusion); views:
+    :class:`billboards.sampling.Views` of the capture; sky: the model's sky (None: nothing
+    grows); size: the blocks' edge (m)."""
+    report = {"walls": 0, "walls_grown": 0, "blocks": 0, "views_read": 0}
+    none = (np.zeros((0, 3)), np.zeros(0), report)
+    k = int(np.floor(config.reach / size + 1e-9))
+    if sky is None or views is None or k == 0 or len(centres) == 0:
+        return none
+    walls = side_wall_faces(centres, base_yaw, size, views.centres)
+    report["walls"] = len(walls)
+    floor = float(np.min(centres[:, 2]))    # the lowest side-wall row: the ground's
+    candidates, normals, owner = [], [], []
+    for i, wall in enumerate(walls):
+        # the wall's rows down to the ground: deeper than its neighbour's rear, a wall that shows
+        # only above the neighbour's roof at the front may show whole
+        rows = wall.rows.max() - size * np.arange(int(np.floor((wall.rows.max() - floor) / size + 1e-6)) + 1)[::-1]
+        walls[i] = wall = replace(wall, rows=rows)
+        base = wall.plane - (wall.plane @ wall.deeper) * wall.deeper
+        cols = wall.columns.max() + size * np.arange(1, k + 1)
+        p = np.repeat((base[None, :] + cols[:, None] * wall.deeper[None, :])[:, None, :], len(wall.rows), axis=1)
+        p[..., 2] = wall.rows[None, :]
+        candidates.append(p.reshape(-1, 3))
+        normals.append(np.broadcast_to(wall.normal, (len(p.reshape(-1, 3)), 3)))
+        owner.append(np.full(len(p.reshape(-1, 3)), i))
+    points, normal, owner = np.concatenate(candidates), np.concatenate(normals), np.concatenate(owner)
+    # each wall's cameras: on its open side, near, the nearest first
+    chosen: dict[int, list[int]] = {}
+    for i, wall in enumerate(walls):
+        mid = points[owner == i].mean(axis=0)
+        offset = views.centres - mid
+        dist = np.linalg.norm(offset, axis=1)
+        ok = np.flatnonzero((offset @ wall.normal > 0) & (dist <= config.max_distance))
+        for v in ok[np.argsort(dist[ok])][:config.max_views]:
+            chosen.setdefault(int(v), []).append(i)
+    cloud = np.asarray(cloud, np.float64)
+    sample = cloud[::max(1, -(-len(cloud) // config.zbuffer_points))]
+    centre = sample.mean(axis=0) if len(sample) else np.zeros(3)
+    sample = (sample - centre).astype(np.float32)
+    sees = np.zeros(len(points), np.int64)
+    solid = np.zeros(len(points), np.int64)
+    for v, mine in sorted(chosen.items()):
+        ids = np.flatnonzero(np.isin(owner, mine))
+        K, pose = views.K[v], views.world_from_cam[v]
+        _, nearest = zbuffer(sample, centre, K, pose, tuple(int(s) for s in views.sizes[v]), config.zbuffer_scale)
+        s, d = wall_votes(points[ids], normal[ids], K, pose, views.image(v), nearest, sky, config)
+        sees[ids] += s
+        solid[ids] += d
+    report["views_read"] = len(chosen)
+    observed = sees >= config.min_views
+    holds = observed & (solid >= config.agree * sees)
+    new_centres, new_yaw = [], []
+    for i, wall in enumerate(walls):
+        shape = (k, len(wall.rows))
+        grown = grown_columns(observed[owner == i].reshape(shape), holds[owner == i].reshape(shape), config)
+        if grown:
+            block = column_blocks(holds[owner == i].reshape(shape)[:grown])
+            new_centres.append(points[owner == i].reshape(k, len(wall.rows), 3)[:grown][block])
+            new_yaw.append(np.full(int(block.sum()), wall.yaw))
+            report["walls_grown"] += 1
+    if not new_centres:
+        return none
+    c, y = np.concatenate(new_centres), np.concatenate(new_yaw)
+    report["blocks"] = len(c)
+    logger.info("side walls deepened by the images: %d of %d walls grew by %d blocks (%d views read)",
+                report["walls_grown"], len(walls), len(c), len(chosen))
+    return c, y, report

@@ -1,0 +1,148 @@
+"""Side walls as deep as the images show them (billboards.wall_depth)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from billboards.sampling import zbuffer
+from billboards.sky import Sky
+from billboards.wall_depth import (WallDepthConfig, column_blocks, deepen_side_walls, grown_columns, side_wall_faces,
+                                   wall_votes, wall_votes_reference)
+
+SKY = (0.4, 0.6, 0.9)
+WALL = (0.6, 0.25, 0.2)
+
+
+def _look_minus_y(x: float, y: float = 0.0, z: float = 2.0) -> np.ndarray:
+    """Pose of a camera at (x, y, z) looking along −y (its x axis along +x, its y axis down)."""
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, -1.0, 0]]).T
+    pose[:3, 3] = (x, y, z)
+    return pose
+
+
+@dataclass
+class _Views:
+    K: np.ndarray
+    world_from_cam: np.ndarray
+    sizes: np.ndarray
+    images: list
+
+    @property
+    def centres(self) -> np.ndarray:
+        return self.world_from_cam[:, :3, 3]
+
+    def image(self, i: int) -> np.ndarray:
+        return self.images[i]
+
+
+def _wall_views(xs, rear: float = 15.0, size=(160, 120), f=60.0) -> _Views:
+    """Cameras at (x, 0, 2) looking −y at a wall on the plane x = 10 (facing +x) from y = −5
+    to y = −rear, 10 m high, against a plain sky."""
+    w, h = size
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])
+    poses, images = [], []
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    for x in xs:
+        pose = _look_minus_y(x)
+        rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ pose[:3, :3].T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (10.0 - x) / rays[..., 0]
+        hit = pose[:3, 3] + t[..., None] * rays
+        on = (t > 0) & (hit[..., 1] <= -5) & (hit[..., 1] >= -rear) & (hit[..., 2] >= 0) & (hit[..., 2] <= 10)
+        images.append(np.where(on[..., None], np.array(WALL), np.array(SKY)).__mul__(255).round().astype(np.uint8))
+        poses.append(pose)
+    return _Views(np.repeat(K[None], len(xs), 0), np.array(poses), np.tile([w, h], (len(xs), 1)), images)
+
+
+def _known_wall(depth: float = 8.0):
+    """The side wall's blocks stereo found: x = 10, y from −5 to −depth, rows to 10 m, facing +x;
+    its cloud points."""
+    ys = -(5.25 + 0.5 * np.arange(int(round((depth - 5) / 0.5))))
+    zs = 0.25 + 0.5 * np.arange(20)
+    centres = np.array([(10.0, y, z) for y in ys for z in zs])
+    rng = np.random.default_rng(0)
+    cloud = np.stack([np.full(3000, 10.0), rng.uniform(-depth, -5, 3000), rng.uniform(0, 10, 3000)], 1)
+    return centres, np.zeros(len(centres)), cloud
+
+
+def test_a_wall_grows_to_its_rear_where_the_images_show_it_and_no_farther():
+    centres, yaw, cloud = _known_wall()
+    views = _wall_views(np.arange(14.0, 32.0, 1.5))
+    sky = Sky(np.tile(np.array(SKY, np.float32), (8, 1)))
+    c, y, report = deepen_side_walls(centres, yaw, cloud, views, sky, 0.5)
+    assert report["walls"] == 1 and report["walls_grown"] == 1 and len(c) == report["blocks"]
+    assert np.allclose(c[:, 0], 10.0) and np.allclose(y, 0.0)
+    depths = np.unique(np.round(-c[:, 1], 3))
+    assert np.isclose(depths.min(), 8.25) and np.isclose(depths.max(), 14.75)   # the rear is at 15 m
+    assert c[:, 2].max() < 10.0
+    # against a sky-coloured wall nothing grows; without a sky nothing either
+    plain = _Views(views.K, views.world_from_cam, views.sizes,
+                   [np.broadcast_to((np.array(SKY) * 255).round().astype(np.uint8), i.shape).copy() for i in views.images])
+    assert len(deepen_side_walls(centres, yaw, cloud, plain, sky, 0.5)[0]) == 0
+    assert len(deepen_side_walls(centres, yaw, cloud, views, None, 0.5)[0]) == 0
+    assert len(deepen_side_walls(centres, yaw, cloud, views, sky, 0.5, WallDepthConfig(reach=0.0))[0]) == 0
+
+
+def test_cameras_on_the_walls_hidden_side_do_not_vote():
+    centres, yaw, cloud = _known_wall()
+    views = _wall_views(np.arange(-10.0, 6.0, 1.5))     # x < 10: behind the face
+    sky = Sky(np.tile(np.array(SKY, np.float32), (8, 1)))
+    assert len(deepen_side_walls(centres, yaw, cloud, views, sky, 0.5)[0]) == 0
+
+
+def test_wall_votes_match_the_reference_loop():
+    rng = np.random.default_rng(1)
+    views = _wall_views([18.0, 25.0])
+    sky = Sky(np.tile(np.array(SKY, np.float32), (8, 1)))
+    config = WallDepthConfig()
+    occluders = np.stack([rng.uniform(12, 20, 2000), rng.uniform(-6, -3, 2000), rng.uniform(0, 4, 2000)], 1)
+    origin = occluders.mean(axis=0)
+    for v in range(2):
+        points = np.stack([np.full(500, 10.0), rng.uniform(-20, 0, 500), rng.uniform(-1, 12, 500)], 1)
+        normals = np.tile([1.0, 0, 0], (500, 1))
+        normals[::7] *= -1
+        _, nearest = zbuffer((occluders - origin).astype(np.float32), origin, views.K[v], views.world_from_cam[v],
+                             tuple(views.sizes[v]), config.zbuffer_scale)
+        got = wall_votes(points, normals, views.K[v], views.world_from_cam[v], views.image(v), nearest, sky, config)
+        want = wall_votes_reference(points, normals, views.K[v], views.world_from_cam[v], views.image(v), nearest,
+                                    sky, config)
+        assert got[0].any() and got[1].any() and (got[0] & ~got[1]).any() and (~got[0]).any()
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_columns_grow_on_their_observed_blocks_until_one_fails():
+    config = WallDepthConfig()
+    observed = np.ones((5, 4), bool)
+    observed[:, :2] = False                       # the lower rows hidden by a neighbour
+    holds = observed.copy()
+    holds[3] = False                              # the rear
+    assert grown_columns(observed, holds, config) == 3
+    observed[1] = False                           # a column no camera sees ends the wall
+    assert grown_columns(observed, holds, config) == 1
+    assert grown_columns(np.zeros((0, 4), bool), np.zeros((0, 4), bool), config) == 0
+    blocks = column_blocks(np.array([[False, True, False, True], [False, False, False, False]]))
+    assert blocks.tolist() == [[False, True, True, True], [False, False, False, False]]
+
+
+def test_side_wall_faces_group_by_plane_and_facing_and_point_away_from_the_path():
+    centres, yaw, _ = _known_wall()
+    other = centres + np.array([5.0, 0, 0])
+    walls = side_wall_faces(np.concatenate([centres, other, centres]),
+                            np.concatenate([yaw, yaw, np.full(len(yaw), np.pi)]), 0.5, np.array([[20.0, 0, 2]]))
+    assert len(walls) == 3
+    for wall in walls:
+        assert np.allclose(wall.deeper, [0, -1, 0]) and len(wall.rows) == 20
+        assert np.isclose(wall.columns.max(), 7.75)
+
+
+def test_wall_depth_config_is_validated():
+    with pytest.raises(ValueError):
+        WallDepthConfig(reach=-1.0)
+    with pytest.raises(ValueError):
+        WallDepthConfig(agree=0.0)
+    with pytest.raises(ValueError):
+        WallDepthConfig(min_views=0)
