@@ -365,6 +365,7 @@ def _add_build(sub) -> None:
     from billboards.layer import LayerConfig
     from billboards.resolution import ResolutionConfig
     from billboards.octree import MAX_DEPTH
+    from billboards.wall_depth import WallDepthConfig
 
     p = sub.add_parser(
         "build", help="cloud + images → billboard model (octree, angular sampling, PCA, atlases)",
@@ -432,6 +433,10 @@ def _add_build(sub) -> None:
     p.add_argument("--side-walls", choices=("on", "off"), default="on" if LayerConfig.side_walls else "off",
                    help="slits on the walls at the ends of the facades (a building's side seen from the path), "
                         "instead of billboards (default on)")
+    depth = WallDepthConfig()
+    p.add_argument("--wall-reach", type=nonnegative_float, default=depth.reach,
+                   help="grow side walls up to this far (m) beyond their deepest cloud point where the images show "
+                        f"them against the sky (0: off; default {depth.reach:g})")
     p.add_argument("--kerbs", choices=("on", "off"), default="on" if LayerConfig.kerbs else "off",
                    help="a fixed face on each step between two ground levels (a kerb) instead of billboards "
                         "(default on)")
@@ -461,6 +466,7 @@ def build_config_from_args(args):
     from billboards.pca import PcaConfig
     from billboards.photometry import PhotometryConfig
     from billboards.sampling import SamplingConfig
+    from billboards.wall_depth import WallDepthConfig
 
     pca = PcaConfig()
     overrides = {}
@@ -481,7 +487,8 @@ def build_config_from_args(args):
     layer = None if args.layer == "none" else LayerConfig(facades="facades" in args.layer, ground="ground" in args.layer,
                                                           block_size=args.block_size, ground_reach=args.ground_reach,
                                                           side_walls=args.side_walls == "on", kerbs=args.kerbs == "on",
-                                                          resolution=ResolutionConfig(max_split=args.ground_splits))
+                                                          resolution=ResolutionConfig(max_split=args.ground_splits),
+                                                          wall_depth=WallDepthConfig(reach=args.wall_reach))
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,
