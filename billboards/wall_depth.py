@@ -18,7 +18,8 @@ something solid stands where its next column would be:
 4. A block is observed with ``min_views`` votes and holds when ``agree`` of them are solid; a
    column joins the wall when ``column_share`` of its observed blocks hold (its lower rows
    are often hidden by the neighbour the wall rises above), and the wall stops at the first
-   column that does not or that no camera observes.
+   column that does not or that no camera observes. A joined column holds its rows up to the
+   highest that holds, and down to the ground unless a camera saw open space there.
 
 New blocks explain no cloud point (there is none there); they are FACADE blocks on the
 side wall, facing its open side, textured like the rest by sampling and the fit.
@@ -170,13 +171,18 @@ def grown_columns(observed: np.ndarray, holds: np.ndarray, config: WallDepthConf
     return int(failing[0]) if len(failing) else len(observed)
 
 
-def column_blocks(holds: np.ndarray) -> np.ndarray:
-    """(k, r) bool the blocks of grown columns: in each, its rows from the lowest that holds to
-    the highest (what stood in front of the wall between them is the wall's too)."""
+def column_blocks(observed: np.ndarray, holds: np.ndarray) -> np.ndarray:
+    """(k, r) bool the blocks of grown columns, given observed, holds (k, r) bool: in each, its
+    rows up to the highest that holds, and down from the lowest that holds as far as no camera
+    saw open space (a wall stands on the ground; the neighbour in front hides its foot from
+    every camera on the path, not from a viewer beside it)."""
     rows = np.arange(holds.shape[1])
-    lo = np.where(holds.any(axis=1), np.argmax(holds, axis=1), holds.shape[1])
-    hi = holds.shape[1] - 1 - np.argmax(holds[:, ::-1], axis=1)
-    return (rows[None, :] >= lo[:, None]) & (rows[None, :] <= hi[:, None])
+    any_hold = holds.any(axis=1)
+    lowest = np.where(any_hold, np.argmax(holds, axis=1), 0)
+    highest = holds.shape[1] - 1 - np.argmax(holds[:, ::-1], axis=1)
+    against = observed & ~holds & (rows[None, :] < lowest[:, None])
+    lo = np.where(against.any(axis=1), holds.shape[1] - np.argmax(against[:, ::-1], axis=1), 0)
+    return any_hold[:, None] & (rows[None, :] >= lo[:, None]) & (rows[None, :] <= highest[:, None])
 
 
 def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarray, views, sky: Sky | None,
@@ -239,7 +245,7 @@ def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarr
         shape = (k, len(wall.rows))
         grown = grown_columns(observed[owner == i].reshape(shape), holds[owner == i].reshape(shape), config)
         if grown:
-            block = column_blocks(holds[owner == i].reshape(shape)[:grown])
+            block = column_blocks(observed[owner == i].reshape(shape)[:grown], holds[owner == i].reshape(shape)[:grown])
             new_centres.append(points[owner == i].reshape(k, len(wall.rows), 3)[:grown][block])
             new_yaw.append(np.full(int(block.sum()), wall.yaw))
             report["walls_grown"] += 1

@@ -124,8 +124,14 @@ def test_columns_grow_on_their_observed_blocks_until_one_fails():
     observed[1] = False                           # a column no camera sees ends the wall
     assert grown_columns(observed, holds, config) == 1
     assert grown_columns(np.zeros((0, 4), bool), np.zeros((0, 4), bool), config) == 0
-    blocks = column_blocks(np.array([[False, True, False, True], [False, False, False, False]]))
-    assert blocks.tolist() == [[False, True, True, True], [False, False, False, False]]
+    holds = np.array([[False, False, True, False, True], [False, False, False, False, False],
+                      [False, True, False, True, False]])
+    seen = np.array([[False, False, True, True, True], [True, True, True, True, True],
+                     [True, True, True, True, False]])
+    # down to the ground where nothing was seen below, up to the highest holding row; a column
+    # with open space seen below stops above it; one that holds nowhere has no block
+    assert column_blocks(seen, holds).tolist() == [[True, True, True, True, True], [False] * 5,
+                                                   [False, True, True, True, False]]
 
 
 def test_side_wall_faces_group_by_plane_and_facing_and_point_away_from_the_path():
