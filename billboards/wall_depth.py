@@ -8,7 +8,8 @@ something solid stands where its next column would be:
 
 1. Walls: the layer's side-wall blocks grouped by plane and facing; each is a rectangle of
    columns (one block wide, across the wall) and rows.
-2. Candidates: the next ``reach`` metres of columns beyond the deepest, with the wall's rows.
+2. Candidates: the next ``reach`` metres of columns beyond the deepest, with the wall's rows
+   down to the lowest side-wall row (the ground's).
 3. Votes (:func:`wall_votes`): each candidate block's centre is projected into the capture
    cameras on the wall's open side (those that see the face no more grazing than
    ``grazing``, within ``max_distance``). A camera whose cloud z-buffer holds something
@@ -46,7 +47,7 @@ class WallDepthConfig:
     sky_distance: float = 0.2       # a pixel this close (RGB in [0, 1]) to the sky at its elevation shows sky
     min_views: int = 2              # cameras that see a candidate block's centre
     agree: float = 0.75             # ... of which this share must show something solid
-    column_share: float = 0.5       # a column joins its wall when this share of its blocks hold
+    column_share: float = 0.5       # a column joins its wall when this share of its observed blocks hold
     grazing: float = 0.2            # a camera votes when the cosine between its ray and the face's normal is this
     max_distance: float = 40.0      # ... and it is this close (m)
     max_views: int = 16             # cameras per wall at most (the nearest)
