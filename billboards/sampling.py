@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
+from scipy import ndimage
 import numpy as np
 
 
@@ -659,14 +660,46 @@ def _stack_filter(images: np.ndarray, op, size: int, border_value) -> np.ndarray
 
 
 def close_holes(rgba: np.ndarray) -> np.ndarray:
-    """Make surface tiles opaque: texels that no camera saw in any direction (behind a beam
-    from every capture viewpoint) keep the colour :func:`fill_directions` gave them, the
-    billboard's mean opaque colour. rgba (..., t, t, 4) uint8 → the same shape; a tile
-    without an opaque texel stays transparent."""
-    out = rgba.copy()
-    alpha = out[..., 3]
-    seen = (alpha > 0).any(axis=(-2, -1), keepdims=True)
-    alpha[...] = np.where(seen, np.uint8(255), alpha)
+    """Make surface tiles opaque: a texel that no camera saw in any direction (behind a beam
+    from every capture viewpoint, or off the edge of every image that saw the rest) takes the
+    colour of the nearest texel of its tile that was seen (a line on the ground runs on; the
+    tile's mean colour would paint the few texels seen over the whole tile). rgba (..., t, t, 4)
+    uint8 → the same shape; a tile without an opaque texel stays transparent."""
+    out = np.array(rgba, copy=True)
+    t0, t1 = out.shape[-3:-1]
+    tiles = out.reshape(-1, t0, t1, 4)
+    hole = tiles[..., 3] == 0
+    partial = np.flatnonzero(hole.any(axis=(1, 2)) & ~hole.all(axis=(1, 2)))
+    if len(partial):
+        masks, which = np.unique(hole[partial].reshape(len(partial), -1), axis=0, return_inverse=True)
+        which = which.reshape(-1)
+        for u, mask in enumerate(masks):   # tiles with the same holes (a block's directions) share one
+            _, (rows, cols) = ndimage.distance_transform_edt(mask.reshape(t0, t1), return_indices=True)
+            sel = partial[which == u]
+            tiles[sel] = tiles[sel][:, rows, cols]
+    seen = (rgba[..., 3] > 0).any(axis=(-2, -1), keepdims=True)
+    out[..., 3] = np.where(seen, np.uint8(255), out[..., 3])
+    return out
+
+
+def close_holes_reference(rgba: np.ndarray) -> np.ndarray:
+    """Slow, obvious :func:`close_holes`: each hole texel from an opaque texel at the least
+    distance (ties may pick another of equal distance)."""
+    out = np.array(rgba, copy=True)
+    t0, t1 = out.shape[-3:-1]
+    tiles = out.reshape(-1, t0, t1, 4)
+    for tile in tiles:
+        seen = np.argwhere(tile[..., 3] > 0)
+        if len(seen) == 0:
+            continue
+        source = tile.copy()
+        for r in range(t0):
+            for c in range(t1):
+                if source[r, c, 3] == 0:
+                    d = ((seen - (r, c)) ** 2).sum(axis=1)
+                    rr, cc = seen[np.argmin(d)]
+                    tile[r, c, :3] = source[rr, cc, :3]
+                tile[r, c, 3] = 255
     return out
 
 

@@ -12,7 +12,7 @@ from billboards.geometry import BILLBOARD, FACADE, GROUND, DirectionConfig, kind
 from billboards.layer import LayerConfig, build_layer, facade_columns, plane_max, plane_max_reference
 from billboards.octree import OctreeConfig
 from billboards.pca import PcaConfig
-from billboards.sampling import SamplingConfig, close_holes
+from billboards.sampling import SamplingConfig, close_holes, close_holes_reference
 from data_synth import StreetConfig, load_dataset, load_scene, write_dataset
 from recon.epi import EpiConfig, EpiPass, epi_points, hough_votes, hough_votes_reference, split_passes
 
@@ -193,11 +193,31 @@ def test_kind_frames_of_blocks():
 
 def test_close_holes():
     tile = np.zeros((2, 4, 4, 4), np.uint8)
-    tile[0, :, :2] = (200, 100, 50, 255)     # left half opaque, right half unseen (mean colour, alpha 0)
-    tile[0, :, 2:] = (180, 90, 40, 0)
+    tile[0, :, 0] = (200, 100, 50, 255)      # left quarter a light line, then dark, the right half unseen
+    tile[0, :, 1] = (20, 20, 20, 255)
+    tile[0, :, 2:] = (110, 60, 35, 0)        # (the mean colour fill_directions gives, alpha 0)
     out = close_holes(tile)
-    assert np.all(out[0, ..., 3] == 255) and np.all(out[0, ..., :3] == tile[0, ..., :3])
+    assert np.all(out[0, ..., 3] == 255)
+    assert np.all(out[0, :, :2, :3] == tile[0, :, :2, :3])
+    assert np.all(out[0, :, 2:, :3] == 20)    # the nearest seen texel's, not the mean's light
     assert np.all(out[1] == 0)               # nothing seen: stays transparent
+
+
+def test_close_holes_takes_a_nearest_seen_texel_like_the_loop():
+    rng = np.random.default_rng(0)
+    rgba = rng.integers(0, 256, (30, 3, 8, 8, 4)).astype(np.uint8)
+    rgba[..., 3] = np.where(rng.random((30, 3, 8, 8)) < 0.3, 255, 0)
+    rgba[0, ..., 3] = 0                       # a tile nothing saw
+    got, want = close_holes(rgba), close_holes_reference(rgba)
+    assert np.array_equal(got[..., 3], want[..., 3]) and np.all(got[1:, ..., 3] == 255)
+    # ties between equally near texels may differ: every filled texel is one of the nearest seen
+    tiles, src = got.reshape(-1, 8, 8, 4), rgba.reshape(-1, 8, 8, 4)
+    for tile, before in zip(tiles[3:], src[3:]):
+        seen = np.argwhere(before[..., 3] > 0)
+        for r, c in np.argwhere(before[..., 3] == 0):
+            d = ((seen - (r, c)) ** 2).sum(axis=1)
+            nearest = seen[d == d.min()]
+            assert any(np.array_equal(tile[r, c, :3], before[a, b, :3]) for a, b in nearest)
 
 
 @pytest.fixture(scope="module")
