@@ -215,11 +215,12 @@ def dominant_offsets(col: np.ndarray, off: np.ndarray, c: int, config: LayerConf
 
 def run_extent(offset: np.ndarray, bottom: np.ndarray, top: np.ndarray, mask: np.ndarray, tolerance: float
                ) -> tuple[np.ndarray, np.ndarray]:
-    """bottom, top (c,) float64 with each run of consecutive ``mask`` (c,) bool columns whose
-    offsets (c,) float64 agree within ``tolerance`` (one plane) spanning the run's lowest bottom
-    to its highest top (NaN columns end a run and stay NaN)."""
+    """bottom, top (c,) float64 with the ``mask`` (c,) bool columns of each run of consecutive
+    columns whose offsets (c,) float64 agree within ``tolerance`` (one plane) spanning the
+    run's lowest bottom (a front stands on the ground: the columns beside it on its plane
+    count) to the highest top of the run's masked columns (NaN columns end a run and stay NaN)."""
     bottom, top = bottom.copy(), top.copy()
-    ok = mask & np.isfinite(offset) & np.isfinite(bottom) & np.isfinite(top)
+    ok = np.isfinite(offset) & np.isfinite(bottom) & np.isfinite(top)
     start = 0
     while start < len(offset):
         if not ok[start]:
@@ -228,7 +229,9 @@ def run_extent(offset: np.ndarray, bottom: np.ndarray, top: np.ndarray, mask: np
         end = start + 1
         while end < len(offset) and ok[end] and abs(offset[end] - offset[end - 1]) <= tolerance:
             end += 1
-        bottom[start:end], top[start:end] = bottom[start:end].min(), top[start:end].max()
+        mine = start + np.flatnonzero(mask[start:end])
+        if len(mine):
+            bottom[mine], top[mine] = bottom[start:end].min(), top[mine].max()
         start = end
     return bottom, top
 

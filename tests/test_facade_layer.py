@@ -89,6 +89,12 @@ def test_fronts_continue_beyond_the_path_where_the_cloud_shows_them():
     assert np.all(np.isnan(short.offset[short.centre_along() < -2.5]))
     none = facade_columns(epi, cloud, 0.5, LayerConfig(end_reach=0.0))
     assert np.all(np.isnan(none.offset[none.centre_along() < -0.5]))
+    # beyond the path on the front's own plane: the foot the cloud missed comes from the front
+    near = np.stack([rng.uniform(-6, 0, n), np.full(n, -6.0) + rng.normal(0, 0.01, n), rng.uniform(3, 6, n)], 1)
+    cols = facade_columns(epi, np.concatenate([epi_pts, near]), 0.5)
+    along = cols.centre_along()
+    assert np.allclose(cols.offset[ends], 6.0, atol=0.02) and np.all(cols.bottom[ends] < 0.05)
+    assert np.allclose(cols.top[ends], 6.0, atol=0.05)
     with pytest.raises(ValueError):
         LayerConfig(end_reach=-1.0)
 
