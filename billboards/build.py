@@ -33,10 +33,11 @@ from recon.cloud_io import read_cloud_arrays
 from recon.epi import EpiConfig, epi_points
 
 from .atlas import reserved_memmap
+from .facade_truth import facade_depth_report
 from .fit import FitConfig, Quads, quads_of
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward, quad_edges
-from .layer import Layer, LayerConfig, build_layer, facade_depth_report, grow_side_walls, refine_ground
+from .layer import Layer, LayerConfig, build_layer, grow_side_walls, refine_ground
 from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
 from .pca import EigenTextures, PcaConfig, eigen_textures

@@ -8,6 +8,7 @@ import pytest
 from billboards.layer import FacadeColumns, LayerConfig
 from billboards.side_walls import (SideWallConfig, side_walls, wall_blocks, wall_blocks_reference, wall_peaks,
                                    wall_rectangle)
+from billboards.wall_depth import WallDepthConfig
 from recon.epi import EpiPass
 
 
@@ -157,10 +158,15 @@ def test_side_wall_config_is_validated():
         SideWallConfig(slab=0.0)
 
 
-def test_build_option_side_walls_reaches_the_layer_config():
+@pytest.mark.parametrize("option, value, read, default, given", [
+    ("--side-walls", "off", lambda layer: layer.side_walls, LayerConfig().side_walls, False),
+    ("--wall-reach", "0", lambda layer: layer.wall_depth.reach, WallDepthConfig().reach, 0.0),
+])
+def test_build_options_of_the_walls_reach_the_layer_config(option, value, read, default, given):
     from bbcity.cli import build_config_from_args, build_parser
 
     parser = build_parser()
     base = ["build", "work", "--out", "model", "--holdout", "0"]
-    assert build_config_from_args(parser.parse_args(base)).layer.side_walls is LayerConfig().side_walls is True
-    assert build_config_from_args(parser.parse_args(base + ["--side-walls", "off"])).layer.side_walls is False
+    assert read(build_config_from_args(parser.parse_args(base)).layer) == default
+    assert read(build_config_from_args(parser.parse_args(base + [option, value])).layer) == given
+    assert LayerConfig().side_walls is True and WallDepthConfig().reach > 0

@@ -153,11 +153,3 @@ def test_wall_depth_config_is_validated():
     with pytest.raises(ValueError):
         WallDepthConfig(min_views=0)
 
-
-def test_build_option_wall_reach_reaches_the_layer_config():
-    from bbcity.cli import build_config_from_args, build_parser
-
-    parser = build_parser()
-    base = ["build", "work", "--out", "model", "--holdout", "0"]
-    assert build_config_from_args(parser.parse_args(base)).layer.wall_depth.reach == WallDepthConfig().reach
-    assert build_config_from_args(parser.parse_args(base + ["--wall-reach", "0"])).layer.wall_depth.reach == 0.0
