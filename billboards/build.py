@@ -104,7 +104,8 @@ class Billboards:
     bool the continued ground blocks no camera sees (their textures are synthesised,
     :mod:`billboards.synthesis`); split (n,) uint8 a quad's edge is its kind's halved this many
     times (:mod:`billboards.resolution`); cell (n, 3) float64 the centre of the unsplit block a
-    ground block was split from (None: the quads).
+    ground block was split from (None: the quads); corner_dz (n, 4) float64 the heights of a ground
+    block's corners above its centre (the ground's height field; None: all flat).
     Without a facade layer there is one billboard per voxel leaf, in leaf order; with one,
     a leaf holds its billboard (if its own points make one) and the layer blocks whose
     centres lie in it, so that culling by the octree covers both.
@@ -121,8 +122,11 @@ class Billboards:
     unseen: np.ndarray | None = None
     split: np.ndarray | None = None
     cell: np.ndarray | None = None
+    corner_dz: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.corner_dz is None:
+            object.__setattr__(self, "corner_dz", np.zeros((len(self.kind), 4)))
         if self.cell is None:
             object.__setattr__(self, "cell", np.asarray(self.quads, np.float64).copy())
         if self.unseen is None:
@@ -137,7 +141,7 @@ class Billboards:
     def image_sampler(self, views: Views, config: SamplingConfig) -> ImageSampler:
         return ImageSampler(views, self.quads, self.octree.voxel_size, self.base_yaw, self.voxels, config,
                             box_centres=self.voxels.centres, kind=self.kind, block_size=self.block_size,
-                            split=self.split)
+                            split=self.split, corner_dz=self.corner_dz)
 
     def voxel_colours(self, colours: np.ndarray) -> np.ndarray:
         """(N', 3) uint8 colours of the points in voxels, in the order of ``voxels.points``."""
@@ -216,7 +220,10 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     split[blocks] = layer.split[source[blocks]]
     cell = quads.copy()
     cell[blocks] = layer.cell[source[blocks]]
-    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen, split, cell)
+    corner_dz = np.zeros((len(item_kind), 4))
+    corner_dz[blocks] = layer.corner_dz[source[blocks]]
+    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen, split, cell,
+                      corner_dz)
 
 
 # --------------------------------------------------------------------------- worker side
@@ -255,6 +262,7 @@ def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views:
     np.save(state / "kind.npy", placed.kind)
     np.save(state / "split.npy", placed.split)
     np.save(state / "cell.npy", placed.cell)
+    np.save(state / "corner_dz.npy", placed.corner_dz)
     if conf.source == "points":
         np.save(state / "colours.npy", placed.voxel_colours(colours))
     meta = {"config": _config_to_json(conf), "origin": placed.octree.origin.tolist(),
@@ -307,7 +315,7 @@ def _worker_state(state_dir: str):
                                     meta["voxel_size"], meta["occluders"]["reach"])
         sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres,
                                kind=kind, block_size=meta["block_size"], occluders=occluders,
-                               split=np.load(root / "split.npy"))
+                               split=np.load(root / "split.npy"), corner_dz=np.load(root / "corner_dz.npy"))
     else:
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)
@@ -390,7 +398,7 @@ def _fit_quads(state_dir: str, conf: BuildConfig) -> Quads:
             origin, (np.load(root / "quads.npy") - origin).astype(np.float32),
             np.load(root / "base_yaw.npy").astype(np.float32), np.load(root / "kind.npy"), meta["voxel_size"],
             meta["block_size"] or meta["voxel_size"], conf.sampling.tile, d.yaw_offsets, d.pitches, d.pitched_quads,
-            split=np.load(root / "split.npy")))
+            split=np.load(root / "split.npy"), corner_dz=np.load(root / "corner_dz.npy").astype(np.float32)))
     return _WORKER["quads"]
 
 
@@ -592,7 +600,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         stages["layer_s"] = time.perf_counter() - t1
         layer, wall_depth = grow_side_walls(layer, points, views, sky, block_size, conf.layer.wall_depth)
         layer = refine_ground(layer, points, block_size, (views.K, views.world_from_cam, views.sizes),
-                              conf.layer.resolution, conf.sampling.tile, conf.layer.kerb.min_step)
+                              conf.layer.resolution, conf.sampling.tile)
         layer_report = _layer_report(layer, passes, points, dataset, conf.layer)
         layer_report["side_walls_deepened"] = wall_depth
         layer_report["block_size"] = block_size
@@ -626,6 +634,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         if placed is None:
             placed = place_billboards(points, octree, views.centres if views is not None else None)
         base_yaw, quads, kind, unseen, split = placed.base_yaw, placed.quads, placed.kind, placed.unseen, placed.split
+        corner_dz = placed.corner_dz
         node_range = placed.node_range
         save_worker_state(state, conf, placed, views, colours)
         stages["prepare_s"] = time.perf_counter() - t2
@@ -647,7 +656,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                     b = len(arrays["rank"])
                     writer.append(centres=(quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=base_yaw[done:done + b].astype(np.float32), kind=kind[done:done + b],
-                                  split=split[done:done + b], **arrays)
+                                  split=split[done:done + b], corner_dz=corner_dz[done:done + b], **arrays)
                     done += b
                     totals.add(stats)
 

@@ -120,7 +120,7 @@ def own_layer(layer: Layer, own_block: np.ndarray, own_point: np.ndarray) -> tup
     return Layer(layer.centres[own_block], layer.base_yaw[own_block], layer.kind[own_block], point_block,
                  layer.columns, layer.continued[own_block], layer.seen[own_block], layer.side_wall[own_block],
                  layer.kerb[own_block], layer.split[own_block],
-                 layer.cell[own_block]), keep
+                 layer.cell[own_block], layer.corner_dz[own_block]), keep
 
 
 def _anchored(passes: list[EpiPass], anchor: np.ndarray) -> list[EpiPass]:
@@ -206,8 +206,7 @@ class _TileBuild:
             layer = build_layer(points, passes, self.block_size, self.grid_origin, viewpoints, conf.layer,
                                 cameras=cameras)
             layer, _ = grow_side_walls(layer, points, views, self.sky, self.block_size, conf.layer.wall_depth)
-            layer = refine_ground(layer, points, self.block_size, cameras, conf.layer.resolution, conf.sampling.tile,
-                                  conf.layer.kerb.min_step)
+            layer = refine_ground(layer, points, self.block_size, cameras, conf.layer.resolution, conf.sampling.tile)
         if layer is not None and len(layer.centres):
             own_block = np.all(self.grid.tile_of(layer.centres) == np.asarray(index), axis=1)
             mine, keep = own_layer(layer, own_block, own)
@@ -265,7 +264,8 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
                     b = len(arrays["rank"])
                     writer.append(centres=(placed.quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=placed.base_yaw[done:done + b].astype(np.float32),
-                                  kind=placed.kind[done:done + b], split=placed.split[done:done + b], **arrays)
+                                  kind=placed.kind[done:done + b], split=placed.split[done:done + b],
+                                  corner_dz=placed.corner_dz[done:done + b], **arrays)
                     done += b
                     stats.append(chunk_stats)
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,

@@ -46,7 +46,7 @@ import numpy as np
 from scipy import sparse
 
 from .decode import direction_corners, view_direction_index
-from .geometry import GROUND, GROUND_OVERLAP, kind_frames, quad_edges
+from .geometry import GROUND, GROUND_OVERLAP, kind_frames, quad_edges, surface_dz
 from .slits import Slits, build_slits
 
 #: Rows of one view's measurements (see :class:`Records`), as a structured dtype for files.
@@ -94,7 +94,8 @@ class Quads:
     (:data:`~billboards.geometry.KINDS`); size: a billboard's edge (m); block_size: a layer block's edge
     (m), both halved ``split`` times per quad; tile: texels per side t; yaw_offsets (d_yaw,), pitches
     (d_pitch,) radians; pitched: billboards also tilt toward the eye's elevation; slits: the facade
-    columns the renderer draws as one quad each (:func:`quads_of`)."""
+    columns the renderer draws as one quad each (:func:`quads_of`); corner_dz (n, 4) float32 a ground
+    block's corners above its centre (:func:`~billboards.geometry.surface_dz`; None: all flat)."""
 
     centres: np.ndarray
     base_yaw: np.ndarray
@@ -107,6 +108,7 @@ class Quads:
     pitched: bool
     slits: Slits
     split: np.ndarray | None = None   # (n,) uint8 each quad's edge halved this many times (None: never)
+    corner_dz: np.ndarray | None = None
 
     @property
     def corners(self) -> int:
@@ -147,7 +149,7 @@ class Quads:
 
 def quads_of(origin: np.ndarray, centres: np.ndarray, base_yaw: np.ndarray, kind: np.ndarray, size: float,
              block_size: float, tile: int, yaw_offsets: np.ndarray, pitches: np.ndarray,
-             pitched: bool = False, split: np.ndarray | None = None) -> Quads:
+             pitched: bool = False, split: np.ndarray | None = None, corner_dz: np.ndarray | None = None) -> Quads:
     """:class:`Quads` of a model's arrays: origin (3,) float64; centres (n, 3) float32 relative to
     it; base_yaw (n,) float32; kind (n,) uint8; the rest as in :class:`Quads`. The slits are made
     from the model's own float32 arrays, as the renderer makes them."""
@@ -155,7 +157,8 @@ def quads_of(origin: np.ndarray, centres: np.ndarray, base_yaw: np.ndarray, kind
     return Quads(np.asarray(centres, np.float64) + np.asarray(origin, np.float64), np.asarray(base_yaw, np.float64),
                  np.asarray(kind, np.uint8), float(size), float(block_size), int(tile),
                  np.asarray(yaw_offsets, np.float64), np.asarray(pitches, np.float64), bool(pitched), slits,
-                 None if split is None else np.asarray(split, np.uint8))
+                 None if split is None else np.asarray(split, np.uint8),
+                 None if corner_dz is None or not np.any(corner_dz) else np.asarray(corner_dz, np.float32))
 
 
 def column_taps(quads: Quads, quad: np.ndarray, texel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -254,7 +257,11 @@ def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np
     edge = quads.edges(ids)[:, None]
     rel = quads.centres[ids] - C                                   # camera-relative: float32 keeps millimetres
     a, b = 0.5 * edge * right, 0.5 * edge * up
-    corners = np.stack([rel - a - b, rel + a - b, rel - a + b, rel + a + b], axis=1).reshape(-1, 3)
+    corners = np.stack([rel - a - b, rel + a - b, rel - a + b, rel + a + b], axis=1)       # (m, 4, 3)
+    if quads.corner_dz is not None:   # the ground's height field, as the renderer lifts each corner
+        f = (corners - rel[:, None, :])[..., :2] / quads.sizes(ids)[:, None, None] + 0.5
+        corners[..., 2] += surface_dz(quads.corner_dz[ids][:, None, :], f[..., 0], f[..., 1])
+    corners = corners.reshape(-1, 3)
     first = 4 * np.arange(len(ids), dtype=np.uint32)[:, None]
     triangles = np.concatenate([first + np.array([0, 1, 2], np.uint32), first + np.array([2, 1, 3], np.uint32)])
     scene = o3d.t.geometry.RaycastingScene()

@@ -19,6 +19,13 @@ block is vertical and faces its base yaw ψ₀ (r = (−sin ψ₀, cos ψ₀, 0)
 GROUND block lies flat (normal z, the same r, u = (−cos ψ₀, −sin ψ₀, 0): its rows
 run away from the capture path). Their textures are sampled over the same
 directions as a billboard's.
+
+The ground is a height field: a GROUND block's four corners carry their own heights above its
+centre (``corner_dz`` (4,), in world order x−y−, x+y−, x−y+, x+y+; a block's edges run along the
+world axes, its base yaw being a multiple of 90°). Neighbouring blocks share the heights of the
+corners they share (:func:`billboards.ground.corner_heights`), so the surface has no steps or
+cracks; the height at a point of the block is bilinear in its world x and y (:func:`surface_dz`).
+Every other quad is flat (zeros).
 """
 
 from __future__ import annotations
@@ -136,21 +143,36 @@ def quad_edges(kind: np.ndarray, split: np.ndarray | None, voxel_size: float, bl
     return np.ldexp(edge, -np.asarray(split, np.int64))
 
 
+def surface_dz(corner_dz: np.ndarray, fx, fy) -> np.ndarray:
+    """Height above a quad's centre of its surface where its world x and y fractions are ``fx``,
+    ``fy`` (0 at the quad's x− / y− edge, 1 at its x+ / y+ edge; beyond: extrapolated): bilinear in
+    corner_dz (..., 4) float (x−y−, x+y−, x−y+, x+y+), broadcast against fx, fy (...)."""
+    d = np.asarray(corner_dz)
+    return ((1 - fy) * ((1 - fx) * d[..., 0] + fx * d[..., 1])
+            + fy * ((1 - fx) * d[..., 2] + fx * d[..., 3]))
+
+
 def texel_offsets(tile: int) -> np.ndarray:
     """(t,) float64 texel-centre coordinates in units of the quad edge, from −½ to ½."""
     return (np.arange(tile, dtype=np.float64) + 0.5) / tile - 0.5
 
 
-def texel_points(centres: np.ndarray, size: float, right: np.ndarray, up: np.ndarray, tile: int) -> np.ndarray:
+def texel_points(centres: np.ndarray, size, right: np.ndarray, up: np.ndarray, tile: int,
+                 corner_dz: np.ndarray | None = None) -> np.ndarray:
     """World positions of every texel centre.
 
-    centres (m, 3) float64, right/up (m, 3) unit axes, size = quad edge (m) →
+    centres (m, 3) float64, right/up (m, 3) unit axes, size = quad edge (m, scalar or (m,)),
+    corner_dz (m, 4) float the corners' heights above the centres (None: flat) →
     (m, t, t, 3) float64, [:, row, col].
     """
-    a = texel_offsets(tile) * size
-    return (centres[:, None, None, :]
-            + a[None, None, :, None] * right[:, None, None, :]
-            - a[None, :, None, None] * up[:, None, None, :])
+    size = np.asarray(size, np.float64).reshape(-1, 1, 1, 1) if np.ndim(size) else float(size)
+    a = texel_offsets(tile)
+    unit = a[None, None, :, None] * right[:, None, None, :] - a[None, :, None, None] * up[:, None, None, :]
+    points = centres[:, None, None, :] + unit * size
+    if corner_dz is not None:   # the unit offsets are the world fractions less ½
+        points[..., 2] += surface_dz(np.asarray(corner_dz, np.float64)[:, None, None, :],
+                                     unit[..., 0] + 0.5, unit[..., 1] + 0.5)
+    return points
 
 
 def base_yaw_toward(centres: np.ndarray, viewpoints: np.ndarray, chunk: int = 4096) -> np.ndarray:

@@ -10,6 +10,10 @@ no farther apart than ``reach`` with nothing standing between them (a cell whose
 from its ground, or a facade) gets a block on the line between their heights
 (:func:`continue_ground`): asphalt without texture gives stereo no points, and the road
 between a sideways rig's two passes is never in any image, yet the road continues there.
+The ground is a height field: each block's corners take the mean height of the blocks around
+that grid vertex whose heights chain within ``join`` of each other (:func:`corner_heights`), so
+neighbours meet without a step or a crack, and a kerb (a rise of ``join`` or more) stays sharp.
+
 A continued block that no camera sees is *synthesised*: its texture is copied from seen ground
 nearby (:mod:`billboards.synthesis`), and the model marks it; so is any other ground block
 whose own sampling finds nothing (a block at the bottom edge of every image, or behind
@@ -26,6 +30,9 @@ from .geometry import HALF_DIAGONAL, base_yaw_toward, toward_cameras
 
 #: a cell whose points rise this far (m, 10th to 90th percentile of their heights) stands on the ground
 _BARRIER_RISE = 0.25
+
+#: The corners of a grid cell (its vertices' offsets), in world order x−y−, x+y−, x−y+, x+y+; (4, 2) int64.
+CORNERS = np.array([(0, 0), (1, 0), (0, 1), (1, 1)], np.int64)
 
 #: The 8 neighbours of a grid cell, (8, 2) int64.
 _NEIGHBOURS = np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)], np.int64)
@@ -85,6 +92,80 @@ def _nearest_height(xy: np.ndarray, viewpoints: np.ndarray, chunk: int = 4096) -
     return out
 
 
+def _slopes(cells: np.ndarray, heights: np.ndarray, join: float) -> np.ndarray:
+    """(g, 2) float64 each ground cell's rise per cell edge along x and y: the mean of its
+    differences to the grid neighbours on either side whose heights are within ``join`` of its
+    own (0 without one)."""
+    out = np.zeros((len(cells), 2))
+    for axis in (0, 1):
+        total, count = np.zeros(len(cells)), np.zeros(len(cells))
+        for sign in (-1, 1):
+            step = np.zeros(2, np.int64)
+            step[axis] = sign
+            at = cell_index(cells, cells + step)
+            rise = np.where(at >= 0, sign * (heights[np.maximum(at, 0)] - heights), np.nan)
+            ok = np.abs(rise) < join
+            total += np.where(ok, rise, 0.0)
+            count += ok
+        out[:, axis] = total / np.maximum(count, 1)
+    return out
+
+
+def corner_heights(cells: np.ndarray, heights: np.ndarray, join: float) -> np.ndarray:
+    """(g, 4) float64 the heights of the corners (:data:`CORNERS`) of ground cells (g, 2) int64
+    (distinct) with ``heights`` (g,) float64: at each grid vertex the cells around it, sorted by
+    height, fall into groups wherever two consecutive heights differ by ``join`` or more (a kerb);
+    each cell's corner there is the mean over its group of each cell's height carried to the
+    vertex along its slope (:func:`_slopes`; where four cells of a plane meet, the plain mean of
+    their heights; at the ground's border the slope goes on instead of flattening). Cells that
+    share a vertex and a group share its height: a height field without steps or cracks, sharp
+    at kerbs."""
+    cells = np.asarray(cells, np.int64).reshape(-1, 2)
+    heights = np.asarray(heights, np.float64).reshape(-1)
+    if len(cells) == 0:
+        return np.zeros((0, 4))
+    z = np.repeat(heights, 4)
+    carried = (heights[:, None] + _slopes(cells, heights, join) @ (CORNERS - 0.5).T).reshape(-1)
+    key = cell_keys((cells[:, None, :] + CORNERS[None]).reshape(-1, 2))
+    order = np.lexsort((z, key))
+    k, zs = key[order], z[order]
+    group = np.cumsum(np.r_[True, (k[1:] != k[:-1]) | (np.diff(zs) >= join)]) - 1
+    mean = np.bincount(group, carried[order]) / np.bincount(group)
+    out = np.empty(len(z))
+    out[order] = mean[group]
+    return out.reshape(-1, 4)
+
+
+def corner_heights_reference(cells: np.ndarray, heights: np.ndarray, join: float) -> np.ndarray:
+    """:func:`corner_heights` one corner at a time (the tests' reference)."""
+    cells = [tuple(c) for c in np.asarray(cells, np.int64).reshape(-1, 2).tolist()]
+    height = dict(zip(cells, np.asarray(heights, np.float64).reshape(-1).tolist()))
+
+    def slope(x, y, axis):
+        rises = []
+        for sign in (-1, 1):
+            n = (x + sign, y) if axis == 0 else (x, y + sign)
+            if n in height and abs(height[n] - height[(x, y)]) < join:
+                rises.append(sign * (height[n] - height[(x, y)]))
+        return sum(rises) / len(rises) if rises else 0.0
+
+    out = np.zeros((len(cells), 4))
+    for i, (x, y) in enumerate(cells):
+        for c, (dx, dy) in enumerate(CORNERS.tolist()):
+            vx, vy = x + dx, y + dy
+            around = sorted(((height[n], n) for n in ((vx - 1, vy - 1), (vx, vy - 1), (vx - 1, vy), (vx, vy))
+                             if n in height))
+            groups = [[around[0]]]
+            for h, n in around[1:]:
+                if h - groups[-1][-1][0] >= join:
+                    groups.append([])
+                groups[-1].append((h, n))
+            mine = next(g for g in groups if (x, y) in [n for _, n in g])
+            out[i, c] = sum(h + slope(*n, 0) * (vx - n[0] - 0.5) + slope(*n, 1) * (vy - n[1] - 0.5)
+                            for h, n in mine) / len(mine)
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Ground:
     """The ground blocks of a capture.
@@ -93,7 +174,8 @@ class Ground:
     from; point_block (N,) int64 the block each cloud point lies on (−1: none); continued (g,)
     bool blocks continued between measured ground (no cloud points of their own); seen (g,) bool
     blocks whose centre some camera sees; synthesised (g,) bool continued blocks none sees
-    (their texture is synthesised).
+    (their texture is synthesised); corner_dz (g, 4) float64 the heights of each block's corners
+    above its centre (:data:`CORNERS`; the centre is their mean).
     """
 
     centres: np.ndarray
@@ -101,6 +183,7 @@ class Ground:
     point_block: np.ndarray
     continued: np.ndarray
     seen: np.ndarray
+    corner_dz: np.ndarray
 
     @property
     def synthesised(self) -> np.ndarray:
@@ -109,13 +192,13 @@ class Ground:
     @staticmethod
     def empty(num_points: int) -> "Ground":
         return Ground(np.zeros((0, 3)), np.zeros(0), np.full(num_points, -1, np.int64), np.zeros(0, bool),
-                      np.zeros(0, bool))
+                      np.zeros(0, bool), np.zeros((0, 4)))
 
 
 def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, size: float,
                   viewpoints: np.ndarray, *, tolerance: float, min_points: int, step: float,
-                  fill_neighbours: int, fill_passes: int, reach: float, walls: np.ndarray | None = None,
-                  cameras: tuple | None = None, max_distance: float = 60.0) -> Ground:
+                  fill_neighbours: int, fill_passes: int, reach: float, join: float = np.inf,
+                  walls: np.ndarray | None = None, cameras: tuple | None = None, max_distance: float = 60.0) -> Ground:
     """Horizontal blocks on the ground grid (cells of ``size`` from ``grid_origin``) where the
     lowest cloud points of a cell (among ``free`` ones) form a flat surface, and the ground
     continued between them.
@@ -129,7 +212,8 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
     would show as steps, and steps as cracks at grazing views; kerbs stay). Cells without a
     flat surface but with at least ``fill_neighbours`` ground neighbours get a block on the
     plane through theirs, ``fill_passes`` times; then :func:`continue_ground` bridges gaps up
-    to ``reach`` metres (0: none). A block's rows run away from the cameras within
+    to ``reach`` metres (0: none). The blocks' corners are shared where their heights differ by
+    less than ``join`` (:func:`corner_heights`). A block's rows run away from the cameras within
     ``max_distance`` that see its centre (else the nearest viewpoint)."""
     idx = np.flatnonzero(free)
     if len(idx) == 0 or len(viewpoints) == 0:
@@ -183,9 +267,10 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
         ground_cells = np.concatenate([ground_cells, more])
         ground_z = np.concatenate([ground_z, more_z])
     continued = np.arange(len(ground_cells)) >= measured
+    corners = corner_heights(ground_cells, ground_z, join)
     centres = np.empty((len(ground_cells), 3))
     centres[:, :2] = grid_origin[:2] + (ground_cells + 0.5) * size
-    centres[:, 2] = ground_z
+    centres[:, 2] = corners.mean(axis=1)
     # Rows run away from the cameras that see the block (its textures' directions centre
     # there), snapped to the grid (blocks tile without gaps).
     if cameras is None:
@@ -196,7 +281,7 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
     point_block = np.full(len(cloud), -1, np.int64)
     mine = on & good[cell_of]
     point_block[idx[mine]] = block_of_cell[cell_of[mine]]
-    return Ground(centres, yaw, point_block, continued, seen)
+    return Ground(centres, yaw, point_block, continued, seen, corners - centres[:, 2:3])
 
 
 def continue_ground(cells: np.ndarray, heights: np.ndarray, barriers: np.ndarray, reach: int

@@ -30,7 +30,7 @@ from recon.epi import EpiConfig, EpiPass
 from .geometry import FACADE, GROUND, HALF_DIAGONAL
 from .ground import ground_blocks
 from .kerbs import KerbConfig, kerb_blocks
-from .resolution import ResolutionConfig, capture_footprint, seam_splits, split_blocks, splits_for
+from .resolution import ResolutionConfig, capture_footprint, child_surfaces, split_blocks, splits_for
 from .side_walls import SideWallConfig, side_walls
 from .wall_depth import WallDepthConfig, deepen_side_walls
 
@@ -304,7 +304,9 @@ class Layer:
     facade blocks on a kerb (:mod:`billboards.kerbs`); seen (b,) bool blocks whose centre some camera sees (None: all); the
     synthesised ones are continued and unseen; split (b,) uint8 the block's edge is the layer's
     halved this many times (ground split near the path, :mod:`billboards.resolution`; None: 0);
-    cell (b, 3) float64 the centre of the unsplit block each block was split from (None: its own).
+    cell (b, 3) float64 the centre of the unsplit block each block was split from (None: its own);
+    corner_dz (b, 4) float64 the heights of a ground block's corners above its centre (the ground's
+    height field, :func:`~billboards.ground.corner_heights`; None: flat).
     """
 
     centres: np.ndarray
@@ -318,8 +320,11 @@ class Layer:
     kerb: np.ndarray | None = None
     split: np.ndarray | None = None
     cell: np.ndarray | None = None
+    corner_dz: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.corner_dz is None:
+            object.__setattr__(self, "corner_dz", np.zeros((len(self.centres), 4)))
         if self.cell is None:
             object.__setattr__(self, "cell", np.asarray(self.centres, np.float64).copy())
         if self.split is None:
@@ -408,6 +413,7 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
         take = (pb >= 0) & (point_block < 0)
         point_block[take] = pb[take] + total
         parts.append({"centres": centres, "base_yaw": base_yaw, "kind": np.full(len(centres), kind, np.uint8),
+                      "corner_dz": flags.pop("corner_dz", np.zeros((len(centres), 4))),
                       **{k: np.full(len(centres), v, bool) if np.isscalar(v) else v for k, v in flags.items()}})
 
     if config.facades:
@@ -427,9 +433,9 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
         g = ground_blocks(cloud, point_block < 0, origin, size, np.asarray(viewpoints, np.float64).reshape(-1, 3),
                           tolerance=config.ground_tolerance, min_points=config.ground_min_points,
                           step=config.ground_step, fill_neighbours=config.ground_fill_neighbours,
-                          fill_passes=config.ground_fill_passes, reach=config.ground_reach, walls=walls,
-                          cameras=cameras)
-        add(g.centres, g.base_yaw, GROUND, g.point_block, continued=g.continued, seen=g.seen)
+                          fill_passes=config.ground_fill_passes, reach=config.ground_reach,
+                          join=config.kerb.min_step, walls=walls, cameras=cameras)
+        add(g.centres, g.base_yaw, GROUND, g.point_block, continued=g.continued, seen=g.seen, corner_dz=g.corner_dz)
         if config.kerbs:
             c, y, pb = kerb_blocks(g.centres, cloud, point_block < 0, origin, size, config.kerb)
             add(c, y, FACADE, pb, kerb=True)
@@ -441,7 +447,8 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
 
     layer = Layer(np.concatenate([q["centres"] for q in parts]), np.concatenate([q["base_yaw"] for q in parts]),
                   np.concatenate([q["kind"] for q in parts]), point_block, columns, join("continued", False),
-                  join("seen", True), join("side_wall", False), join("kerb", False))
+                  join("seen", True), join("side_wall", False), join("kerb", False),
+                  corner_dz=np.concatenate([q["corner_dz"] for q in parts]))
     logger.info("facade layer: %d facade blocks in %d passes (%d on side walls, %d on kerbs), %d ground blocks "
                 "(%d continued, %d of them synthesised); %.0f %% of the cloud explained", int((layer.kind == FACADE).sum()),
                 len(columns), int(layer.side_wall.sum()), int(layer.kerb.sum()),
@@ -451,27 +458,27 @@ def build_layer(cloud: np.ndarray, passes: list[EpiPass], size: float, grid_orig
 
 
 def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, config: ResolutionConfig,
-                  tile: int, kerb_step: float = KerbConfig.min_step) -> Layer:
+                  tile: int) -> Layer:
     """``layer`` with its ground blocks split where the capture saw them finer than their texels
     (:mod:`billboards.resolution`): cameras (K, world_from_cam, sizes) of the capture; size: the
-    blocks' edge (m); tile: texels per side; kerb_step: a rise this high (m) between neighbours is
-    an edge (a kerb), not a seam the blocks' overlap must close. The children of a block take its place in the order."""
+    blocks' edge (m); tile: texels per side. The children of a block take its place in the order,
+    on its surface (the ground's height field)."""
     ground = np.flatnonzero((layer.kind == GROUND) & (layer.split == 0))
     split = layer.split.copy()
-    footprint, slope = capture_footprint(layer.centres[ground], HALF_DIAGONAL * size, *cameras)
-    split[ground] = np.minimum(splits_for(footprint, size / tile, config),
-                               seam_splits(layer.centres[ground], layer.base_yaw[ground], size, slope,
-                                           edge_step=kerb_step))
+    footprint = capture_footprint(layer.centres[ground], HALF_DIAGONAL * size, *cameras)
+    split[ground] = splits_for(footprint, size / tile, config)
     if np.array_equal(split, layer.split):
         return layer
     parent, centres, point_block = split_blocks(layer.centres, layer.base_yaw, size, split - layer.split, cloud,
                                                 layer.point_block)
+    centres, corner_dz = child_surfaces(layer.centres, layer.corner_dz, np.ldexp(size, -layer.split.astype(np.int64)),
+                                        parent, centres, np.ldexp(size, -split[parent].astype(np.int64)))
     logger.info("ground at the capture's resolution: %d of %d ground blocks split into %d (by times split: %s)",
                 int((split[ground] > 0).sum()), len(ground), int(np.isin(parent, ground).sum()),
                 np.bincount(split[ground], minlength=config.max_split + 1).tolist())
     return Layer(centres, layer.base_yaw[parent], layer.kind[parent], point_block, layer.columns,
                  layer.continued[parent], layer.seen[parent], layer.side_wall[parent], layer.kerb[parent],
-                 split[parent], layer.cell[parent])
+                 split[parent], layer.cell[parent], corner_dz)
 
 
 def grow_side_walls(layer: Layer, cloud: np.ndarray, views, sky, size: float, config: WallDepthConfig
@@ -488,4 +495,5 @@ def grow_side_walls(layer: Layer, cloud: np.ndarray, views, sky, size: float, co
                  np.concatenate([layer.kind, np.full(b, FACADE, np.uint8)]), layer.point_block, layer.columns,
                  np.concatenate([layer.continued, np.zeros(b, bool)]), np.concatenate([layer.seen, np.ones(b, bool)]),
                  np.concatenate([layer.side_wall, np.ones(b, bool)]), np.concatenate([layer.kerb, np.zeros(b, bool)]),
-                 np.concatenate([layer.split, np.zeros(b, np.uint8)]), np.concatenate([layer.cell, c])), report
+                 np.concatenate([layer.split, np.zeros(b, np.uint8)]), np.concatenate([layer.cell, c]),
+                 np.concatenate([layer.corner_dz, np.zeros((b, 4))])), report

@@ -17,6 +17,10 @@ Layout of a model directory::
     split.npy            (n,) uint8 the quad's edge is its kind's (voxel size, block size) halved
                          this many times, at most MAX_SPLIT; only ground blocks split (optional:
                          a model without it has no quad split)
+    corner_dz.npy        (n, 4) float32 heights (m) of a ground block's corners above its centre, in
+                         world order x−y−, x+y−, x−y+, x+y+ (the ground's height field: neighbours
+                         share their corners); zero for other quads (optional: a model without it
+                         has flat ground blocks)
     first_slot.npy       (n,) int32 slot of the billboard's mean tile
     slot_scale.npy       (m, 4) float32 tile dequantisation: value = offset + scale·q
     slot_offset.npy      (m, 4) float32
@@ -76,6 +80,7 @@ ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
     "rank": (np.dtype(np.uint8), ("n",)),
     "synthesised": (np.dtype(np.uint8), ("n",)),
     "split": (np.dtype(np.uint8), ("n",)),
+    "corner_dz": (np.dtype(np.float32), ("n", 4)),
     "first_slot": (np.dtype(np.int32), ("n",)),
     "slot_scale": (np.dtype(np.float32), ("m", 4)),
     "slot_offset": (np.dtype(np.float32), ("m", 4)),
@@ -86,9 +91,9 @@ ARRAYS: dict[str, tuple[np.dtype, tuple]] = {
     "node_children": (np.dtype(np.int32), ("k", 8)),
     "node_range": (np.dtype(np.int32), ("k", 2)),
 }
-_BILLBOARD_ARRAYS = ("centres", "base_yaw", "kind", "rank", "synthesised", "split")
+_BILLBOARD_ARRAYS = ("centres", "base_yaw", "kind", "rank", "synthesised", "split", "corner_dz")
 #: arrays a model written before them lacks (read as zeros)
-OPTIONAL_ARRAYS = ("synthesised", "split")
+OPTIONAL_ARRAYS = ("synthesised", "split", "corner_dz")
 _SLOT_ARRAYS = ("slot_scale", "slot_offset", "coef_scale", "coef_offset")
 
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,200}\.npy")
@@ -128,6 +133,7 @@ class BillboardModel:
     block_size: float | None = None  # edge of FACADE and GROUND blocks (m); None: voxel_size
     synthesised: np.ndarray | None = None  # (n,) uint8 1: texture synthesised (no camera saw it); None: none
     split: np.ndarray | None = None  # (n,) uint8 edge halved this many times (ground near the path); None: never
+    corner_dz: np.ndarray | None = None  # (n, 4) float32 a ground block's corners above its centre (m); None: flat
 
     def __post_init__(self):
         if self.kind is None:
@@ -136,6 +142,8 @@ class BillboardModel:
             self.synthesised = np.zeros(len(self.centres), dtype=np.uint8)
         if self.split is None:
             self.split = np.zeros(len(self.centres), dtype=np.uint8)
+        if self.corner_dz is None:
+            self.corner_dz = np.zeros((len(self.centres), 4), dtype=np.float32)
         if self.block_size is None:
             self.block_size = self.voxel_size
 
@@ -483,6 +491,10 @@ def _table_problem(a: dict[str, np.ndarray], d: int) -> tuple[str, str] | None:
         i = int(bad[0])
         return "split", (f"billboard {i} of kind {int(a['kind'][i])} is split {int(a['split'][i])} times; "
                          f"only ground blocks split, at most {MAX_SPLIT} times")
+    bad = np.flatnonzero(np.any(a["corner_dz"] != 0, axis=1) & (a["kind"] != GROUND))
+    if bad.size:
+        i = int(bad[0])
+        return "corner_dz", f"billboard {i} of kind {int(a['kind'][i])} has corner heights; only ground blocks have them"
     if n and rank.max() > d:
         i = int(np.argmax(rank))
         return "rank", f"billboard {i} has rank {rank[i]}, more than the {d} view directions"

@@ -138,15 +138,17 @@ class ModelSet:
 # helpers
 
 
-def quad_radius(voxel_size: float, block_size: float, kinds: np.ndarray) -> float:
+def quad_radius(voxel_size: float, block_size: float, kinds: np.ndarray, corner_dz: np.ndarray | None = None) -> float:
     """How far (m) any quad reaches from its centre: a view-facing billboard of edge
     ``voxel_size`` stays in the sphere of radius s·√3/2, a layer block (kinds (n,) uint8 other
-    than BILLBOARD) within half its (ground blocks: grown) diagonal."""
+    than BILLBOARD) within half its (ground blocks: grown) diagonal, and a ground block's corners
+    corner_dz (n, 4) above or below it (twice that: its overlap extrapolates them)."""
     radius = float(voxel_size) * math.sqrt(3.0) / 2.0
     kinds = np.asarray(kinds)
     if np.any(kinds != BILLBOARD):
         grown = 1.0 + 2.0 * GROUND_OVERLAP if np.any(kinds == GROUND) else 1.0
-        radius = max(radius, float(block_size) * grown * math.sqrt(2.0) / 2.0)
+        rise = 2.0 * float(np.abs(corner_dz).max()) if corner_dz is not None and np.size(corner_dz) else 0.0
+        radius = max(radius, float(block_size) * grown * math.sqrt(2.0) / 2.0 + rise)
     return radius
 
 
@@ -157,7 +159,7 @@ def quad_bounds(model: BillboardModel) -> tuple[np.ndarray, np.ndarray]:
     if model.num_billboards == 0:
         return origin.copy(), origin.copy()
     c = np.asarray(model.centres, np.float64)
-    r = quad_radius(model.voxel_size, model.block_size, model.kind)
+    r = quad_radius(model.voxel_size, model.block_size, model.kind, model.corner_dz)
     return origin + c.min(0) - r, origin + c.max(0) + r
 
 
@@ -400,6 +402,7 @@ def sub_model(model: BillboardModel, keep: np.ndarray, origin, info: dict | None
         centres=(np.asarray(model.centres, np.float64)[keep] + shift).astype(np.float32),
         base_yaw=np.asarray(model.base_yaw)[keep], kind=np.asarray(model.kind)[keep],
         synthesised=np.asarray(model.synthesised)[keep], split=np.asarray(model.split)[keep],
+        corner_dz=np.asarray(model.corner_dz)[keep],
         rank=rank.astype(np.uint8), first_slot=new_first.astype(np.int32),
         slot_scale=np.asarray(model.slot_scale)[slots], slot_offset=np.asarray(model.slot_offset)[slots],
         coef_scale=np.asarray(model.coef_scale)[slots], coef_offset=np.asarray(model.coef_offset)[slots],

@@ -130,12 +130,12 @@ class ModelWriter:
         self._state = "open"
 
     def append(self, *, centres, base_yaw, rank, tiles, slot_scale, slot_offset, coef_rows, coef_scale,
-               coef_offset, kind=None, synthesised=None, split=None) -> None:
+               coef_offset, kind=None, synthesised=None, split=None, corner_dz=None) -> None:
         """Append b billboards with their m = Σ(1 + rank) slots.
 
         centres (b, 3) float32 relative to origin; base_yaw (b,) radians; rank (b,) ≤ d;
         kind (b,) uint8 (None: all BILLBOARD); synthesised (b,) bool or uint8 (None: none);
-        split (b,) uint8 (None: none split);
+        split (b,) uint8 (None: none split); corner_dz (b, 4) float32 (None: all flat);
         tiles (m, t, t, 4) uint8 ("u8") or float ("f16"), per billboard [mean, eigen_1 … eigen_r];
         slot_scale, slot_offset (m, 4); coef_rows (m, d) in the coefficient dtype (any float
         for "f32"/"f16", uint8 for "u8"); coef_scale, coef_offset (m,).
@@ -158,6 +158,8 @@ class ModelWriter:
             "synthesised": _as(np.zeros(b, np.uint8) if synthesised is None else np.asarray(synthesised, np.uint8),
                                np.uint8, (b,), "synthesised"),
             "split": _as(np.zeros(b, np.uint8) if split is None else split, np.uint8, (b,), "split"),
+            "corner_dz": _as(np.zeros((b, 4), np.float32) if corner_dz is None else corner_dz, np.float32, (b, 4),
+                             "corner_dz"),
             "slot_scale": _as(slot_scale, np.float32, (m, 4), "slot_scale"),
             "slot_offset": _as(slot_offset, np.float32, (m, 4), "slot_offset"),
             "coef_scale": _as(coef_scale, np.float32, (m,), "coef_scale"),

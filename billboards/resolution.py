@@ -8,11 +8,12 @@ depth / focal length, over the cameras in whose image the block lies, in front, 
 reach); a block whose texel is more than ``texel_pixels`` footprints wide is split into
 2^L × 2^L children of edge block_size·2^−L in its own plane (split L times), L the smallest whose
 texel is at most ``texel_pixels`` footprints, at most ``max_split`` (the budget: each split
-makes four blocks of one), and only as far as its children still close the seams with its
-neighbours (:func:`seam_splits`).
+makes four blocks of one). The ground is a height field (:func:`~billboards.ground.corner_heights`):
+children at any level meet their neighbours without a seam.
 
-A child keeps its parent's flags (continued, seen, …), base yaw and height, and the cloud
-points of the parent that fall in its square. The model stores how many times each quad was
+A child keeps its parent's flags (continued, seen, …) and base yaw, lies on its parent's
+surface (the ground's height field: its corners where the parent's bilinear surface has them,
+:func:`child_surfaces`), and explains the cloud points of the parent that fall in its square. The model stores how many times each quad was
 split (``split.npy``; the renderer, culling, sampling, the fit and eval read the quad's edge from
 it: :func:`~billboards.geometry.quad_edges`).
 """
@@ -23,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import GROUND_OVERLAP, HALF_DIAGONAL, MAX_SPLIT, seen_in_chunks
-from .ground import cell_index
+from .geometry import MAX_SPLIT, seen_in_chunks, surface_dz
+from .ground import CORNERS
 
 
 @dataclass(frozen=True)
@@ -42,38 +43,27 @@ class ResolutionConfig:
 
 
 def capture_footprint(centres: np.ndarray, reach: float, K: np.ndarray, world_from_cam: np.ndarray,
-                      sizes: np.ndarray, max_distance: float = 60.0, chunk: int = 1024
-                      ) -> tuple[np.ndarray, np.ndarray]:
+                      sizes: np.ndarray, max_distance: float = 60.0, chunk: int = 1024) -> np.ndarray:
     """(n,) float64 metres per pixel of the finest capture camera at each item: min over the
     cameras (within ``max_distance``) in whose image an item of ``reach`` metres radius around
     ``centres`` (n, 3) float64 lies, in front (depth > 0.3 m), of depth / focal length (the
-    larger of fx, fy: the finer axis); and (n,) float64 the slope at which that camera looks
-    down at the item (its height above it over its distance along the ground; the tangent of
-    its elevation). NaN where no camera sees the item.
+    larger of fx, fy: the finer axis). NaN where no camera sees the item.
 
     K (v, 3, 3), world_from_cam (v, 4, 4) float64; sizes (v, 2) (width, height). Memory is
     bounded by ``chunk`` items × the cameras near them.
     """
     centres = np.asarray(centres, np.float64).reshape(-1, 3)
     out = np.full(len(centres), np.inf)
-    slope = np.full(len(centres), np.nan)
     focal = np.maximum(K[:, 0, 0], K[:, 1, 1])
-    for s, near, to_cam, z, seen in seen_in_chunks(centres, K, world_from_cam, sizes, max_distance, chunk, reach):
-        metres = np.where(seen, z / focal[near][None, :], np.inf)
-        best = np.argmin(metres, axis=1)
-        rows = np.arange(len(metres))
-        out[s:s + len(metres)] = metres[rows, best]
-        d = to_cam[rows, best]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            slope[s:s + len(metres)] = d[:, 2] / np.hypot(d[:, 0], d[:, 1])
-    slope[~np.isfinite(out)] = np.nan
+    for s, near, _, z, seen in seen_in_chunks(centres, K, world_from_cam, sizes, max_distance, chunk, reach):
+        out[s:s + len(z)] = np.where(seen, z / focal[near][None, :], np.inf).min(axis=1)
     out[~np.isfinite(out)] = np.nan
-    return out, slope
+    return out
 
 
 def capture_footprint_reference(centres, reach, K, world_from_cam, sizes, max_distance=60.0) -> np.ndarray:
     """:func:`capture_footprint` one item and one camera at a time (the tests' reference)."""
-    out, slope = np.full(len(centres), np.nan), np.full(len(centres), np.nan)
+    out = np.full(len(centres), np.nan)
     for i, c in enumerate(np.asarray(centres, np.float64)):
         best = np.inf
         for k in range(len(K)):
@@ -85,49 +75,10 @@ def capture_footprint_reference(centres, reach, K, world_from_cam, sizes, max_di
             v = K[k, 1, 1] * cam[1] / z + K[k, 1, 2]
             m = K[k, 0, 0] * reach / z
             if -m <= u <= sizes[k][0] - 1 + m and -m <= v <= sizes[k][1] - 1 + m:
-                metres = z / max(K[k, 0, 0], K[k, 1, 1])
-                if metres < best:
-                    d = world_from_cam[k, :3, 3] - c
-                    best, slope[i] = metres, d[2] / np.hypot(d[0], d[1])
+                best = min(best, z / max(K[k, 0, 0], K[k, 1, 1]))
         if np.isfinite(best):
             out[i] = best
-    return out, slope
-
-
-def seam_splits(centres: np.ndarray, base_yaw: np.ndarray, size: float, slope: np.ndarray,
-                edge_step: float = np.inf) -> np.ndarray:
-    """(g,) int64 the most times each ground block (centres (g, 3) float64 on one grid of ``size``
-    m, base_yaw (g,) float64) may be halved with its seams still closed as the capture saw them.
-
-    A ground block is drawn GROUND_OVERLAP of its own edge larger on every side, to hide the
-    steps and turns between neighbours. Where the block beyond a seam is Δz higher than the one
-    before it, seen at ``slope`` (g,) float64 (the tangent of the capture's elevation at the
-    block, :func:`capture_footprint`), a ray that misses the higher block's overhang meets the
-    lower one within Δz / slope past its edge: the seam stays closed while Δz / slope is at most
-    the two overlaps together (a lower block beyond is hidden behind the edge; a capture that
-    passes both ways sees each seam from both sides). A turn Δψ opens about √½·size·Δψ at a
-    corner. A child split L times overlaps only GROUND_OVERLAP·size·2^−L: the road on KITTI
-    (steps of 2–8 cm seen at 5–20°) would show cracks, the demo's sidewalk beside its
-    sideways rig far fewer. The largest step and turn over the
-    4 grid neighbours that are ground count, but a step of ``edge_step`` m or more (a kerb: an
-    edge, not a seam, with a face of its own or a gap no overlap closes) does not; a block seen
-    from nowhere (NaN slope) stays whole."""
-    centres = np.asarray(centres, np.float64).reshape(-1, 3)
-    if len(centres) == 0:
-        return np.zeros(0, np.int64)
-    keys = np.round((centres[:, :2] - centres[0, :2]) / size).astype(np.int64)
-    step, turn = np.zeros(len(centres)), np.zeros(len(centres))
-    for d in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        at = cell_index(keys, keys + np.asarray(d))
-        has = np.flatnonzero(at >= 0)
-        rise = np.abs(centres[at[has], 2] - centres[has, 2])
-        step[has] = np.maximum(step[has], np.where(rise < edge_step, rise, 0.0))
-        turn[has] = np.maximum(turn[has], np.abs(np.angle(np.exp(1j * (base_yaw[at[has]] - base_yaw[has])))))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gap = step / np.asarray(slope, np.float64) + HALF_DIAGONAL * size * turn    # m, NaN: seen from nowhere
-        times = np.floor(np.log2(2 * GROUND_OVERLAP * size / gap))
-    times = np.where(gap <= 0, MAX_SPLIT, times)
-    return np.clip(np.nan_to_num(times, nan=0.0, posinf=MAX_SPLIT, neginf=0.0), 0, MAX_SPLIT).astype(np.int64)
+    return out
 
 
 def splits_for(footprint: np.ndarray, texel: float, config: ResolutionConfig) -> np.ndarray:
@@ -179,3 +130,23 @@ def split_blocks(centres: np.ndarray, base_yaw: np.ndarray, edge: float, split: 
         pr = np.clip(np.floor((0.5 - np.einsum("nk,nk->n", rel, up[pb]) / edge) * s), 0, s - 1).astype(np.int64)
         point_child[on] = first[pb] + pr * s + pc
     return parent, child_centres, point_child
+
+
+def child_surfaces(centres: np.ndarray, corner_dz: np.ndarray, edge: np.ndarray, parent: np.ndarray,
+                   child_centres: np.ndarray, child_edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Children on their parents' surfaces: blocks centres (b, 3) float64 with corner_dz (b, 4)
+    float64 (x−y−, x+y−, x−y+, x+y+ above the centre) and edges (b,) float64 (m); children of
+    ``parent`` (b',) int64 at child_centres (b', 3) float64 with edges child_edge (b',) float64.
+    Returns the children's centres (b', 3) float64 (the mean of their corners) and corner_dz
+    (b', 4) float64: each corner at the height of the parent's bilinear surface there, so that
+    children meet each other and their parent's neighbours as the parent did."""
+    centres = np.asarray(centres, np.float64).reshape(-1, 3)
+    child = np.asarray(child_centres, np.float64).reshape(-1, 3).copy()
+    if len(child) == 0:
+        return child, np.zeros((0, 4))
+    e = np.asarray(edge, np.float64)[parent][:, None]
+    corner_xy = child[:, None, :2] + (CORNERS[None, :, :] - 0.5) * np.asarray(child_edge, np.float64)[:, None, None]
+    f = (corner_xy - centres[parent][:, None, :2]) / e[..., None] + 0.5                         # (b', 4, 2)
+    z = centres[parent][:, 2:3] + surface_dz(np.asarray(corner_dz, np.float64)[parent][:, None, :], f[..., 0], f[..., 1])
+    child[:, 2] = z.mean(axis=1)
+    return child, z - child[:, 2:3]

@@ -39,7 +39,7 @@ import numpy as np
 from core.fileio import read_png
 
 from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, DirectionConfig, direction_angles, kind_frames,
-                       quad_edges, texel_offsets, unit_vectors)
+                       quad_edges, surface_dz, texel_offsets, unit_vectors)
 
 logger = logging.getLogger(__name__)
 
@@ -318,15 +318,17 @@ class ImageSampler:
     quad kinds (:data:`geometry.KINDS`, default all billboards). A layer block (kind ≠ BILLBOARD) is a
     surface: every texel shows what the camera sees through it unless something stands in front of its
     cube (then the next camera is tried), never see-through; its edge is ``block_size`` (default:
-    ``size``) halved ``split`` (n,) uint8 times (default never). occluders: the points the z-buffers are
-    made of, when more than ``voxels`` (a tile of a street with its neighbours' points).
+    ``size``) halved ``split`` (n,) uint8 times (default never); a ground block's surface rises to its
+    corners' heights ``corner_dz`` (n, 4) float64 (:func:`~billboards.geometry.surface_dz`; default
+    flat). occluders: the points the z-buffers are made of, when more than ``voxels`` (a tile of a
+    street with its neighbours' points).
     """
 
     def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,
                  voxels: VoxelPoints, config: SamplingConfig = SamplingConfig(),
                  box_centres: np.ndarray | None = None, kind: np.ndarray | None = None,
                  block_size: float | None = None, occluders: VoxelPoints | None = None,
-                 split: np.ndarray | None = None):
+                 split: np.ndarray | None = None, corner_dz: np.ndarray | None = None):
         self.views, self.config = views, config
         self.centres = np.asarray(centres, dtype=np.float64)
         # The voxel cubes (the slab of each billboard); the quads may sit off their centres.
@@ -337,6 +339,7 @@ class ImageSampler:
                      else np.asarray(kind, dtype=np.uint8))
         # Quad edge per billboard (m): the voxel's, or the layer block's, halved each time it was split.
         self.sizes = quad_edges(self.kind, split, self.size, self.size if block_size is None else block_size)
+        self.corner_dz = None if corner_dz is None or not np.any(corner_dz) else np.asarray(corner_dz, np.float32)
         self.voxels = voxels
         self.cache = _ViewCache(views, voxels if occluders is None else occluders, config)
 
@@ -409,6 +412,16 @@ class ImageSampler:
         return (base.astype(np.float32)[:, None, None] + along_col.astype(np.float32)[:, None, None] * a[:, None, :]
                 - along_row.astype(np.float32)[:, None, None] * a[:, :, None])
 
+    def _texel_dz(self, ids, right, up):
+        """(m, t, t) float32 the height of each texel of quads ``ids`` (axes right, up (m, 3)) above
+        its flat position (the ground's height field); None where every one is flat."""
+        if self.corner_dz is None or not np.any(self.corner_dz[ids]):
+            return None
+        a = texel_offsets(self.config.tile).astype(np.float32)
+        fx = a[None, None, :] * right[:, 0, None, None] - a[None, :, None] * up[:, 0, None, None] + 0.5
+        fy = a[None, None, :] * right[:, 1, None, None] - a[None, :, None] * up[:, 1, None, None] + 0.5
+        return surface_dz(self.corner_dz[ids][:, None, None, :], fx.astype(np.float32), fy.astype(np.float32))
+
     def _project(self, views, K, x, y, z):
         """Camera coordinates (m, t, t) → pixel u, v (float32, (−1, −1) outside) and the inside mask."""
         inv_z = np.float32(1) / np.where(z > 1e-3, z, np.float32(np.nan))
@@ -472,8 +485,11 @@ class ImageSampler:
         covered = np.isfinite(depth)
         # The surface point along each texel's virtual ray, then into the real camera.
         point = [None] * 3
+        dz = self._texel_dz(ids, right, up)
         for k in range(3):
             p_k = self._grid(c[:, k], right[:, k], up[:, k], self.sizes[ids])
+            if k == 2 and dz is not None:
+                p_k = p_k + dz
             e_k = eye[:, k].astype(np.float32)[:, None, None]
             point[k] = e_k + np.where(covered, depth, 1.0) * (p_k - e_k)
         Rf = R.astype(np.float32)
@@ -497,13 +513,17 @@ class ImageSampler:
         # Texel positions are affine in (col, row): camera coordinates follow without a matmul.
         cc, cr, cu = (np.einsum("mk,mkj->mj", v, R) for v in (c, right, up))
         x, y, z = (self._grid(cc[:, k], cr[:, k], cu[:, k], s) for k in range(3))
+        dz = self._texel_dz(ids, right, up)
+        if dz is not None:   # the world's z axis in the camera: row 2 of R
+            x, y, z = (q + dz * R[:, 2, j, None, None].astype(np.float32) for j, q in enumerate((x, y, z)))
         u, v, inside = self._project(views, K, x, y, z)
         # Where each texel's ray (from the camera, in z-depth units) crosses the voxel cube.
         box = self.box_centres[ids] - C
         t_in = t_out = None
         with np.errstate(divide="ignore", invalid="ignore"):
             for k in range(3):
-                scale_k = z / self._grid(c[:, k], right[:, k], up[:, k], s)   # world axis k, camera-relative
+                world_k = self._grid(c[:, k], right[:, k], up[:, k], s)
+                scale_k = z / (world_k + dz if k == 2 and dz is not None else world_k)   # world axis k, camera-relative
                 lo = (box[:, k] - s / 2).astype(np.float32)[:, None, None] * scale_k
                 hi = (box[:, k] + s / 2).astype(np.float32)[:, None, None] * scale_k
                 near, far = np.fmin(lo, hi), np.fmax(lo, hi)

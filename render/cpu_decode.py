@@ -29,8 +29,8 @@ from .resources import InstanceStream, check_billboards, release_all, set_unifor
 logger = logging.getLogger(__name__)
 
 CPU_INSTANCE_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("tile", "<i4"), ("kind", "<i4"),
-                               ("size", "<f4")])
-CPU_INSTANCE_FORMAT = "3f 1f 1i 1i 1f/i"
+                               ("size", "<f4"), ("corner_dz", "<f4", 4)])
+CPU_INSTANCE_FORMAT = "3f 1f 1i 1i 1f 4f/i"
 
 
 def decode_for_eye(model: BillboardModel, billboards: np.ndarray, eye: np.ndarray, chunk: int = 512,
@@ -91,7 +91,7 @@ class CpuDecoder:
             self._objects.append(self.stream)
             self.vao = ctx.vertex_array(self.program, [vertex_binding(
                 self.program, self.stream.buffer, CPU_INSTANCE_FORMAT,
-                ("in_centre", "in_base_yaw", "in_tile", "in_kind", "in_size"))])
+                ("in_centre", "in_base_yaw", "in_tile", "in_kind", "in_size", "in_corner_dz"))])
             self._objects.append(self.vao)
         except BaseException:
             self.release()
@@ -154,6 +154,7 @@ class CpuDecoder:
         rec["tile"] = np.arange(len(b))
         rec["kind"] = self.model.kind[b]
         rec["size"] = self.edges[b]
+        rec["corner_dz"] = self.model.corner_dz[b]
         sent += self.stream.write(rec)
         stats.update(upload_bytes=sent, decode_s=t1 - t0, upload_s=time.perf_counter() - t1)
         prog = self.program

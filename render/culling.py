@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from billboards.geometry import BILLBOARD, GROUND, GROUND_OVERLAP
+from billboards.model_set import quad_radius
 
 #: Relative tolerance of plane tests: a point is outside only if its signed distance is
 #: below −PLANE_REL_EPS·(|n|·|x| + |d| + extent). float32 clip coordinates on the GPU are
@@ -59,12 +59,9 @@ def billboard_radius(voxel_size: float) -> float:
 
 def model_quad_radius(model) -> float:
     """How far any quad of ``model`` reaches beyond its octree leaf: the billboard radius, or
-    half a layer block's diagonal (a block's centre lies in its leaf) if that is larger."""
-    radius = billboard_radius(model.voxel_size)
-    if np.any(model.kind != BILLBOARD):
-        grown = 1.0 + 2.0 * GROUND_OVERLAP if np.any(model.kind == GROUND) else 1.0
-        radius = max(radius, float(model.block_size) * grown * math.sqrt(2.0) / 2.0)
-    return radius
+    half a layer block's diagonal (a block's centre lies in its leaf) and its corners' rise
+    (:func:`billboards.model_set.quad_radius`) if that is larger."""
+    return quad_radius(model.voxel_size, model.block_size, model.kind, model.corner_dz)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -310,7 +310,7 @@ class ModelMethod:
         if not hasattr(self, "_quads"):
             m = self.model
             self._quads = quads_of(m.origin, m.centres, m.base_yaw, m.kind, m.voxel_size, m.block_size, m.tile,
-                                   m.yaw_offsets, m.pitches, m.pitched_quads, split=m.split)
+                                   m.yaw_offsets, m.pitches, m.pitched_quads, split=m.split, corner_dz=m.corner_dz)
             n, chunk = m.num_billboards, 1024
             self._alpha = np.concatenate([np.rint(decode_directions(m, np.arange(b, min(n, b + chunk)))[..., 3] * 255)
                                           .astype(np.uint8).reshape(-1, m.num_directions, m.tile * m.tile)

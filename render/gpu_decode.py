@@ -41,10 +41,10 @@ from .view_brackets import storage_slots, view_brackets
 
 #: Per-quad record of the draw pass (billboard.glsl).
 QUAD_DTYPE = np.dtype([("centre", "<f4", 3), ("base_yaw", "<f4"), ("kind", "<i4"), ("size", "<f4"), ("blocks", "<i4"),
-                       ("origin", "<f4", 2), ("weights", "<f4", 4), ("view", "<i4")])
-QUAD_FORMAT = "3f 1f 1i 1f 1i 2f 4f 1i/i"
+                       ("origin", "<f4", 2), ("weights", "<f4", 4), ("corner_dz", "<f4", 4), ("view", "<i4")])
+QUAD_FORMAT = "3f 1f 1i 1f 1i 2f 4f 4f 1i/i"
 QUAD_ATTRIBUTES = ("in_centre", "in_base_yaw", "in_kind", "in_size", "in_blocks", "in_origin", "in_weights",
-                   "in_view")
+                   "in_corner_dz", "in_view")
 MAX_VIEWS = 32  # views per draw of draw_views (billboard.glsl MULTIVIEW)
 
 #: Per-run record of the pre-blend pass (billboard_blend.glsl).
@@ -361,6 +361,7 @@ class GpuDecoder(GpuOwner):
         quads["origin"] = np.where(blend[:, None], self._view_origin[start], self._origin[start])
         quads["weights"][:, :self.storage_slots] = plan.weight
         quads["weights"][:, self.storage_slots:] = 0.0
+        quads["corner_dz"] = model.corner_dz[plan.top]   # a run of more than one block is a slit: flat
         quads["view"] = 0 if views is None else views[0]
         for view, atlas in ((False, self.decoded), (True, self.view_tiles)):
             part = quads[blend == view]

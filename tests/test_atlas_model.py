@@ -607,6 +607,10 @@ CORRUPTIONS = {
     "split a billboard": (_npy("split.npy", _assign(3, 1)), "split.npy"),
     "split too often": (_npy("split.npy", _assign(3, 9)), "split.npy"),
     "split listed, file missing": (_unlink("split.npy"), "split.npy"),
+    "corner heights on a billboard": (_npy("corner_dz.npy", _assign((3, 0), 0.1)), "corner_dz.npy"),
+    "corner heights NaN": (_npy("corner_dz.npy", _assign((3, 2), np.nan)), "corner_dz.npy"),
+    "corner heights shape": (_npy("corner_dz.npy", lambda a: a[:, :3].copy()), "corner_dz.npy"),
+    "corner_dz listed, file missing": (_unlink("corner_dz.npy"), "corner_dz.npy"),
     "rank sum": (_npy("rank.npy", lambda a: _assign(0, (a[0] + 1) % 11)(a)), "rank.npy"),
     "first_slot order": (_npy("first_slot.npy", lambda a: a[[1, 0, *range(2, len(a))]]), "first_slot.npy"),
     "child out of range": (_npy("node_children.npy", _assign((0, 2), 3)), "node_children.npy"),
@@ -674,6 +678,21 @@ def test_a_model_written_before_split_quads_loads_with_none_split(saved_model, t
     again = load(save(marked, tmp_path / "marked"))
     assert np.array_equal(again.split, marked.split)
     np.testing.assert_array_equal(again.edges(), 0.5 / 2.0 ** (np.arange(12) % 4))
+
+
+def test_a_model_written_before_the_ground_height_field_loads_with_flat_ground(saved_model, tmp_path):
+    """corner_dz.npy is optional: a model whose manifest does not list it has flat ground blocks;
+    a ground block's corner heights round-trip."""
+    path = Path(shutil.copytree(saved_model, tmp_path / "m"))
+    _delete("arrays", "corner_dz")(path)
+    (path / "corner_dz.npy").unlink()
+    model = load(path)
+    assert model.corner_dz.dtype == np.float32 and np.array_equal(model.corner_dz, np.zeros((12, 4), np.float32))
+    marked, _ = make_model()
+    marked.kind = np.full(12, 2, np.uint8)
+    marked.block_size = 0.5
+    marked.corner_dz = np.linspace(-0.05, 0.05, 48, dtype=np.float32).reshape(12, 4)
+    assert np.array_equal(load(save(marked, tmp_path / "marked")).corner_dz, marked.corner_dz)
 
 
 def test_load_missing_directory(tmp_path):

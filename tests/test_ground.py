@@ -123,3 +123,71 @@ def test_cell_index_against_a_dictionary():
     np.testing.assert_array_equal(cell_index(cells, queries), want)
     assert np.all(cell_index(np.zeros((0, 2), np.int64), queries) == -1)
     assert cell_index(cells, np.zeros((0, 2), np.int64)).shape == (0,)
+
+
+# -- the height field ------------------------------------------------------------------------
+
+
+def _world_corners(cells, corners) -> dict:
+    """(vertex, height) pairs of every cell's every corner: {vertex: set of heights}."""
+    from billboards.ground import CORNERS
+    out: dict = {}
+    for c, row in zip(np.asarray(cells).tolist(), np.asarray(corners).tolist()):
+        for (dx, dy), h in zip(CORNERS.tolist(), row):
+            out.setdefault((c[0] + dx, c[1] + dy), set()).add(round(h, 12))
+    return out
+
+
+def test_a_sloping_ground_shares_every_corner_and_keeps_its_slope():
+    from billboards.ground import corner_heights, corner_heights_reference
+    cells = _cells([(i, j) for i in range(5) for j in range(4)])
+    z = 0.02 * cells[:, 0] - 0.01 * cells[:, 1] + 3.0            # a plane: 4 cm per cell edge at most
+    got = corner_heights(cells, z, join=0.06)
+    np.testing.assert_allclose(got, corner_heights_reference(cells, z, join=0.06), atol=1e-12)
+    assert all(len(h) == 1 for h in _world_corners(cells, got).values())     # no step, no crack
+    # inside the grid a corner is the plane's height at the vertex (the mean of the 4 centres)
+    inner = (cells[:, 0] == 2) & (cells[:, 1] == 1)
+    vx, vy = 2 + 0.5 - 0.5, 1 - 0.5 + 0.5                                    # corner x−y− of (2, 1)
+    assert got[inner, 0][0] == pytest.approx(0.02 * (vx - 0.5) - 0.01 * (vy - 0.5) + 3.0)
+
+
+def test_a_kerb_stays_sharp_and_each_level_stays_closed():
+    from billboards.ground import corner_heights, corner_heights_reference
+    cells = _cells([(i, j) for i in range(4) for j in range(3)])
+    z = np.where(cells[:, 0] < 2, 0.15, 0.0) + 0.01 * cells[:, 1]          # a 15 cm kerb between x = 1 and 2
+    got = corner_heights(cells, z, join=0.06)
+    np.testing.assert_allclose(got, corner_heights_reference(cells, z, join=0.06), atol=1e-12)
+    shared = _world_corners(cells, got)
+    assert {len(h) for v, h in shared.items() if v[0] == 2} == {2}             # the kerb's line: two heights
+    assert all(len(h) == 1 for v, h in shared.items() if v[0] != 2)
+    upper = got[cells[:, 0] == 1]
+    assert upper.min() > 0.14 and got[cells[:, 0] == 2].max() < 0.05          # neither level leans over
+
+
+@pytest.mark.parametrize("join", [0.0, 0.06, np.inf])
+def test_corner_heights_match_their_reference_on_random_ground(join):
+    from billboards.ground import corner_heights, corner_heights_reference
+    rng = np.random.default_rng(3)
+    cells = np.unique(rng.integers(-6, 6, (60, 2)), axis=0)
+    z = rng.normal(0.0, 0.05, len(cells)) + rng.choice([0.0, 0.2], len(cells))
+    got = corner_heights(cells, z, join)
+    np.testing.assert_allclose(got, corner_heights_reference(cells, z, join), atol=1e-12)
+    lone = corner_heights(cells[:1], z[:1], join)
+    assert np.all(lone == z[0])                                               # a cell alone is flat
+    assert corner_heights(_cells([]), np.zeros(0), join).shape == (0, 4)
+
+
+def test_ground_blocks_are_centred_on_their_corners():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0.0, 3.0, (4000, 2))
+    cloud = np.column_stack([xy, 0.03 * xy[:, 0] + rng.normal(0, 0.002, len(xy))])   # a 3 % slope
+    g = ground_blocks(cloud, np.ones(len(cloud), bool), np.zeros(3), 0.5, np.array([[1.5, -4.0, 1.6]]),
+                      tolerance=0.06, min_points=10, step=0.05, fill_neighbours=3, fill_passes=0, reach=0.0,
+                      join=0.06)
+    assert len(g.centres) == 36
+    np.testing.assert_allclose(g.corner_dz.mean(axis=1), 0.0, atol=1e-12)
+    cells = np.floor(g.centres[:, :2] / 0.5).astype(np.int64)
+    assert all(len(h) == 1 for h in _world_corners(cells, g.centres[:, 2:3] + g.corner_dz).values())
+    # a block's corners rise along x as the ground does (3 % of 0.5 m), not along y
+    np.testing.assert_allclose(g.corner_dz[:, 1] - g.corner_dz[:, 0], 0.015, atol=0.004)
+    np.testing.assert_allclose(g.corner_dz[:, 2] - g.corner_dz[:, 0], 0.0, atol=0.004)

@@ -609,3 +609,52 @@ def test_preblended_quads_draw_like_blended_fragments(ctx, monkeypatch, linear):
         assert diff.mean() <= 2 and np.mean(diff <= 8) >= 0.95, (diff.mean(), np.mean(diff > 8))  # alpha edges differ
     else:
         assert np.abs(images[0.0] - images[np.inf]).max() <= 1
+
+
+def _ground_model(corners: bool):
+    """Ground blocks of 0.5 m on a 10 × 6 grid with random heights (± 4 cm, one smooth surface
+    for join 0.2 m), as a height field (corners) or as flat blocks at each cell's height."""
+    from billboards.ground import corner_heights
+
+    rng = np.random.default_rng(7)
+    cells = np.array([(i, j) for i in range(10) for j in range(6)], np.int64)
+    z = rng.uniform(-0.04, 0.04, len(cells))
+    heights = corner_heights(cells, z, join=0.2)
+    centres = np.column_stack([(cells + 0.5) * 0.5, heights.mean(axis=1)])
+    model = make_model(centres, base_yaw=np.pi / 2, rank=0, seed=3)
+    model.kind, model.block_size = np.full(len(cells), 2, np.uint8), 0.5
+    if corners:
+        model.corner_dz = (heights - centres[:, 2:3]).astype(np.float32)
+    model.check()
+    return model
+
+
+@pytest.mark.parametrize("mode", ["gpu", "cpu"])
+def test_the_ground_height_field_is_drawn_without_cracks(ctx, mode):
+    """Seen low along a bumpy ground, flat blocks at each cell's height leave cracks of
+    background where a block is higher than the one before it; the height field (corners shared
+    by neighbours) draws every column of the ground as one unbroken run, where the fit's ray
+    caster (billboards.fit.cast_view) finds it too."""
+    from billboards.fit import cast_view, quads_of
+
+    K, pose = intrinsics(300.0, 200, 150), look_at(np.array([-1.5, 1.5, 0.45]), np.array([4.0, 1.5, 0.0]))
+    broken = {}
+    for corners in (False, True):
+        model = _ground_model(corners)
+        renderer = BillboardRenderer(ctx, model, mode, background=SKY, linear=False)
+        drawn = np.any(renderer.render(K, pose, (200, 150)) != SKY_U8, axis=-1)
+        renderer.release()
+        rows = [np.flatnonzero(col) for col in drawn.T]
+        broken[corners] = sum(int(len(r) and (r[-1] - r[0] + 1) != len(r)) for r in rows)
+        if corners:
+            quads = quads_of(model.origin, model.centres, model.base_yaw, model.kind, model.voxel_size,
+                             model.block_size, model.tile, model.yaw_offsets, model.pitches, model.pitched_quads,
+                             corner_dz=model.corner_dz)
+            alpha = np.full((model.num_billboards, model.num_directions, model.tile ** 2), 255, np.uint8)
+            hits = cast_view(quads, alpha, K, pose, (200, 150))
+            cast = np.zeros_like(drawn)
+            cast[hits.pixel[:, 1], hits.pixel[:, 0]] = True
+            assert (cast & ~drawn).sum() <= 0.002 * drawn.sum()
+            assert (cast & drawn).sum() >= 0.9 * drawn.sum()        # (rays where blocks overlap measure nothing)
+    assert drawn.sum() > 0.2 * drawn.size
+    assert broken[False] > 10 and broken[True] == 0, broken

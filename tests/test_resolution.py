@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from billboards.geometry import FACADE, GROUND, GROUND_OVERLAP, MAX_SPLIT, quad_edges
+from billboards.geometry import FACADE, GROUND, quad_edges
 from billboards.layer import Layer, refine_ground
-from billboards.resolution import (ResolutionConfig, capture_footprint, capture_footprint_reference, seam_splits,
+from billboards.resolution import (ResolutionConfig, capture_footprint, capture_footprint_reference, child_surfaces,
                                    split_blocks, splits_for)
 
 
@@ -32,19 +32,15 @@ def test_footprint_matches_its_reference_and_grows_with_distance():
     K, poses, sizes = _cameras()
     rng = np.random.default_rng(0)
     centres = np.stack([rng.uniform(-4, 10, 300), rng.uniform(-2, 30, 300), np.zeros(300)], axis=1)
-    fast, fast_slope = capture_footprint(centres, 0.35, K, poses, sizes, max_distance=25.0, chunk=64)
-    slow, slow_slope = capture_footprint_reference(centres, 0.35, K, poses, sizes, max_distance=25.0)
+    fast = capture_footprint(centres, 0.35, K, poses, sizes, max_distance=25.0, chunk=64)
+    slow = capture_footprint_reference(centres, 0.35, K, poses, sizes, max_distance=25.0)
     np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))
     np.testing.assert_allclose(fast, slow, rtol=1e-12)
-    np.testing.assert_allclose(fast_slope, slow_slope, rtol=1e-12)
-    np.testing.assert_array_equal(np.isnan(fast_slope), np.isnan(fast))
     assert np.isnan(fast).any() and np.isfinite(fast).sum() > 50   # behind the cameras, too far: unseen
     # straight ahead of the middle camera, farther ground is seen coarser
     ahead = np.array([[3.0, y, 0.0] for y in (1.5, 2.5, 4.0, 6.0)])
-    f, slope = capture_footprint(ahead, 0.0, K, poses, sizes)
-    assert np.all(np.diff(f) > 0)
-    assert np.all(np.diff(slope) < 0) and np.all(slope <= 1.5 / ahead[:, 1] + 1e-12)   # cameras 1.5 m up
-    assert capture_footprint(np.zeros((0, 3)), 0.3, K, poses, sizes)[0].shape == (0,)
+    assert np.all(np.diff(capture_footprint(ahead, 0.0, K, poses, sizes)) > 0)
+    assert capture_footprint(np.zeros((0, 3)), 0.3, K, poses, sizes).shape == (0,)
 
 
 def test_splits_follow_the_texel_width_in_pixels():
@@ -113,7 +109,7 @@ def test_refine_ground_splits_only_near_ground_and_keeps_flags():
     layer = Layer(centres, np.full(5, np.pi / 2), kind, np.array([0, 1, 1, 4]), [],
                   continued=np.array([False, True, False, True, False]),
                   seen=np.array([True, True, True, False, True]))
-    seen = np.isfinite(capture_footprint(centres[:4], 0.35, K, poses, sizes)[0])
+    seen = np.isfinite(capture_footprint(centres[:4], 0.35, K, poses, sizes))
     assert seen.tolist() == [True, True, True, False]   # the farther block is seen, coarser
     fine = refine_ground(layer, cloud, 0.5, (K, poses, sizes), ResolutionConfig(max_split=2, texel_pixels=4.0), 8)
     counts = np.bincount(np.repeat(np.arange(5), 4 ** np.array([2, 2, 0, 0, 0])))
@@ -126,32 +122,31 @@ def test_refine_ground_splits_only_near_ground_and_keeps_flags():
                           layer.centres)
 
 
-def test_blocks_split_only_as_far_as_their_children_close_the_seams():
-    """A child overlaps its neighbours by GROUND_OVERLAP of its own edge, and a seam closes while
-    the step seen at the capture's slope opens no more than the two overlaps: beside a larger
-    step or a neighbour turned otherwise it would leave a crack, so the block splits less or not
-    at all; a flat grid splits freely."""
-    xs, ys = np.meshgrid(np.arange(6) * 0.5, np.arange(4) * 0.5, indexing="ij")
-    centres = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]) + [10.25, -3.75, 0.0]
-    yaw = np.full(len(centres), np.pi / 2)
-    slope = np.full(len(centres), 0.5)
-    assert np.all(seam_splits(centres, yaw, 0.5, slope) == MAX_SPLIT)         # flat: no seam to hide
-    step = 0.006                                   # columns 4 and 5 6 mm up: a gap of 12 mm at slope 0.5
-    centres[xs.ravel() >= 2.0, 2] = step
-    times = seam_splits(centres, yaw, 0.5, slope).reshape(6, 4)
-    want = int(np.floor(np.log2(2 * GROUND_OVERLAP * 0.5 / (step / 0.5))))   # 2 × 0.04 m / 12 mm: 2 halvings
-    assert want == 2 and np.all(times[3:5] == want) and np.all(times[[0, 1, 2, 5]] == MAX_SPLIT)
-    shallow = np.full(len(centres), 0.05)          # seen at 3°: a gap of 6 cm, more than a whole block covers
-    assert np.all(seam_splits(centres, yaw, 0.5, shallow).reshape(6, 4)[3:5] == 0)
-    turned = yaw.copy()
-    turned[9] += np.deg2rad(6.0)                   # column 2, row 1: 0.71·0.5 m·6° ≈ 37 mm at a corner
-    times = seam_splits(centres, turned, 0.5, slope).reshape(6, 4)
-    assert times[2, 1] == 1 and times[1, 1] == 1 and times[0, 0] == MAX_SPLIT
-    kerb = centres.copy()
-    kerb[xs.ravel() >= 2.0, 2] = 0.12              # a kerb: an edge with a face of its own, not a seam
-    assert np.all(seam_splits(kerb, yaw, 0.5, slope, edge_step=0.06) == MAX_SPLIT)
-    assert np.all(seam_splits(kerb, yaw, 0.5, slope).reshape(6, 4)[3:5] == 0)
-    unseen = slope.copy()
-    unseen[0] = np.nan
-    assert seam_splits(centres, yaw, 0.5, unseen)[0] == 0
-    assert seam_splits(np.zeros((0, 3)), np.zeros(0), 0.5, np.zeros(0)).shape == (0,)
+def test_children_lie_on_their_parents_surface_and_meet_their_neighbours():
+    """The ground is a height field: a block split into children keeps its parent's bilinear
+    surface, so where a split block meets an unsplit neighbour (a T-junction) the children's
+    corners lie on the neighbour's edge, and children meet each other at one height."""
+    from billboards.ground import corner_heights
+    cells = np.array([(i, j) for i in range(3) for j in range(2)], np.int64)
+    z = 0.03 * cells[:, 0] + 0.02 * cells[:, 1] ** 2               # sloping, and bent along y
+    corners = corner_heights(cells, z, join=0.06)
+    centres = np.column_stack([(cells + 0.5) * 0.5, corners.mean(axis=1)])
+    dz = corners - centres[:, 2:3]
+    parent = np.repeat([0], 4)                                      # cell (0, 0) split once
+    child_xy = centres[0, :2] + 0.125 * np.array([(-1, -1), (1, -1), (-1, 1), (1, 1)])
+    child = np.column_stack([child_xy, np.full(4, centres[0, 2])])
+    got, got_dz = child_surfaces(centres, dz, np.full(len(cells), 0.5), parent, child, np.full(4, 0.25))
+    np.testing.assert_allclose(got_dz.mean(axis=1), 0.0, atol=1e-12)
+    world = got[:, 2:3] + got_dz                                    # (4, 4) heights of the children's corners
+    # children share their inner corners: child 0's x+y+ corner is child 3's x−y−
+    assert world[0, 3] == pytest.approx(world[3, 0]) and world[1, 2] == pytest.approx(world[2, 1])
+    # on the edge x = 0.5 (the neighbour (1, 0)'s x− edge) the children follow that edge's line
+    edge = corners[2] if tuple(cells[2]) == (1, 0) else corners[[tuple(c) for c in cells.tolist()].index((1, 0))]
+    mid = 0.5 * (edge[0] + edge[2])                                  # the neighbour's edge at y = 0.25
+    assert world[1, 3] == pytest.approx(mid) and world[3, 1] == pytest.approx(mid)
+    assert world[1, 1] == pytest.approx(edge[0]) and world[3, 3] == pytest.approx(edge[2])
+    # flat parents give flat children at their height
+    flat, flat_dz = child_surfaces(centres, np.zeros_like(dz), np.full(len(cells), 0.5), parent, child, np.full(4, 0.25))
+    assert np.all(flat_dz == 0) and np.all(flat[:, 2] == centres[0, 2])
+    assert child_surfaces(centres, dz, np.full(6, 0.5), np.zeros(0, np.int64), np.zeros((0, 3)),
+                          np.zeros(0))[1].shape == (0, 4)

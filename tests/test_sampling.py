@@ -218,3 +218,56 @@ def test_a_view_that_sees_no_point_has_an_empty_zbuffer():
     K = np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]])
     filled, nearest = zbuffer(np.zeros((0, 3), np.float32), np.zeros(3), K, np.eye(4), (100, 80), 2)
     assert np.all(np.isinf(filled)) and np.all(np.isinf(nearest)) and filled.shape == (40, 50)
+
+
+def test_a_sloping_ground_block_is_sampled_on_its_height_field(tmp_path):
+    """A ground block on a 30 % slope, its corners' heights given: every texel shows the ground
+    at the texel's place on the slope (an analytic pattern in x, y drawn into the images); the
+    same block taken flat at its centre's height samples the pattern from the wrong places."""
+    from billboards.geometry import GROUND, kind_frames, texel_points
+
+    slope = 0.3
+
+    def pattern(x, y):
+        return 127.5 + 100.0 * np.sin(2 * np.pi * x / 0.23) * np.cos(2 * np.pi * y / 0.31)
+
+    K = pinhole(W, H, 70.0)
+    poses, paths = [], []
+    for i, y in enumerate((-0.6, 0.0, 0.6)):
+        eye = np.array([0.25, y - 1.5, 1.8])
+        fwd = np.array([0.25, 0.25, 0.075]) - eye
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(fwd, [0, 0, 1.0])
+        right /= np.linalg.norm(right)
+        T = np.eye(4)
+        T[:3, :3] = np.stack([right, np.cross(fwd, right), fwd], axis=1)
+        T[:3, 3] = eye
+        u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+        d = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ T[:3, :3].T
+        t = (slope * eye[0] - eye[2]) / (d[..., 2] - slope * d[..., 0])
+        p = eye + t[..., None] * d
+        grey = np.clip(np.rint(pattern(p[..., 0], p[..., 1])), 0, 255).astype(np.uint8)
+        paths.append(write_png(tmp_path / f"{i}.png", np.repeat(grey[..., None], 3, axis=-1)))
+        poses.append(T)
+    views = Views(np.repeat(K[None], 3, 0), np.array(poses), np.tile([W, H], (3, 1)), tuple(paths))
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0.0, 0.5, (2000, 2))
+    points = np.column_stack([xy, slope * xy[:, 0]])
+    centre = np.array([[0.25, 0.25, slope * 0.25]])
+    voxels = voxel_points(points, np.zeros(len(points), np.int64), centre, np.zeros(3), SIZE)
+    corner_dz = np.array([[-1.0, 1.0, -1.0, 1.0]]) * slope * 0.25                 # x−y−, x+y−, x−y+, x+y+
+    config = _config(occlusion=False)
+    yaw = np.array([-np.pi / 2])                                                 # rows run away from the cameras
+    _, right, up = kind_frames(np.array([GROUND]), yaw, yaw, np.zeros(1))
+    errors = {}
+    for name, dz in (("height field", corner_dz), ("flat", None)):
+        sampler = ImageSampler(views, centre, SIZE, yaw, voxels, config, kind=np.array([GROUND], np.uint8),
+                               block_size=SIZE, corner_dz=dz)
+        sampled = sampler.sample(np.array([0]))
+        where = texel_points(centre, SIZE, right, up, TILE, corner_dz)[0]        # (t, t, 3) on the slope
+        truth = pattern(where[..., 0], where[..., 1])
+        seen = np.flatnonzero(sampled.view[0] >= 0)
+        assert len(seen) >= 3
+        grey = sampled.rgba[0, seen, ..., 0].astype(np.float64)
+        errors[name] = float(np.sqrt(np.mean((grey - truth[None]) ** 2)))
+    assert errors["height field"] < 6.0 and errors["flat"] > 3 * errors["height field"], errors

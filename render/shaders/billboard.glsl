@@ -40,6 +40,7 @@ in float in_size;        // edge of the quad (a slit: of each of its blocks), m
 in int in_blocks;        // blocks in the run (1 unless a slit)
 in vec2 in_origin;       // top-left texel of the run's top block in the atlas drawn from (slot 0)
 in vec4 in_weights;      // weight of each storage slot's direction (unused with VIEW)
+in vec4 in_corner_dz;    // a ground block's corners above its centre (m; zeros otherwise)
 
 out vec2 v_texel;
 flat out vec2 v_origin;
@@ -57,7 +58,7 @@ void main() {
     v_texel_max = vec2(float(u_tile), float(u_tile * in_blocks)) - 0.5;   // the run's last texel centre
     v_weights = in_weights;
     gl_Position = quad_vertex_run(in_centre, quad_angles(in_centre, in_base_yaw, in_kind), in_kind, in_size,
-                                  quad_corner(gl_VertexID), in_blocks, v_texel);
+                                  quad_corner(gl_VertexID), in_blocks, in_corner_dz, v_texel);
 }
 
 #elif defined FRAGMENT_SHADER

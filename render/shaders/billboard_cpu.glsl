@@ -12,6 +12,7 @@ in float in_base_yaw;  // world yaw (radians) a layer block faces
 in int in_tile;        // tile index in the frame atlas
 in int in_kind;        // 0 billboard, 1 facade block, 2 ground block
 in float in_size;      // edge of the quad (m)
+in vec4 in_corner_dz;  // a ground block's corners above its centre (m; zeros otherwise)
 
 out vec2 v_texel;
 flat out int v_tile;
@@ -19,7 +20,7 @@ flat out int v_tile;
 void main() {
     v_tile = in_tile;
     gl_Position = quad_vertex(in_centre, quad_angles(in_centre, in_base_yaw, in_kind), in_kind, in_size,
-                              quad_corner(gl_VertexID), v_texel);
+                              quad_corner(gl_VertexID), in_corner_dz, v_texel);
 }
 
 #elif defined FRAGMENT_SHADER

@@ -15,7 +15,10 @@
 // centre + ((col+½)/t − ½)·s·r + (½ − (row+½)/t)·s·u. A ground block is drawn
 // GROUND_OVERLAP of its edge larger on every side, repeating its border texels: on a
 // sloping road each block's far edge is a small step above the next block, and seen from
-// a car such steps would be cracks of background.
+// a car such steps would be cracks of background. The ground is a height field: a ground
+// block's corners rise `corner_dz` (x−y−, x+y−, x−y+, x+y+, world order) above its centre,
+// bilinear in the world x and y fractions of the block (billboards.geometry.surface_dz), the
+// corners neighbours share at one height; every other quad passes zeros.
 
 uniform mat4 u_projection;   // GL clip from GL eye
 uniform mat4 u_view;         // GL eye from model coordinates (world − origin)
@@ -49,9 +52,10 @@ vec2 quad_corner(int vertex_id) {
 
 // Clip-space position of `corner` of the quad of `kind` and edge `size` (m) at `centre` facing
 // `angles`, `blocks` blocks tall (a slit of the facade layer: a column of facade blocks,
-// billboards.slits; 1 otherwise);
+// billboards.slits; 1 otherwise), its corners `corner_dz` above it (ground; zeros otherwise);
 // `texel` receives the continuous tile coordinate (x = col, 0..t; y = row, 0..blocks·t from the top).
-vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, float size, vec2 corner, int blocks, out vec2 texel) {
+vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, float size, vec2 corner, int blocks, vec4 corner_dz,
+                     out vec2 texel) {
     float yaw = angles.x, pitch = angles.y;
     vec3 right = vec3(-sin(yaw), cos(yaw), 0.0);
     vec3 up = vec3(0.0, 0.0, 1.0);
@@ -63,6 +67,8 @@ vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, float size, vec2 corner
     }
     if (kind == KIND_GROUND) corner = (corner - 0.5) * (1.0 + 2.0 * GROUND_OVERLAP) + 0.5;
     vec3 p = centre + (corner.x - 0.5) * size * right + (corner.y - 0.5) * (size * float(blocks)) * up;
+    vec2 f = (p.xy - centre.xy) / size + 0.5;
+    p.z += mix(mix(corner_dz.x, corner_dz.y, f.x), mix(corner_dz.z, corner_dz.w, f.x), f.y);
     texel = vec2(corner.x, 1.0 - corner.y) * vec2(float(u_tile), float(u_tile * blocks));
 #ifdef QUAD_PROJECTION
     return QUAD_PROJECTION * (u_view * vec4(p, 1.0));   // a program's own choice (several views in one draw)
@@ -72,8 +78,8 @@ vec4 quad_vertex_run(vec3 centre, vec2 angles, int kind, float size, vec2 corner
 }
 
 // quad_vertex_run of a single block.
-vec4 quad_vertex(vec3 centre, vec2 angles, int kind, float size, vec2 corner, out vec2 texel) {
-    return quad_vertex_run(centre, angles, kind, size, corner, 1, texel);
+vec4 quad_vertex(vec3 centre, vec2 angles, int kind, float size, vec2 corner, vec4 corner_dz, out vec2 texel) {
+    return quad_vertex_run(centre, angles, kind, size, corner, 1, corner_dz, texel);
 }
 
 // Integer texel (x = col, y = row) of an interpolated tile coordinate, clamped to the tile.
