@@ -437,6 +437,9 @@ def _add_build(sub) -> None:
     p.add_argument("--wall-reach", type=nonnegative_float, default=depth.reach,
                    help="grow side walls up to this far (m) beyond their deepest cloud point where the images show "
                         f"them against the sky (0: off; default {depth.reach:g})")
+    p.add_argument("--wall-rise", type=nonnegative_float, default=depth.rise,
+                   help="grow side walls up to this far (m) above their top where the images show them against "
+                        f"the sky (0: off; default {depth.rise:g})")
     p.add_argument("--kerbs", choices=("on", "off"), default="on" if LayerConfig.kerbs else "off",
                    help="a fixed face on each step between two ground levels (a kerb) instead of billboards "
                         "(default on)")
@@ -488,7 +491,8 @@ def build_config_from_args(args):
                                                           block_size=args.block_size, ground_reach=args.ground_reach,
                                                           side_walls=args.side_walls == "on", kerbs=args.kerbs == "on",
                                                           resolution=ResolutionConfig(max_split=args.ground_splits),
-                                                          wall_depth=WallDepthConfig(reach=args.wall_reach))
+                                                          wall_depth=WallDepthConfig(reach=args.wall_reach,
+                                                                                     rise=args.wall_rise))
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,

@@ -16,11 +16,18 @@ something solid stands where its next column would be:
    nearer (by ``occlusion`` of the depth) does not vote; one that sees the centre votes
    *solid* when the pixel's colour is farther than ``sky_distance`` from the model's sky at
    that pixel's elevation.
+   A camera whose z-buffer holds the cloud well beyond the centre (by ``occlusion`` of the
+   depth) saw through it: it votes *open*.
 4. A block is observed with ``min_views`` votes and holds when ``agree`` of them are solid; a
    column joins the wall when ``column_share`` of its observed blocks hold (its lower rows
    are often hidden by the neighbour the wall rises above), and the wall stops at the first
    column that does not or that no camera observes. A joined column holds its rows up to the
    highest that holds, and down to the ground unless a camera saw open space there.
+5. Upward: every column of the wall, old and grown, also grows above the wall's top, up to
+   ``rise`` metres: up to its highest block that holds with no block observed open below it
+   (:func:`upward_blocks`). A side wall is as tall as the front it ends, or the taller
+   front beside it; the building it belongs to may be taller still, its own front set back
+   where the layer holds none.
 
 New blocks explain no cloud point (there is none there); they are FACADE blocks on the
 side wall, facing its open side, textured like the rest by sampling and the fit.
@@ -44,6 +51,7 @@ class WallDepthConfig:
     """How far side walls grow into what only the images show (see the module docstring)."""
 
     reach: float = 12.0             # a wall grows at most this far (m) beyond its deepest block (0: not)
+    rise: float = 12.0              # ... and at most this far (m) above its top (0: not)
     sky_distance: float = 0.2       # a pixel this close (RGB in [0, 1]) to the sky at its elevation shows sky
     min_views: int = 2              # cameras that see a candidate block's centre
     agree: float = 0.75             # ... of which this share must show something solid
@@ -56,8 +64,9 @@ class WallDepthConfig:
     zbuffer_scale: int = 4          # the z-buffers' downscale
 
     def __post_init__(self):
-        if not (np.isfinite(self.reach) and self.reach >= 0):
-            raise ValueError(f"wall depth reach must be a finite number ≥ 0 (m), got {self.reach!r}")
+        if not (np.isfinite(self.reach) and self.reach >= 0 and np.isfinite(self.rise) and self.rise >= 0):
+            raise ValueError(f"wall depth reach and rise must be finite numbers ≥ 0 (m), got {self.reach!r}, "
+                             f"{self.rise!r}")
         if not (0 < self.sky_distance and 0 < self.agree <= 1 and 0 < self.column_share <= 1
                 and 0 < self.grazing <= 1 and 0 < self.occlusion < 1 and self.max_distance > 0):
             raise ValueError("sky_distance, max_distance > 0, agree, column_share, grazing in (0, 1] "
@@ -123,15 +132,17 @@ def wall_votes(points: np.ndarray, normals: np.ndarray, K: np.ndarray, world_fro
     ok &= (u >= 0) & (u < w - 0.5) & (v >= 0) & (v < h - 0.5)
     px, py = np.rint(u[ok]).astype(np.int64), np.rint(v[ok]).astype(np.int64)
     s = config.zbuffer_scale
-    nearer = depth[py // s, px // s] < (1 - config.occlusion) * z[ok]
+    behind = depth[py // s, px // s]
+    nearer = behind < (1 - config.occlusion) * z[ok]
     sees = np.zeros(len(points), bool)
     solid = np.zeros(len(points), bool)
     idx = np.flatnonzero(ok)[~nearer]
-    px, py = px[~nearer], py[~nearer]
+    px, py, behind = px[~nearer], py[~nearer], behind[~nearer]
+    seen_through = np.isfinite(behind) & (behind > (1 + config.occlusion) * z[idx])
     colour = image[py, px].astype(np.float64) / 255.0
     sky_colour = sky.colour(ray_elevation(ray[idx])).astype(np.float64)
     sees[idx] = True
-    solid[idx] = np.linalg.norm(colour - sky_colour, axis=1) > config.sky_distance
+    solid[idx] = (np.linalg.norm(colour - sky_colour, axis=1) > config.sky_distance) & ~seen_through
     return sees, solid
 
 
@@ -151,9 +162,12 @@ def wall_votes_reference(points, normals, K, world_from_cam, image, depth, sky: 
         if not (0 <= u < w - 0.5 and 0 <= v < h - 0.5):
             continue
         col, row = int(np.rint(u)), int(np.rint(v))
-        if depth[row // config.zbuffer_scale, col // config.zbuffer_scale] < (1 - config.occlusion) * z:
+        behind = float(depth[row // config.zbuffer_scale, col // config.zbuffer_scale])
+        if behind < (1 - config.occlusion) * z:
             continue
         sees[i] = True
+        if np.isfinite(behind) and behind > (1 + config.occlusion) * z:
+            continue                                      # the cloud beyond it: seen through
         elevation = np.arctan2(ray[2], np.hypot(ray[0], ray[1]))
         diff = image[row, col] / 255.0 - sky.colour(np.array([elevation]))[0].astype(np.float64)
         solid[i] = float(np.sqrt(np.sum(diff ** 2))) > config.sky_distance
@@ -186,6 +200,18 @@ def column_blocks(observed: np.ndarray, holds: np.ndarray) -> np.ndarray:
     return any_hold[:, None] & (rows[None, :] >= lo[:, None]) & (rows[None, :] <= highest[:, None])
 
 
+def upward_blocks(observed: np.ndarray, holds: np.ndarray) -> np.ndarray:
+    """(k, r) bool the blocks columns grow by above a wall's top, given observed, holds (k, r)
+    bool of the rows above it (the lowest first): in each column the rows up to its highest
+    block that holds with no block below it observed open (not holding)."""
+    rows = np.arange(holds.shape[1])
+    open_ = observed & ~holds
+    first_open = np.where(open_.any(axis=1), np.argmax(open_, axis=1), holds.shape[1])
+    below = holds & (rows[None, :] < first_open[:, None])
+    highest = np.where(below.any(axis=1), holds.shape[1] - 1 - np.argmax(below[:, ::-1], axis=1), -1)
+    return rows[None, :] <= highest[:, None]
+
+
 def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarray, views, sky: Sky | None,
                       size: float, config: WallDepthConfig = WallDepthConfig()
                       ) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -197,25 +223,32 @@ def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarr
     report = {"walls": 0, "walls_grown": 0, "blocks": 0, "views_read": 0}
     none = (np.zeros((0, 3)), np.zeros(0), report)
     k = int(np.floor(config.reach / size + 1e-9))
-    if sky is None or views is None or k == 0 or len(centres) == 0:
+    up = int(np.floor(config.rise / size + 1e-9))
+    if sky is None or views is None or k + up == 0 or len(centres) == 0:
         return none
     walls = side_wall_faces(centres, base_yaw, size, views.centres)
     report["walls"] = len(walls)
     floor = float(np.min(centres[:, 2]))    # the lowest side-wall row: the ground's
-    candidates, normals, owner = [], [], []
+    candidates, normals, owner, above = [], [], [], []
     for i, wall in enumerate(walls):
         # the wall's rows down to the ground: deeper than its neighbour's rear, a wall that shows
         # only above the neighbour's roof at the front may show whole
-        rows = wall.rows.max() - size * np.arange(int(np.floor((wall.rows.max() - floor) / size + 1e-6)) + 1)[::-1]
+        top = wall.rows.max()
+        rows = top - size * np.arange(int(np.floor((top - floor) / size + 1e-6)) + 1)[::-1]
         walls[i] = wall = replace(wall, rows=rows)
         base = wall.plane - (wall.plane @ wall.deeper) * wall.deeper
-        cols = wall.columns.max() + size * np.arange(1, k + 1)
-        p = np.repeat((base[None, :] + cols[:, None] * wall.deeper[None, :])[:, None, :], len(wall.rows), axis=1)
-        p[..., 2] = wall.rows[None, :]
-        candidates.append(p.reshape(-1, 3))
-        normals.append(np.broadcast_to(wall.normal, (len(p.reshape(-1, 3)), 3)))
-        owner.append(np.full(len(p.reshape(-1, 3)), i))
+        cols = np.concatenate([wall.columns, wall.columns.max() + size * np.arange(1, k + 1)])
+        # deeper columns × the wall's rows, then every column × the rows above its top
+        for col_ids, z in ((np.arange(len(wall.columns), len(cols)), rows), (np.arange(len(cols)),
+                                                                           top + size * np.arange(1, up + 1))):
+            p = np.repeat((base[None, :] + cols[col_ids, None] * wall.deeper[None, :])[:, None, :], len(z), axis=1)
+            p[..., 2] = z[None, :]
+            candidates.append(p.reshape(-1, 3))
+            normals.append(np.broadcast_to(wall.normal, (p.size // 3, 3)))
+            owner.append(np.full(p.size // 3, i))
+            above.append(np.full(p.size // 3, bool(len(z)) and bool(z[0] > top)))
     points, normal, owner = np.concatenate(candidates), np.concatenate(normals), np.concatenate(owner)
+    above = np.concatenate(above)
     # each wall's cameras: on its open side, near, the nearest first
     chosen: dict[int, list[int]] = {}
     for i, wall in enumerate(walls):
@@ -243,12 +276,25 @@ def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarr
     holds = observed & (solid >= config.agree * sees)
     new_centres, new_yaw = [], []
     for i, wall in enumerate(walls):
+        deep, high = (owner == i) & ~above, (owner == i) & above
         shape = (k, len(wall.rows))
-        grown = grown_columns(observed[owner == i].reshape(shape), holds[owner == i].reshape(shape), config)
+        grown = grown_columns(observed[deep].reshape(shape), holds[deep].reshape(shape), config) if k else 0
+        # columns that grow upward: the wall's own, and grown ones that reach its top
+        rising = np.ones(len(wall.columns) + k, bool)
+        rising[len(wall.columns) + grown:] = False
+        mine = []
         if grown:
-            block = column_blocks(observed[owner == i].reshape(shape)[:grown], holds[owner == i].reshape(shape)[:grown])
-            new_centres.append(points[owner == i].reshape(k, len(wall.rows), 3)[:grown][block])
-            new_yaw.append(np.full(int(block.sum()), wall.yaw))
+            block = column_blocks(observed[deep].reshape(shape)[:grown], holds[deep].reshape(shape)[:grown])
+            mine.append(points[deep].reshape(k, len(wall.rows), 3)[:grown][block])
+            rising[len(wall.columns):len(wall.columns) + grown] = block[:, -1]
+        if up:
+            shape = (len(wall.columns) + k, up)
+            block = upward_blocks(observed[high].reshape(shape), holds[high].reshape(shape)) & rising[:, None]
+            mine.append(points[high].reshape(*shape, 3)[block])
+        count = sum(len(c) for c in mine)
+        if count:
+            new_centres.extend(mine)
+            new_yaw.append(np.full(count, wall.yaw))
             report["walls_grown"] += 1
     if not new_centres:
         return none

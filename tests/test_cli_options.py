@@ -236,7 +236,7 @@ def _commands(tmp):
                                       "--holdout": 1, "--block-size": 1, "--workers": 1,
                                       "--scheduler": 1, "--retries": 1, "--tile-metres": 1,
                                       "--fit-seconds": 1, "--ground-reach": 1, "--ground-splits": 1,
-                                      "--wall-reach": 1},
+                                      "--wall-reach": 1, "--wall-rise": 1},
         ("texture-sweep", nx, "--out", out): {"--count": 1, "--tiles": "+"},
         ("sampling-eval", nx, "--out", out): {"--count": 1, "--voxel-size": 1},
         ("stereo-sweep", nx, "--out", out): {"--frames": 1},

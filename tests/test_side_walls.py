@@ -161,6 +161,7 @@ def test_side_wall_config_is_validated():
 @pytest.mark.parametrize("option, value, read, default, given", [
     ("--side-walls", "off", lambda layer: layer.side_walls, LayerConfig().side_walls, False),
     ("--wall-reach", "0", lambda layer: layer.wall_depth.reach, WallDepthConfig().reach, 0.0),
+    ("--wall-rise", "0", lambda layer: layer.wall_depth.rise, WallDepthConfig().rise, 0.0),
 ])
 def test_build_options_of_the_walls_reach_the_layer_config(option, value, read, default, given):
     from bbcity.cli import build_config_from_args, build_parser

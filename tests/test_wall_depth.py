@@ -10,7 +10,7 @@ import pytest
 from billboards.sampling import zbuffer
 from billboards.sky import Sky
 from billboards.wall_depth import (WallDepthConfig, column_blocks, deepen_side_walls, grown_columns, side_wall_faces,
-                                   wall_votes, wall_votes_reference)
+                                   upward_blocks, wall_votes, wall_votes_reference)
 
 SKY = (0.4, 0.6, 0.9)
 WALL = (0.6, 0.25, 0.2)
@@ -58,11 +58,11 @@ def _wall_views(xs, rear: float = 15.0, size=(160, 120), f=60.0) -> _Views:
     return _Views(np.repeat(K[None], len(xs), 0), np.array(poses), np.tile([w, h], (len(xs), 1)), images)
 
 
-def _known_wall(depth: float = 8.0):
-    """The side wall's blocks stereo found: x = 10, y from −5 to −depth, rows to 10 m, facing +x;
-    its cloud points."""
+def _known_wall(depth: float = 8.0, height: float = 10.0):
+    """The side wall's blocks stereo found: x = 10, y from −5 to −depth, rows to ``height``,
+    facing +x; its cloud points."""
     ys = -(5.25 + 0.5 * np.arange(int(round((depth - 5) / 0.5))))
-    zs = 0.25 + 0.5 * np.arange(20)
+    zs = 0.25 + 0.5 * np.arange(int(round(height / 0.5)))
     centres = np.array([(10.0, y, z) for y in ys for z in zs])
     rng = np.random.default_rng(0)
     cloud = np.stack([np.full(3000, 10.0), rng.uniform(-depth, -5, 3000), rng.uniform(0, 10, 3000)], 1)
@@ -87,6 +87,41 @@ def test_a_wall_grows_to_its_rear_where_the_images_show_it_and_no_farther():
     assert len(deepen_side_walls(centres, yaw, cloud, views, sky, 0.5, WallDepthConfig(reach=0.0))[0]) == 0
 
 
+def test_a_wall_known_to_part_of_its_height_grows_up_to_its_top_and_no_higher():
+    """The wall found up to 6 m (as tall as the lower front beside it) belongs to a building 10 m
+    tall: its columns, the stereo's and the grown ones, rise from their top without a gap, as far
+    as cameras see them hold (the columns nearest the path are above every camera's view, or
+    behind the wall's own points at grazing views), and none above 10 m; with rise 0 none rises."""
+    centres, yaw, cloud = _known_wall(height=6.0)
+    views = _wall_views(np.arange(14.0, 32.0, 1.5))
+    sky = Sky(np.tile(np.array(SKY, np.float32), (8, 1)))
+    c, _, report = deepen_side_walls(centres, yaw, cloud, views, sky, 0.5)
+    assert report["walls_grown"] == 1
+    high = c[c[:, 2] > 6.0]
+    assert np.isclose(high[:, 2].max(), 9.75)
+    depth = np.round(-high[:, 1], 3)
+    for d in np.unique(depth):
+        rows = np.sort(high[depth == d, 2])
+        assert np.allclose(rows, 6.25 + 0.5 * np.arange(len(rows)))       # from the top up, no gap
+        if d >= 8.0:                                                        # the columns grown deeper: whole
+            assert len(rows) == 8
+    stereo = np.unique(np.round(-centres[:, 1], 3))
+    assert np.isin(np.round(stereo, 3), depth).sum() >= 3                 # the stereo's columns rise too
+    flat, _, _ = deepen_side_walls(centres, yaw, cloud, views, sky, 0.5, WallDepthConfig(rise=0.0))
+    assert flat[:, 2].max() < 6.0
+
+
+def test_upward_blocks_stop_below_open_space():
+    holds = np.array([[True, True, False, False], [False, True, True, False], [True, False, True, True],
+                      [False] * 4])
+    observed = np.array([[True, True, True, False], [False, True, True, True], [True, True, True, True],
+                         [True] * 4])
+    # up to the highest hold with nothing seen open below it; an unobserved row below counts as wall
+    assert upward_blocks(observed, holds).tolist() == [[True, True, False, False], [True, True, True, False],
+                                                       [True, False, False, False], [False] * 4]
+    assert upward_blocks(np.zeros((0, 3), bool), np.zeros((0, 3), bool)).shape == (0, 3)
+
+
 def test_cameras_on_the_walls_hidden_side_do_not_vote():
     centres, yaw, cloud = _known_wall()
     views = _wall_views(np.arange(-10.0, 6.0, 1.5))     # x < 10: behind the face
@@ -100,6 +135,8 @@ def test_wall_votes_match_the_reference_loop():
     sky = Sky(np.tile(np.array(SKY, np.float32), (8, 1)))
     config = WallDepthConfig()
     occluders = np.stack([rng.uniform(12, 20, 2000), rng.uniform(-6, -3, 2000), rng.uniform(0, 4, 2000)], 1)
+    beyond = np.stack([rng.uniform(2, 6, 4000), rng.uniform(-25, -12, 4000), rng.uniform(0, 3, 4000)], 1)
+    occluders = np.concatenate([occluders, beyond])            # a building behind the wall's plane: seen through
     origin = occluders.mean(axis=0)
     for v in range(2):
         points = np.stack([np.full(500, 10.0), rng.uniform(-20, 0, 500), rng.uniform(-1, 12, 500)], 1)
@@ -112,6 +149,24 @@ def test_wall_votes_match_the_reference_loop():
                                     sky, config)
         assert got[0].any() and got[1].any() and (got[0] & ~got[1]).any() and (~got[0]).any()
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_a_camera_whose_cloud_lies_beyond_a_block_saw_through_it():
+    """The wall's colour at the pixel, and the cloud's z-buffer there: empty (solid), well beyond
+    the block (seen through: open), nearer (hidden: no vote); as the reference does."""
+    views = _wall_views([20.0])
+    sky = Sky(np.tile(np.array(SKY, np.float32), (8, 1)))
+    config = WallDepthConfig()
+    point, normal = np.array([[10.0, -10.0, 4.0]]), np.array([[1.0, 0.0, 0.0]])
+    pose = views.world_from_cam[0]
+    z = float((point[0] - pose[:3, 3]) @ pose[:3, 2])
+    shape = tuple(-(-int(n) // config.zbuffer_scale) for n in views.sizes[0][::-1])
+    for depth, want in ((np.inf, (True, True)), (1.5 * z, (True, False)), (1.05 * z, (True, True)),
+                        (0.5 * z, (False, False))):
+        buffer = np.full(shape, depth, np.float32)
+        got = wall_votes(point, normal, views.K[0], pose, views.image(0), buffer, sky, config)
+        ref = wall_votes_reference(point, normal, views.K[0], pose, views.image(0), buffer, sky, config)
+        assert (bool(got[0][0]), bool(got[1][0])) == want == (bool(ref[0][0]), bool(ref[1][0])), depth
 
 
 def test_columns_grow_on_their_observed_blocks_until_one_fails():
@@ -148,6 +203,8 @@ def test_side_wall_faces_group_by_plane_and_facing_and_point_away_from_the_path(
 def test_wall_depth_config_is_validated():
     with pytest.raises(ValueError):
         WallDepthConfig(reach=-1.0)
+    with pytest.raises(ValueError):
+        WallDepthConfig(rise=float("nan"))
     with pytest.raises(ValueError):
         WallDepthConfig(agree=0.0)
     with pytest.raises(ValueError):
