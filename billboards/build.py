@@ -42,6 +42,7 @@ from .model_writer import ModelWriter, temp_dir
 from .octree import Octree, OctreeConfig, build_octree
 from .pca import EigenTextures, PcaConfig, eigen_textures
 from .photometry import PhotometryConfig, estimate_gains
+from .prune import drawn_quads, prune_nodes, prune_ranges, prune_state
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
                        voxel_points)
@@ -663,6 +664,13 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
             sampled, _ = sample_textures(state, conf, tasks, kind, quads, base_yaw, unseen, executor, progress)
             for st in sampled:
                 totals.add(st)
+            keep = drawn_quads(np.load(state / "rgba.npy", mmap_mode="r"))
+            if not keep.all():   # quads transparent from every direction explain no pixel
+                prune_state(state, keep)
+                quads, base_yaw, kind, split, corner_dz = (a[keep] for a in (quads, base_yaw, kind, split, corner_dz))
+                node_range = prune_ranges(node_range, keep)
+                tasks = texture_tasks(state, conf, len(kind))
+                logger.info("%d of %d quads draw nothing from any direction: left out", int((~keep).sum()), len(keep))
             stages["sample_s"] = time.perf_counter() - t3
             if fitting:
                 fit = _fit(conf, state, tasks, len(views), totals, append, executor, progress)
@@ -697,6 +705,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     report["layer"] = layer_report
     report["photometry"] = photometry_report
     report["fit"] = fit if fitting else {"enabled": False}
+    report["pruned_quads"] = int((~keep).sum())
     report.update(cloud=str(cloud_path), dataset=None if dataset_dir is None else str(dataset_dir),
                   poses=None if poses is None or dataset_dir is None else str(poses), stages=stages, total_s=time.perf_counter() - t0, peak_memory=peak_memory(),
                   config=_config_to_json(conf))
@@ -764,10 +773,12 @@ def _box(xyz: np.ndarray) -> str:
 
 
 def _node_table(octree: Octree, node_range: np.ndarray) -> dict:
-    """The model's node arrays; node_range (k, 2) [begin, end) billboards under each node."""
-    bounds = octree.node_bounds() - octree.origin
-    return {"node_level": octree.node_level.astype(np.uint8), "node_bounds": bounds.astype(np.float32),
-            "node_children": octree.node_children.astype(np.int32), "node_range": node_range.astype(np.int32)}
+    """The model's node arrays; node_range (k, 2) [begin, end) billboards under each node (the
+    nodes left without a billboard are left out, :func:`~billboards.prune.prune_nodes`)."""
+    level, bounds, children, node_range = prune_nodes(octree.node_level, octree.node_bounds() - octree.origin,
+                                                      octree.node_children, node_range)
+    return {"node_level": level.astype(np.uint8), "node_bounds": bounds.astype(np.float32),
+            "node_children": children.astype(np.int32), "node_range": node_range.astype(np.int32)}
 
 
 def _layer_report(layer: Layer, passes, points: np.ndarray, dataset, config: LayerConfig) -> dict:

@@ -48,6 +48,7 @@ from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table,
                     texture_tasks)
 from .geometry import FACADE, GROUND
 from .layer import Layer, build_layer, grow_side_walls, refine_ground
+from .prune import drawn_quads, prune_ranges, prune_state
 from .model_reader import load
 from .model_set import load_model_set, quad_bounds, tile_name, write_model_set
 from .model_writer import ModelWriter, temp_dir
@@ -256,6 +257,13 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
         desc = f"tile {index[0]},{index[1]}"
         stats, _ = sample_textures(state, conf, tasks, placed.kind, placed.quads, placed.base_yaw, placed.unseen,
                                    executor, progress, desc=f"{desc}: sampling")
+        keep = drawn_quads(np.load(state / "rgba.npy", mmap_mode="r"))
+        if not keep.all():   # quads transparent from every direction explain no pixel
+            prune_state(state, keep)
+            placed = replace(placed, **{name: getattr(placed, name)[keep] for name in
+                                        ("quads", "base_yaw", "kind", "split", "corner_dz", "unseen", "cell")},
+                             node_range=prune_ranges(placed.node_range, keep))
+            tasks = texture_tasks(state, conf, placed.num_billboards)
         with ModelWriter(out, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
                          coef_mode=conf.coef_mode, num_directions=d) as writer:
             done = 0
@@ -276,7 +284,8 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
         shutil.rmtree(state, ignore_errors=True)
     lo, hi = quad_bounds(load(out))
     report = {"name": out.name, "index": list(index), "lo": lo.tolist(), "hi": hi.tolist(),
-              "billboards": int(n), "voxels": int(octree.num_voxels), "views": 0 if views is None else len(views),
+              "billboards": placed.num_billboards, "pruned_quads": n - placed.num_billboards,
+              "voxels": int(octree.num_voxels), "views": 0 if views is None else len(views),
               "layer": counts, "place_s": t1 - t0, "sample_compress_s": time.perf_counter() - t1,
               **_tile_totals(stats, d)}
     write_json(out / TILE_REPORT, report)
@@ -292,7 +301,7 @@ def _set_report(tiles: list[dict], conf: BuildConfig) -> dict:
     ranks = np.sum([t["ranks"] for t in tiles], axis=0) if tiles else np.zeros(1, np.int64)
     return {
         "tiles": len(tiles), "billboards": int(sum(t["billboards"] for t in tiles)),
-        "voxels": int(sum(t["voxels"] for t in tiles)),
+        "voxels": int(sum(t["voxels"] for t in tiles)), "pruned_quads": int(sum(t.get("pruned_quads", 0) for t in tiles)),
         "rank_histogram": {str(r): int(c) for r, c in enumerate(ranks)},
         "mean_rank": float((ranks * np.arange(len(ranks))).sum() / max(1, ranks.sum())),
         "psnr": {"decoded_rgba_db": _psnr_db(sums.get("sq_err_decoded", 0), int(sums.get("values", 0))),

@@ -32,7 +32,7 @@ from .ground import ground_blocks
 from .kerbs import KerbConfig, kerb_blocks
 from .resolution import ResolutionConfig, capture_footprint, child_surfaces, split_blocks, splits_for
 from .side_walls import SideWallConfig, side_walls
-from .wall_depth import WallDepthConfig, deepen_side_walls
+from .wall_depth import WallDepthConfig, deepen_side_walls, front_steps
 
 logger = logging.getLogger(__name__)
 
@@ -483,11 +483,15 @@ def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, 
 
 def grow_side_walls(layer: Layer, cloud: np.ndarray, views, sky, size: float, config: WallDepthConfig
                     ) -> tuple[Layer, dict]:
-    """``layer`` with its side walls as deep as the images show them (:mod:`billboards.wall_depth`;
-    views: the capture's :class:`~billboards.sampling.Views`, sky: the model's sky or None), and
-    the report of that."""
+    """``layer`` with its side walls as deep and as high as the images show them, and walls where
+    its fronts step down (:mod:`billboards.wall_depth`; views: the capture's
+    :class:`~billboards.sampling.Views`, sky: the model's sky or None), and the report of that."""
+    fronts = np.flatnonzero((layer.kind == FACADE) & ~layer.side_wall & ~layer.kerb)
+    # the facade rows' grid: a front block's centre is half a block above a grid line
+    grid_z0 = float(layer.centres[fronts[0], 2] - size / 2) if len(fronts) else 0.0
+    steps = front_steps(layer.columns, size, grid_z0, config.step) if len(fronts) else []
     c, y, report = deepen_side_walls(layer.centres[layer.side_wall], layer.base_yaw[layer.side_wall], cloud, views,
-                                     sky, size, config)
+                                     sky, size, config, steps)
     if not len(c):
         return layer, report
     b = len(c)

@@ -28,6 +28,12 @@ something solid stands where its next column would be:
    (:func:`upward_blocks`). A side wall is as tall as the front it ends, or the taller
    front beside it; the building it belongs to may be taller still, its own front set back
    where the layer holds none.
+6. Steps: where two neighbouring columns of a front differ in height by ``step`` or more,
+   the taller building's end shows above the lower one's roof, facing it, whether or not
+   stereo found points on it (:func:`front_steps`; seen at a grazing angle from a path that
+   starts or ends there, it has few). Such a wall starts with no column: columns grow from
+   the taller front's plane backwards as in 2–4, with the rows between the two roofs (the
+   taller front's top is the layer's roof line: it does not rise as in 5).
 
 New blocks explain no cloud point (there is none there); they are FACADE blocks on the
 side wall, facing its open side, textured like the rest by sampling and the fit.
@@ -52,6 +58,7 @@ class WallDepthConfig:
 
     reach: float = 12.0             # a wall grows at most this far (m) beyond its deepest block (0: not)
     rise: float = 12.0              # ... and at most this far (m) above its top (0: not)
+    step: float = 2.0               # neighbouring front columns this much apart in height (m) stand at a wall
     sky_distance: float = 0.2       # a pixel this close (RGB in [0, 1]) to the sky at its elevation shows sky
     min_views: int = 2              # cameras that see a candidate block's centre
     agree: float = 0.75             # ... of which this share must show something solid
@@ -71,6 +78,8 @@ class WallDepthConfig:
                 and 0 < self.grazing <= 1 and 0 < self.occlusion < 1 and self.max_distance > 0):
             raise ValueError("sky_distance, max_distance > 0, agree, column_share, grazing in (0, 1] "
                              "and occlusion in (0, 1) required")
+        if not (np.isfinite(self.step) and self.step > 0):
+            raise ValueError(f"wall depth step must be a finite number > 0 (m), got {self.step!r}")
         if min(self.min_views, self.max_views, self.zbuffer_points, self.zbuffer_scale) < 1:
             raise ValueError("min_views, max_views, zbuffer_points and zbuffer_scale must be ≥ 1")
 
@@ -80,7 +89,9 @@ class Wall:
     """One side wall's face: normal (3,) float64 unit horizontal (the open side); deeper (3,)
     float64 unit horizontal along the wall away from the path; plane (3,) float64 a point on
     it; columns: the positions (m) along ``deeper`` of its columns' centres; rows (r,) float64
-    its rows' centre heights; yaw: the face's base yaw."""
+    its rows' centre heights; yaw: the face's base yaw; step: a wall at a front's step
+    (:func:`front_steps`), whose one column is the front's plane, not blocks of its own, and
+    whose rows are its own (not down to the ground)."""
 
     normal: np.ndarray
     deeper: np.ndarray
@@ -88,6 +99,7 @@ class Wall:
     columns: np.ndarray
     rows: np.ndarray
     yaw: float
+    step: bool = False
 
 
 def side_wall_faces(centres: np.ndarray, base_yaw: np.ndarray, size: float, viewpoints: np.ndarray) -> list[Wall]:
@@ -110,6 +122,33 @@ def side_wall_faces(centres: np.ndarray, base_yaw: np.ndarray, size: float, view
         along = centres[ids] @ deeper
         walls.append(Wall(n, deeper, centres[ids[0]], np.unique(np.round(along / size * 2) / 2 * size),
                           np.unique(np.round(centres[ids, 2], 6)), float(base_yaw[ids[0]])))
+    return walls
+
+
+def front_steps(fronts, size: float, grid_z0: float, min_step: float) -> list[Wall]:
+    """Walls at the steps of fronts (:class:`billboards.layer.FacadeColumns` of each pass):
+    where two neighbouring columns' tops differ by ``min_step`` m or more, the taller one's end
+    above the lower one's roof, on the plane between the two columns, facing the lower one;
+    its rows are the blocks (on the rows' grid from ``grid_z0``, edge ``size``) between the two
+    tops, and its one column lies just in front of the taller front's plane."""
+    walls = []
+    for cols in fronts:
+        epi, top, off = cols.epi, np.asarray(cols.top), np.asarray(cols.offset)
+        ok = np.isfinite(top) & np.isfinite(off)
+        at = np.flatnonzero(ok[:-1] & ok[1:] & (np.abs(np.diff(top)) >= min_step))
+        axis = np.array([epi.axis[0], epi.axis[1], 0.0]) / np.hypot(epi.axis[0], epi.axis[1])
+        deeper = np.array([epi.facing[0], epi.facing[1], 0.0]) / np.hypot(epi.facing[0], epi.facing[1])
+        for i in at:
+            tall, low = (i, i + 1) if top[i] > top[i + 1] else (i + 1, i)
+            normal = axis if low > tall else -axis
+            plane = epi.origin + (cols.first + i + 1) * size * epi.axis + off[tall] * epi.facing
+            first = int(np.ceil((top[low] - grid_z0) / size - 1e-6))
+            last = int(np.floor((top[tall] - grid_z0) / size + 1e-6)) - 1
+            if last - first < 1:
+                continue
+            rows = grid_z0 + (np.arange(first, last + 1) + 0.5) * size
+            walls.append(Wall(normal, deeper, plane, np.array([plane @ deeper - size / 2]), rows,
+                              float(np.arctan2(normal[1], normal[0])), step=True))
     return walls
 
 
@@ -213,29 +252,39 @@ def upward_blocks(observed: np.ndarray, holds: np.ndarray) -> np.ndarray:
 
 
 def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarray, views, sky: Sky | None,
-                      size: float, config: WallDepthConfig = WallDepthConfig()
+                      size: float, config: WallDepthConfig = WallDepthConfig(), steps: list[Wall] = ()
                       ) -> tuple[np.ndarray, np.ndarray, dict]:
     """The blocks that side walls grow by where the images show them: centres (b, 3) float64,
     base_yaw (b,) float64, and a JSON-ready report. centres (s, 3), base_yaw (s,): the side
     walls' blocks; cloud (N, 3) float64 world points (occlusion); views:
     :class:`billboards.sampling.Views` of the capture; sky: the model's sky (None: nothing
-    grows); size: the blocks' edge (m)."""
-    report = {"walls": 0, "walls_grown": 0, "blocks": 0, "views_read": 0}
+    grows); size: the blocks' edge (m); steps: walls at the fronts' steps (:func:`front_steps`),
+    each taken unless a side wall already stands on its plane facing its way."""
+    report = {"walls": 0, "walls_grown": 0, "blocks": 0, "views_read": 0, "steps": 0}
     none = (np.zeros((0, 3)), np.zeros(0), report)
     k = int(np.floor(config.reach / size + 1e-9))
     up = int(np.floor(config.rise / size + 1e-9))
-    if sky is None or views is None or k + up == 0 or len(centres) == 0:
+    if sky is None or views is None or k + up == 0 or len(centres) + len(steps) == 0:
         return none
     walls = side_wall_faces(centres, base_yaw, size, views.centres)
-    report["walls"] = len(walls)
-    floor = float(np.min(centres[:, 2]))    # the lowest side-wall row: the ground's
+    standing = [(w.yaw, w.plane @ w.normal) for w in walls]
+    new = [w for w in steps if not any(abs(np.angle(np.exp(1j * (w.yaw - y)))) < 1e-3
+                                       and abs(w.plane @ w.normal - d) < size / 2 for y, d in standing)]
+    walls += new
+    report.update(walls=len(walls), steps=len(new))
+    if not walls:
+        return none
+    # the lowest side-wall row: the ground's
+    floor = float(np.min(centres[:, 2])) if len(centres) else min(float(w.rows.min()) for w in walls)
     candidates, normals, owner, above = [], [], [], []
     for i, wall in enumerate(walls):
         # the wall's rows down to the ground: deeper than its neighbour's rear, a wall that shows
-        # only above the neighbour's roof at the front may show whole
+        # only above the neighbour's roof at the front may show whole (a step's: its own)
         top = wall.rows.max()
-        rows = top - size * np.arange(int(np.floor((top - floor) / size + 1e-6)) + 1)[::-1]
-        walls[i] = wall = replace(wall, rows=rows)
+        if not wall.step:
+            rows = top - size * np.arange(int(np.floor((top - floor) / size + 1e-6)) + 1)[::-1]
+            walls[i] = wall = replace(wall, rows=rows)
+        rows = wall.rows
         base = wall.plane - (wall.plane @ wall.deeper) * wall.deeper
         cols = np.concatenate([wall.columns, wall.columns.max() + size * np.arange(1, k + 1)])
         # deeper columns × the wall's rows, then every column × the rows above its top
@@ -279,14 +328,15 @@ def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarr
         deep, high = (owner == i) & ~above, (owner == i) & above
         shape = (k, len(wall.rows))
         grown = grown_columns(observed[deep].reshape(shape), holds[deep].reshape(shape), config) if k else 0
-        # columns that grow upward: the wall's own, and grown ones that reach its top
-        rising = np.ones(len(wall.columns) + k, bool)
+        # columns that grow upward: the wall's own, and grown ones that reach its top; a step's
+        # wall is as tall as the taller front (the layer's roof line), it does not
+        rising = np.full(len(wall.columns) + k, not wall.step)
         rising[len(wall.columns) + grown:] = False
         mine = []
         if grown:
             block = column_blocks(observed[deep].reshape(shape)[:grown], holds[deep].reshape(shape)[:grown])
             mine.append(points[deep].reshape(k, len(wall.rows), 3)[:grown][block])
-            rising[len(wall.columns):len(wall.columns) + grown] = block[:, -1]
+            rising[len(wall.columns):len(wall.columns) + grown] &= block[:, -1]
         if up:
             shape = (len(wall.columns) + k, up)
             block = upward_blocks(observed[high].reshape(shape), holds[high].reshape(shape)) & rising[:, None]

@@ -45,10 +45,12 @@ def tiny_model(tiny_dataset, tiny_cloud, tmp_path_factory):
 def test_model_loads_and_the_report_adds_up(tiny_model):
     model = billboard_model.load(tiny_model.model)
     r = tiny_model.report
-    assert model.num_billboards == r["voxels"] > 50
-    assert sum(r["rank_histogram"].values()) == r["voxels"]
-    assert model.num_slots == r["voxels"] + int(model.rank.sum()) == r["slots"]
-    assert r["bytes"]["raw_samples"] == r["voxels"] * 8 * 8 * 8 * 4
+    # every voxel a billboard, less those transparent from every direction (they draw nothing)
+    assert model.num_billboards == r["billboards"] == r["voxels"] - r["pruned_quads"] > 50
+    assert 0 <= r["pruned_quads"] < 0.2 * r["voxels"]
+    assert sum(r["rank_histogram"].values()) == r["billboards"]
+    assert model.num_slots == r["billboards"] + int(model.rank.sum()) == r["slots"]
+    assert r["bytes"]["raw_samples"] == r["billboards"] * 8 * 8 * 8 * 4
     assert r["compression_ratio"] == pytest.approx(r["bytes"]["raw_samples"] / r["bytes"]["model"])
     assert len(model.pages) == r["pages"] > 1                      # 64-texel pages: several, last cropped
     for key in ("read_cloud_s", "octree_s", "sample_compress_s", "write_s"):
@@ -76,6 +78,7 @@ def test_decoded_model_matches_a_fresh_sampling(tiny_dataset, tiny_cloud, tiny_m
     raw samples the builder compressed (re-sampled here with the same settings)."""
     from billboards.build import place_billboards
     from billboards.octree import build_octree
+    from billboards.prune import drawn_quads
     from billboards.sampling import views_from_dataset
     from recon.cloud_io import read_cloud_arrays
 
@@ -88,13 +91,16 @@ def test_decoded_model_matches_a_fresh_sampling(tiny_dataset, tiny_cloud, tiny_m
     placed = place_billboards(points, octree, views.centres)
     quads = placed.quads
     sampler = placed.image_sampler(views, conf.sampling)
+    sampled = sampler.sample(np.arange(len(quads))).rgba
+    kept = np.flatnonzero(drawn_quads(sampled))                  # the model leaves out quads that draw nothing
+    assert len(kept) == model.num_billboards
     ids = np.arange(0, model.num_billboards, max(1, model.num_billboards // 20))
-    raw = sampler.sample(ids).rgba.astype(np.float32) / 255
+    raw = sampled[kept[ids]].astype(np.float32) / 255
     decoded = billboard_model.decode_directions(model, ids)
     assert decoded.shape == raw.shape
     mse = np.mean((decoded - raw) ** 2)
     assert 10 * np.log10(1 / max(mse, 1e-12)) > 25
-    np.testing.assert_allclose(model.centres + model.origin, quads, atol=1e-4)
+    np.testing.assert_allclose(model.centres + model.origin, quads[kept], atol=1e-4)
     # Quads sit on the surface: moved from the voxel centre along the base direction only.
     shift = quads - centres
     assert np.all(np.abs(shift) <= octree.voxel_size / 2 + 1e-9) and np.allclose(shift[:, 2], 0)
@@ -107,7 +113,7 @@ def test_points_source_and_cli(tiny_dataset, tiny_cloud, tmp_path):
     assert code == 0
     model = billboard_model.load(out)
     report = json.loads((out / "build_report.json").read_text())
-    assert report["config"]["source"] == "points" and model.num_billboards == report["voxels"]
+    assert report["config"]["source"] == "points" and model.num_billboards == report["voxels"] - report["pruned_quads"]
     # Without a capture path the directions cover the whole circle.
     span = np.degrees(model.yaw_offsets[-1] - model.yaw_offsets[0]) + np.degrees(np.diff(model.yaw_offsets)[0])
     assert span == pytest.approx(360.0)

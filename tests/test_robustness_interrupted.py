@@ -236,7 +236,7 @@ def test_build_interrupted_keeps_the_old_model_and_the_next_run_starts_clean(wal
 
     # the next run writes a complete model with its report
     result = build_main(small_build(tile_mode="f16"), wall_cloud, None, out)
-    assert result.report["config"]["tile_mode"] == "f16" and load(out).num_billboards == result.report["voxels"]
+    assert result.report["config"]["tile_mode"] == "f16" and load(out).num_billboards == result.report["billboards"]
     assert json.loads((out / "build_report.json").read_text())["voxels"] == result.report["voxels"]
 
 

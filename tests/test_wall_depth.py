@@ -9,8 +9,8 @@ import pytest
 
 from billboards.sampling import zbuffer
 from billboards.sky import Sky
-from billboards.wall_depth import (WallDepthConfig, column_blocks, deepen_side_walls, grown_columns, side_wall_faces,
-                                   upward_blocks, wall_votes, wall_votes_reference)
+from billboards.wall_depth import (WallDepthConfig, column_blocks, deepen_side_walls, front_steps, grown_columns,
+                                   side_wall_faces, upward_blocks, wall_votes, wall_votes_reference)
 
 SKY = (0.4, 0.6, 0.9)
 WALL = (0.6, 0.25, 0.2)
@@ -109,6 +109,42 @@ def test_a_wall_known_to_part_of_its_height_grows_up_to_its_top_and_no_higher():
     assert np.isin(np.round(stereo, 3), depth).sum() >= 3                 # the stereo's columns rise too
     flat, _, _ = deepen_side_walls(centres, yaw, cloud, views, sky, 0.5, WallDepthConfig(rise=0.0))
     assert flat[:, 2].max() < 6.0
+
+
+def _stepped_front(low_top: float = 4.0):
+    """A front on y = −5 along +x (the path on y = 0 looks −y), its columns 0.5 m wide from x = 0:
+    10 m tall up to x = 10, ``low_top`` beyond."""
+    from types import SimpleNamespace
+
+    epi = SimpleNamespace(origin=np.zeros(3), axis=np.array([1.0, 0, 0]), facing=np.array([0, -1.0, 0]))
+    along = (np.arange(40) + 0.5) * 0.5
+    return SimpleNamespace(epi=epi, size=0.5, first=0, offset=np.full(40, 5.0),
+                           bottom=np.zeros(40), top=np.where(along < 10, 10.0, low_top))
+
+
+def test_a_taller_buildings_end_above_a_lower_neighbour_grows_from_the_step():
+    """No side wall, no cloud point on it: where the front steps down from 10 m to 4 m at x = 10,
+    the taller building's end (x = 10, facing +x, toward the lower roof) shows in the images
+    between the two roofs; it grows from the front's plane to its rear, no higher than 10 m."""
+    steps = front_steps([_stepped_front()], 0.5, 0.0, 2.0)
+    assert len(steps) == 1 and steps[0].step
+    wall = steps[0]
+    assert np.allclose(wall.normal, [1, 0, 0]) and np.isclose(wall.plane[0], 10.0) and np.allclose(wall.deeper, [0, -1, 0])
+    np.testing.assert_allclose(wall.rows, 4.25 + 0.5 * np.arange(12))
+    assert front_steps([_stepped_front(low_top=8.5)], 0.5, 0.0, 2.0) == []            # a step of 1.5 m: none
+    views = _wall_views(np.arange(14.0, 32.0, 1.5))
+    sky = Sky(np.tile(np.array(SKY, np.float32), (8, 1)))
+    cloud = np.zeros((0, 3))
+    c, y, report = deepen_side_walls(np.zeros((0, 3)), np.zeros(0), cloud, views, sky, 0.5, steps=steps)
+    assert report["steps"] == 1 and report["walls_grown"] == 1
+    assert np.allclose(c[:, 0], 10.0) and np.allclose(y, 0.0)
+    assert np.isclose(c[:, 2].min(), 4.25) and np.isclose(c[:, 2].max(), 9.75)
+    depth = -c[:, 1]
+    assert np.isclose(depth.min(), 5.25) and np.isclose(depth.max(), 14.75)   # the rear is at 15 m
+    # a side wall already on that plane facing that way takes the step's place
+    centres, yaw, wall_cloud = _known_wall()
+    _, _, report = deepen_side_walls(centres, yaw, wall_cloud, views, sky, 0.5, steps=steps)
+    assert report["steps"] == 0 and report["walls"] == 1
 
 
 def test_upward_blocks_stop_below_open_space():
