@@ -10,6 +10,7 @@ no farther apart than ``reach`` with nothing standing between them (a cell whose
 from its ground, or a facade) gets a block on the line between their heights
 (:func:`continue_ground`): asphalt without texture gives stereo no points, and the road
 between a sideways rig's two passes is never in any image, yet the road continues there.
+
 The ground is a height field: each block's corners take the mean height of the blocks around
 that grid vertex whose heights chain within ``join`` of each other (:func:`corner_heights`), so
 neighbours meet without a step or a crack, and a kerb (a rise of ``join`` or more) stays sharp.
