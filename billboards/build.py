@@ -466,8 +466,11 @@ def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np
     float64, base_yaw (n,) float64, unseen (n,) bool: :class:`Billboards`; their splits and cells are
     read from ``state``) into the memory map ``state/rgba.npy``, then give the ground blocks that have
     none one from seen ground nearby (:func:`~billboards.synthesis.synthesise`: changes ``base_yaw`` in
-    place; it and which blocks are synthesised are saved for the next tasks). Returns the tasks'
-    sampling statistics and synthesised (n,) bool."""
+    place; it and which blocks are synthesised are saved for the next tasks), and leave out of
+    ``state`` the quads that draw nothing (transparent from every direction,
+    :func:`~billboards.prune.prune_state`). Returns the tasks' sampling statistics and keep (n,)
+    bool the quads left, in their order (the caller's per-quad arrays and node ranges follow it:
+    :func:`~billboards.prune.prune_ranges`)."""
     s, n = conf.sampling, len(kind)
     # its blocks reserved: a full disk is an OSError naming the file, not a worker killed by SIGBUS
     reserved_memmap(state / "rgba.npy", np.uint8, (n, s.directions.num_directions, s.tile, s.tile, 4)).flush()
@@ -483,7 +486,11 @@ def sample_textures(state: Path, conf: BuildConfig, tasks: list[_Task], kind: np
     del rgba
     np.save(state / "synthesised.npy", synthesised.astype(np.uint8))
     np.save(state / "base_yaw.npy", base_yaw)
-    return stats, synthesised
+    keep = drawn_quads(np.load(state / "rgba.npy", mmap_mode="r"))
+    if not keep.all():
+        prune_state(state, keep)
+        logger.info("%d of %d quads draw nothing from any direction: left out", int((~keep).sum()), n)
+    return stats, keep
 
 
 def compressed_textures(tasks: list[_Task], executor: Executor | None, progress: bool | None, desc: str = "billboards"):
@@ -661,16 +668,13 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                     done += b
                     totals.add(stats)
 
-            sampled, _ = sample_textures(state, conf, tasks, kind, quads, base_yaw, unseen, executor, progress)
+            sampled, keep = sample_textures(state, conf, tasks, kind, quads, base_yaw, unseen, executor, progress)
             for st in sampled:
                 totals.add(st)
-            keep = drawn_quads(np.load(state / "rgba.npy", mmap_mode="r"))
             if not keep.all():   # quads transparent from every direction explain no pixel
-                prune_state(state, keep)
                 quads, base_yaw, kind, split, corner_dz = (a[keep] for a in (quads, base_yaw, kind, split, corner_dz))
                 node_range = prune_ranges(node_range, keep)
                 tasks = texture_tasks(state, conf, len(kind))
-                logger.info("%d of %d quads draw nothing from any direction: left out", int((~keep).sum()), len(keep))
             stages["sample_s"] = time.perf_counter() - t3
             if fitting:
                 fit = _fit(conf, state, tasks, len(views), totals, append, executor, progress)

@@ -48,7 +48,7 @@ from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table,
                     texture_tasks)
 from .geometry import FACADE, GROUND
 from .layer import Layer, build_layer, grow_side_walls, refine_ground
-from .prune import drawn_quads, prune_ranges, prune_state
+from .prune import prune_ranges
 from .model_reader import load
 from .model_set import load_model_set, quad_bounds, tile_name, write_model_set
 from .model_writer import ModelWriter, temp_dir
@@ -255,11 +255,9 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
         d = conf.sampling.directions.num_directions
         octree = placed.octree
         desc = f"tile {index[0]},{index[1]}"
-        stats, _ = sample_textures(state, conf, tasks, placed.kind, placed.quads, placed.base_yaw, placed.unseen,
-                                   executor, progress, desc=f"{desc}: sampling")
-        keep = drawn_quads(np.load(state / "rgba.npy", mmap_mode="r"))
+        stats, keep = sample_textures(state, conf, tasks, placed.kind, placed.quads, placed.base_yaw, placed.unseen,
+                                      executor, progress, desc=f"{desc}: sampling")
         if not keep.all():   # quads transparent from every direction explain no pixel
-            prune_state(state, keep)
             placed = replace(placed, **{name: getattr(placed, name)[keep] for name in
                                         ("quads", "base_yaw", "kind", "split", "corner_dz", "unseen", "cell")},
                              node_range=prune_ranges(placed.node_range, keep))

@@ -92,6 +92,7 @@ class BillboardRenderer:
         self._cullers: dict[tuple[int, int], OcclusionCuller | HzbCuller] = {}
         self.ctx = ctx
         self.model = model
+        self._pad = model_quad_radius(model)   # how far a quad reaches beyond its leaf (m), once per model
         self.decode = decode
         self.spherical = bool(model.pitched_quads if spherical is None else spherical)
         self.background = background_rgb(background)
@@ -182,7 +183,7 @@ class BillboardRenderer:
             return self._draw_impostors(camera, self._draw_blocks(camera, np.arange(model.num_billboards), totals))
         t0 = time.perf_counter()
         view_proj = camera.projection.astype(np.float64) @ camera.view.astype(np.float64)
-        pad = model_quad_radius(model)
+        pad = self._pad
         culler = None
         if self.cull != "frustum":
             culler = self._cullers.get(camera.size)
@@ -213,9 +214,8 @@ class BillboardRenderer:
     def _frustum(self, view_proj: np.ndarray, split: int | None = None):
         """The octree nodes in the frustum of ``view_proj`` (4, 4) float64 (:func:`frustum_cull_nodes`)."""
         model = self.model
-        pad = model_quad_radius(model)
         return frustum_cull_nodes(frustum_planes(view_proj), model.node_bounds, model.node_children,
-                                  model.node_range, pad=pad, centres=model.centres, radius=pad,
+                                  model.node_range, pad=self._pad, centres=model.centres, radius=self._pad,
                                   split_inside_above=split)
 
     def warm(self, camera: GLCamera, budget: int) -> tuple[int, int]:
