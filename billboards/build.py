@@ -35,6 +35,7 @@ from recon.epi import EpiConfig, epi_points
 from .atlas import reserved_memmap
 from .facade_truth import facade_depth_report
 from .fit import FitConfig, Quads, quads_of
+from .fit_alpha import apply_alpha, read_alpha_rows, write_alpha_rows
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward, quad_edges
 from .layer import Layer, LayerConfig, build_layer, grow_side_walls, refine_ground
@@ -46,7 +47,7 @@ from .prune import drawn_quads, prune_nodes, prune_ranges, prune_state
 from .quantize import dequantize_rows, dequantize_tiles, quantize_rows, quantize_tiles
 from .sampling import (ImageSampler, SamplingConfig, Views, VoxelPoints, quad_centres, views_from_dataset,
                        voxel_points)
-from .sky import estimate_sky, write_sky
+from .sky import estimate_sky, read_sky, write_sky
 from .splat import PointSampler
 from .synthesis import synthesise
 
@@ -244,6 +245,8 @@ class _ViewTask:
     state: str          # directory with the shared arrays
     begin: int          # training view range [begin, end) of the fit
     end: int
+    stage: str = "records"    # "records": the colour fit's measurements; "alpha": the alpha decision's sums
+    occluded: bool = False    # a tile's: hits behind its context's z-buffer are no measurements
 
 
 _WORKER: dict = {}
@@ -404,12 +407,22 @@ def _fit_quads(state_dir: str, conf: BuildConfig) -> Quads:
 
 
 def _cast_task(task: _ViewTask) -> dict:
-    """The fit's measurements of training views [begin, end) into ``records_BEGIN.npy``."""
+    """The fit's measurements of training views [begin, end) into ``records_BEGIN.npy`` (or the
+    alpha decision's sums into ``alpha_BEGIN.npy``)."""
     sampler, conf = _worker_state(task.state)
     root = Path(task.state)
     rgba = np.load(root / "rgba.npy", mmap_mode="r")
+    if task.stage == "alpha":
+        return write_alpha_rows(root / f"alpha_{task.begin:06d}.npy", _fit_quads(task.state, conf), rgba,
+                                sampler.views, range(task.begin, task.end), read_sky(root), conf.fit,
+                                conf.sampling.max_distance)
+    s = conf.sampling
+
+    def occluders(i):
+        return sampler.cache.get(i)[2], s.zbuffer_scale, s.slab_margin, s.rel_tolerance
     return write_view_records(root / f"records_{task.begin:06d}.npy", _fit_quads(task.state, conf), rgba,
-                              sampler.views, range(task.begin, task.end), conf.fit, conf.sampling.max_distance)
+                              sampler.views, range(task.begin, task.end), conf.fit, conf.sampling.max_distance,
+                              occluders if task.occluded else None)
 
 
 def _compress_range(root: Path, begin: int, end: int, conf: BuildConfig, eig: EigenTextures | None = None) -> list:
@@ -438,6 +451,15 @@ def _run_task(task: _Task):
             sampled = sampler.sample(np.arange(s, min(task.end, s + conf.chunk)))
             rgba[s:s + len(sampled.rgba)] = sampled.rgba
             stats.append({"sampling_s": time.perf_counter() - t0, "sampling": sampled.stats})
+        rgba.flush()
+        return stats
+    if task.stage == "alpha":
+        rgba = np.load(root / "rgba.npy", mmap_mode="r+")
+        t = rgba.shape[2]
+        rows = read_alpha_rows(sorted(root.glob("alpha_*.npy")), task.begin, task.end, t * t)
+        mine = np.array(rgba[task.begin:task.end])
+        stats = apply_alpha(mine, task.begin, rows, _fit_quads(task.state, conf).kind, conf.fit)
+        rgba[task.begin:task.end] = mine
         rgba.flush()
         return stats
     if task.stage == "fit":
@@ -645,6 +667,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         corner_dz = placed.corner_dz
         node_range = placed.node_range
         save_worker_state(state, conf, placed, views, colours)
+        write_sky(state, sky)   # what the fit's alpha sees behind the last quad along a ray
         stages["prepare_s"] = time.perf_counter() - t2
         del points, colours, placed, layer
 
@@ -677,7 +700,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                 tasks = texture_tasks(state, conf, len(kind))
             stages["sample_s"] = time.perf_counter() - t3
             if fitting:
-                fit = _fit(conf, state, tasks, len(views), totals, append, executor, progress)
+                fit = fit_textures(conf, state, tasks, len(views), append, executor, progress)
                 stages.update(fit.pop("stages"))
             else:
                 for chunks in compressed_textures(tasks, executor, progress):
@@ -720,32 +743,51 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     return BuildResult(model_dir, report)
 
 
-def _fit(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: int, totals: "_Totals", append,
-         executor: Executor | None, progress: bool | None) -> dict:
-    """Ray cast the training views against the sampled textures (:func:`sample_textures`),
-    solve each task's textures against its records and ``append`` their compressed chunks
-    in order. Returns the build report's "fit" with its "stages" seconds."""
+def fit_textures(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: int, append,
+                 executor: Executor | None, progress: bool | None, tile: str | None = None) -> dict:
+    """Decide the alpha of the sampled textures (:func:`sample_textures`) by the training views,
+    ray cast those views against them, solve each task's textures against its records and
+    ``append`` their compressed chunks in order. ``tile``: the name of a tile being built alone
+    (its neighbours' quads are unknown: a hit behind the tile's context is no measurement, and
+    alpha stays as sampled, since what a see-through texel shows may be a neighbour's). Returns
+    the build report's "fit" with its "stages" seconds."""
     window = 2 * executor_workers(executor)
-    t1 = time.perf_counter()
+    t0 = time.perf_counter()
     per = conf.fit_views_per_task
-    casts = list(ordered_results(_cast_task, [_ViewTask(str(state), b, min(num_views, b + per))
-                                              for b in range(0, num_views, per)],
+    batches = [(b, min(num_views, b + per)) for b in range(0, num_views, per)]
+    alpha = {"enabled": conf.fit.alpha and tile is None}
+    if alpha["enabled"]:
+        casts = list(ordered_results(_cast_task, [_ViewTask(str(state), b, e, "alpha") for b, e in batches],
+                                     executor, window=window, desc="fit: alpha views", progress=progress))
+        counts = list(ordered_results(_run_task, [replace(t, stage="alpha") for t in tasks],
+                                      executor, window=window, desc="fit: alpha", progress=progress))
+        for path in state.glob("alpha_*.npy"):
+            path.unlink()
+        alpha.update({k: sum(c[k] for c in counts) for k in ("decided", "shown", "cleared")},
+                     rays=sum(c["rays"] for c in casts), cast_worker_s=sum(c["cast_s"] for c in casts))
+        logger.info("%sfit: alpha of %d texels decided by the training images: %d now shown, %d now seen through",
+                    "" if tile is None else f"{tile}: ", alpha["decided"], alpha["shown"], alpha["cleared"])
+    t1 = time.perf_counter()
+    casts = list(ordered_results(_cast_task, [_ViewTask(str(state), b, e, occluded=tile is not None)
+                                              for b, e in batches],
                                  executor, window=window, desc="fit: views", progress=progress))
     t2 = time.perf_counter()
     # What is left of the budget, shared fairly: each task's iterations may take its part of it.
-    share = max(0.0, conf.fit.seconds - (t2 - t1)) * executor_workers(executor) / max(1, len(tasks))
+    share = max(0.0, conf.fit.seconds - (t2 - t0)) * executor_workers(executor) / max(1, len(tasks))
     fit_stats = []
     for chunks, stats in ordered_results(_run_task, [replace(t, stage="fit", seconds=share) for t in tasks],
                                          executor, window=window, desc="fit: textures", progress=progress):
         append(chunks)
         fit_stats.append(stats)
     t3 = time.perf_counter()
-    report = fit_report(fit_stats, casts, conf.fit, t3 - t1)
-    logger.info("fit: %d views, %d measurements (%d transients left out), training pixels %s → %s dB "
-                "(transients too: %s → %s dB) in %.1f s", report["views"], report["measurements"],
-                report["transients"], _db(report["psnr_before_db"]), _db(report["psnr_after_db"]),
-                _db(report["psnr_all_before_db"]), _db(report["psnr_all_after_db"]), t3 - t1)
-    report["stages"] = {"fit_cast_s": t2 - t1, "fit_solve_compress_s": t3 - t2}
+    report = fit_report(fit_stats, casts, conf.fit, t3 - t0)
+    report["alpha"] = alpha
+    report["hidden"] = sum(c["hidden"] for c in casts)
+    logger.info("%sfit: %d views, %d measurements (%d transients left out), training pixels %s → %s dB "
+                "(transients too: %s → %s dB) in %.1f s", "" if tile is None else f"{tile}: ", report["views"],
+                report["measurements"], report["transients"], _db(report["psnr_before_db"]), _db(report["psnr_after_db"]),
+                _db(report["psnr_all_before_db"]), _db(report["psnr_all_after_db"]), t3 - t0)
+    report["stages"] = {"fit_alpha_s": t1 - t0, "fit_cast_s": t2 - t1, "fit_solve_compress_s": t3 - t2}
     return report
 
 

@@ -38,14 +38,15 @@ import numpy as np
 
 from core.fileio import DataFormatError, read_json, replace_dir, write_json
 from core.memory import peak_memory
+from core.metrics import psnr_from_mse
 from data_synth import load_dataset
 from data_synth.dataset import held_out_frames
 from recon.cloud_io import CloudTiles, PlyStreamWriter, TileGrid, read_cloud_arrays, read_cloud_tiles
 from recon.epi import EpiPass, epi_points
 
 from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table, _psnr_db, _Totals,
-                    compressed_textures, place_billboards, place_hybrid, sample_textures, save_worker_state,
-                    texture_tasks)
+                    compressed_textures, fit_textures, place_billboards, place_hybrid, sample_textures,
+                    save_worker_state, texture_tasks)
 from .geometry import FACADE, GROUND
 from .layer import Layer, build_layer, grow_side_walls, refine_ground
 from .prune import prune_ranges
@@ -262,10 +263,14 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
                                         ("quads", "base_yaw", "kind", "split", "corner_dz", "unseen", "cell")},
                              node_range=prune_ranges(placed.node_range, keep))
             tasks = texture_tasks(state, conf, placed.num_billboards)
+        fitting = conf.fit is not None and conf.source == "images" and views is not None and len(views) > 0
+        fit = {"enabled": False}
         with ModelWriter(out, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
                          coef_mode=conf.coef_mode, num_directions=d) as writer:
             done = 0
-            for chunks in compressed_textures(tasks, executor, progress, desc=desc):
+
+            def append(chunks):
+                nonlocal done
                 for arrays, chunk_stats in chunks:
                     b = len(arrays["rank"])
                     writer.append(centres=(placed.quads[done:done + b] - octree.origin).astype(np.float32),
@@ -274,6 +279,13 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
                                   corner_dz=placed.corner_dz[done:done + b], **arrays)
                     done += b
                     stats.append(chunk_stats)
+
+            if fitting:   # each tile against the views that see it, its context hiding what it hides
+                fit = fit_textures(conf, state, tasks, len(views), append, executor, progress, tile=desc)
+                fit.pop("stages")
+            else:
+                for chunks in compressed_textures(tasks, executor, progress, desc=desc):
+                    append(chunks)
             writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,
                           yaw_offsets=conf.sampling.directions.yaw_offsets, pitches=conf.sampling.directions.pitches,
                           pitched_quads=conf.sampling.directions.pitched_quads, info=info,
@@ -284,7 +296,7 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
     report = {"name": out.name, "index": list(index), "lo": lo.tolist(), "hi": hi.tolist(),
               "billboards": placed.num_billboards, "pruned_quads": n - placed.num_billboards,
               "voxels": int(octree.num_voxels), "views": 0 if views is None else len(views),
-              "layer": counts, "place_s": t1 - t0, "sample_compress_s": time.perf_counter() - t1,
+              "layer": counts, "place_s": t1 - t0, "sample_compress_s": time.perf_counter() - t1, "fit": fit,
               **_tile_totals(stats, d)}
     write_json(out / TILE_REPORT, report)
     return report
@@ -311,6 +323,22 @@ def _set_report(tiles: list[dict], conf: BuildConfig) -> dict:
     }
 
 
+def set_fit_report(tiles: list[dict]) -> dict:
+    """The fit of a set: its tiles' measurements, transients and hidden hits summed, and the
+    training pixels' PSNR before and after from their summed squared residuals."""
+    fits = [t["fit"] for t in tiles if t.get("fit", {}).get("enabled")]
+    if not fits:
+        return {"enabled": False}
+    out = {"enabled": True, "tiles": len(fits)}
+    for k in ("views", "rays", "measurements", "transients", "hidden", "cast_worker_s", "seconds"):
+        out[k] = sum(f[k] for f in fits)
+    measured = out["measurements"]
+    for name, at in (("psnr_before_db", 0), ("psnr_after_db", -1)):
+        sq = sum(f["iterations"][at]["rms"] ** 2 * 3 * f["measurements"] for f in fits if f["measurements"])
+        out[name] = psnr_from_mse(sq / (3 * measured)) if measured else None
+    return out
+
+
 def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathLike | str | None,
                 model_dir: os.PathLike | str, executor: Executor | None = None, progress: bool | None = None,
                 poses: os.PathLike | str | None = None) -> BuildResult:
@@ -324,9 +352,6 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
         raise ValueError("a tiled build needs a voxel size (OctreeConfig.voxel_size), not an octree depth")
     if conf.source != "images" and dataset_dir is None and conf.layer is not None:
         conf = replace(conf, layer=None)
-    if conf.fit is not None:
-        # each tile would have to see its neighbours' quads in front of its own to be fitted
-        logger.warning("a tiled build is not fitted to its images: its textures stay as sampled")
     cloud_path, model_dir = Path(cloud_path), Path(model_dir)
     t_start = time.perf_counter()
     stages: dict[str, float] = {}
@@ -413,7 +438,8 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
         write_model_set(work, grid_origin, conf.tile_metres,
                         [{k: r[k] for k in ("name", "index", "lo", "hi")} for r in reports], info=info)
         report = _set_report(reports, conf)
-        report.update(photometry=photometry_report, fit={"enabled": False}, resumed_tiles=resumed, cloud=str(cloud_path),
+        report.update(photometry=photometry_report, fit=set_fit_report(reports), resumed_tiles=resumed,
+                      cloud=str(cloud_path),
                       dataset=None if dataset_dir is None else str(dataset_dir), stages=stages,
                       total_s=time.perf_counter() - t_start, peak_memory=peak_memory(),
                       config=_config_to_json(conf))

@@ -29,8 +29,8 @@ iteration recorded, until the iterations or the time budget run out.
 A pixel far off what X₀ predicts saw something passing (:func:`transient_rows`) and is
 left out.
 
-Alpha and geometry are not fitted: the quads' places and the see-through texels are
-sampling's.
+Which texels are shown and which are seen through is decided before, by the same images
+(:mod:`billboards.fit_alpha`); the quads' places are sampling's.
 
 Arrays: a view's measurements are :class:`Records` (one row per ray that met a quad);
 textures are (B, d, t, t, 3) float in [0, 1], direction j = p·d_yaw + y.
@@ -70,11 +70,17 @@ class FitConfig:
     transients: float | None = 96.0   # a measurement off the sampled texture by more than this many grey
                                       # levels in some channel is something passing (a car), not the
                                       # surface, and is left out (None: every measurement counts)
+    alpha: bool = True            # decide which texels are shown or seen through by the training images first
+                                  # (billboards.fit_alpha)
+    alpha_tolerance: float = 12.0  # grey levels (RMS per channel) by which one explanation of a texel's pixels
+                                   # must beat the other to change its alpha
+    alpha_min_views: int = 2      # a texel's alpha changes only on rays from at least this many views
+    alpha_min_rays: int = 3       # ... and at least this many rays
 
     def __post_init__(self):
         if not (np.isfinite(self.seconds) and self.seconds >= 0):
             raise ValueError(f"fit seconds must be a finite number ≥ 0, got {self.seconds!r}")
-        for name in ("iterations", "pixel_stride", "see_through"):
+        for name in ("iterations", "pixel_stride", "see_through", "alpha_min_views", "alpha_min_rays"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                 raise ValueError(f"fit {name} must be an integer, got {value!r}")
@@ -82,6 +88,12 @@ class FitConfig:
             raise ValueError("fit iterations and see_through must be ≥ 0, pixel_stride ≥ 1")
         if not (np.isfinite(self.prior) and self.prior > 0):
             raise ValueError(f"fit prior must be a finite number > 0 (it keeps the solve regular), got {self.prior!r}")
+        if not isinstance(self.alpha, (bool, np.bool_)):
+            raise ValueError(f"fit alpha must be true or false, got {self.alpha!r}")
+        if self.alpha_min_views < 1 or self.alpha_min_rays < 1:
+            raise ValueError("fit alpha_min_views and alpha_min_rays must be ≥ 1")
+        if not (np.isfinite(self.alpha_tolerance) and self.alpha_tolerance >= 0):
+            raise ValueError(f"fit alpha_tolerance must be a finite number ≥ 0, got {self.alpha_tolerance!r}")
         if self.transients is not None and not (np.isfinite(self.transients) and self.transients > 0):
             raise ValueError(f"fit transients must be a finite number > 0 or None, got {self.transients!r}")
 
@@ -223,36 +235,43 @@ def visible_quads(quads: Quads, K: np.ndarray, world_from_cam: np.ndarray, size,
 class Hits:
     """Rays of one view that met a quad: pixel (r, 2) int64 (u = column, v = row); quad (r,)
     int64; texel (r, 2) float32 continuous tile coordinates (column, row, 0..t); corner (r, c)
-    int64 and weight (r, c) float32: the directions blended there."""
+    int64 and weight (r, c) float32: the directions blended there; distance (r,) float64 from
+    the eye to the point met (m)."""
 
     pixel: np.ndarray
     quad: np.ndarray
     texel: np.ndarray
     corner: np.ndarray
     weight: np.ndarray
+    distance: np.ndarray
 
 
-def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, size, *,
-              stride: int = 1, max_distance: float = 60.0, see_through: int = 3) -> Hits:
-    """Ray cast the quads from one camera, as the renderer draws them.
+@dataclass(frozen=True, eq=False)
+class QuadScene:
+    """One camera's quads placed as the renderer places them for its eye, ready to ray cast:
+    ids (m,) int64 the quads in view; eye (3,) float64 world; right, up (m, 3) float64 their
+    axes; rel (m, 3) float64 their centres relative to the eye; scene: Open3D's
+    ``RaycastingScene`` of their two triangles each (camera-relative, float32)."""
 
-    alpha (n, d, t·t) uint8 (a memory map will do): each quad's alpha per direction; K (3, 3),
-    world_from_cam (4, 4) float64; size (w, h); rays through every ``stride``-th pixel centre of
-    every ``stride``-th row. A ray that meets a texel whose blended alpha is below ½ goes on,
-    ``see_through`` times at most (then it counts as missing, as behind too many see-through
-    texels the renderer too shows what lies far behind). A ray that stops where ground blocks
-    overlap in one plane is left out (see below).
-    """
+    quads: Quads
+    ids: np.ndarray
+    eye: np.ndarray
+    right: np.ndarray
+    up: np.ndarray
+    rel: np.ndarray
+    scene: object
+
+
+def quad_scene(quads: Quads, K: np.ndarray, world_from_cam: np.ndarray, size, max_distance: float
+               ) -> QuadScene | None:
+    """The :class:`QuadScene` of a camera K (3, 3), world_from_cam (4, 4) float64, size (w, h);
+    None when no quad is in view."""
     import open3d as o3d  # (a second or two to import: not for every command line that knows FitConfig)
 
-    w, h = int(size[0]), int(size[1])
     C = np.asarray(world_from_cam, np.float64)[:3, 3]
-    R = np.asarray(world_from_cam, np.float64)[:3, :3]
     ids = visible_quads(quads, K, world_from_cam, size, max_distance)
-    empty = Hits(np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.float32),
-                 np.zeros((0, quads.corners), np.int64), np.zeros((0, quads.corners), np.float32))
     if len(ids) == 0:
-        return empty
+        return None
     right, up = quads.frames(ids, C)
     edge = quads.edges(ids)[:, None]
     rel = quads.centres[ids] - C                                   # camera-relative: float32 keeps millimetres
@@ -266,34 +285,56 @@ def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np
     triangles = np.concatenate([first + np.array([0, 1, 2], np.uint32), first + np.array([2, 1, 3], np.uint32)])
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(corners.astype(np.float32)), o3d.core.Tensor(triangles))
+    return QuadScene(quads, ids, C, right, up, rel, scene)
 
-    u, v = np.meshgrid(np.arange(0, w, stride, dtype=np.float64), np.arange(0, h, stride, dtype=np.float64))
-    u, v = u.ravel(), v.ravel()
-    rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=1)
-    direction = rays_cam @ R.T
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    start = np.zeros(len(u))                                       # distance along each ray already passed
-    todo = np.arange(len(u))
-    found_ray, found_quad, found_texel, found_corner, found_weight = [], [], [], [], []
+
+@dataclass(frozen=True, eq=False)
+class Traced:
+    """Rays that stopped on a quad: ray (r,) int64 index into the traced rays; quad (r,) int64;
+    texel (r, 2) float32; corner (r, c) int64 and weight (r, c) float32 (as :class:`Hits`);
+    distance (r,) float64 along the ray (m)."""
+
+    ray: np.ndarray
+    quad: np.ndarray
+    texel: np.ndarray
+    corner: np.ndarray
+    weight: np.ndarray
+    distance: np.ndarray
+
+
+def trace(qs: QuadScene, alpha: np.ndarray | None, direction: np.ndarray, start: np.ndarray,
+          see_through: int) -> Traced:
+    """Follow eye-relative rays ``direction`` (r, 3) float64 unit from ``start`` (r,) float64 m
+    to the first quad the renderer would show there: a texel whose blended ``alpha`` (n, d, t·t)
+    uint8 is below ½ is passed, ``see_through`` times at most (alpha None: every texel is
+    shown). A ray that stops where ground blocks overlap in one plane is left out: the renderer
+    shows whichever it drew first."""
+    import open3d as o3d
+
+    quads, ids = qs.quads, qs.ids
     n_tri = len(ids)
-    for _ in range(see_through + 1):
+    start = np.array(start, np.float64)
+    todo = np.arange(len(direction))
+    found = []
+    for _ in range(see_through + 1 if alpha is not None else 1):
         if len(todo) == 0:
             break
         origin = direction[todo] * start[todo, None]
         rays = np.concatenate([origin, direction[todo]], axis=1).astype(np.float32)
-        hit = scene.cast_rays(o3d.core.Tensor(rays))
+        hit = qs.scene.cast_rays(o3d.core.Tensor(rays))
         t_hit = hit["t_hit"].numpy().astype(np.float64)
         met = np.isfinite(t_hit)
         todo, t_hit = todo[met], t_hit[met]
         prim = hit["primitive_ids"].numpy()[met].astype(np.int64)
         local = prim % n_tri                                       # triangle k and n_tri + k are quad k's
-        point = direction[todo] * (start[todo] + t_hit)[:, None] - rel[local]
+        point = direction[todo] * (start[todo] + t_hit)[:, None] - qs.rel[local]
         scale = quads.sizes(ids[local])
-        col = (point * right[local]).sum(axis=1) / scale + 0.5
-        row = 0.5 - (point * up[local]).sum(axis=1) / scale
+        col = (point * qs.right[local]).sum(axis=1) / scale + 0.5
+        row = 0.5 - (point * qs.up[local]).sum(axis=1) / scale
         texel = (np.stack([col, row], axis=1) * quads.tile).astype(np.float32)
-        corner, weight = quads.brackets(ids[local], C)
-        opaque = blended(quads, alpha, ids[local], corner, weight, texel) >= 0.5 * 255
+        corner, weight = quads.brackets(ids[local], qs.eye)
+        opaque = (np.ones(len(todo), bool) if alpha is None
+                  else blended(quads, alpha, ids[local], corner, weight, texel) >= 0.5 * 255)
         keep = opaque.copy()
         # Where two quads lie in one plane (ground blocks overlap their neighbours) the renderer
         # shows whichever it drew first: a ray with a second surface within TIE metres behind
@@ -302,23 +343,50 @@ def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np
         if len(flat):
             near = np.concatenate([direction[todo[flat]] * (start[todo[flat]] + t_hit[flat] - TIE)[:, None],
                                    direction[todo[flat]]], axis=1).astype(np.float32)
-            found = scene.list_intersections(o3d.core.Tensor(near))
-            ray = found["ray_ids"].numpy().astype(np.int64)
-            other = (found["t_hit"].numpy() < 2 * TIE) & (found["primitive_ids"].numpy() % n_tri != local[flat][ray])
+            inter = qs.scene.list_intersections(o3d.core.Tensor(near))
+            ray = inter["ray_ids"].numpy().astype(np.int64)
+            other = (inter["t_hit"].numpy() < 2 * TIE) & (inter["primitive_ids"].numpy() % n_tri != local[flat][ray])
             keep[flat[np.unique(ray[other])]] = False
-        found_ray.append(todo[keep])
-        found_quad.append(ids[local][keep])
-        found_texel.append(texel[keep])
-        found_corner.append(corner[keep])
-        found_weight.append(weight[keep])
+        found.append((todo[keep], ids[local][keep], texel[keep], corner[keep], weight[keep],
+                      (start[todo] + t_hit)[keep]))
         start[todo] += t_hit + 1e-4                                # on past the see-through texel
         todo = todo[~opaque]
-    if not found_ray:
-        return empty
-    ray = np.concatenate(found_ray)
-    pixel = np.stack([u[ray], v[ray]], axis=1).astype(np.int64)
-    return Hits(pixel, np.concatenate(found_quad), np.concatenate(found_texel), np.concatenate(found_corner),
-                np.concatenate(found_weight))
+    if not found:
+        return Traced(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.float32),
+                      np.zeros((0, quads.corners), np.int64), np.zeros((0, quads.corners), np.float32), np.zeros(0))
+    return Traced(*(np.concatenate(part) for part in zip(*found)))
+
+
+def pixel_rays(K: np.ndarray, world_from_cam: np.ndarray, size, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``stride``-th pixel centre of every ``stride``-th row: pixel (r, 2) int64 (u, v)
+    and the world directions (r, 3) float64 unit of their rays."""
+    w, h = int(size[0]), int(size[1])
+    u, v = np.meshgrid(np.arange(0, w, stride, dtype=np.float64), np.arange(0, h, stride, dtype=np.float64))
+    u, v = u.ravel(), v.ravel()
+    rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=1)
+    direction = rays_cam @ np.asarray(world_from_cam, np.float64)[:3, :3].T
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    return np.stack([u, v], axis=1).astype(np.int64), direction
+
+
+def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, size, *,
+              stride: int = 1, max_distance: float = 60.0, see_through: int = 3) -> Hits:
+    """Ray cast the quads from one camera, as the renderer draws them.
+
+    alpha (n, d, t·t) uint8 (a memory map will do): each quad's alpha per direction; K (3, 3),
+    world_from_cam (4, 4) float64; size (w, h); rays through every ``stride``-th pixel centre of
+    every ``stride``-th row. A ray that meets a texel whose blended alpha is below ½ goes on,
+    ``see_through`` times at most (then it counts as missing, as behind too many see-through
+    texels the renderer too shows what lies far behind). A ray that stops where ground blocks
+    overlap in one plane is left out (:func:`trace`).
+    """
+    qs = quad_scene(quads, K, world_from_cam, size, max_distance)
+    if qs is None:
+        return Hits(np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.float32),
+                    np.zeros((0, quads.corners), np.int64), np.zeros((0, quads.corners), np.float32), np.zeros(0))
+    pixel, direction = pixel_rays(K, world_from_cam, size, stride)
+    t = trace(qs, alpha, direction, np.zeros(len(direction)), see_through)
+    return Hits(pixel[t.ray], t.quad, t.texel, t.corner, t.weight, t.distance)
 
 
 def view_records(hits: Hits, image: np.ndarray) -> np.ndarray:

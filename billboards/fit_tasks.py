@@ -19,26 +19,47 @@ import numpy as np
 from core.fileio import atomic_path
 from core.metrics import psnr_from_mse
 
-from .fit import FitConfig, Quads, cast_view, problem, record_dtype, solve, transient_rows, view_records
+from .fit import FitConfig, Hits, Quads, cast_view, problem, record_dtype, solve, transient_rows, view_records
 from .fit_subspace import slots, subspace, with_slots
 from .pca import EigenTextures, PcaConfig, eigen_textures
 from .sampling import Views
 
 
+def unoccluded(hits: Hits, K: np.ndarray, depth: np.ndarray, scale: int, margin: float, rel: float) -> np.ndarray:
+    """(r,) bool: the hits that nothing of a z-buffer lies in front of. depth (zh, zw) float32
+    z-depth (m, inf where empty) at 1/``scale`` of the image's resolution
+    (:func:`billboards.sampling.zbuffer`'s conservative ``nearest``); a hit counts as hidden
+    when its z-depth is beyond the buffer's by more than ``margin`` m + ``rel`` of it."""
+    u, v = hits.pixel[:, 0].astype(np.float64), hits.pixel[:, 1].astype(np.float64)
+    z = hits.distance / np.sqrt(((u - K[0, 2]) / K[0, 0]) ** 2 + ((v - K[1, 2]) / K[1, 1]) ** 2 + 1.0)
+    zh, zw = depth.shape
+    iu = np.clip(((u + 0.5) / scale).astype(np.int64), 0, zw - 1)
+    iv = np.clip(((v + 0.5) / scale).astype(np.int64), 0, zh - 1)
+    front = depth[iv, iu].astype(np.float64)
+    return ~(z > front * (1.0 + rel) + margin)
+
+
 def write_view_records(path: os.PathLike | str, quads: Quads, rgba: np.ndarray, views: Views, view_ids,
-                       config: FitConfig, max_distance: float) -> dict:
+                       config: FitConfig, max_distance: float, occluders=None) -> dict:
     """Ray cast views ``view_ids`` (of ``views``, images divided by their gains) against
     ``quads`` with the alpha of ``rgba`` (n, d, t, t, 4) uint8 and write their measurements
-    to ``path`` (sorted by quad, atomically). Returns {"views", "rays", "records", "cast_s"}."""
+    to ``path`` (sorted by quad, atomically). ``occluders``: for a tile, whose neighbours'
+    quads are not among ``quads``, a function of a view's index → (depth, scale, margin, rel)
+    of :func:`unoccluded`; a hit behind what that z-buffer holds (a neighbour's wall in front)
+    is no measurement. Returns {"views", "rays", "records", "hidden", "cast_s"}."""
     t0 = time.perf_counter()
     n, d, t = rgba.shape[:3]
     alpha = rgba.reshape(n, d, t * t, 4)[..., 3]
-    out, rays = [], 0
+    out, rays, hidden = [], 0, 0
     for i in view_ids:
         w, h = (int(s) for s in views.sizes[i])
         hits = cast_view(quads, alpha, views.K[i], views.world_from_cam[i], (w, h), stride=config.pixel_stride,
                          max_distance=max_distance, see_through=config.see_through)
         rays += len(range(0, w, config.pixel_stride)) * len(range(0, h, config.pixel_stride))
+        if occluders is not None and len(hits.quad):
+            seen = unoccluded(hits, views.K[i], *occluders(int(i)))
+            hidden += int((~seen).sum())
+            hits = Hits(*(getattr(hits, f)[seen] for f in Hits.__dataclass_fields__))
         if len(hits.quad):
             out.append(view_records(hits, views.image(int(i))))
     records = np.concatenate(out) if out else np.zeros(0, record_dtype(quads.corners))
@@ -46,7 +67,8 @@ def write_view_records(path: os.PathLike | str, quads: Quads, rgba: np.ndarray, 
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.save(f, records)
-    return {"views": len(view_ids), "rays": rays, "records": len(records), "cast_s": time.perf_counter() - t0}
+    return {"views": len(view_ids), "rays": rays, "records": len(records), "hidden": hidden,
+            "cast_s": time.perf_counter() - t0}
 
 
 def read_records(paths, begin: int, end: int) -> np.ndarray:

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 import billboards.build_tiles as build_tiles
 from billboards.build import BuildConfig, main as build_main
 from billboards.build_tiles import own_layer
+from billboards.fit import FitConfig
 from billboards.layer import Layer
 from billboards.model_reader import load
 from billboards.model_set import load_model_set
@@ -59,9 +62,11 @@ def test_own_layer_keeps_the_tile_blocks_and_drops_points_of_foreign_ones():
 def built(tiny_dataset, tiled_cloud, tmp_path_factory):
     """(one model's build result, the tiled build's (8 m tiles), their parent directory)."""
     root = tmp_path_factory.mktemp("built")
-    # a tiled build is not fitted (its tiles would need their neighbours in front): one model unfitted is its equal;
-    # every billboard's decode error measured (error_stride 1): a stride picks other billboards in each tile
-    one = build_main(BuildConfig(fit=None, error_stride=1), tiled_cloud, tiny_dataset, root / "one", progress=False)
+    # a tile's fit leaves alpha as sampled (what a see-through texel shows may be a neighbour's): one model fitted
+    # without the alpha is its equal; every billboard's decode error measured (error_stride 1): a stride picks other
+    # billboards in each tile
+    one = build_main(BuildConfig(fit=FitConfig(alpha=False), error_stride=1), tiled_cloud, tiny_dataset, root / "one",
+                     progress=False)
     tiled = build_main(BuildConfig(tile_metres=8.0, error_stride=1), tiled_cloud, tiny_dataset, root / "set",
                        progress=False)
     return one, tiled, root
@@ -86,11 +91,25 @@ def test_tiled_build_matches_one_model(built):
         one.report["psnr"]["decoded_rgb_opaque_db"], abs=1.0)
 
 
+def test_each_tile_is_fitted_to_the_views_that_see_it(built):
+    """A tiled build fits every tile (its context's z-buffer hiding what lies behind a neighbour)
+    and the set's report sums them: the training pixels come nearer, as in one model's fit."""
+    one, tiled, root = built
+    fit = tiled.report["fit"]
+    assert fit["enabled"] and fit["tiles"] == tiled.report["tiles"]
+    assert fit["measurements"] > 0 and fit["hidden"] >= 0
+    assert fit["psnr_after_db"] > fit["psnr_before_db"]
+    # the tiles measure about what the one model measures (a tile's hits hidden by its context are left out)
+    assert 0.8 * one.report["fit"]["measurements"] <= fit["measurements"] <= 1.05 * one.report["fit"]["measurements"]
+    for entry in load_model_set(root / "set").tiles:
+        report = json.loads((entry.path / "tile_report.json").read_text())
+        assert report["fit"]["enabled"] and not report["fit"]["alpha"]["enabled"]
+
+
 def test_eval_of_a_tiled_model(built, tiny_dataset, tmp_path):
     """`bbcity eval` scores a tiled model like the one model it equals: every tile a view sees
-    drawn, the same PSNR within 0.5 dB (the tiles' float32 origins), its bytes those of its tiles."""
-    import json
-
+    drawn, the same PSNR within 0.5 dB (the tiles' float32 origins, each tile fitted alone), its
+    bytes those of its tiles."""
     from bbcity.cli import main as cli_main
     from billboards.sky import read_sky
 
