@@ -450,7 +450,12 @@ def _add_build(sub) -> None:
                    help="fit the sampled textures to the training images through the rendering, then compress "
                         "(default on)")
     p.add_argument("--fit-seconds", type=nonnegative_float, default=FitConfig.seconds,
-                   help=f"wall-clock budget of the fit's iterations in seconds (default {FitConfig.seconds:g})")
+                   help=f"wall-clock budget of the fit's iterations in seconds (default {FitConfig.seconds:g}; "
+                        "each tile's with --tile-metres)")
+    p.add_argument("--fit-alpha", choices=("on", "off"), default="on" if FitConfig.alpha else "off",
+                   help="let the training images decide which texels of the facade layer and the ground are shown "
+                        "and which are seen through, before the colours are fitted (default "
+                        f"{'on' if FitConfig.alpha else 'off'}; a tiled build keeps the sampled alpha)")
     p.add_argument("--tile-metres", type=length, default=None,
                    help="build a model set of square tiles this wide, one at a time, so that memory does not grow "
                         "with the street (a whole number of voxels; the viewer pages them; a killed build resumes "
@@ -497,7 +502,8 @@ def build_config_from_args(args):
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
                        holdout=args.holdout, layer=layer,
                        photometry=PhotometryConfig() if args.photometry == "on" else None,
-                       fit=FitConfig(seconds=args.fit_seconds) if args.fit == "on" else None,
+                       fit=FitConfig(seconds=args.fit_seconds, alpha=args.fit_alpha == "on") if args.fit == "on"
+                       else None,
                        tile_metres=args.tile_metres)
 
 
