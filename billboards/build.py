@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.fileio import save_npy, write_json
+from core.fileio import write_json
 from core.memory import peak_memory
 from core.metrics import psnr_from_mse
 from core.tasks import executor_workers, ordered_results
@@ -36,7 +36,6 @@ from .atlas import reserved_memmap
 from .facade_truth import facade_depth_report
 from .fit import FitConfig, Quads, quads_of
 from .fit_alpha import apply_alpha, read_alpha_rows, write_alpha_rows
-from .fit_depth import depth_moves
 from .fit_tasks import fit_range, fit_report, read_records, write_view_records
 from .geometry import BILLBOARD, GROUND, DirectionConfig, base_yaw_toward, quad_edges
 from .layer import Layer, LayerConfig, build_layer, grow_side_walls, refine_ground
@@ -290,17 +289,9 @@ def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views:
     (state / "meta.json").write_text(json.dumps(meta))
 
 
-def _state_key(state_dir: str) -> tuple:
-    """What identifies the quads of ``state_dir`` as they are now: the fit's depth stage
-    replaces ``quads.npy`` when it moves billboards, and the workers then load them again."""
-    info = os.stat(Path(state_dir) / "quads.npy")
-    return state_dir, info.st_ino, info.st_mtime_ns
-
-
 def _worker_state(state_dir: str):
-    """Load (once per process, and again when the quads moved) the sampler and settings saved in ``state_dir``."""
-    key = _state_key(state_dir)
-    if _WORKER.get("dir") == key:
+    """Load (once per process) the sampler and settings saved in ``state_dir``."""
+    if _WORKER.get("dir") == state_dir:
         return _WORKER["sampler"], _WORKER["conf"]
     root = Path(state_dir)
     meta = json.loads((root / "meta.json").read_text())
@@ -333,7 +324,7 @@ def _worker_state(state_dir: str):
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)
     _WORKER.clear()
-    _WORKER.update(dir=key, sampler=sampler, conf=conf)
+    _WORKER.update(dir=state_dir, sampler=sampler, conf=conf)
     return sampler, conf
 
 
@@ -402,13 +393,12 @@ def compress_chunk(rgba: np.ndarray, conf: BuildConfig, eig: EigenTextures | Non
 
 def _fit_quads(state_dir: str, conf: BuildConfig) -> Quads:
     """The quads of the model being built as the renderer will place them (once per process)."""
-    key = _state_key(state_dir)
-    if _WORKER.get("quads_dir") != key:
+    if _WORKER.get("quads_dir") != state_dir:
         root = Path(state_dir)
         meta = json.loads((root / "meta.json").read_text())
         origin = np.asarray(meta["origin"], np.float64)
         d = conf.sampling.directions
-        _WORKER.update(quads_dir=key, quads=quads_of(
+        _WORKER.update(quads_dir=state_dir, quads=quads_of(
             origin, (np.load(root / "quads.npy") - origin).astype(np.float32),
             np.load(root / "base_yaw.npy").astype(np.float32), np.load(root / "kind.npy"), meta["voxel_size"],
             meta["block_size"] or meta["voxel_size"], conf.sampling.tile, d.yaw_offsets, d.pitches, d.pitched_quads,
@@ -472,21 +462,6 @@ def _run_task(task: _Task):
         rgba[task.begin:task.end] = mine
         rgba.flush()
         return stats
-    if task.stage == "depth":
-        records = read_records(sorted(root.glob("records_*.npy")), task.begin, task.end)
-        if records is None:
-            return np.zeros(0, np.int64), np.zeros((0, 3))
-        meta = json.loads((root / "meta.json").read_text())
-        return depth_moves(_fit_quads(task.state, conf), records, sampler.views.K, sampler.views.world_from_cam,
-                           np.load(root / "centres.npy"), meta["voxel_size"], conf.fit)
-    if task.stage == "resample":
-        moved = np.load(root / "moved.npy")
-        mine = moved[(moved >= task.begin) & (moved < task.end)]
-        if len(mine):
-            rgba = np.load(root / "rgba.npy", mmap_mode="r+")
-            rgba[mine] = sampler.sample(mine).rgba
-            rgba.flush()
-        return len(mine)
     if task.stage == "fit":
         rgba = np.load(root / "rgba.npy", mmap_mode="r")
         records = read_records(sorted(root.glob("records_*.npy")), task.begin, task.end)
@@ -710,8 +685,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
                 nonlocal done
                 for arrays, stats in chunks:
                     b = len(arrays["rank"])
-                    now = np.load(state / "quads.npy", mmap_mode="r")   # the fit may have moved billboards
-                    writer.append(centres=(now[done:done + b] - octree.origin).astype(np.float32),
+                    writer.append(centres=(quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=base_yaw[done:done + b].astype(np.float32), kind=kind[done:done + b],
                                   split=split[done:done + b], corner_dz=corner_dz[done:done + b], **arrays)
                     done += b
@@ -795,26 +769,6 @@ def fit_textures(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: 
                     "" if tile is None else f"{tile}: ", alpha["decided"], alpha["shown"], alpha["cleared"])
     t1 = time.perf_counter()
     records = [_ViewTask(str(state), b, e, occluded=tile is not None) for b, e in batches]
-    depth = {"enabled": conf.fit.depth}
-    if conf.fit.depth:
-        list(ordered_results(_cast_task, records, executor, window=window, desc="fit: depth views", progress=progress))
-        moves = list(ordered_results(_run_task, [replace(t, stage="depth") for t in tasks], executor, window=window,
-                                     desc="fit: depth", progress=progress))
-        ids = np.concatenate([m[0] for m in moves]) if moves else np.zeros(0, np.int64)
-        depth.update(moved=int(len(ids)), billboards=int((_fit_quads(str(state), conf).kind == BILLBOARD).sum()))
-        if len(ids):
-            centres = np.load(state / "quads.npy")
-            new = np.concatenate([m[1] for m in moves])
-            depth["mean_move_m"] = float(np.linalg.norm(new - centres[ids], axis=1).mean())
-            centres[ids] = new
-            save_npy(state / "moved.npy", ids)
-            save_npy(state / "quads.npy", centres)    # a new file: the workers load the quads again
-            list(ordered_results(_run_task, [replace(t, stage="resample") for t in tasks], executor,
-                                 window=window, desc="fit: depth, sampling again", progress=progress))
-        logger.info("%sfit: %d of %d billboards moved to where the training images agree (%.3f m on average)",
-                    "" if tile is None else f"{tile}: ", depth["moved"], depth["billboards"],
-                    depth.get("mean_move_m", 0.0))
-    t_depth = time.perf_counter()
     casts = list(ordered_results(_cast_task, records, executor, window=window, desc="fit: views", progress=progress))
     t2 = time.perf_counter()
     # What is left of the budget, shared fairly: each task's iterations may take its part of it.
@@ -827,14 +781,12 @@ def fit_textures(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: 
     t3 = time.perf_counter()
     report = fit_report(fit_stats, casts, conf.fit, t3 - t0)
     report["alpha"] = alpha
-    report["depth"] = depth
     report["hidden"] = sum(c["hidden"] for c in casts)
     logger.info("%sfit: %d views, %d measurements (%d transients left out), training pixels %s → %s dB "
                 "(transients too: %s → %s dB) in %.1f s", "" if tile is None else f"{tile}: ", report["views"],
                 report["measurements"], report["transients"], _db(report["psnr_before_db"]), _db(report["psnr_after_db"]),
                 _db(report["psnr_all_before_db"]), _db(report["psnr_all_after_db"]), t3 - t0)
-    report["stages"] = {"fit_alpha_s": t1 - t0, "fit_depth_s": t_depth - t1, "fit_cast_s": t2 - t_depth,
-                        "fit_solve_compress_s": t3 - t2}
+    report["stages"] = {"fit_alpha_s": t1 - t0, "fit_cast_s": t2 - t1, "fit_solve_compress_s": t3 - t2}
     return report
 
 

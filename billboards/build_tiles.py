@@ -273,8 +273,7 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
                 nonlocal done
                 for arrays, chunk_stats in chunks:
                     b = len(arrays["rank"])
-                    now = np.load(state / "quads.npy", mmap_mode="r")   # the fit may have moved billboards
-                    writer.append(centres=(now[done:done + b] - octree.origin).astype(np.float32),
+                    writer.append(centres=(placed.quads[done:done + b] - octree.origin).astype(np.float32),
                                   base_yaw=placed.base_yaw[done:done + b].astype(np.float32),
                                   kind=placed.kind[done:done + b], split=placed.split[done:done + b],
                                   corner_dz=placed.corner_dz[done:done + b], **arrays)

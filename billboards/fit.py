@@ -50,11 +50,9 @@ from .geometry import GROUND, GROUND_OVERLAP, kind_frames, quad_edges, surface_d
 from .slits import Slits, build_slits
 
 def record_dtype(corners: int) -> np.dtype:
-    """The structured dtype of measurements whose direction bracket has ``corners`` (2 or 4)
-    entries: the quad met, the bracket and its weights, the texel met, the pixel's colour,
-    and the view and pixel (u, v) the ray came from (view −1: not known)."""
+    """The structured dtype of measurements whose direction bracket has ``corners`` (2 or 4) entries."""
     return np.dtype([("quad", "<i4"), ("corner", "<i2", (corners,)), ("weight", "<f4", (corners,)),
-                     ("texel", "<f4", (2,)), ("colour", "u1", (3,)), ("view", "<i4"), ("pixel", "<i2", (2,))])
+                     ("texel", "<f4", (2,)), ("colour", "u1", (3,))])
 
 
 #: Two surfaces along a ray nearer than this (m) are a tie the renderer breaks by draw order.
@@ -77,18 +75,11 @@ class FitConfig:
                                    # must beat the other to change its alpha
     alpha_min_views: int = 2      # a texel's alpha changes only on rays from at least this many views
     alpha_min_rays: int = 3       # ... and at least this many rays
-    depth: bool = True            # move billboards along their base direction to where the images agree
-                                  # (billboards.fit_depth), then sample them again
-    depth_step: float = 0.1       # candidate moves are this many metres apart ...
-    depth_steps: int = 2          # ... this many each way
-    depth_gain: float = 0.25      # a billboard moves when that lowers its photo-consistency cost by this share
-    depth_min_rays: int = 64      # ... and its rays number at least this many (from two views or more)
 
     def __post_init__(self):
         if not (np.isfinite(self.seconds) and self.seconds >= 0):
             raise ValueError(f"fit seconds must be a finite number ≥ 0, got {self.seconds!r}")
-        for name in ("iterations", "pixel_stride", "see_through", "alpha_min_views", "alpha_min_rays", "depth_steps",
-                     "depth_min_rays"):
+        for name in ("iterations", "pixel_stride", "see_through", "alpha_min_views", "alpha_min_rays"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                 raise ValueError(f"fit {name} must be an integer, got {value!r}")
@@ -96,13 +87,8 @@ class FitConfig:
             raise ValueError("fit iterations and see_through must be ≥ 0, pixel_stride ≥ 1")
         if not (np.isfinite(self.prior) and self.prior > 0):
             raise ValueError(f"fit prior must be a finite number > 0 (it keeps the solve regular), got {self.prior!r}")
-        for name in ("alpha", "depth"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"fit {name} must be true or false, got {getattr(self, name)!r}")
-        if not (np.isfinite(self.depth_step) and self.depth_step > 0) or self.depth_steps < 0:
-            raise ValueError("fit depth_step must be a finite number > 0 and depth_steps ≥ 0")
-        if not (np.isfinite(self.depth_gain) and 0 <= self.depth_gain < 1) or self.depth_min_rays < 1:
-            raise ValueError("fit depth_gain must lie in [0, 1) and depth_min_rays be ≥ 1")
+        if not isinstance(self.alpha, (bool, np.bool_)):
+            raise ValueError(f"fit alpha must be true or false, got {self.alpha!r}")
         if self.alpha_min_views < 1 or self.alpha_min_rays < 1:
             raise ValueError("fit alpha_min_views and alpha_min_rays must be ≥ 1")
         if not (np.isfinite(self.alpha_tolerance) and self.alpha_tolerance >= 0):
@@ -402,12 +388,10 @@ def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np
     return Hits(pixel[t.ray], t.quad, t.texel, t.corner, t.weight, t.distance)
 
 
-def view_records(hits: Hits, image: np.ndarray, view: int = -1) -> np.ndarray:
+def view_records(hits: Hits, image: np.ndarray) -> np.ndarray:
     """One view's measurements: ``hits`` with the colours of ``image`` (h, w, 3) uint8 at their
-    pixels → (r,) :func:`record_dtype` rows, sorted by quad; ``view``: the view's index."""
+    pixels → (r,) :func:`record_dtype` rows, sorted by quad."""
     out = np.empty(len(hits.quad), record_dtype(hits.corner.shape[1]))
-    out["view"] = view
-    out["pixel"] = hits.pixel
     out["quad"] = hits.quad
     out["corner"] = hits.corner
     out["weight"] = hits.weight

@@ -61,7 +61,7 @@ def write_view_records(path: os.PathLike | str, quads: Quads, rgba: np.ndarray, 
             hidden += int((~seen).sum())
             hits = Hits(*(getattr(hits, f)[seen] for f in Hits.__dataclass_fields__))
         if len(hits.quad):
-            out.append(view_records(hits, views.image(int(i)), int(i)))
+            out.append(view_records(hits, views.image(int(i))))
     records = np.concatenate(out) if out else np.zeros(0, record_dtype(quads.corners))
     records = records[np.argsort(records["quad"], kind="stable")]
     with atomic_path(path) as tmp:
