@@ -768,8 +768,8 @@ def fit_textures(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: 
         logger.info("%sfit: alpha of %d texels decided by the training images: %d now shown, %d now seen through",
                     "" if tile is None else f"{tile}: ", alpha["decided"], alpha["shown"], alpha["cleared"])
     t1 = time.perf_counter()
-    records = [_ViewTask(str(state), b, e, occluded=tile is not None) for b, e in batches]
-    casts = list(ordered_results(_cast_task, records, executor, window=window, desc="fit: views", progress=progress))
+    casts = list(ordered_results(_cast_task, [_ViewTask(str(state), b, e, occluded=tile is not None) for b, e in batches],
+                                 executor, window=window, desc="fit: views", progress=progress))
     t2 = time.perf_counter()
     # What is left of the budget, shared fairly: each task's iterations may take its part of it.
     share = max(0.0, conf.fit.seconds - (t2 - t0)) * executor_workers(executor) / max(1, len(tasks))
