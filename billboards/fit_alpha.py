@@ -45,7 +45,8 @@ import numpy as np
 
 from core.fileio import atomic_path
 
-from .fit import FitConfig, Quads, Traced, blended, pixel_rays, quad_scene, trace
+from .fit import FitConfig, Quads, blended
+from .fit_cast import Traced, pixel_rays, quad_scene, trace
 from .geometry import BILLBOARD, GROUND
 from .sky import Sky
 

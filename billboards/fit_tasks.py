@@ -1,7 +1,7 @@
 """The fit as the build runs it, in worker tasks (:mod:`billboards.fit` holds the maths).
 
 1. The sampled textures of every quad lie in a memory-mapped (n, d, t, t, 4) uint8 file.
-2. A batch of training views is ray cast against them (:func:`billboards.fit.cast_view`, with
+2. A batch of training views is ray cast against them (:func:`billboards.fit_cast.cast_view`, with
    the alpha the sampling gave) and its measurements written to one ``.npy`` file of
    :func:`~billboards.fit.record_dtype` rows sorted by quad (:func:`write_view_records`).
 3. A range of quads reads its rows from every batch's file (:func:`read_records`), takes
@@ -19,7 +19,8 @@ import numpy as np
 from core.fileio import atomic_path
 from core.metrics import psnr_from_mse
 
-from .fit import FitConfig, Hits, Quads, cast_view, problem, record_dtype, solve, transient_rows, view_records
+from .fit import FitConfig, Quads, problem, record_dtype, solve, transient_rows
+from .fit_cast import Hits, cast_view, view_records
 from .fit_subspace import slots, subspace, with_slots
 from .pca import EigenTextures, PcaConfig, eigen_textures
 from .sampling import Views

@@ -47,7 +47,8 @@ import cv2
 import numpy as np
 
 from billboards.decode import decode_directions
-from billboards.fit import cast_view, quads_of
+from billboards.fit import quads_of
+from billboards.fit_cast import cast_view
 from billboards.geometry import BILLBOARD, FACADE, GROUND
 from billboards.model_set import ModelSet
 from core.metrics import psnr, ssim
@@ -304,7 +305,7 @@ class ModelMethod:
     def kinds(self, K, world_from_cam, size) -> np.ndarray | None:
         """(h, w) int8: the kind of quad the model draws at each pixel (−1: none; :data:`SYNTHESISED`
         for a synthesised ground block), found by ray casting its quads as the renderer places them
-        (:func:`billboards.fit.cast_view`); None for a tiled set."""
+        (:func:`billboards.fit_cast.cast_view`); None for a tiled set."""
         if isinstance(self.model, ModelSet):
             return None
         if not hasattr(self, "_quads"):

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from billboards.atlas import pack_rows, pack_tiles
-from billboards.fit import (FitConfig, Quads, blended, cast_view, column_taps, problem, quads_of, record_dtype,
-                            solve, solve_reference, view_records)
+from billboards.fit import (FitConfig, Quads, blended, column_taps, problem, quads_of, record_dtype, solve,
+                            solve_reference)
+from billboards.fit_cast import cast_view, view_records
 from billboards.fit_subspace import FLOOR, expansion, expansion_reference, slots, subspace, with_slots
 from billboards.geometry import BILLBOARD, FACADE, GROUND
 from billboards.model import BillboardModel

@@ -634,8 +634,9 @@ def test_the_ground_height_field_is_drawn_without_cracks(ctx, mode):
     """Seen low along a bumpy ground, flat blocks at each cell's height leave cracks of
     background where a block is higher than the one before it; the height field (corners shared
     by neighbours) draws every column of the ground as one unbroken run, where the fit's ray
-    caster (billboards.fit.cast_view) finds it too."""
-    from billboards.fit import cast_view, quads_of
+    caster (billboards.fit_cast.cast_view) finds it too."""
+    from billboards.fit import quads_of
+    from billboards.fit_cast import cast_view
 
     K, pose = intrinsics(300.0, 200, 150), look_at(np.array([-1.5, 1.5, 0.45]), np.array([4.0, 1.5, 0.0]))
     broken = {}
