@@ -15,10 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .fit import Quads, blended, record_dtype
-from .geometry import GROUND, surface_dz
-
-#: Two surfaces along a ray nearer than this (m) are a tie the renderer breaks by draw order.
-TIE = 2e-3
+from .geometry import surface_dz
 
 
 def visible_quads(quads: Quads, K: np.ndarray, world_from_cam: np.ndarray, size, max_distance: float) -> np.ndarray:
@@ -114,8 +111,8 @@ def trace(qs: QuadScene, alpha: np.ndarray | None, direction: np.ndarray, start:
     """Follow eye-relative rays ``direction`` (r, 3) float64 unit from ``start`` (r,) float64 m
     to the first quad the renderer would show there: a texel whose blended ``alpha`` (n, d, t·t)
     uint8 is below ½ is passed, ``see_through`` times at most (alpha None: every texel is
-    shown). A ray that stops where ground blocks overlap in one plane is left out: the renderer
-    shows whichever it drew first."""
+    shown). Where two ground blocks overlap in one plane the ray stops on the one it meets
+    first (the renderer's depth test picks either, pixel by pixel: both must show the pixel)."""
     import open3d as o3d
 
     quads, ids = qs.quads, qs.ids
@@ -142,20 +139,8 @@ def trace(qs: QuadScene, alpha: np.ndarray | None, direction: np.ndarray, start:
         corner, weight = quads.brackets(ids[local], qs.eye)
         opaque = (np.ones(len(todo), bool) if alpha is None
                   else blended(quads, alpha, ids[local], corner, weight, texel) >= 0.5 * 255)
-        keep = opaque.copy()
-        # Where two quads lie in one plane (ground blocks overlap their neighbours) the renderer
-        # shows whichever it drew first: a ray with a second surface within TIE metres behind
-        # the first measures nothing.
-        flat = np.flatnonzero(opaque & (quads.kind[ids[local]] == GROUND))
-        if len(flat):
-            near = np.concatenate([direction[todo[flat]] * (start[todo[flat]] + t_hit[flat] - TIE)[:, None],
-                                   direction[todo[flat]]], axis=1).astype(np.float32)
-            inter = qs.scene.list_intersections(o3d.core.Tensor(near))
-            ray = inter["ray_ids"].numpy().astype(np.int64)
-            other = (inter["t_hit"].numpy() < 2 * TIE) & (inter["primitive_ids"].numpy() % n_tri != local[flat][ray])
-            keep[flat[np.unique(ray[other])]] = False
-        found.append((todo[keep], ids[local][keep], texel[keep], corner[keep], weight[keep],
-                      (start[todo] + t_hit)[keep]))
+        found.append((todo[opaque], ids[local][opaque], texel[opaque], corner[opaque], weight[opaque],
+                      (start[todo] + t_hit)[opaque]))
         start[todo] += t_hit + 1e-4                                # on past the see-through texel
         todo = todo[~opaque]
     if not found:
@@ -184,8 +169,7 @@ def cast_view(quads: Quads, alpha: np.ndarray, K: np.ndarray, world_from_cam: np
     world_from_cam (4, 4) float64; size (w, h); rays through every ``stride``-th pixel centre of
     every ``stride``-th row. A ray that meets a texel whose blended alpha is below ½ goes on,
     ``see_through`` times at most (then it counts as missing, as behind too many see-through
-    texels the renderer too shows what lies far behind). A ray that stops where ground blocks
-    overlap in one plane is left out (:func:`trace`).
+    texels the renderer too shows what lies far behind).
     """
     qs = quad_scene(quads, K, world_from_cam, size, max_distance)
     if qs is None:
