@@ -50,26 +50,27 @@ from .fit_cast import Traced, pixel_rays, quad_scene, trace
 from .geometry import BILLBOARD, GROUND
 from .sky import Sky
 
-#: One (quad, texel)'s sums over the rays of some views: key = quad·t² + texel; count rays; views that gave them; sum_y (3,) Σ y; sum_yy Σ ‖y‖²; sum_through Σ ‖y − b‖²
-#: (colours in [0, 1]); shown: rays that met the texel opaque, sum_shown Σ ‖y − c‖² over them (c the
-#: colour the renderer shows there now).
+#: One (quad, texel)'s sums over the rays of some views: key = quad·t² + texel; count rays; views
+#: that gave them; sum_y (3,) Σ y; sum_yy Σ ‖y‖²; sum_through Σ ‖y − b‖² (colours in [0, 1]);
+#: shown: rays that met the texel opaque, sum_shown Σ ‖y − c‖² over them (c the colour the
+#: renderer shows there now).
 ALPHA_DTYPE = np.dtype([("key", "<i8"), ("count", "<i4"), ("views", "<i4"), ("sum_y", "<f8", (3,)),
                         ("sum_yy", "<f8"), ("sum_through", "<f8"), ("shown", "<i4"), ("sum_shown", "<f8")])
 
 
 def alpha_rows(quads: Quads, rgba: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, size,
-               image: np.ndarray, sky: Sky | None, config: FitConfig, max_distance: float) -> np.ndarray:
-    """One view's rays as rows of per-ray measurements for the alpha decision.
+               image: np.ndarray, sky: Sky | None, config: FitConfig, max_distance: float) -> tuple:
+    """One view's rays, measured for the alpha decision.
 
     rgba (n, d, t, t, 4) uint8 (a memory map will do); K (3, 3), world_from_cam (4, 4) float64;
     size (w, h); image (h, w, 3) uint8. Each ray through every ``pixel_stride``-th pixel meets
     its first quad with every texel taken as shown (a ray whose first quad is a billboard is
-    left out); behind that point the ray goes on as the
-    renderer sees it (see-through texels passed) to the colour it would show there instead: a
-    quad's blended colour, or ``sky`` (rays with nothing behind are left out without a sky).
-    Returns (key (r,) int64, y, behind, now (r, 3) float64, shown (r,) bool): ``now`` the colour
-    the renderer shows there now (where ``shown``), key
-    as in :data:`ALPHA_DTYPE`, texel the one the ray meets."""
+    left out); behind that point the ray goes on as the renderer sees it (see-through texels
+    passed) to the colour it would show there instead: a quad's blended colour, or ``sky``
+    (without a sky, rays with nothing behind are left out). Returns key (r,) int64 (as in
+    :data:`ALPHA_DTYPE`, of the texel the ray meets), the pixel's colour y, the colour behind
+    and the colour the renderer shows there now (r, 3) float64 in [0, 1], and whether it
+    shows that texel now, shown (r,) bool."""
     n, d, t = rgba.shape[:3]
     alpha = rgba.reshape(n, d, t * t, 4)[..., 3]
     empty = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, bool))
