@@ -417,12 +417,10 @@ def _cast_task(task: _ViewTask) -> dict:
                                 sampler.views, range(task.begin, task.end), read_sky(root), conf.fit,
                                 conf.sampling.max_distance)
     s = conf.sampling
-
-    def occluders(i):
-        return sampler.cache.get(i)[2], s.zbuffer_scale, s.slab_margin, s.rel_tolerance
+    occluders = (lambda i: (sampler.cache.get(i)[2], s.zbuffer_scale, s.slab_margin, s.rel_tolerance)
+                 ) if task.occluded else None
     return write_view_records(root / f"records_{task.begin:06d}.npy", _fit_quads(task.state, conf), rgba,
-                              sampler.views, range(task.begin, task.end), conf.fit, conf.sampling.max_distance,
-                              occluders if task.occluded else None)
+                              sampler.views, range(task.begin, task.end), conf.fit, s.max_distance, occluders)
 
 
 def _compress_range(root: Path, begin: int, end: int, conf: BuildConfig, eig: EigenTextures | None = None) -> list:
@@ -752,6 +750,7 @@ def fit_textures(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: 
     alpha stays as sampled, since what a see-through texel shows may be a neighbour's). Returns
     the build report's "fit" with its "stages" seconds."""
     window = 2 * executor_workers(executor)
+    who = "" if tile is None else f"{tile}: "
     t0 = time.perf_counter()
     per = conf.fit_views_per_task
     batches = [(b, min(num_views, b + per)) for b in range(0, num_views, per)]
@@ -766,10 +765,11 @@ def fit_textures(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: 
         alpha.update({k: sum(c[k] for c in counts) for k in ("decided", "shown", "cleared")},
                      rays=sum(c["rays"] for c in casts), cast_worker_s=sum(c["cast_s"] for c in casts))
         logger.info("%sfit: alpha of %d texels decided by the training images: %d now shown, %d now seen through",
-                    "" if tile is None else f"{tile}: ", alpha["decided"], alpha["shown"], alpha["cleared"])
+                    who, alpha["decided"], alpha["shown"], alpha["cleared"])
     t1 = time.perf_counter()
-    casts = list(ordered_results(_cast_task, [_ViewTask(str(state), b, e, occluded=tile is not None) for b, e in batches],
-                                 executor, window=window, desc="fit: views", progress=progress))
+    view_tasks = [_ViewTask(str(state), b, e, occluded=tile is not None) for b, e in batches]
+    casts = list(ordered_results(_cast_task, view_tasks, executor, window=window, desc="fit: views",
+                                 progress=progress))
     t2 = time.perf_counter()
     # What is left of the budget, shared fairly: each task's iterations may take its part of it.
     share = max(0.0, conf.fit.seconds - (t2 - t0)) * executor_workers(executor) / max(1, len(tasks))
@@ -783,8 +783,8 @@ def fit_textures(conf: BuildConfig, state: Path, tasks: list[_Task], num_views: 
     report["alpha"] = alpha
     report["hidden"] = sum(c["hidden"] for c in casts)
     logger.info("%sfit: %d views, %d measurements (%d transients left out), training pixels %s → %s dB "
-                "(transients too: %s → %s dB) in %.1f s", "" if tile is None else f"{tile}: ", report["views"],
-                report["measurements"], report["transients"], _db(report["psnr_before_db"]), _db(report["psnr_after_db"]),
+                "(transients too: %s → %s dB) in %.1f s", who, report["views"], report["measurements"],
+                report["transients"], _db(report["psnr_before_db"]), _db(report["psnr_after_db"]),
                 _db(report["psnr_all_before_db"]), _db(report["psnr_all_after_db"]), t3 - t0)
     report["stages"] = {"fit_alpha_s": t1 - t0, "fit_cast_s": t2 - t1, "fit_solve_compress_s": t3 - t2}
     return report

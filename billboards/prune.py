@@ -54,8 +54,8 @@ def prune_ranges_reference(node_range: np.ndarray, keep: np.ndarray) -> np.ndarr
 def prune_state(state: Path, keep: np.ndarray, chunk: int = 4096) -> None:
     """Leave only the quads ``keep`` (n,) bool in the build state ``state``: its per-quad arrays
     (:data:`STATE_ARRAYS`), each quad's run of cloud points (``points.npy`` and, for textures
-    from the points, ``colours.npy``, by ``begin.npy``) and the sampled textures (``rgba.npy``, rewritten ``chunk`` quads at a time into a new file
-    that replaces it)."""
+    from the points, ``colours.npy``, by ``begin.npy``) and the sampled textures (``rgba.npy``,
+    rewritten ``chunk`` quads at a time into a new file that replaces it)."""
     keep = np.asarray(keep, bool)
     for name in STATE_ARRAYS:
         path = state / f"{name}.npy"

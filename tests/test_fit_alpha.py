@@ -9,6 +9,7 @@ import pytest
 
 from billboards.fit import FitConfig, blended, quads_of
 from billboards.fit_cast import Hits, pixel_rays, quad_scene, trace
+from billboards.fit_tasks import unoccluded
 from billboards.fit_alpha import (ALPHA_DTYPE, alpha_rows, apply_alpha, decide, decide_reference,
                                   read_alpha_rows, sums)
 from billboards.geometry import BILLBOARD, FACADE, GROUND
@@ -192,8 +193,6 @@ def test_config_refuses_bad_alpha_settings():
 
 def test_a_hit_behind_the_z_buffer_is_no_measurement():
     """A tile's hits that its context's z-buffer hides (a neighbour's wall in front) are left out."""
-    from billboards.fit_tasks import unoccluded
-
     K = np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]])
     pixel = np.array([[40, 30], [0, 0], [79, 59], [40, 30]])
     ray = np.stack([(pixel[:, 0] - 40) / 100.0, (pixel[:, 1] - 30) / 100.0, np.ones(4)], 1)
