@@ -212,7 +212,7 @@ def _run_synth(args) -> int:
 
 def _add_import(sub) -> None:
     p = sub.add_parser(
-        "import", help="a capture of your own (KITTI sequence, COLMAP model, photo folder) → a dataset directory",
+        "import", help="a capture of your own (KITTI sequence, COLMAP model, photos, video, nerfstudio) → a dataset",
         description="Turn a capture into a dataset directory (rig.json, poses.json, images/) that recon, build "
                     "and eval read like a synthetic one. The new directory is written whole or not at all.")
     kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
@@ -242,9 +242,11 @@ def _add_import(sub) -> None:
     c.set_defaults(func=_run_import_colmap)
     f = kinds.add_parser("photos", help="a folder of one camera's photos (poses unknown: recon --poses sfm)",
                          description="Import a folder of JPEG/PNG photos of one camera, all the same size, in file-name "
-                                     "order. Intrinsics from --intrinsics or the photos' EXIF focal length. The poses "
-                                     "are unknown: reconstruct with `bbcity recon DATASET --poses sfm`, which scales "
-                                     "the result to --step-length metres between consecutive photos.")
+                                     "order, stored upright (EXIF orientation). Intrinsics from --intrinsics (of the "
+                                     "upright image) or the photos' EXIF focal length. The poses are unknown: "
+                                     "reconstruct with `bbcity recon DATASET --poses sfm`, which scales the result to "
+                                     "--step-length metres between consecutive photos, else to the photos' EXIF GPS "
+                                     "positions.")
     f.add_argument("folder", type=Path, help="folder of photos")
     f.add_argument("--out", type=Path, required=True, help="new dataset directory")
     f.add_argument("--intrinsics", type=Path, default=None,
@@ -252,9 +254,56 @@ def _add_import(sub) -> None:
                         "optionally followed by \"k1 k2 p1 p2 [k3]\" (default: EXIF)")
     f.add_argument("--sensor-width", type=positive_float, default=None,
                    help="sensor width in mm, with EXIF FocalLength when the photos lack a 35 mm equivalent")
-    f.add_argument("--step-length", type=positive_float, default=1.0,
-                   help="metres between consecutive photos; SfM's scale (default 1.0)")
+    f.add_argument("--step-length", type=positive_float, default=None,
+                   help="metres between consecutive photos, SfM's scale (default: none; SfM then takes it from the "
+                        "photos' EXIF GPS positions when every photo has one, else its units are arbitrary)")
     f.set_defaults(func=_run_import_photos, check_options=_photos_config)
+    _add_import_video(kinds)
+    _add_import_nerfstudio(kinds)
+
+
+def _add_import_video(kinds) -> None:
+    from recon.importers.video_config import DEFAULT_FPS, VideoConfig  # light: no OpenCV, no Open3D
+
+    d = VideoConfig()
+    v = kinds.add_parser("video", help="a video of one camera (frames sampled, blurred ones dropped; poses unknown: "
+                                       "recon --poses sfm)",
+                         description="Import a video of one camera (any format ffmpeg reads): frames sampled at --fps "
+                                     f"per second (default {DEFAULT_FPS:g}) or --frames spread over the video, the "
+                                     f"sharpest of each {d.sharpest_of} consecutive frames kept and blurred ones "
+                                     "dropped (variance of the Laplacian), named frame_NNNNNN by their index in the "
+                                     "video. Intrinsics from --intrinsics (a video has no EXIF). The poses are "
+                                     "unknown: reconstruct with `bbcity recon DATASET --poses sfm`.")
+    v.add_argument("video", type=Path, help="video file")
+    v.add_argument("--out", type=Path, required=True, help="new dataset directory")
+    v.add_argument("--intrinsics", type=Path, default=None,
+                   help="K file of the upright frames (required): 3 lines of a 3×3 matrix or one line "
+                        "\"fx fy cx cy\" (OpenCV pixel centres), optionally followed by \"k1 k2 p1 p2 [k3]\"")
+    rate = v.add_mutually_exclusive_group()
+    rate.add_argument("--fps", type=positive_float, default=None,
+                      help=f"frames kept per second of video (default {DEFAULT_FPS:g})")
+    rate.add_argument("--frames", type=positive_int, default=None,
+                      help="instead of --fps: this many frames spread evenly over the whole video")
+    v.add_argument("--step-length", type=positive_float, default=None,
+                   help="metres between consecutive kept frames (walking speed ÷ --fps), SfM's scale (default: "
+                        "none, arbitrary units)")
+    v.set_defaults(func=_run_import_video, check_options=_video_config)
+
+
+def _add_import_nerfstudio(kinds) -> None:
+    n = kinds.add_parser("nerfstudio", help="a nerfstudio transforms.json (one camera, given poses) and its images",
+                         description="Import a nerfstudio dataset: transforms.json (intrinsics fl_x fl_y cx cy w h, "
+                                     "camera_model PINHOLE/OPENCV/OPENCV_FISHEYE with k1..k4 p1 p2, frames of "
+                                     "file_path and camera-to-world transform_matrix in OpenGL axes) and the images "
+                                     "it names. Every frame must share one camera. A z-up world (nerfstudio's "
+                                     "convention) is kept as it is; its scale is kept.")
+    n.add_argument("transforms", type=Path, help="transforms.json, or the folder holding it")
+    n.add_argument("--out", type=Path, required=True, help="new dataset directory")
+    n.add_argument("--metric", action="store_true", help="the poses are in metres (recorded in dataset.json)")
+    n.add_argument("--world", choices=("auto", "keep", "level"), default=None,
+                   help="auto (default): keep the world when the cameras' up is near +z (nerfstudio's convention), "
+                        "else turn it z-up; keep: never turn it; level: always turn it (origin at the first camera)")
+    n.set_defaults(func=_run_import_nerfstudio, check_options=_nerfstudio_import_config)
 
 
 def _run_import_colmap(args) -> int:
@@ -279,6 +328,69 @@ def _run_import_photos(args) -> int:
     return 0
 
 
+def _video_config(args):
+    from recon.importers.video_config import VideoConfig
+
+    given = {"intrinsics": args.intrinsics, "fps": args.fps, "frames": args.frames, "step_length": args.step_length}
+    return VideoConfig(**{k: v for k, v in given.items() if v is not None})
+
+
+def _run_import_video(args) -> int:
+    from recon.importers.video import import_video
+
+    out = import_video(args.video, args.out, _video_config(args))
+    logger.info("wrote %s; its poses are unknown: bbcity recon %s --poses sfm", out, out)
+    return 0
+
+
+def _nerfstudio_import_config(args):
+    from recon.importers.nerfstudio import NerfstudioImportConfig
+
+    return NerfstudioImportConfig(metric=args.metric, **({"world": args.world} if args.world is not None else {}))
+
+
+def _run_import_nerfstudio(args) -> int:
+    from recon.importers.nerfstudio import import_nerfstudio
+
+    out = import_nerfstudio(args.transforms, args.out, _nerfstudio_import_config(args))
+    logger.info("wrote %s", out)
+    return 0
+
+
+def _add_export(sub) -> None:
+    p = sub.add_parser(
+        "export", help="a dataset → another tool's format (nerfstudio), to compare methods on the same capture",
+        description="Write a dataset in another tool's format. The new directory is written whole or not at all.")
+    kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
+    n = kinds.add_parser("nerfstudio", help="transforms.json and images/ for nerfstudio (nerfacto, splatfacto …)",
+                         description="Write OUT/transforms.json and OUT/images/: every posed frame's image of every "
+                                     "camera, undistorted, with its camera's pose (camera-to-world, OpenGL axes, the "
+                                     "dataset's z-up world) and pinhole intrinsics. Frames without a pose are left "
+                                     "out. --holdout N lists the frames recon/build --holdout N leave out as "
+                                     "nerfstudio's test_filenames (camera 0, the views bbcity eval compares).")
+    n.add_argument("dataset", type=Path, help="dataset directory (rig.json, poses.json, images/)")
+    n.add_argument("--out", type=Path, required=True, help="new nerfstudio dataset directory")
+    n.add_argument("--poses", type=Path, default=None,
+                   help="a poses.json to use instead of the dataset's (e.g. WORK/poses.json of recon --poses sfm)")
+    n.add_argument("--holdout", type=holdout, default=None,
+                   help="hold every n-th frame out of training, as recon/build --holdout (default 0: none; "
+                        "nerfstudio then splits by its own rule)")
+    n.set_defaults(func=_run_export_nerfstudio, check_options=_nerfstudio_export_config)
+
+
+def _nerfstudio_export_config(args):
+    from recon.importers.nerfstudio_export import NerfstudioExportConfig
+
+    return NerfstudioExportConfig(**({"holdout": args.holdout} if args.holdout is not None else {}))
+
+
+def _run_export_nerfstudio(args) -> int:
+    from recon.importers.nerfstudio_export import export_nerfstudio
+
+    export_nerfstudio(args.dataset, args.out, _nerfstudio_export_config(args), poses=args.poses)
+    return 0
+
+
 def _kitti_config(args):
     from recon.importers.kitti import KittiConfig
 
@@ -295,6 +407,8 @@ def _run_import_kitti(args) -> int:
 
 
 def _add_recon(sub) -> None:
+    from recon.pipeline import ReconConfig
+
     p = sub.add_parser(
         "recon", help="stereo (rig of 1, 2 or 3 cameras) → fused coloured point cloud (cloud.ply)",
         description="Rectify each camera pair, match by SGBM with a left-right check, fuse the pairs per frame "
@@ -304,8 +418,11 @@ def _add_recon(sub) -> None:
         parents=[_workers_parent()])
     p.add_argument("dataset", type=Path, help="dataset directory (rig.json, poses.json, images/)")
     p.add_argument("--out", type=Path, required=True, help="work directory")
-    p.add_argument("--poses", nargs="+", default=["given"], metavar="SOURCE",
-                   help="given (poses.json), colmap DIR (import a COLMAP model) or sfm (pycolmap)")
+    p.add_argument("--poses", choices=("given", "sfm", "colmap"), default="given",
+                   help="pose source: given (poses.json, the default), sfm (pycolmap) or colmap (the COLMAP model "
+                        "at --colmap-model)")
+    p.add_argument("--colmap-model", type=Path, default=None, metavar="DIR",
+                   help="with --poses colmap: the COLMAP model directory (cameras, images .txt or .bin)")
     p.add_argument("--preset", default="accurate", help="stereo preset: fast, balanced or accurate (default: accurate)")
     p.add_argument("--voxel-size", type=length, default=0.02,
                    help="fused cloud resolution in metres (default 0.02)")
@@ -320,6 +437,10 @@ def _add_recon(sub) -> None:
     p.add_argument("--holdout", type=holdout, default=0,
                    help="leave every n-th frame out of the cloud, for `bbcity eval` on held-out views (default 0: "
                         "none; 4 uses 75 %% of the frames); `bbcity build` of this WORK leaves the same frames out")
+    p.add_argument("--max-image-size", type=nonnegative_int, default=ReconConfig.max_image_size,
+                   help="stereo and SfM features work on images at most this many pixels along their longer side "
+                        f"(default {ReconConfig.max_image_size}; 0: full size); a pair that does not fit in the "
+                        "memory free is matched at half that, and half again")
     p.add_argument("--no-eval", action="store_true", help="skip the ground-truth evaluation")
     p.set_defaults(func=_run_recon, check_options=_recon_config)
 
@@ -331,9 +452,12 @@ def _recon_config(args):
     from recon.stereo import PRESETS
     from recon.trinocular import TrinocularConfig
 
-    source, *rest = args.poses
-    if source not in POSE_SOURCES or (source == "colmap") != (len(rest) == 1) or len(rest) > 1:
-        raise UsageError(f"--poses takes given, sfm or colmap DIR; got {' '.join(args.poses)}")
+    if args.poses not in POSE_SOURCES:
+        raise UsageError(f"--poses takes {', '.join(POSE_SOURCES)}; got {args.poses!r}")
+    if args.poses == "colmap" and args.colmap_model is None:
+        raise UsageError("--poses colmap needs --colmap-model DIR (the COLMAP model directory)")
+    if args.poses != "colmap" and args.colmap_model is not None:
+        raise UsageError(f"--colmap-model goes with --poses colmap, not --poses {args.poses}")
     if args.preset not in PRESETS:
         raise UsageError(f"unknown --preset {args.preset!r}; choose from {', '.join(PRESETS)}")
     stereo = PRESETS[args.preset]
@@ -342,7 +466,8 @@ def _recon_config(args):
         overrides["wls"] = True
     stereo = dataclasses.replace(stereo, **overrides)
     conf = ReconConfig(trinocular=TrinocularConfig(stereo=stereo, min_agree=args.min_agree), fusion=FusionConfig(voxel_size=args.voxel_size),
-                       poses=source, colmap_model=rest[0] if rest else None, frame_stride=args.frame_stride,
+                       poses=args.poses, colmap_model=None if args.colmap_model is None else str(args.colmap_model),
+                       frame_stride=args.frame_stride, max_image_size=args.max_image_size or None,
                        evaluate=not args.no_eval, holdout=args.holdout)
     return conf
 
@@ -1140,6 +1265,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=CommandParser)
     _add_synth(sub)
     _add_import(sub)
+    _add_export(sub)
     _add_recon(sub)
     _add_build(sub)
     _add_texture_sweep(sub)

@@ -83,6 +83,24 @@ def test_finding_is_refused_at_parse_time(tmp_path, capsys, argv, option):
     assert list(tmp_path.iterdir()) == []  # nothing written, not even the output's lock
 
 
+def test_recon_pose_source_is_one_value_before_or_after_the_dataset(tmp_path, capsys):
+    p = build_parser()
+    for argv in (["recon", "--poses", "sfm", "D", "--out", "W"], ["recon", "D", "--poses", "sfm", "--out", "W"]):
+        a = p.parse_args(argv)
+        assert (a.dataset.name, a.poses, a.colmap_model) == ("D", "sfm", None)
+    a = p.parse_args(["recon", "--poses", "colmap", "--colmap-model", "sparse/0", "D", "--out", "W"])
+    assert (a.dataset.name, a.poses, str(a.colmap_model)) == ("D", "colmap", "sparse/0")
+    assert p.parse_args(["recon", "D", "--out", "W"]).poses == "given"
+    for argv, message in ((["--poses", "colmap"], "--poses colmap needs --colmap-model DIR"),
+                          (["--poses", "sfm", "--colmap-model", "M"], "--colmap-model goes with --poses colmap"),
+                          (["--poses", "colmap", "M"], "--poses colmap needs --colmap-model DIR"),  # old spelling
+                          (["--poses", "icp"], "invalid choice: 'icp'")):
+        assert run_cli(["recon", str(tmp_path / "D"), "--out", str(tmp_path / "W"), *argv]) == 2
+        line = usage_error(capsys)
+        assert line.startswith("bbcity recon: error:") and message in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_workers_limit_is_four_times_the_cores(capsys):
     limit = max_workers()
     assert build_parser().parse_args(["synth", "street", "--out", "x", "--workers", str(limit)]).workers == limit
@@ -227,9 +245,12 @@ def _commands(tmp):
         ("import", "kitti", nx, "--out", out): {"--camera-height": 1, "--first": 1, "--count": 1, "--step": 1},
         ("import", "colmap", nx, "--images", nx, "--out", out): {},
         ("import", "photos", nx, "--out", out): {"--sensor-width": 1, "--step-length": 1},
+        ("import", "video", nx, "--out", out): {"--fps": 1, "--frames": 1, "--step-length": 1},
+        ("import", "nerfstudio", nx, "--out", out): {},
+        ("export", "nerfstudio", nx, "--out", out): {"--holdout": 1},
         ("recon", nx, "--out", out): {"--voxel-size": 1, "--min-depth": 1, "--max-depth": 1, "--frame-stride": 1,
                                       "--min-agree": 1, "--holdout": 1, "--workers": 1,
-                                      "--scheduler": 1, "--retries": 1},
+                                      "--scheduler": 1, "--retries": 1, "--max-image-size": 1},
         ("build", nx, "--out", out): {"--voxel-size": 1, "--depth": 1, "--min-points": 1, "--directions": 1,
                                       "--spacing": 1, "--pitches": "+", "--tile": 1, "--ratio": 1,
                                       "--max-error": 1, "--rank": 1, "--max-rank": 1, "--page-size": 1,
@@ -258,14 +279,15 @@ def test_every_subcommand_refuses_bad_numbers(tmp_path, capsys, caplog):
     # every subcommand and every numeric option of the parser is driven
     parser = build_parser()
     subs = parser._subparsers._group_actions[0].choices
-    kinds = subs["import"]._subparsers._group_actions[0].choices
+    nested = ("import", "export")  # commands whose first argument is a kind with its own options
+    kinds = {n: subs[n]._subparsers._group_actions[0].choices for n in nested}
     numeric = {(name,): {o for a in p._actions for o in a.option_strings
                          if a.type not in (None, str) and a.type.__name__ != "Path" and o.startswith("--")}
-               for name, p in [*((n, p) for n, p in subs.items() if n != "import"),
-                               *((f"import {n}", p) for n, p in kinds.items())]}
+               for name, p in [*((n, p) for n, p in subs.items() if n not in nested),
+                               *((f"{n} {k}", p) for n in nested for k, p in kinds[n].items())]}
     driven = {}
     for base, opts in commands.items():
-        name = " ".join(base[:2]) if base[0] == "import" else base[0]
+        name = " ".join(base[:2]) if base[0] in nested else base[0]
         driven[(name,)] = set(opts)
     assert driven == numeric
 

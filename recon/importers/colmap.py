@@ -48,9 +48,9 @@ from data_synth.colmap_export import COLMAP_PIXEL_OFFSET
 from data_synth.rig import Rig
 
 # recon.colmap_poses loads data_synth (open3d, OpenCV) before pycolmap: see the note there
-from ..colmap_poses import _read_reconstruction, _to_4x4
+from ..colmap_poses import _to_4x4, read_reconstruction
 from ..trajectory import level_from_world, up_direction
-from .common import write_imported_dataset
+from .common import frame_names, write_imported_dataset
 
 import pycolmap  # noqa: E402  (after data_synth, see above)
 
@@ -130,7 +130,7 @@ def read_model(model_dir: os.PathLike | str) -> pycolmap.Reconstruction:
     model_dir = Path(model_dir)
     if model_dir.is_dir():
         _check_text_models(model_dir)
-    return _read_reconstruction(model_dir)
+    return read_reconstruction(model_dir)
 
 
 def camera_from_colmap(camera: pycolmap.Camera, where: Path) -> _Camera:
@@ -212,17 +212,6 @@ class _Layout:
     how: str
 
 
-def _frame_names(image_names: list[str]) -> list[str]:
-    """File stems, or the paths (without extension, "/" → "_") when stems repeat, or indices."""
-    stems = [PurePosixPath(n).stem for n in image_names]
-    if len(set(stems)) == len(stems) and all(s and s not in (".", "..") for s in stems):
-        return stems
-    paths = [str(PurePosixPath(n).with_suffix("")).replace("/", "_").replace("\\", "_") for n in image_names]
-    if len(set(paths)) == len(paths):
-        return paths
-    return [f"{i:06d}" for i in range(len(image_names))]
-
-
 def _rig_layout(rec: pycolmap.Reconstruction, rig_id: int, model_dir: Path) -> _Layout:
     rig = rec.rigs[rig_id]
     ref = rig.ref_sensor_id
@@ -256,7 +245,7 @@ def _rig_layout(rec: pycolmap.Reconstruction, rig_id: int, model_dir: Path) -> _
                        model_dir, skipped, rig_id)
     rows.sort(key=lambda r: r[0])
     return _Layout([s.id for s in sensors], np.array(cam_from_ref), np.array([r[1] for r in rows]).reshape(-1, 4, 4),
-                   [r[2] for r in rows], _frame_names([r[0] for r in rows]), f"rig {rig_id}")
+                   [r[2] for r in rows], frame_names([r[0] for r in rows]), f"rig {rig_id}")
 
 
 def _single_camera_layout(rec: pycolmap.Reconstruction, camera_id: int) -> _Layout:
@@ -264,7 +253,7 @@ def _single_camera_layout(rec: pycolmap.Reconstruction, camera_id: int) -> _Layo
                     key=lambda im: im.name)
     names = [im.name for im in images]
     poses = np.array([_to_4x4(im.cam_from_world()) for im in images]).reshape(-1, 4, 4)
-    return _Layout([camera_id], np.eye(4)[None], poses, [[n] for n in names], _frame_names(names), "one camera")
+    return _Layout([camera_id], np.eye(4)[None], poses, [[n] for n in names], frame_names(names), "one camera")
 
 
 def rig_from_poses(cam_from_world: np.ndarray, path: Path) -> np.ndarray:

@@ -7,13 +7,15 @@ import logging
 import os
 import shutil
 import uuid
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Callable, Sequence
 
 import cv2
 import numpy as np
+from PIL import Image as PILImage
+from PIL import ImageOps
 
-from core.fileio import DataFormatError, write_bytes, write_json
+from core.fileio import DataFormatError, write_bytes, write_json, write_png
 from core.rigid import nearest_rotation
 from data_synth.dataset import DATASET_FORMAT, FORMAT_VERSION
 from data_synth.rig import Rig, save_poses
@@ -27,6 +29,9 @@ ZUP_FROM_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
                             [-1.0, 0.0, 0.0, 0.0],
                             [0.0, -1.0, 0.0, 0.0],
                             [0.0, 0.0, 0.0, 1.0]])
+
+#: EXIF tag of a photo's orientation (IFD0): 1 as stored; 2–8 mirrored and/or turned.
+TAG_ORIENTATION = 0x0112
 
 #: Largest deviation from orthonormality of a stored rotation that is taken for
 #: rounding (files print 7 significant digits) and cleaned; more is an error.
@@ -70,8 +75,51 @@ def read_number_rows(path: Path, columns: int, what: str) -> np.ndarray:
     return np.array(rows, dtype=np.float64).reshape(-1, columns)
 
 
-def _copy_png(source: Path, target: Path, size: tuple[int, int]) -> None:
-    """Copy an image as PNG (decoded to check it, re-encoded when it is not a PNG)."""
+def frame_names(image_names: Sequence[str]) -> list[str]:
+    """Dataset frame names for image files: their stems, or the paths (without extension,
+    "/" → "_") when stems repeat, or indices ``000000`` … when those repeat too."""
+    stems = [PurePosixPath(n).stem for n in image_names]
+    if len(set(stems)) == len(stems) and all(s and s not in (".", "..") for s in stems):
+        return stems
+    paths = [str(PurePosixPath(n).with_suffix("")).replace("/", "_").replace("\\", "_") for n in image_names]
+    if len(set(paths)) == len(paths):
+        return paths
+    return [f"{i:06d}" for i in range(len(image_names))]
+
+
+def exif_orientation(path: Path) -> int:
+    """A photo's EXIF orientation, 1 (as stored) when it has none or an invalid one."""
+    try:
+        with PILImage.open(path) as im:
+            orientation = im.getexif().get(TAG_ORIENTATION, 1)
+    except Exception as e:  # Pillow raises many kinds for broken files
+        raise DataFormatError(path, f"image could not be read ({e})") from None
+    return orientation if orientation in range(1, 9) else 1
+
+
+def _upright_pixels(source: Path) -> np.ndarray:
+    """(h, w, 3) RGB or (h, w) grey uint8 pixels of a photo with its EXIF orientation applied."""
+    try:
+        with PILImage.open(source) as im:
+            upright = ImageOps.exif_transpose(im)
+            if upright.mode not in ("L", "RGB"):
+                upright = upright.convert("RGB")
+            return np.ascontiguousarray(np.asarray(upright))
+    except Exception as e:  # Pillow raises many kinds for broken files
+        raise DataFormatError(source, f"image could not be read ({e})") from None
+
+
+def _copy_png(source: Path, target: Path, size: tuple[int, int], upright: bool = False) -> None:
+    """Copy an image as PNG (decoded to check it, re-encoded when it is not a PNG, or when
+    ``upright`` and it has an EXIF orientation other than 1: then with that applied)."""
+    if upright and exif_orientation(source) != 1:
+        pixels = _upright_pixels(source)
+        h, w = pixels.shape[:2]
+        if (w, h) != tuple(size):
+            raise DataFormatError(source, f"image is {w}x{h} upright, expected {size[0]}x{size[1]} like the first "
+                                          "image")
+        write_png(target, pixels)
+        return
     image = cv2.imread(str(source), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise DataFormatError(source, "image could not be read")
@@ -92,11 +140,13 @@ def _copy_png(source: Path, target: Path, size: tuple[int, int]) -> None:
 def write_imported_dataset(out_dir: os.PathLike | str, rig: Rig, world_from_rig: np.ndarray,
                            images: Sequence[Sequence[Path]], source: dict,
                            names: Sequence[str] | None = None,
-                           progress: Callable[[int, int], None] | None = None) -> Path:
+                           progress: Callable[[int, int], None] | None = None, upright: bool = False) -> Path:
     """Write a dataset directory: ``rig.json``, ``poses.json``, ``images/cam{c}/NAME.png``
     and ``dataset.json`` (``source`` describes where it came from).
 
-    world_from_rig: (n, 4, 4) float64. images: n frames × c camera source paths.
+    world_from_rig: (n, 4, 4) float64. images: n frames × c camera source paths; with
+    ``upright``, each image's EXIF orientation is applied (a phone's photos), else its pixels
+    are stored as the file holds them.
     Everything goes into a temporary directory beside ``out_dir`` that is renamed at
     the end, so an interrupted import leaves nothing behind; an existing ``out_dir``
     is refused. Returns ``out_dir``.
@@ -113,7 +163,7 @@ def write_imported_dataset(out_dir: os.PathLike | str, rig: Rig, world_from_rig:
     try:
         for f, row in enumerate(images):
             for cam, src in enumerate(row):
-                _copy_png(Path(src), tmp / "images" / f"cam{cam}" / f"{names[f]}.png", rig.sizes[cam])
+                _copy_png(Path(src), tmp / "images" / f"cam{cam}" / f"{names[f]}.png", rig.sizes[cam], upright)
             if progress is not None:
                 progress(f + 1, n)
         rig.save(tmp / "rig.json")

@@ -17,14 +17,23 @@ Intrinsics, first found of:
    centre, pixels are square, there is no distortion. Every photo's EXIF must agree
    (a zoom lens that moved is refused, naming the photo).
 
-Pixels are stored as the camera wrote them: an EXIF orientation tag is not applied.
+Orientation: a photo's EXIF orientation tag (a phone held upright writes its pixels
+sideways and tag 6) is applied: the dataset holds the upright image, re-encoded as PNG.
+Sizes are compared, and the principal point of an EXIF focal length put at the centre, of
+the upright images; the focal length in pixels does not change with a quarter turn (it
+comes from the image diagonal or the sensor's pixel pitch, and pixels are square). A K file
+describes the upright images (its cx is along their width).
 
-Scale: one moving camera has none. SfM scales its reconstruction so that the median
-distance between consecutive photos is ``--step-length`` metres (default 1.0, stored in
-``dataset.json`` "source" "step_length"): stereo depth ranges are in metres, so give the
-real spacing when it is known (a walk: about 1 m between photos; a car: its speed ÷ the
-frame rate). The rig frame has its origin at the camera, x along the viewing direction, z
-up (the camera is taken to be level; SfM estimates the world's up from all the photos).
+Scale: one moving camera has none. ``--step-length`` gives the metres between consecutive
+photos (``dataset.json`` "source" "step_length"; null when not given). When every photo
+carries an EXIF GPS position, "source" "gps_enu_m" holds them as [east, north, up] metres
+about the first photo (:mod:`.gps`; up is 0 for all when any photo lacks an altitude, then
+"gps_altitude" is false); else it is null. SfM takes its scale from the step length when
+given, else from the GPS positions, else it stays in arbitrary units: stereo depth ranges
+are in metres, so give the real spacing when it is known (a walk: about 1 m between photos;
+a car: its speed ÷ the frame rate). The rig frame has its origin at the camera, x along
+the viewing direction, z up (the camera is taken to be level; SfM estimates the world's up
+from all the photos).
 """
 
 from __future__ import annotations
@@ -41,7 +50,8 @@ from core.fileio import DataFormatError
 from data_synth.distortion import Distortion
 from data_synth.rig import Rig
 
-from .common import ZUP_FROM_CAMERA, write_imported_dataset
+from .common import ZUP_FROM_CAMERA, exif_orientation, write_imported_dataset
+from .gps import enu_from_geodetic, exif_gps
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +65,9 @@ TAG_FOCAL_35MM = 0xA405
 TAG_FOCAL_PLANE_X_RES = 0xA20E
 TAG_FOCAL_PLANE_UNIT = 0xA210
 TAG_PIXEL_X_DIMENSION = 0xA002
+#: EXIF orientations (:func:`.common.exif_orientation`) whose upright image is the stored one
+#: turned a quarter (width ↔ height).
+QUARTER_TURNS = (5, 6, 7, 8)
 #: FocalPlaneResolutionUnit → millimetres per unit (EXIF: 2 inch, the default; 3 cm; 4 mm; 5 µm).
 FOCAL_PLANE_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 #: Photos whose EXIF focal lengths differ by more than this (relative) are refused.
@@ -65,10 +78,10 @@ FOCAL_AGREEMENT = 1e-3
 class PhotosConfig:
     intrinsics: Path | None = None  # K file (see the module doc); None: from EXIF
     sensor_width_mm: float | None = None  # sensor width, with EXIF FocalLength when there is no 35 mm equivalent
-    step_length: float = 1.0  # metres between consecutive photos: sets the scale of SfM (see the module doc)
+    step_length: float | None = None  # metres between consecutive photos, SfM's scale; None: GPS or none (module doc)
 
     def __post_init__(self):
-        if not (np.isfinite(self.step_length) and self.step_length > 0):
+        if self.step_length is not None and not (np.isfinite(self.step_length) and self.step_length > 0):
             raise ValueError(f"step_length must be a positive number of metres, got {self.step_length}")
         if self.sensor_width_mm is not None and not (np.isfinite(self.sensor_width_mm) and self.sensor_width_mm > 0):
             raise ValueError(f"sensor_width_mm must be a positive width, got {self.sensor_width_mm}")
@@ -132,7 +145,9 @@ def exif_focal_px(path: Path, size: tuple[int, int], sensor_width_mm: float | No
                   ) -> tuple[float, str] | None:
     """The focal length in pixels from a photo's EXIF and how it was found, or None.
 
-    size: (width, height) of the stored image in pixels.
+    size: (width, height) of the image as stored (before its EXIF orientation is applied:
+    FocalPlaneXResolution and PixelXDimension count along the stored width). The focal
+    length is that of the upright image too (square pixels).
     """
     try:
         with PILImage.open(path) as im:
@@ -172,13 +187,48 @@ def list_photos(folder: Path) -> list[Path]:
     return photos
 
 
-def photo_size(path: Path) -> tuple[int, int]:
-    """(width, height) of a photo as stored (the EXIF orientation not applied)."""
+def photo_header(path: Path) -> tuple[tuple[int, int], int]:
+    """(width, height) of a photo as stored and its EXIF orientation (1: as stored)."""
     try:
         with PILImage.open(path) as im:
-            return im.size
+            size = im.size
     except Exception as e:  # Pillow raises many kinds for broken files
         raise DataFormatError(path, f"photo could not be read ({e})") from None
+    return size, exif_orientation(path)
+
+
+def photo_size(path: Path) -> tuple[int, int]:
+    """(width, height) of the upright photo (its EXIF orientation applied)."""
+    (w, h), orientation = photo_header(path)
+    return (h, w) if orientation in QUARTER_TURNS else (w, h)
+
+
+def gps_positions(photos: list[Path]) -> tuple[np.ndarray, bool] | None:
+    """(n, 3) float64 [east, north, up] metres of each photo's EXIF GPS position about the
+    first photo's, and whether the altitudes were known (else up is 0); None unless every
+    photo has a position."""
+    found = [exif_gps(p) for p in photos]
+    if any(g is None for g in found):
+        have = sum(g is not None for g in found)
+        if have:
+            logger.warning("%d of %d photos have an EXIF GPS position: none is used", have, len(photos))
+        return None
+    with_altitude = all(g[2] is not None for g in found)
+    lla = np.array([[lat, lon, alt if with_altitude else 0.0] for lat, lon, alt in found], dtype=np.float64)
+    enu = enu_from_geodetic(lla, lla[0])
+    if not with_altitude:
+        enu[:, 2] = 0.0
+    return enu, with_altitude
+
+
+def unposed_rig(K: np.ndarray, distortion: Distortion | None, size: tuple[int, int], where: Path) -> Rig:
+    """The one-camera rig of a capture whose poses are unknown: the camera K (3, 3) float64
+    with its lens at ``size``, the rig frame its own turned to the project's axes (x along
+    the view, z up: see the module doc). ``where`` is named when the lens cannot be undistorted."""
+    try:
+        return Rig.from_raw(K[None], [size], np.linalg.inv(ZUP_FROM_CAMERA)[None], [distortion])
+    except ValueError as e:  # a lens that leaves no pinhole image inside the raw one
+        raise DataFormatError(where, f"cannot undistort the camera ({e})") from None
 
 
 def import_photos(folder: os.PathLike | str, out_dir: os.PathLike | str, config: PhotosConfig = PhotosConfig(),
@@ -189,17 +239,18 @@ def import_photos(folder: os.PathLike | str, out_dir: os.PathLike | str, config:
     if out.exists():
         raise FileExistsError(f"{out} exists; choose a new --out")
     photos = list_photos(root)
-    size = photo_size(photos[0])
-    for p in photos[1:]:
-        if photo_size(p) != size:
-            got = photo_size(p)
-            raise DataFormatError(p, f"photo is {got[0]}x{got[1]} but {photos[0].name} is {size[0]}x{size[1]}; "
-                                     "all photos must come from one camera at one size")
+    headers = [photo_header(p) for p in photos]
+    sizes = [(h, w) if o in QUARTER_TURNS else (w, h) for (w, h), o in headers]
+    size = sizes[0]
+    for p, got in zip(photos[1:], sizes[1:]):
+        if got != size:
+            raise DataFormatError(p, f"photo is {got[0]}x{got[1]} but {photos[0].name} is {size[0]}x{size[1]} "
+                                     "(upright); all photos must come from one camera at one size")
     if config.intrinsics is not None:
         K, distortion = read_intrinsics(Path(config.intrinsics))
         how = f"file {Path(config.intrinsics).resolve()}"
     else:
-        found = [exif_focal_px(p, size, config.sensor_width_mm) for p in photos]
+        found = [exif_focal_px(p, stored, config.sensor_width_mm) for p, (stored, _) in zip(photos, headers)]
         if found[0] is None:
             raise DataFormatError(root, "no focal length: give --intrinsics (no EXIF FocalLengthIn35mmFilm, or "
                                         "FocalLength with --sensor-width or FocalPlaneXResolution, in "
@@ -213,13 +264,17 @@ def import_photos(folder: os.PathLike | str, out_dir: os.PathLike | str, config:
         w, h = size
         K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
         distortion = None
-    try:
-        rig = Rig.from_raw(K[None], [size], np.linalg.inv(ZUP_FROM_CAMERA)[None], [distortion])
-    except ValueError as e:  # a lens that leaves no pinhole image inside the raw one
-        raise DataFormatError(Path(config.intrinsics or root), f"cannot undistort the camera ({e})") from None
+    rig = unposed_rig(K, distortion, size, Path(config.intrinsics or root))
+    gps = gps_positions(photos)
     poses = np.full((len(photos), 4, 4), np.nan)  # unknown: poses.json says null, SfM finds them
+    turned = [p for p, (_, o) in zip(photos, headers) if o != 1]
     source = {"kind": "photos", "path": str(root.resolve()), "intrinsics": how, "poses": "unknown",
-              "step_length": float(config.step_length)}
-    logger.info("%d photos of %dx%d pixels, focal %.1f px (%s)", len(photos), size[0], size[1], K[0, 0], how)
-    return write_imported_dataset(out, rig, poses, [[p] for p in photos], source,
-                                  names=[p.stem for p in photos], progress=progress)
+              "step_length": None if config.step_length is None else float(config.step_length),
+              "gps_enu_m": None if gps is None else gps[0].tolist(),
+              "gps_altitude": None if gps is None else gps[1],
+              "exif_oriented": len(turned)}
+    logger.info("%d photos of %dx%d pixels, focal %.1f px (%s)%s%s", len(photos), size[0], size[1], K[0, 0], how,
+                f", {len(turned)} turned upright by their EXIF orientation" if turned else "",
+                ", with GPS positions" if gps is not None else "")
+    return write_imported_dataset(out, rig, poses, [[p] for p in photos], source, names=[p.stem for p in photos],
+                                  progress=progress, upright=True)
