@@ -14,6 +14,7 @@ import mmap
 import os
 
 import numpy as np
+import psutil
 
 
 def rss_bytes(pid: int | str = "self") -> int:
@@ -35,6 +36,11 @@ def peak_rss_bytes(pid: int | str = "self") -> int:
     except (OSError, ValueError, IndexError):
         pass
     return 0
+
+
+def available_bytes() -> int:
+    """Memory the system can give without swapping (``MemAvailable``, through psutil), bytes."""
+    return int(psutil.virtual_memory().available)
 
 
 def child_pids(pid: int | None = None) -> list[int]:

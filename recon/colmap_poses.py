@@ -32,7 +32,13 @@ import pycolmap  # noqa: E402  (after data_synth, see above)
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["poses_from_colmap", "poses_from_reconstruction"]
+__all__ = ["DEPTH_QUANTILES", "frame_depths", "poses_from_colmap", "poses_from_reconstruction", "read_reconstruction"]
+
+#: Quantiles of the depths of the sparse points each frame sees that :func:`frame_depths` returns:
+#: near, median, far (the 2nd and 98th percentiles leave out stray triangulations).
+DEPTH_QUANTILES = (0.02, 0.5, 0.98)
+#: Fewest sparse points a frame must see for its depths to count (fewer: NaN).
+MIN_DEPTH_POINTS = 20
 
 
 def _to_4x4(rigid: pycolmap.Rigid3d) -> np.ndarray:
@@ -114,7 +120,34 @@ def poses_from_reconstruction(rec: pycolmap.Reconstruction, dataset: Dataset,
     return world_from_rig, world_from_cam
 
 
-def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
+def frame_depths(rec: pycolmap.Reconstruction, dataset: Dataset, min_points: int = MIN_DEPTH_POINTS) -> np.ndarray:
+    """Depths of the sparse points each frame's reference camera (camera 0) sees, in the
+    model's units: (n, 3) float64, the :data:`DEPTH_QUANTILES` (near, median, far) per frame
+    in ``dataset.frame_names`` order, NaN where the image is not registered or sees fewer
+    than ``min_points`` points in front of it. Depth is along the optical axis, so it does
+    not change when the model is moved rigidly (aligned to given poses)."""
+    n = dataset.num_frames
+    out = np.full((n, len(DEPTH_QUANTILES)), np.nan)
+    frame_index = {name: i for i, name in enumerate(dataset.frame_names)}
+    xyz = {pid: p.xyz for pid, p in rec.points3D.items()}
+    for image in rec.images.values():
+        where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
+        if where is None or where[1] != 0 or not image.has_pose:
+            continue
+        ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
+        if len(ids) < min_points:
+            continue
+        X = np.array([xyz[i] for i in ids if i in xyz], dtype=np.float64).reshape(-1, 3)
+        T = _to_4x4(image.cam_from_world())
+        z = X @ T[2, :3] + T[2, 3]
+        z = z[z > 0]
+        if len(z) >= min_points:
+            out[where[0]] = np.quantile(z, DEPTH_QUANTILES)
+    return out
+
+
+def read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
+    """A COLMAP model (text or binary) read by pycolmap; DataFormatError naming ``model_dir``."""
     if not model_dir.is_dir():
         raise DataFormatError(model_dir, "COLMAP model directory does not exist")
     names = {p.name for p in model_dir.iterdir()}
@@ -149,7 +182,7 @@ def poses_from_colmap(model_dir: os.PathLike | str, dataset: Dataset, allow_miss
     without a registered image unless ``allow_missing`` (then they are NaN).
     """
     model_dir = Path(model_dir)
-    rec = _read_reconstruction(model_dir)
+    rec = read_reconstruction(model_dir)
     world_from_rig, world_from_cam = poses_from_reconstruction(rec, dataset, model_dir)
     ratio = rig_baseline_ratio(world_from_cam, dataset.rig.cam_from_rig)
     if np.isfinite(ratio) and abs(ratio - 1.0) > metric_tolerance:

@@ -5,16 +5,21 @@ a car's side window) has no second camera; the camera's own motion between
 frames is the baseline. For each reference frame:
 
 1. **Partners** (:func:`select_partners`): the frames before and after it (up
-   to ``max_frame_gap`` frames away in capture order) whose baseline lies in
-   [``min_baseline``, ``max_baseline``], whose optical axis turned by at most
+   to ``max_frame_gap`` frames away in capture order) whose baseline, as a
+   share of the reference frame's scene depth, lies in [``min_baseline_ratio``,
+   ``max_baseline_ratio``], whose optical axis turned by at most
    ``max_view_angle_deg``, whose baseline lies within ``max_baseline_angle_deg``
    of the reference's x axis (sideways motion: forward motion puts the epipole
    inside the image, where rectification fails; vertical motion is not
    supported, as in :mod:`recon.rectify`) and that see at least ``min_overlap``
-   of the reference image at ``overlap_depth``. On each side the acceptable
-   frame whose baseline is nearest ``target_baseline`` wins (ties: the nearer
-   frame). The first and last frames of a pass have one partner; a frame whose
-   neighbours all fail (a stop, a turn) has none and gives no points.
+   of the reference image at that depth. On each side the acceptable frame
+   whose baseline ratio is nearest ``target_baseline_ratio`` wins (ties: the
+   nearer frame). The scene depth is the median depth of the sparse points the
+   reference frame sees (SfM or a COLMAP model: a walk along a facade 3 m per
+   photo and a car's camera 0.8 m per frame are judged alike, whatever the
+   model's units), else ``scene_depth`` (metres). The first and last frames of a
+   pass have one partner; a frame whose neighbours all fail (a stop, a turn) has
+   none and gives no points.
 2. **Rectification** from the relative pose (:func:`recon.rectify.rectify_views`,
    cv2.stereoRectify): per pair of frames, so the maps are not cached.
 3. **Matching and fusion** exactly as the trinocular path does: every pair's
@@ -54,23 +59,24 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class MotionStereoConfig:
-    min_baseline: float = 0.3  # shortest baseline to a partner frame, metres (shorter: imprecise depth)
-    max_baseline: float = 1.6  # longest baseline, metres (longer: occlusions, perspective change)
-    target_baseline: float = 0.8  # preferred baseline on each side, metres (the default rig's widest pair)
+    min_baseline_ratio: float = 0.0375  # shortest baseline to a partner, over the scene depth (shorter: imprecise)
+    max_baseline_ratio: float = 0.4  # longest baseline over the scene depth (longer: occlusions, perspective)
+    target_baseline_ratio: float = 0.1  # preferred baseline on each side over the scene depth (0.8 m at 8 m)
     max_view_angle_deg: float = 15.0  # largest angle between the two frames' optical axes, degrees
     max_baseline_angle_deg: float = MAX_BASELINE_ANGLE_DEG  # largest baseline angle from the x axis, degrees
-    min_overlap: float = 0.5  # share of the reference image the partner must see at overlap_depth
-    overlap_depth: float = 8.0  # depth at which the overlap is measured, metres (a facade across a sidewalk)
+    min_overlap: float = 0.5  # share of the reference image the partner must see at the scene depth
+    scene_depth: float = 8.0  # scene depth of a frame with no sparse points, metres (a facade across a sidewalk)
     max_frame_gap: int = 8  # partners are searched this many frames before and after the reference
     outer_pair: bool = True  # also match the two partners with each other (three pairs, like the rig)
     min_agree: int | None = None  # estimates that must agree; None: 2 with two or more pairs, 1 with one
 
     def __post_init__(self):
-        if not (0 < self.min_baseline <= self.max_baseline):
-            raise ValueError(f"need 0 < min_baseline <= max_baseline, got {self.min_baseline}, {self.max_baseline}")
-        if not (self.min_baseline <= self.target_baseline <= self.max_baseline):
-            raise ValueError(f"target_baseline {self.target_baseline} must lie in "
-                             f"[{self.min_baseline}, {self.max_baseline}]")
+        if not (0 < self.min_baseline_ratio <= self.max_baseline_ratio < np.inf):
+            raise ValueError(f"need 0 < min_baseline_ratio <= max_baseline_ratio, got {self.min_baseline_ratio}, "
+                             f"{self.max_baseline_ratio}")
+        if not (self.min_baseline_ratio <= self.target_baseline_ratio <= self.max_baseline_ratio):
+            raise ValueError(f"target_baseline_ratio {self.target_baseline_ratio} must lie in "
+                             f"[{self.min_baseline_ratio}, {self.max_baseline_ratio}]")
         if not (0 <= self.max_view_angle_deg < 90):
             raise ValueError(f"max_view_angle_deg must be in [0, 90), got {self.max_view_angle_deg}")
         if not (0 <= self.max_baseline_angle_deg <= MAX_BASELINE_ANGLE_DEG):
@@ -78,8 +84,8 @@ class MotionStereoConfig:
                              f"rejects steeper baselines), got {self.max_baseline_angle_deg}")
         if not (0 <= self.min_overlap <= 1):
             raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap}")
-        if not self.overlap_depth > 0:
-            raise ValueError(f"overlap_depth must be positive, got {self.overlap_depth}")
+        if not (0 < self.scene_depth < np.inf):
+            raise ValueError(f"scene_depth must be a positive number of metres, got {self.scene_depth}")
         if self.max_frame_gap < 1:
             raise ValueError(f"max_frame_gap must be at least 1, got {self.max_frame_gap}")
         if self.min_agree is not None and self.min_agree < 1:
@@ -140,27 +146,31 @@ def view_overlap(K_a: np.ndarray, K_b: np.ndarray, b_from_a: np.ndarray, size: t
 
 
 def _acceptable(world_from_cam: np.ndarray, K: np.ndarray, size: tuple[int, int], ref: int, j: int,
-                config: MotionStereoConfig) -> float | None:
-    """Baseline of the pair (ref, j) when it passes every test of ``config``, else None."""
+                depth: float, config: MotionStereoConfig) -> float | None:
+    """Baseline over the scene ``depth`` of the pair (ref, j) when it passes every test of
+    ``config``, else None."""
     T = relative_pose(world_from_cam[ref], world_from_cam[j])
     baseline, view, angle = pair_geometry(T)
-    if not (config.min_baseline <= baseline <= config.max_baseline):
+    ratio = baseline / depth
+    if not (config.min_baseline_ratio <= ratio <= config.max_baseline_ratio):
         return None
     if view > config.max_view_angle_deg or angle > config.max_baseline_angle_deg:
         return None
-    if view_overlap(K[ref], K[j], T, size, config.overlap_depth) < config.min_overlap:
+    if view_overlap(K[ref], K[j], T, size, depth) < config.min_overlap:
         return None
-    return baseline
+    return ratio
 
 
 def select_partners(world_from_cam: np.ndarray, intrinsics: np.ndarray, size: tuple[int, int],
                     config: MotionStereoConfig = MotionStereoConfig(),
-                    frames: Sequence[int] | None = None) -> np.ndarray:
+                    frames: Sequence[int] | None = None, depth: np.ndarray | None = None) -> np.ndarray:
     """Stereo partners of each frame of one camera's trajectory (see the module doc).
 
     world_from_cam: (n, 4, 4) float64 camera poses in capture order (non-finite =
     no pose: never a partner, never given one). intrinsics: (3, 3) or (n, 3, 3)
     float64. size: (w, h). frames: the reference frames to serve (default all).
+    depth: (n,) float64 scene depth of each frame in the poses' units (the median
+    depth of its sparse points); NaN or None: ``config.scene_depth``.
     Returns (n, 2) int64: the partner before and the partner after each frame,
     −1 where there is none (and for frames not asked for).
     """
@@ -173,6 +183,10 @@ def select_partners(world_from_cam: np.ndarray, intrinsics: np.ndarray, size: tu
     if K.shape != (n, 3, 3):
         raise ValueError(f"intrinsics must be (3, 3) or ({n}, 3, 3), got {np.shape(intrinsics)}")
     posed = np.all(np.isfinite(T.reshape(n, -1)), axis=1)
+    scene = np.full(n, config.scene_depth) if depth is None else np.asarray(depth, dtype=np.float64)
+    if scene.shape != (n,):
+        raise ValueError(f"depth must be ({n},), got {scene.shape}")
+    scene = np.where(np.isfinite(scene) & (scene > 0), scene, config.scene_depth)
     out = np.full((n, 2), -1, dtype=np.int64)
     for i in (range(n) if frames is None else frames):
         if not posed[i]:
@@ -183,10 +197,10 @@ def select_partners(world_from_cam: np.ndarray, intrinsics: np.ndarray, size: tu
                 j = i + step * k
                 if not (0 <= j < n and posed[j]):
                     continue
-                b = _acceptable(T, K, size, i, j, config)
-                if b is None:
+                r = _acceptable(T, K, size, i, j, scene[i], config)
+                if r is None:
                     continue
-                key = (round(abs(b - config.target_baseline), 6), k)  # µm: ties go to the nearer frame
+                key = (round(abs(r - config.target_baseline_ratio), 9), k)  # ties go to the nearer frame
                 if best_key is None or key < best_key:
                     best, best_key = j, key
             out[i, side] = best

@@ -20,14 +20,14 @@ from pathlib import Path
 import numpy as np
 
 from core.fileio import DataFormatError, read_json, write_json
-from core.memory import peak_memory
-from core.tasks import run_tasks
+from core.memory import available_bytes, peak_memory
+from core.tasks import executor_workers, run_tasks
 from data_synth import load_dataset, load_scene
 from data_synth.dataset import held_out_frames
 from data_synth.rig import save_poses
 
 from .cloud_io import PlyStreamWriter, read_cloud_tiles
-from .colmap_poses import poses_from_colmap
+from .colmap_poses import DEPTH_QUANTILES, frame_depths, poses_from_colmap, read_reconstruction
 from .evaluate import evaluate_cloud, evaluate_cloud_tiles
 from .fusion import FusionConfig, TileSpill, merge_tiles
 from .motion_stereo import MotionStereoConfig, motion_depth, select_partners
@@ -36,7 +36,9 @@ from .poses import frame_passes, poses_given, poses_unknown
 from .rectify import rectify_rig
 from .sfm import SfmConfig, poses_sfm
 from .trajectory import align_components, trajectory_rmse
+from .stereo import MEMORY_SHARE, MIN_DEPTH
 from .trinocular import TrinocularConfig, frame_depth
+from .working_size import resize_image, scaled_rig, working_scale
 
 logger = logging.getLogger(__name__)
 
@@ -56,11 +58,27 @@ class ReconConfig:
     keep_spill: bool = False  # keep the voxel tiles under WORK/spill after the merge
     holdout: int = 0  # leave every n-th frame out (held out for `bbcity eval`; 0: none), as `bbcity build --holdout`
     motion: MotionStereoConfig = field(default_factory=MotionStereoConfig)  # one-camera rigs: partner frames
+    max_image_size: int | None = 1600  # stereo and SfM features at most this many pixels along the longer side
+    near_margin: float = 1.5  # depth range from sparse points: nearest sparse depth (2nd percentile) / this
+    far_margin: float = 2.0  # … up to the farthest (98th percentile) × this
 
     def __post_init__(self):
         held_out_frames(0, self.holdout)  # validates
         if self.frame_stride < 1 or self.pixel_stride < 1:
             raise ValueError("frame_stride and pixel_stride must be ≥ 1")
+        if self.max_image_size is not None and (isinstance(self.max_image_size, bool) or self.max_image_size < 64):
+            raise ValueError(f"max_image_size must be at least 64 pixels, got {self.max_image_size}")
+        if not (1.0 <= self.near_margin < np.inf and 1.0 <= self.far_margin < np.inf):
+            raise ValueError(f"near_margin and far_margin must be finite and ≥ 1, got {self.near_margin}, "
+                             f"{self.far_margin}")
+
+    def depth_range(self, depths: np.ndarray) -> tuple[float, float] | None:
+        """(min_depth, max_depth) to match a frame whose sparse points lie at ``depths`` (3,)
+        (near, median, far: :data:`recon.colmap_poses.DEPTH_QUANTILES`), widened by the margins;
+        None (the stereo preset's range) when the frame has no sparse depths."""
+        if not np.all(np.isfinite(depths)):
+            return None
+        return max(float(depths[0]) / self.near_margin, MIN_DEPTH), float(depths[2]) * self.far_margin
 
 
 @dataclass(frozen=True)
@@ -75,6 +93,7 @@ class _FrameTask:
     pixel_stride: int
     motion: MotionStereoConfig | None = None  # one-camera rigs: motion stereo settings
     partners: tuple = ()  # one-camera rigs: (frame, world_from_rig as a list) of each partner frame
+    max_image_size: int | None = None  # working resolution (recon.working_size)
 
 
 _PAIRS_CACHE: dict = {}
@@ -88,19 +107,21 @@ def _process_frame(task: _FrameTask) -> dict:
         return _process_frame_motion(task, ds, t0)
     # rectification maps: once per rig and worker (a long-lived cluster worker may see a dataset
     # rewritten at the same path: its rig.json's size and time tell)
+    rig = scaled_rig(ds.rig, working_scale(ds.rig.sizes[0], task.max_image_size))
     rig_file = Path(task.dataset) / "rig.json"
-    key = (task.dataset, rig_file.stat().st_mtime_ns, rig_file.stat().st_size) if rig_file.is_file() else task.dataset
+    key = ((task.dataset, rig_file.stat().st_mtime_ns, rig_file.stat().st_size) if rig_file.is_file()
+           else (task.dataset,)) + (rig.sizes,)
     if key not in _PAIRS_CACHE:
         _PAIRS_CACHE.clear()
-        _PAIRS_CACHE[key] = rectify_rig(ds.rig)
+        _PAIRS_CACHE[key] = rectify_rig(rig)
     pairs = _PAIRS_CACHE[key]
-    images = [ds.image(task.frame, c) for c in range(ds.rig.num_cameras)]
+    images = [resize_image(ds.image(task.frame, c), rig.sizes[c]) for c in range(rig.num_cameras)]
     t_read = time.perf_counter()
     fd = frame_depth(images, pairs, task.trinocular)
     t_stereo = time.perf_counter()
     world_from_rig = np.asarray(task.world_from_rig, dtype=np.float64)
-    world_from_cam = world_from_rig @ np.linalg.inv(ds.rig.cam_from_rig[0])
-    points, colours, conf = depth_to_points(fd.depth, ds.rig.intrinsics[0], world_from_cam, images[0],
+    world_from_cam = world_from_rig @ np.linalg.inv(rig.cam_from_rig[0])
+    points, colours, conf = depth_to_points(fd.depth, rig.intrinsics[0], world_from_cam, images[0],
                                             fd.confidence, stride=task.pixel_stride)
     spill = TileSpill(Path(task.spill_root), np.asarray(task.origin), task.fusion)
     voxels = spill.add_frame(ds.frame_names[task.frame], points, colours, conf)
@@ -113,14 +134,15 @@ def _process_frame_motion(task: _FrameTask, ds, t0: float) -> dict:
     """:func:`_process_frame` for a one-camera rig: motion stereo with the partner frames."""
     frames = [task.frame] + [f for f, _ in task.partners]
     rig_poses = [task.world_from_rig] + [T for _, T in task.partners]
-    cam_from_rig = ds.rig.cam_from_rig[0]
+    rig = scaled_rig(ds.rig, working_scale(ds.rig.sizes[0], task.max_image_size))
+    cam_from_rig = rig.cam_from_rig[0]
     world_from_cam = np.stack([np.asarray(T, dtype=np.float64) @ np.linalg.inv(cam_from_rig) for T in rig_poses])
-    images = [ds.image(f, 0) for f in frames]
+    images = [resize_image(ds.image(f, 0), rig.sizes[0]) for f in frames]
     t_read = time.perf_counter()
-    intrinsics = np.repeat(np.asarray(ds.rig.intrinsics[:1], dtype=np.float64), len(frames), axis=0)
+    intrinsics = np.repeat(np.asarray(rig.intrinsics[:1], dtype=np.float64), len(frames), axis=0)
     fd = motion_depth(images, intrinsics, world_from_cam, task.motion or MotionStereoConfig(), task.trinocular)
     t_stereo = time.perf_counter()
-    points, colours, conf = depth_to_points(fd.depth, ds.rig.intrinsics[0], world_from_cam[0], images[0],
+    points, colours, conf = depth_to_points(fd.depth, rig.intrinsics[0], world_from_cam[0], images[0],
                                             fd.confidence, stride=task.pixel_stride)
     spill = TileSpill(Path(task.spill_root), np.asarray(task.origin), task.fusion)
     voxels = spill.add_frame(ds.frame_names[task.frame], points, colours, conf)
@@ -144,16 +166,29 @@ def _frame_finished(task: _FrameTask, stats: dict) -> dict:
     return stats
 
 
+def _frame_trinocular(conf: ReconConfig, depths: np.ndarray, memory_budget: float) -> TrinocularConfig:
+    """The stereo settings of a frame whose sparse points lie at ``depths`` (3,): the preset's,
+    with the depth range from those points when there are any (:meth:`ReconConfig.depth_range`),
+    and ``memory_budget`` bytes for each pair's matcher (recon.stereo)."""
+    span = conf.depth_range(depths)
+    stereo = replace(conf.trinocular.stereo, memory_budget=memory_budget)
+    if span is not None:
+        stereo = replace(stereo, min_depth=span[0], max_depth=span[1])
+    return replace(conf.trinocular, stereo=stereo)
+
+
 def _spill_inputs(conf: ReconConfig, dataset_dir: Path, world_from_rig: np.ndarray, frames: list[int],
-                  origin: np.ndarray) -> dict:
-    """What the spilled frames depend on: the stereo and fusion settings, the dataset, the poses
-    and frames used, the origin (JSON; equal inputs, equal dict)."""
+                  origin: np.ndarray, depths: np.ndarray) -> dict:
+    """What the spilled frames depend on: the stereo and fusion settings, the dataset, the poses,
+    sparse depths and frames used, the origin (JSON; equal inputs, equal dict)."""
     settings = {k: v for k, v in json.loads(json.dumps(asdict(conf), default=str)).items()
-                if k in ("trinocular", "fusion", "pixel_stride", "motion", "poses", "colmap_model", "sfm")}
+                if k in ("trinocular", "fusion", "pixel_stride", "motion", "poses", "colmap_model", "sfm",
+                         "max_image_size", "near_margin", "far_margin")}
     manifest = Path(dataset_dir) / "dataset.json"
     return {"settings": settings, "dataset": str(Path(dataset_dir).resolve()),
             "dataset_json": hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.is_file() else None,
             "poses": hashlib.sha256(np.ascontiguousarray(world_from_rig[frames]).tobytes()).hexdigest(),
+            "depths": hashlib.sha256(np.ascontiguousarray(depths[frames]).tobytes()).hexdigest(),
             "frames": [int(f) for f in frames], "origin": origin.tolist()}
 
 
@@ -165,39 +200,56 @@ def _spilled_inputs(spill_root: Path) -> dict | None:
         return None
 
 
-def _with_motion_partners(tasks: list, ds, world_from_rig: np.ndarray, excluded, config: MotionStereoConfig) -> list:
+def _with_motion_partners(tasks: list, ds, world_from_rig: np.ndarray, excluded, config: MotionStereoConfig,
+                          depths: np.ndarray) -> list:
     """Give each task of a one-camera rig its stereo partners among the posed frames that are
-    not ``excluded`` (held out: their images stay out of the model)."""
+    not ``excluded`` (held out: their images stay out of the model); depths: (n, 3) float64
+    sparse depths per frame (:func:`recon.colmap_poses.frame_depths`, NaN: none)."""
     world_from_cam = world_from_rig @ np.linalg.inv(ds.rig.cam_from_rig[0])
     world_from_cam[list(excluded)] = np.nan  # never a partner
     partners = select_partners(world_from_cam, ds.rig.intrinsics[0], ds.rig.sizes[0], config,
-                               frames=[t.frame for t in tasks])
+                               frames=[t.frame for t in tasks], depth=depths[:, 1])
     out = []
     for t in tasks:
         chosen = tuple((int(j), world_from_rig[j].tolist()) for j in partners[t.frame] if j >= 0)
         if not chosen:
-            logger.warning("frame %d has no stereo partner (baselines %.2f–%.2f m, see MotionStereoConfig)",
-                           t.frame, config.min_baseline, config.max_baseline)
+            logger.warning("frame %d has no stereo partner (no neighbouring frame %g–%g × the scene depth away, "
+                           "moving sideways to the view; see MotionStereoConfig)", t.frame,
+                           config.min_baseline_ratio, config.max_baseline_ratio)
         out.append(replace(t, motion=config, partners=chosen))
     if out and not any(t.partners for t in out):
         raise ValueError(f"{ds.root}: no frame of this one-camera capture has a stereo partner (neighbouring frames "
-                         f"{config.min_baseline:g}–{config.max_baseline:g} m apart, moving sideways to the view; "
-                         "walking toward what is photographed gives none)")
+                         f"{config.min_baseline_ratio:g}–{config.max_baseline_ratio:g} × the scene depth apart, "
+                         "moving sideways to the view; walking toward what is photographed gives none)")
     return out
 
 
-def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np.ndarray, dict]:
-    """world_from_rig (n, 4, 4) float64 from the configured source, and a report."""
+def _model_depths(model_dirs: list[Path], ds) -> np.ndarray:
+    """(n, 3) float64 sparse depths per frame (:func:`frame_depths`) from COLMAP models, the
+    first model that holds a frame giving its depths; NaN where none does."""
+    depths = np.full((ds.num_frames, len(DEPTH_QUANTILES)), np.nan)
+    for model in model_dirs:
+        found = frame_depths(read_reconstruction(Path(model)), ds)
+        todo = ~np.isfinite(depths).all(axis=1)
+        depths[todo] = found[todo]
+    return depths
+
+
+def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np.ndarray, dict, np.ndarray]:
+    """world_from_rig (n, 4, 4) float64 from the configured source, a report, and the depths
+    of the sparse points each frame sees ((n, 3) float64 near/median/far, :func:`frame_depths`;
+    NaN where the source has none: given poses)."""
     ds = load_dataset(dataset_dir)
+    no_depths = np.full((ds.num_frames, len(DEPTH_QUANTILES)), np.nan)
     if conf.poses == "given":
-        return poses_given(ds), {"source": "given"}
+        return poses_given(ds), {"source": "given"}, no_depths
     if conf.poses == "colmap":
         if not conf.colmap_model:
-            raise ValueError("--poses colmap needs a COLMAP model directory")
-        return poses_from_colmap(Path(conf.colmap_model), ds), {"source": "colmap",
-                                                                 "model": str(conf.colmap_model)}
+            raise ValueError("--poses colmap needs --colmap-model DIR (a COLMAP model directory)")
+        return (poses_from_colmap(Path(conf.colmap_model), ds), {"source": "colmap", "model": str(conf.colmap_model)},
+                _model_depths([Path(conf.colmap_model)], ds))
     if conf.poses == "sfm":
-        result = poses_sfm(ds, work / "sfm", conf.sfm)
+        result = poses_sfm(ds, work / "sfm", conf.sfm, max_image_size=conf.max_image_size)
         report = {"source": "sfm", "registered_frames": result.num_registered,
                   "components": result.num_components, "points": result.num_points,
                   # NaN (nothing registered; one camera: no baseline) is no JSON number
@@ -210,11 +262,16 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
             # nothing to align to: SfM's own (levelled, step-scaled) frame; its components are
             # unrelated, so only the largest is kept
             report["scale_applied"] = result.scale_applied
+            report["scale_from"] = result.scale_from  # "arbitrary": the model is in SfM's units, not metres
+            if result.scale_from[:1] == ["arbitrary"]:
+                logger.warning("SfM's scale is arbitrary (no --step-length at import, no GPS): the cloud and the "
+                               "model are in SfM units, consecutive frames 1 apart")
             dropped = int(np.count_nonzero(result.component > 0))
             if dropped:
                 logger.warning("%d frames registered in %d smaller SfM components are left out (no poses to "
                                "place them)", dropped, result.num_components - 1)
-            return np.where((result.component == 0)[:, None, None], result.world_from_rig, np.nan), report
+            return (np.where((result.component == 0)[:, None, None], result.world_from_rig, np.nan), report,
+                    _model_depths(result.model_dirs[:1], ds))
         # each component aligned on its own (SE(3), no scale): SfM's frame is arbitrary
         report["trajectory_vs_dataset"] = trajectory_rmse(result.world_from_rig, ds.world_from_rig,
                                                           groups=result.component)
@@ -223,7 +280,8 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
         # The passes of a street see opposite sides and share no features, so SfM
         # returns unrelated components; poses.json (GPS/IMU in a real capture)
         # places each one, SfM keeps its own relative poses.
-        return align_components(result.world_from_rig, result.component, ds.world_from_rig), report
+        return (align_components(result.world_from_rig, result.component, ds.world_from_rig), report,
+                _model_depths(result.model_dirs, ds))
     raise ValueError(f"unknown pose source {conf.poses!r}; expected one of {POSE_SOURCES}")
 
 
@@ -282,7 +340,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     stages: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    world_from_rig, pose_report = estimate_poses(conf, dataset_dir, work)
+    world_from_rig, pose_report, depths = estimate_poses(conf, dataset_dir, work)
     stages["poses_s"] = time.perf_counter() - t0
     poses_file = write_work_poses(work, ds, world_from_rig, conf.poses)
 
@@ -295,14 +353,22 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     # stored in voxels is relative to it (a city's UTM coordinates survive).
     origin = np.round(world_from_rig[frames, :3, 3].mean(axis=0), 3)
     spill_root = work / "spill"
-    inputs = _spill_inputs(conf, dataset_dir, world_from_rig, frames, origin)
+    inputs = _spill_inputs(conf, dataset_dir, world_from_rig, frames, origin, depths)
     if spill_root.exists() and _spilled_inputs(spill_root) != inputs:
         TileSpill(spill_root, origin, conf.fusion).cleanup()  # never mix with another run's frames
     write_json(spill_root / SPILL_INPUTS, inputs)
+    # each worker's matcher may take its share of half the memory free now (recon.stereo)
+    budget = conf.trinocular.stereo.memory_budget or available_bytes() * MEMORY_SHARE / executor_workers(executor)
     tasks = [_FrameTask(str(dataset_dir), f, world_from_rig[f].tolist(), str(spill_root), origin.tolist(),
-                        conf.trinocular, conf.fusion, conf.pixel_stride) for f in frames]
+                        _frame_trinocular(conf, depths[f], budget), conf.fusion, conf.pixel_stride,
+                        max_image_size=conf.max_image_size) for f in frames]
     if ds.rig.num_cameras == 1:  # one camera: each frame's stereo partners are neighbouring frames
-        tasks = _with_motion_partners(tasks, ds, world_from_rig, held_out, conf.motion)
+        tasks = _with_motion_partners(tasks, ds, world_from_rig, held_out, conf.motion, depths)
+    ranged = np.isfinite(depths[frames]).all(axis=1)
+    if ranged.any():
+        logger.info("depth ranges of %d of %d frames from their sparse points (median %.3g–%.3g)",
+                    int(ranged.sum()), len(frames), np.median(depths[frames][ranged, 0]) / conf.near_margin,
+                    np.median(depths[frames][ranged, 2]) * conf.far_margin)
     # a run killed before its merge left the frames it finished: they are not done again
     resumed = [read_json(p) for t in tasks if (p := _frame_done(spill_root, t.frame)).is_file()]
     tasks = [t for t in tasks if not _frame_done(spill_root, t.frame).is_file()]

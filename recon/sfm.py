@@ -37,7 +37,7 @@ import pycolmap  # noqa: E402  (after data_synth, see above)
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SfmConfig", "SfmResult", "poses_sfm", "step_length"]
+__all__ = ["CaptureScale", "SfmConfig", "SfmResult", "capture_scale", "poses_sfm", "scale_factor"]
 
 
 @dataclass(frozen=True)
@@ -89,6 +89,7 @@ class SfmResult:
     mean_reprojection_error: float  # pixels, over all observations
     baseline_ratio: list[float]  # per component: reconstructed / calibrated camera spacing before any rescaling
     scale_applied: list[float]  # per component: factor applied to make it metric (1.0 with a fixed rig)
+    scale_from: list[str]  # per component: "rig" (a known rig's baseline), "step_length", "gps" or "arbitrary"
     seconds: dict[str, float]  # wall time per stage: extract, match, map, total
     model_dirs: list[Path]  # per component: the written COLMAP model (binary)
     database: Path | None  # features and matches (None when not kept)
@@ -132,7 +133,7 @@ def _rig_config(dataset: Dataset) -> pycolmap.RigConfig:
     return pycolmap.RigConfig(cameras=cameras)
 
 
-def _extract(db: Path, dataset: Dataset, image_names: list[str], cfg: SfmConfig) -> None:
+def _extract(db: Path, dataset: Dataset, image_names: list[str], cfg: SfmConfig, max_image_size: int | None) -> None:
     model, params = _raw_camera(dataset, 0)
     reader = pycolmap.ImageReaderOptions(
         camera_model=model,
@@ -141,7 +142,10 @@ def _extract(db: Path, dataset: Dataset, image_names: list[str], cfg: SfmConfig)
     sift = pycolmap.SiftExtractionOptions(max_num_features=cfg.max_num_features, first_octave=cfg.first_octave,
                                           peak_threshold=cfg.peak_threshold)
     extraction = pycolmap.FeatureExtractionOptions(
-        num_threads=cfg.num_threads, use_gpu=False, max_image_size=max(max(s) for s in dataset.rig.sizes),
+        # COLMAP reads each image at most max_image_size pixels along its longer side and scales
+        # the keypoints back to the full image
+        num_threads=cfg.num_threads, use_gpu=False,
+        max_image_size=min(max(max(s) for s in dataset.rig.sizes), max_image_size or np.inf),
         sift=sift)
     pycolmap.extract_features(db, dataset.root / "images", image_names=image_names,
                               camera_mode=pycolmap.CameraMode.PER_FOLDER, reader_options=reader,
@@ -329,41 +333,90 @@ def _map_seeded(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig, bar: tqdm
     return models
 
 
-def step_length(dataset: Dataset) -> float:
-    """Metres between consecutive frames that a dataset without poses asks SfM to scale to:
-    ``dataset.json`` "source" "step_length" (the photos importer's ``--step-length``), else 1.0."""
+#: GPS positions fix SfM's scale only where two of them lie this far apart (metres): a phone's
+#: GPS errs by a few metres.
+MIN_GPS_SPAN = 20.0
+
+
+@dataclass(frozen=True)
+class CaptureScale:
+    """Where the scale of a dataset without poses comes from (``dataset.json`` "source"):
+    ``kind`` "step_length" (metres between consecutive frames: ``step``), "gps" (positions
+    (n, 3) float64 east/north/up metres per frame, NaN rows where a frame has none:
+    ``gps``) or "arbitrary" (none: SfM's units, consecutive frames 1 unit apart)."""
+
+    kind: str
+    step: float | None = None
+    gps: np.ndarray | None = None
+
+
+def capture_scale(dataset: Dataset) -> CaptureScale:
+    """The scale a dataset without poses asks SfM for: its "source" "step_length" (the
+    importers' ``--step-length``) when given, else its "gps_enu_m" positions, else none."""
     path = dataset.root / "dataset.json"
     source = read_json(path).get("source", {}) if path.is_file() else {}
-    value = source.get("step_length", 1.0) if isinstance(source, dict) else 1.0
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
-        raise DataFormatError(path, f"source.step_length must be a positive number of metres, got {value!r}")
-    return float(value)
+    source = source if isinstance(source, dict) else {}
+    value = source.get("step_length")
+    if value is not None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+            raise DataFormatError(path, f"source.step_length must be a positive number of metres, got {value!r}")
+        return CaptureScale("step_length", step=float(value))
+    gps = source.get("gps_enu_m")
+    if gps is not None:
+        try:
+            positions = np.asarray(gps, dtype=np.float64)
+        except (TypeError, ValueError):
+            positions = np.zeros((0,))
+        if positions.shape != (dataset.num_frames, 3) or not np.isfinite(positions).all():
+            raise DataFormatError(path, f"source.gps_enu_m must hold {dataset.num_frames} finite [east, north, up] "
+                                        "positions, one per frame")
+        return CaptureScale("gps", gps=positions)
+    return CaptureScale("arbitrary")
 
 
-def _level_and_scale(rec: pycolmap.Reconstruction, world_from_rig: np.ndarray, world_from_cam: np.ndarray,
-                     step: float) -> float:
-    """Move an SfM component of a dataset without poses into a z-up world whose origin and
-    heading (+x) are its first registered frame's rig, scaled so that the median distance
-    between consecutive registered frames is ``step`` metres. world_from_rig: (n, 4, 4),
-    world_from_cam: (n, c, 4, 4) float64 of ``rec`` (NaN = not registered). Transforms
-    ``rec`` in place; returns the scale applied."""
-    ok = np.flatnonzero(_valid(world_from_rig))
-    positions = world_from_rig[ok, :3, 3]
+def scale_factor(scale: CaptureScale, positions: np.ndarray, ok: np.ndarray) -> tuple[float, str]:
+    """The factor that brings SfM ``positions`` (m, 3) of frames ``ok`` (m,) int to the capture's
+    scale, and the scale's kind as applied ("gps" falls back to "arbitrary" when the positions
+    span less than :data:`MIN_GPS_SPAN`)."""
     gaps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
     adjacent = gaps[np.diff(ok) == 1]  # frames next to each other in the capture, where there are any
     median = float(np.median(adjacent if adjacent.size else gaps)) if gaps.size else 0.0
-    scale = step / median if median > 1e-12 else 1.0
+    if scale.kind == "gps":
+        g = scale.gps[ok]
+        i, j = np.triu_indices(len(ok), k=1)
+        far = np.linalg.norm(g[i] - g[j], axis=1) >= MIN_GPS_SPAN
+        sfm = np.linalg.norm(positions[i] - positions[j], axis=1)
+        far &= sfm > 1e-12
+        if far.any():
+            # pairs far apart: the GPS error is small against their distance
+            return float(np.median(np.linalg.norm(g[i[far]] - g[j[far]], axis=1) / sfm[far])), "gps"
+        logger.warning("the photos' GPS positions span less than %g m: too little to scale SfM by; the model "
+                       "stays in arbitrary units", MIN_GPS_SPAN)
+    step = scale.step if scale.kind == "step_length" else 1.0
+    return (step / median if median > 1e-12 else 1.0), ("step_length" if scale.kind == "step_length" else "arbitrary")
+
+
+def _level_and_scale(rec: pycolmap.Reconstruction, world_from_rig: np.ndarray, world_from_cam: np.ndarray,
+                     scale: CaptureScale) -> tuple[float, str]:
+    """Move an SfM component of a dataset without poses into a z-up world whose origin and
+    heading (+x) are its first registered frame's rig, scaled as ``scale`` says (:func:`scale_factor`).
+    world_from_rig: (n, 4, 4), world_from_cam: (n, c, 4, 4) float64 of ``rec`` (NaN = not
+    registered). Transforms ``rec`` in place; returns the factor applied and the scale's kind."""
+    ok = np.flatnonzero(_valid(world_from_rig))
+    positions = world_from_rig[ok, :3, 3]
+    factor, kind = scale_factor(scale, positions, ok)
     up = up_direction(world_from_cam.reshape(-1, 4, 4), positions)
     L = level_from_world(up, world_from_rig[ok[0], :3, 0], positions[0])
-    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.ascontiguousarray(L[:3, :3])),
-                                 np.ascontiguousarray(scale * L[:3, 3])))
-    logger.info("SfM without known poses: world levelled (z up) and scaled by %.4g to %.3g m per frame",
-                scale, step)
-    return scale
+    rec.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(np.ascontiguousarray(L[:3, :3])),
+                                 np.ascontiguousarray(factor * L[:3, 3])))
+    logger.info("SfM without known poses: world levelled (z up) and scaled by %.4g (%s)", factor,
+                {"step_length": f"{scale.step:.3g} m between consecutive frames", "gps": "the photos' GPS positions",
+                 "arbitrary": "arbitrary units: 1 between consecutive frames"}[kind])
+    return factor, kind
 
 
 def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig | None = None,
-              progress: bool | None = None) -> SfmResult:
+              progress: bool | None = None, max_image_size: int | None = None) -> SfmResult:
     """Rig poses by structure from motion (pycolmap, CPU), metric through the known rig.
 
     Steps: SIFT on every raw image (one camera per rig camera, calibrated
@@ -395,9 +448,14 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
 
     A dataset with no known poses (:func:`poses_unknown`, e.g. a photo folder) has no scale
     and no up: each component is then moved to a z-up world (:func:`up_direction`, cameras
-    held roughly level; origin and heading from its first registered frame) and scaled so
-    that the median distance between consecutive frames is the dataset's step length
-    (``dataset.json`` "source" "step_length", metres; 1.0 when absent).
+    held roughly level; origin and heading from its first registered frame) and scaled as
+    :func:`capture_scale` says: the median distance between consecutive frames becomes the
+    dataset's step length (metres), or the distances between frames far apart become those
+    of their GPS positions, or consecutive frames end up 1 apart in arbitrary units (the
+    result's ``scale_from`` says which).
+
+    max_image_size: SIFT reads each image at most this many pixels along its longer side
+    (None: whole; recon's working resolution).
 
     Returns an :class:`SfmResult`; frames that do not register are NaN.
     """
@@ -418,7 +476,7 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
     try:
         with colmap_log_to_logging():
             t = time.perf_counter()
-            _extract(db, dataset, image_names, cfg)
+            _extract(db, dataset, image_names, cfg, max_image_size)
             seconds["extract"] = time.perf_counter() - t
             t = time.perf_counter()
             _match(db, dataset, cfg)
@@ -442,7 +500,7 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
     models = sorted(recs, key=lambda r: r.num_reg_frames(), reverse=True)
     world_from_rig = _nan_poses(n)
     component = np.full(n, -1, dtype=np.int32)
-    ratios, scales, model_dirs = [], [], []
+    ratios, scales, scale_from, model_dirs = [], [], [], []
     num_points, err_sum, obs_sum = 0, 0.0, 0
     sparse = work / "sparse"
     if sparse.exists():
@@ -450,7 +508,7 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
     for k, rec in enumerate(models):
         poses, cams = poses_from_reconstruction(rec, dataset, f"SfM model {k}")
         ratio = rig_baseline_ratio(cams, dataset.rig.cam_from_rig)
-        scale = 1.0
+        scale, source = 1.0, "rig"
         if cfg.refine_rig and np.isfinite(ratio) and ratio > 0:
             scale = 1.0 / ratio
             rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(), np.zeros(3)))
@@ -459,10 +517,11 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
             logger.warning("SfM model %d: camera spacing is %.6g × the calibrated baseline with a fixed rig",
                            k, ratio)
         if unknown:
-            scale = _level_and_scale(rec, poses, cams, step_length(dataset))
+            scale, source = _level_and_scale(rec, poses, cams, capture_scale(dataset))
             poses, cams = poses_from_reconstruction(rec, dataset, f"SfM model {k}")
         ratios.append(ratio)
         scales.append(scale)
+        scale_from.append(source)
         new = _valid(poses) & (component < 0)
         world_from_rig[new] = poses[new]
         component[new] = k
@@ -478,7 +537,7 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
     if not cfg.keep_database:
         db.unlink(missing_ok=True)
     result = SfmResult(world_from_rig, component, num_points, err_sum / obs_sum if obs_sum else float("nan"),
-                       ratios, scales, seconds, model_dirs, db if cfg.keep_database else None)
+                       ratios, scales, scale_from, seconds, model_dirs, db if cfg.keep_database else None)
     logger.info("SfM: %d of %d frames registered in %d component(s), %d points, %.1f s "
                 "(extract %.1f, match %.1f, map %.1f)", result.num_registered, n, result.num_components,
                 num_points, seconds["total"], seconds["extract"], seconds["match"], seconds["map"])

@@ -45,6 +45,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from core.memory import available_bytes
+
+from .working_size import matcher_bytes
+
 logger = logging.getLogger(__name__)
 
 #: SGBM mode names → OpenCV constants.
@@ -93,6 +97,7 @@ class StereoConfig:
     edge_holes: bool = True  # also NaN edge_radius pixels right of every hole (fattening next to occlusions)
     edge_jump: float = 2.0  # a disparity step larger than this, pixels (full resolution), is a discontinuity
     image_scale: float = 1.0  # match at this scale (< 1 downsamples), disparities scaled back to full size
+    memory_budget: float | None = None  # bytes a pair's matcher may take (None: MEMORY_SHARE of the memory free)
 
     def __post_init__(self):
         if self.block_size < 1 or self.block_size % 2 == 0:
@@ -105,6 +110,8 @@ class StereoConfig:
             raise ValueError(f"num_disparities must be a positive multiple of 16, got {self.num_disparities}")
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {sorted(MODES)}, got {self.mode!r}")
+        if self.memory_budget is not None and not (0 < self.memory_budget < math.inf):
+            raise ValueError(f"memory_budget must be a positive number of bytes or None, got {self.memory_budget}")
         if not (0 < self.image_scale <= 1):
             raise ValueError(f"image_scale must be in (0, 1], got {self.image_scale}")
         if self.lr_tolerance < 0 or self.texture_threshold < 0 or self.search_margin < 0:
@@ -161,6 +168,18 @@ def _search(config: StereoConfig, focal_px: float | None, baseline_m: float | No
 
 class DisparityRangeError(ValueError):
     """The depth range asks for disparities wider than the images: nothing can be matched."""
+
+
+class StereoMemoryError(ValueError):
+    """Even the coarsest matching level of a pair needs more memory than the machine has free."""
+
+
+#: Share of the memory free when a pair is matched that its matcher may take (the other
+#: workers matching at the same time check against what is left).
+MEMORY_SHARE = 0.5
+#: A pair is never matched coarser than this many pixels along its longer side.
+MIN_MATCH_SIZE = 64
+_COARSER: set = set()  # (w, h, ws, hs) pairs already reported as matched coarser (log once)
 
 
 _CLAMPED: set = set()  # (width, d_hi) searches already reported as clamped (log once)
@@ -243,6 +262,37 @@ def _upsample(disp: np.ndarray, size: tuple[int, int], factor: float) -> np.ndar
     return (out * np.float32(factor)).astype(np.float32)
 
 
+def _scaled_search(w: int, h: int, d_lo: float, d_search: float, s: float, config: StereoConfig
+                   ) -> tuple[int, int, int, int]:
+    """(width, height, minDisparity, numDisparities) of matching a w × h pair at scale s."""
+    ws, hs = (max(2, round(w * s)), max(2, round(h * s))) if s < 1.0 else (w, h)
+    sx = ws / w
+    lo, num = _matcher_range(d_lo * sx, d_search * sx, config, ws)
+    return ws, hs, lo, num
+
+
+def _affordable_scale(w: int, h: int, d_lo: float, d_search: float, config: StereoConfig, budget: float) -> float:
+    """config.image_scale, halved until the matcher fits in ``budget`` bytes (a warning says so);
+    :class:`StereoMemoryError` when it would have to go below :data:`MIN_MATCH_SIZE` pixels."""
+    s = float(config.image_scale)
+    while True:
+        ws, hs, lo, num = _scaled_search(w, h, d_lo, d_search, s, config)
+        pad = lo + num if config.pad_border else 0
+        need = matcher_bytes(ws + pad, hs, num, config.mode)
+        if need <= budget:
+            if s < config.image_scale and (w, h, ws, hs) not in _COARSER:
+                _COARSER.add((w, h, ws, hs))
+                logger.warning("stereo of a %dx%d pair matched at %dx%d (%d disparities): a budget of %.1f GB "
+                               "allows no finer level (said once)", w, h, ws, hs, num, budget / 1e9)
+            return s
+        if max(ws, hs) / 2 < MIN_MATCH_SIZE:
+            raise StereoMemoryError(
+                f"not enough memory for stereo: a {w}x{h} pair searching {num} disparities at {ws}x{hs} needs "
+                f"{need / 1e9:.1f} GB, its budget is {budget / 1e9:.1f} GB (a share of the memory free); lower "
+                "--max-image-size, --workers or the depth range")
+        s /= 2.0
+
+
 def disparity(left: np.ndarray, right: np.ndarray, config: StereoConfig = StereoConfig(),
               focal_px: float | None = None, baseline_m: float | None = None) -> np.ndarray:
     """Dense disparity of a rectified pair, NaN where there is no measurement.
@@ -251,7 +301,9 @@ def disparity(left: np.ndarray, right: np.ndarray, config: StereoConfig = Stereo
     config: matcher settings. focal_px, baseline_m: rectified focal length
     (pixels) and baseline (metres) that turn config.min_depth/max_depth into a
     disparity range; not needed when config sets min_disparity/num_disparities
-    (which then take precedence).
+    (which then take precedence). A pair whose matcher needs more than config.memory_budget
+    (None: :data:`MEMORY_SHARE` of the memory free now) is matched at half the scale, and
+    half again, its disparities scaled back to full size.
     Returns (h, w) float32 disparity d = x_left − x_right in pixels: finite and
     > 0 where valid, NaN elsewhere (never 0 or inf).
     """
@@ -259,16 +311,15 @@ def disparity(left: np.ndarray, right: np.ndarray, config: StereoConfig = Stereo
     h, w = left.shape[:2]
     _lo, _num, d_lo, d_hi = _search(config, focal_px, baseline_m)
     d_search = _bounded(d_lo, d_hi, w, config, focal_px, baseline_m)
-    s = float(config.image_scale)
+    budget = available_bytes() * MEMORY_SHARE if config.memory_budget is None else config.memory_budget
+    s = _affordable_scale(w, h, d_lo, d_search, config, budget)
+    ws, hs, lo, num = _scaled_search(w, h, d_lo, d_search, s, config)
+    sx = ws / w  # actual horizontal scale after rounding
     if s < 1.0:
-        ws, hs = max(2, round(w * s)), max(2, round(h * s))
-        sx = ws / w  # actual horizontal scale after rounding
         left_m = cv2.resize(left, (ws, hs), interpolation=cv2.INTER_AREA)
         right_m = cv2.resize(right, (ws, hs), interpolation=cv2.INTER_AREA)
     else:
-        sx = 1.0
         left_m, right_m = left, right
-    lo, num = _matcher_range(d_lo * sx, d_search * sx, config, left_m.shape[1])
     bs = config.block_size
     channels = 3
     matcher = cv2.StereoSGBM_create(

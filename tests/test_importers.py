@@ -481,6 +481,12 @@ def test_sfm_of_photos_with_unknown_poses_is_level_and_step_scaled(one_camera_st
     assert s == pytest.approx(1.0, abs=0.01)  # frames really are 1.4 m apart
     assert np.abs(aligned[:, :3, 3] - truth[:, :3, 3]).max() < 0.05
     assert np.degrees(np.arccos(np.clip(T[:3, 2] @ [0, 0, 1] / s, -1, 1))) < 1.0  # the world's z is up
+    assert res.scale_from == ["step_length"]
+    # the depths of the sparse points each frame sees: near < median < far, the facades' metres
+    from recon.colmap_poses import frame_depths, read_reconstruction
+    d = frame_depths(read_reconstruction(res.model_dirs[0]), ds)
+    assert np.isfinite(d).all() and (d[:, 0] < d[:, 1]).all() and (d[:, 1] < d[:, 2]).all()
+    assert 4.0 < np.median(d[:, 1]) < 15.0
 
 
 @pytest.mark.slow
@@ -517,3 +523,27 @@ def test_kitti_pose_at_an_absurd_position_is_one_clear_error(tmp_path):
     (seq / "poses.txt").write_text("\n".join(lines) + "\n")
     with pytest.raises(DataFormatError, match=r"poses\.txt: line 3: a position beyond 1e\+07 m"):
         import_kitti(seq, tmp_path / "ds")
+
+
+def test_sfm_scale_from_step_length_gps_or_nothing():
+    from recon.sfm import CaptureScale, scale_factor
+    rng = np.random.default_rng(4)
+    truth = np.cumsum(rng.uniform([2.0, -0.5, -0.1], [4.0, 0.5, 0.1], (12, 3)), axis=0)  # a walk, 2–4 m a step
+    sfm = truth / 7.3  # SfM's arbitrary units
+    ok = np.arange(12)
+    # the step length: consecutive frames' median distance becomes it
+    f, kind = scale_factor(CaptureScale("step_length", step=3.0), sfm, ok)
+    steps = np.linalg.norm(np.diff(sfm * f, axis=0), axis=1)
+    assert kind == "step_length" and np.median(steps) == pytest.approx(3.0)
+    # GPS with 3 m of noise: frames ≥ 20 m apart give the scale within a few percent
+    gps = truth + rng.normal(0, 3.0, truth.shape)
+    f, kind = scale_factor(CaptureScale("gps", gps=gps), sfm, ok)
+    assert kind == "gps" and f == pytest.approx(7.3, rel=0.05)
+    # frames left out of the model (not registered) are left out of the GPS fit too
+    f2, _ = scale_factor(CaptureScale("gps", gps=gps), sfm[::2], ok[::2])
+    assert f2 == pytest.approx(7.3, rel=0.08)
+    # GPS spanning less than 20 m says nothing: arbitrary units, 1 between consecutive frames
+    f, kind = scale_factor(CaptureScale("gps", gps=gps[:4] * 0.1), sfm[:4], ok[:4])
+    assert kind == "arbitrary" and np.median(np.linalg.norm(np.diff(sfm[:4] * f, axis=0), axis=1)) == pytest.approx(1)
+    f, kind = scale_factor(CaptureScale("arbitrary"), sfm, ok)
+    assert kind == "arbitrary" and np.median(np.linalg.norm(np.diff(sfm * f, axis=0), axis=1)) == pytest.approx(1)

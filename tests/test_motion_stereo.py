@@ -37,9 +37,10 @@ def _side_camera(x: np.ndarray, yaw_deg: np.ndarray | float = 0.0) -> np.ndarray
 
 
 def test_config_is_validated():
-    for bad in (dict(min_baseline=0.0), dict(min_baseline=2.0, max_baseline=1.0), dict(target_baseline=5.0),
+    for bad in (dict(min_baseline_ratio=0.0), dict(min_baseline_ratio=0.2, max_baseline_ratio=0.1),
+                dict(target_baseline_ratio=5.0), dict(scene_depth=0.0), dict(max_baseline_ratio=np.inf),
                 dict(max_view_angle_deg=95.0), dict(max_baseline_angle_deg=45.0), dict(min_overlap=1.5),
-                dict(overlap_depth=0.0), dict(max_frame_gap=0), dict(min_agree=0)):
+                dict(max_frame_gap=0), dict(min_agree=0)):
         with pytest.raises(ValueError):
             MotionStereoConfig(**bad)
     cfg = MotionStereoConfig()
@@ -78,7 +79,7 @@ def test_select_partners_on_a_trajectory():
     lone = _side_camera(np.array([12.0]))
     turned = _side_camera(np.array([20.0, 20.4, 20.8]), np.array([0.0, 40.0, 0.0]))
     cams = np.concatenate([cams, lone, turned])
-    cfg = MotionStereoConfig(min_baseline=0.3, max_baseline=1.2, target_baseline=0.8)
+    cfg = MotionStereoConfig(min_baseline_ratio=0.3 / 8, max_baseline_ratio=1.2 / 8, target_baseline_ratio=0.1)  # at 8 m
     P = select_partners(cams, K, (W, H), cfg)
     assert P.shape == (len(cams), 2) and P.dtype == np.int64
     # interior frames: two frames (0.8 m) on each side
@@ -96,13 +97,68 @@ def test_select_partners_on_a_trajectory():
         for j in (b, a):
             if j >= 0:
                 baseline, view, _ = pair_geometry(relative_pose(cams[i], cams[j]))
-                assert cfg.min_baseline <= baseline <= cfg.max_baseline and view <= cfg.max_view_angle_deg
+                assert 0.3 - 1e-9 <= baseline <= 1.2 + 1e-9 and view <= cfg.max_view_angle_deg
     # an unposed frame is neither served nor chosen; frames= restricts the reference frames
     cams[3] = np.nan
     P2 = select_partners(cams, K, (W, H), cfg, frames=[1, 3, 5])
     # 0.4 and 1.2 m are as far from 0.8 m: the nearer frame wins
     assert tuple(P2[3]) == (-1, -1) and P2[1, 1] == 2 and P2[5, 0] == 4
     assert (P2[[0, 2, 4, 6]] == -1).all()
+
+
+def _looking_at(centres: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) world_from_cam of level cameras (OpenCV axes) at centres (n, 3) looking at targets."""
+    f = targets - centres
+    f[:, 2] = 0.0
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    down = np.cross(f, right)
+    T = np.repeat(np.eye(4)[None], len(centres), axis=0)
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = right, down, f, centres
+    return T
+
+
+def test_partners_follow_the_scene_depth_not_metres():
+    # a hand-held walk along a facade 10 m away, a photo every 3 m: 0.3 × the depth apart
+    n = 12
+    x = np.arange(n) * 3.0
+    walk = _looking_at(np.stack([x, np.zeros(n), np.full(n, 1.6)], 1), np.stack([x, np.full(n, 10.0), np.full(n, 1.6)], 1))
+    depth = np.full(n, 10.0)
+    P = select_partners(walk, K, (W, H), depth=depth)
+    assert (P >= 0).any(axis=1).mean() >= 0.9 and tuple(P[5]) == (4, 6)
+    # without sparse depths the 8 m default judges 3 m steps by the same ratio bounds (0.375 ≤ 0.4)
+    assert (select_partners(walk, K, (W, H)) == P).all()
+    # the same capture in arbitrary SfM units (÷ 37): the same partners
+    small = walk.copy()
+    small[:, :3, 3] /= 37.0
+    assert (select_partners(small, K, (W, H), depth=depth / 37.0) == P).all()
+    # but read as metres against the 8 m default, 0.08 m steps are too short: frames 5–8 apart are taken
+    assert tuple(select_partners(small, K, (W, H))[5]) == (0, 11)
+    # a frame whose scene is far (40 m): 3 m is 0.075 × its depth, and the nearest frames fit best
+    far = depth.copy()
+    far[5] = 40.0
+    assert tuple(select_partners(walk, K, (W, H), depth=far)[5]) == (4, 6)
+    # NaN depth: the default
+    nan = depth.copy()
+    nan[:] = np.nan
+    assert (select_partners(walk, K, (W, H), depth=nan) == select_partners(walk, K, (W, H))).all()
+    with pytest.raises(ValueError, match="depth must be"):
+        select_partners(walk, K, (W, H), depth=depth[:3])
+
+
+def test_an_orbit_around_a_building_gets_partners():
+    # 36 photos on a circle of 12 m around a building 8 m wide, each looking at its centre:
+    # neighbours 10° and 2.1 m apart, the wall about 8 m away
+    n = 36
+    a = np.radians(np.arange(n) * 10.0)
+    centres = np.stack([12 * np.cos(a), 12 * np.sin(a), np.full(n, 1.6)], 1)
+    orbit = _looking_at(centres, np.array([[0.0, 0.0, 1.6]] * n))
+    P = select_partners(orbit, K, (W, H), depth=np.full(n, 8.0))
+    assert (P >= 0).any(axis=1).mean() >= 0.9
+    for i, (b, c) in enumerate(P):
+        for j in (b, c):
+            if j >= 0:
+                assert pair_geometry(relative_pose(orbit[i], orbit[j]))[1] <= 15.0 + 1e-9
 
 
 def test_forward_motion_has_no_partner():
