@@ -8,7 +8,9 @@ Public API:
   same bytes); ``load_dataset(dir) -> Dataset``; ``Dataset.image(f, c)``, ``gt_depth``,
   ``gt_ids`` read both kinds; ``read_image(path, size)`` reads a raw image by the path
   ``Dataset.image_path`` gives (a PNG, or a lazy dataset's frame cast on demand);
-  ``frames_for_spacing(length, spacing)`` → frames per pass.
+  ``frames_for_spacing(length, spacing, closed=False)`` → frames per pass (``closed``: an
+  orbit's loop); ``SynthConfig(path="orbit")`` circles a street's free-standing building
+  (``StreetConfig(square=...)``) instead of driving the street.
 - scenes: ``load_scene(dataset_dir) -> Scene`` (the whole scene, regenerated and checked against
   the stored digest); ``scene_section(dataset_or_settings, lo, hi) -> Scene``: the objects whose
   bounds meet the world box [lo, hi] ((3,) or (2,) x, y; metres; ±inf allowed), generated

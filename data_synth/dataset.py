@@ -50,10 +50,10 @@ from core.workdir import sweep_temporaries, temporary
 from .colmap_export import write_colmap_text
 from .coverage import street_coverage
 from .lazy import LAZY_IMAGES, TILE_M, LazyImages, check_frame_names, lazy_source, view_reach
-from .rig import Rig, RigConfig, drive_path, load_poses, make_rig, save_poses
+from .rig import Rig, RigConfig, drive_path, load_poses, make_rig, orbit_path, save_poses
 from .scene import Scene
-from .section import object_table, scene_digest
-from .street import StreetConfig, build_street
+from .section import object_table, scene_digest, scene_settings
+from .street import StreetConfig, build_street, free_building, street_settings
 from .town import TownConfig, build_town, street_centres
 
 logger = logging.getLogger(__name__)
@@ -62,6 +62,10 @@ DATASET_FORMAT = "bbcity-dataset"
 SCENE_FORMAT = "bbcity-scene"
 FORMAT_VERSION = 1
 SCENES = ("street", "town")
+#: Capture paths: "drive" along the street (and back), or "orbit": one loop round a free-standing building.
+PATHS = ("drive", "orbit")
+#: An orbit keeps this far (metres) from the corners of its building and from anything else.
+ORBIT_CLEARANCE_M = 2.0
 
 
 @dataclass(frozen=True)
@@ -71,42 +75,76 @@ class SynthConfig:
     town: TownConfig = field(default_factory=TownConfig)  # used when scene == "town"
     rig: RigConfig = field(default_factory=RigConfig)  # cameras and their mounting
     frames: int = 100  # frames per pass, evenly spaced along the path
-    return_pass: bool = True  # drive back in the other lane so both sides are captured
-    lane_offset: float = 1.75  # path distance from the street's centre line, metres
+    return_pass: bool = True  # a drive: back in the other lane so both sides are captured (an orbit is one loop)
+    lane_offset: float = 1.75  # a drive's distance from the street's centre line, metres
     town_path_length: float = 300.0  # town: length of the drive along its middle street, metres
     spp: int = 2  # supersampling per pixel axis (spp² colour rays per pixel)
     ground_truth_depth: bool = True  # write gt/depth and gt/ids for every image
     lazy: bool = False  # write no images: cast each frame when it is read (data_synth.lazy)
+    path: str = "drive"  # "drive" (along the street) or "orbit" (one loop round the street's free-standing building)
+    orbit_radius: float = 25.0  # orbit: the circle's radius about the building's centre, metres
 
     def __post_init__(self):
         if self.scene not in SCENES:
             raise ValueError(f"unknown scene {self.scene!r}; expected one of {SCENES}")
+        if self.path not in PATHS:
+            raise ValueError(f"SynthConfig.path must be one of {PATHS}, got {self.path!r}")
         for name in ("frames", "spp"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"SynthConfig.{name} must be an integer ≥ 1, got {value!r}")
-        for name in ("lane_offset", "town_path_length"):
+        for name in ("lane_offset", "town_path_length", "orbit_radius"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"SynthConfig.{name} must be a finite number, got {value!r}")
         if self.town_path_length <= 0:
             raise ValueError(f"SynthConfig.town_path_length must be positive, got {self.town_path_length}")
+        if self.orbit_radius <= 0:
+            raise ValueError(f"SynthConfig.orbit_radius must be positive metres, got {self.orbit_radius}")
+        if self.path == "orbit":
+            self._check_orbit()
         for name in ("return_pass", "ground_truth_depth", "lazy"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"SynthConfig.{name} must be true or false, got {getattr(self, name)!r}")
 
+    def _check_orbit(self) -> None:
+        """An orbit circles the street's free-standing building (:func:`street.free_building`)
+        clear of it and of everything else by ORBIT_CLEARANCE_M; ValueError otherwise."""
+        r, gap = self.orbit_radius, ORBIT_CLEARANCE_M
+        if self.scene != "street":
+            raise ValueError("path \"orbit\" needs the street scene: the town's houses stand in closed rows, "
+                             "with no free path round one")
+        if self.street.square < r + gap:
+            raise ValueError(f"path \"orbit\" of radius {r:g} m needs the street's open square (StreetConfig.square) "
+                             f"to reach at least {r + gap:g} m from the building's centre, got {self.street.square:g}")
+        lo, hi = free_building(self.street)
+        corner = float(np.hypot(*(hi - lo))) / 2
+        if r < corner + gap:
+            raise ValueError(f"SynthConfig.orbit_radius (--orbit-radius) {r:g} m passes within {gap:g} m of the "
+                             f"free-standing building's corners (a {hi[0] - lo[0]:.1f} × {hi[1] - lo[1]:.1f} m "
+                             f"footprint): at least {math.ceil((corner + gap) * 10) / 10:g} m")
+
+    @property
+    def passes(self) -> int:
+        """Passes of the capture: an orbit's one loop, a drive's one or two (return_pass)."""
+        return 2 if self.path == "drive" and self.return_pass else 1
+
     @property
     def path_length(self) -> float:
-        """Metres the rig drives per pass: the street's length, or the town drive's."""
+        """Metres the rig moves per pass: the street's length, the town drive's, or the
+        orbit's circumference."""
+        if self.path == "orbit":
+            return 2 * math.pi * self.orbit_radius
         return float(self.street.length if self.scene == "street" else self.town_path_length)
 
 
-def frames_for_spacing(path_length: float, spacing: float) -> int:
+def frames_for_spacing(path_length: float, spacing: float, closed: bool = False) -> int:
     """Frames per pass that put neighbouring frames at most ``spacing`` metres apart along a
-    pass of ``path_length`` metres (both ends included): ⌈length / spacing⌉ + 1."""
+    pass of ``path_length`` metres: ⌈length / spacing⌉ + 1 with both ends included, or
+    ⌈length / spacing⌉ round a ``closed`` loop (an orbit: the last frame's neighbour is the first)."""
     if not (math.isfinite(path_length) and path_length > 0 and math.isfinite(spacing) and spacing > 0):
         raise ValueError(f"path length and frame spacing must be positive metres, got {path_length}, {spacing}")
-    return int(math.ceil(path_length / spacing - 1e-9)) + 1
+    return int(math.ceil(path_length / spacing - 1e-9)) + (0 if closed else 1)
 
 
 def _from_dict(cls, data: dict):
@@ -129,6 +167,9 @@ def build_scene(name: str, config: dict) -> Scene:
 
 def capture_path(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
     """The rig's trajectory: world_from_rig (n, 4, 4) float64 and pass index (n,) int32."""
+    if cfg.path == "orbit":  # (a street: SynthConfig checks it)
+        lo, hi = free_building(cfg.street)
+        return orbit_path((lo + hi) / 2, cfg.orbit_radius, cfg.frames)
     if cfg.scene == "street":
         return drive_path(0.0, cfg.street.length, 0.0, cfg.frames, cfg.lane_offset, cfg.return_pass)
     centres = street_centres(cfg.town)
@@ -140,6 +181,11 @@ def capture_path(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
 
 def _config_json(cfg: SynthConfig) -> dict:
     data = json.loads(json.dumps(asdict(cfg)))
+    data["street"] = json.loads(json.dumps(street_settings(cfg.street)))  # a street without a square keeps its bytes
+    if data["path"] == "drive":  # drives keep the bytes they had before orbits
+        del data["path"]
+        if data["orbit_radius"] == SynthConfig.orbit_radius:
+            del data["orbit_radius"]
     if data["rig"].get("distortion") == "none":  # pinhole datasets keep the bytes they had before lenses
         del data["rig"]["distortion"]
     if not data["lazy"]:  # stored datasets keep the bytes they had before lazy ones
@@ -251,7 +297,7 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
         return _write_lazy(cfg, root)
 
     t0 = time.perf_counter()
-    scene = build_scene(cfg.scene, asdict(cfg.street if cfg.scene == "street" else cfg.town))
+    scene = build_scene(*scene_settings(cfg)[:2])
     rig = make_rig(cfg.rig)
     world_from_rig, passes = capture_path(cfg)
     t_scene = time.perf_counter() - t0
@@ -278,7 +324,8 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
     frame_seconds = run_tasks(_render_frame, todo, executor, desc="render", progress=progress)
     t_render = time.perf_counter() - t1
     t2 = time.perf_counter()
-    coverage = street_coverage(scene, rig, world_from_rig) if cfg.scene == "street" else None
+    # (the street's surfaces beside a drive: an orbit sees its building, not the street)
+    coverage = street_coverage(scene, rig, world_from_rig) if cfg.scene == "street" and cfg.path == "drive" else None
     if coverage is not None:
         pct = {k: "n/a" if coverage[k] is None else f"{100 * coverage[k]:.1f} %"
                for k in ("road_sidewalk", "road_sidewalk_outboard", "facade", "facade_top_1m")}
@@ -307,16 +354,16 @@ def _write_lazy(cfg: SynthConfig, root: Path) -> Path:
     ``gt/scene.json``; the scene is walked (object table, digest, reach), never held whole."""
     t0 = time.perf_counter()
     cfg_dict = _config_json(cfg)
-    name = cfg.scene
-    config = asdict(cfg.street if name == "street" else cfg.town)
+    name, config, _ = scene_settings(cfg)
     kinds, _, _, num_triangles = object_table(name, config)
     digest = scene_digest(name, config)
     reach = view_reach(cfg)
     rig = make_rig(cfg.rig)
     world_from_rig, passes = capture_path(cfg)
     t_scene = time.perf_counter() - t0
-    logger.info("%s scene: %d objects, %d triangles, sections of %s m around each %g m tile (%.2f s)", name,
-                len(kinds), num_triangles, "the whole scene" if reach is None else f"± {reach:g}", TILE_M, t_scene)
+    logger.info("%s scene: %d objects, %d triangles, %s (%.2f s)", name, len(kinds), num_triangles,
+                "frames cast from the whole scene" if reach is None
+                else f"sections of ± {reach:g} m around each {TILE_M:g} m tile", t_scene)
     write_json(root / "gt" / "scene.json", {"format": SCENE_FORMAT, "version": FORMAT_VERSION, "scene": name,
                                             "config": config, "digest": digest, "synth": cfg_dict})
     names = _write_capture(root, rig, world_from_rig, passes)

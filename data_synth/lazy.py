@@ -26,7 +26,8 @@ structure; casting stored frames from the same sections makes those agree too. T
 A lens that sees along the street (a ray parallel to it, where no slab bounds it) is capped
 at ``MAX_REACH_M`` (1 km): objects farther along than that are not drawn there (the long
 surfaces and the sky are), so such a frame can differ from a stored one in those pixels.
-The town is cast whole (its size does not depend on the drive's length).
+The town is cast whole (its size does not depend on the drive's length), and so is an orbit's
+street (``path`` "orbit": its cameras look every way, along the street too).
 
 **Per process.** The few most recent sections (``SECTIONS_KEPT``) and frames
 (``RESULTS_KEPT``, so that a frame's cameras, its ground truth and neighbouring frames that
@@ -50,7 +51,7 @@ import os
 import re
 import threading
 from collections import OrderedDict
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +62,7 @@ from .distortion import undistort
 from .lazy_cache import ImageCache, cache_limit_bytes
 from .raycast import Renderer, RenderResult
 from .rig import Rig, make_rig
-from .section import object_table, scene_section, verify_digest
+from .section import object_table, scene_section, scene_settings, verify_digest
 
 logger = logging.getLogger(__name__)
 
@@ -80,12 +81,13 @@ _FRAME_NAME = re.compile(r"\d{6}")
 def view_reach(cfg) -> float | None:
     """How far along the street (|Δx|, metres, rounded up) from a camera of the capture of
     ``cfg`` (a :class:`data_synth.SynthConfig`) a ray of it can meet an object that is not
-    in every section; None for a town (cast whole). See the module's docstring."""
+    in every section; None for a town or an orbit (cast whole). See the module's docstring."""
     from .dataset import capture_path  # (dataset imports this module)
 
-    if cfg.scene != "street":
+    if cfg.scene != "street" or cfg.path == "orbit":  # an orbit's cameras look every way along the street
         return None
-    _, _, bounds, _ = object_table("street", asdict(cfg.street))
+    _, config, _ = scene_settings(cfg)
+    _, _, bounds, _ = object_table("street", config)
     poses, passes = capture_path(cfg)
     x = poses[:, 0, 3]
     spans = (bounds[:, 0, 0] <= x.min()) & (bounds[:, 1, 0] >= x.max())  # ground, road, sidewalks
@@ -190,8 +192,7 @@ class LazyImages:
             from .dataset import capture_path, config_from_json
 
             cfg = config_from_json(json.loads(self.config_json))
-            name = cfg.scene
-            config = asdict(cfg.street if name == "street" else cfg.town)
+            name, config, _ = scene_settings(cfg)
             if self.check_digest:
                 verify_digest(name, config, self.digest, self.root / "gt" / "scene.json")
             rig = make_rig(cfg.rig)

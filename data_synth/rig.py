@@ -303,6 +303,26 @@ def drive_path(x_start: float, x_end: float, y_centre: float, frames: int, lane_
     return poses, which
 
 
+def orbit_path(centre, radius: float, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Walk once round a circle of ``radius`` metres about ``centre`` (x, y), clockwise seen
+    from above, so that the rig's right (where its cameras look) faces the centre.
+
+    The first frame stands north of the centre (+y: the street's side of its free-standing
+    building) heading along +x, as a drive starts; the frames are evenly spaced in angle,
+    2π·radius / frames metres apart along the circle, and the loop is not closed by a repeat
+    of the first frame. One pass. Returns world_from_rig (n, 4, 4) float64 and the pass of
+    each frame (n,) int32 (all 0).
+    """
+    if frames < 1:
+        raise ValueError(f"frames must be at least 1, got {frames}")
+    if not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius must be a positive number of metres, got {radius}")
+    cx, cy = (float(v) for v in centre)
+    angle = np.pi / 2 - 2 * np.pi * np.arange(frames) / frames  # position angle about the centre
+    x, y = cx + radius * np.cos(angle), cy + radius * np.sin(angle)
+    return yaw_pose(x, y, angle - np.pi / 2), np.zeros(frames, dtype=np.int32)  # the rig's y (left) points out
+
+
 def save_poses(path: os.PathLike | str, world_from_rig: np.ndarray, passes: np.ndarray,
                names: list[str] | None = None) -> Path:
     """Write ``poses.json``: one ``world_from_rig`` (4, 4) float64 per frame, named

@@ -33,7 +33,7 @@ import numpy as np
 from core.fileio import DataFormatError, read_json
 
 from .scene import BoundsBuilder, DigestBuilder, MeshBuilder, Scene, SectionBuilder
-from .street import StreetConfig, generate_street
+from .street import StreetConfig, generate_street, street_settings
 from .town import TownConfig, generate_town
 
 #: scene name → (configuration class, generator filling a MeshBuilder)
@@ -68,13 +68,14 @@ def scene_settings(source) -> tuple[str, dict, str | None]:
     ``(name, config dict)`` pair. A dataset without a readable ``gt/scene.json`` raises
     DataFormatError naming it."""
     if isinstance(source, StreetConfig):
-        return "street", asdict(source), None
+        return "street", street_settings(source), None
     if isinstance(source, TownConfig):
         return "town", asdict(source), None
     if isinstance(source, tuple) and len(source) == 2 and isinstance(source[0], str):
         return source[0], dict(source[1]), None
     if hasattr(source, "street") and hasattr(source, "town") and hasattr(source, "scene"):  # a SynthConfig
-        return source.scene, asdict(source.street if source.scene == "street" else source.town), None
+        street = source.scene == "street"
+        return source.scene, street_settings(source.street) if street else asdict(source.town), None
     if not isinstance(source, (str, os.PathLike)):  # (a Dataset is path-like: its directory)
         raise TypeError(f"expected a dataset, its directory or scene settings, got {type(source).__name__}")
     path = Path(os.fspath(source)) / "gt" / "scene.json"

@@ -241,7 +241,7 @@ def _commands(tmp):
         ("synth", "street", "--out", str(taken)): {"--frames": 1, "--frame-spacing": 1, "--length": 1, "--width": 1,
                                                    "--height": 1, "--seed": 1, "--hfov": 1, "--pitch": 1,
                                                    "--cameras": 1, "--spp": 1, "--workers": 1,
-                                                   "--scheduler": 1, "--retries": 1},
+                                                   "--scheduler": 1, "--retries": 1, "--orbit-radius": 1},
         ("import", "kitti", nx, "--out", out): {"--camera-height": 1, "--first": 1, "--count": 1, "--step": 1},
         ("import", "colmap", nx, "--images", nx, "--out", out): {},
         ("import", "photos", nx, "--out", out): {"--sensor-width": 1, "--step-length": 1},
