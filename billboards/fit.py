@@ -38,6 +38,7 @@ textures are (B, d, t, t, 3) float in [0, 1], direction j = p·d_yaw + y.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 from functools import cached_property
@@ -60,6 +61,8 @@ class FitConfig:
     seconds: float = 150.0        # wall-clock budget of the fit (s): the solves stop iterating when it is spent
     iterations: int = 6           # conjugate-gradient iterations per chunk of quads at most
     pixel_stride: int = 2         # every n-th pixel of every n-th row of each training image is a measurement
+    max_rays_side: int = 800      # ... and at most this many along the image's longer side (a larger stride
+                                  # for large photos: the fit's memory follows its measurements)
     prior: float = 0.1            # λ: pull of each texel toward its sampled colour, in pixels of full weight
     see_through: int = 3          # a ray goes on past this many see-through texels at most
     transients: float | None = 96.0   # a measurement off the sampled texture by more than this many grey
@@ -72,15 +75,21 @@ class FitConfig:
     alpha_min_views: int = 2      # a texel's alpha changes only on rays from at least this many views
     alpha_min_rays: int = 3       # ... and at least this many rays
 
+    def stride(self, size: tuple[int, int]) -> int:
+        """The pixel stride of a training view of ``size`` (w, h): ``pixel_stride``, larger where
+        the image's longer side would give more than ``max_rays_side`` rays."""
+        return max(self.pixel_stride, math.ceil(max(size) / self.max_rays_side))
+
     def __post_init__(self):
         if not (np.isfinite(self.seconds) and self.seconds >= 0):
             raise ValueError(f"fit seconds must be a finite number ≥ 0, got {self.seconds!r}")
-        for name in ("iterations", "pixel_stride", "see_through", "alpha_min_views", "alpha_min_rays"):
+        for name in ("iterations", "pixel_stride", "max_rays_side", "see_through", "alpha_min_views",
+                     "alpha_min_rays"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                 raise ValueError(f"fit {name} must be an integer, got {value!r}")
-        if self.iterations < 0 or self.pixel_stride < 1 or self.see_through < 0:
-            raise ValueError("fit iterations and see_through must be ≥ 0, pixel_stride ≥ 1")
+        if self.iterations < 0 or self.pixel_stride < 1 or self.see_through < 0 or self.max_rays_side < 1:
+            raise ValueError("fit iterations and see_through must be ≥ 0, pixel_stride and max_rays_side ≥ 1")
         if not (np.isfinite(self.prior) and self.prior > 0):
             raise ValueError(f"fit prior must be a finite number > 0 (it keeps the solve regular), got {self.prior!r}")
         if not isinstance(self.alpha, (bool, np.bool_)):

@@ -63,7 +63,7 @@ def alpha_rows(quads: Quads, rgba: np.ndarray, K: np.ndarray, world_from_cam: np
     """One view's rays, measured for the alpha decision.
 
     rgba (n, d, t, t, 4) uint8 (a memory map will do); K (3, 3), world_from_cam (4, 4) float64;
-    size (w, h); image (h, w, 3) uint8. Each ray through every ``pixel_stride``-th pixel meets
+    size (w, h); image (h, w, 3) uint8. Each ray through every ``config.stride(size)``-th pixel meets
     its first quad with every texel taken as shown (a ray whose first quad is a billboard is
     left out); behind that point the ray goes on as the renderer sees it (see-through texels
     passed) to the colour it would show there instead: a quad's blended colour, or ``sky``
@@ -77,7 +77,7 @@ def alpha_rows(quads: Quads, rgba: np.ndarray, K: np.ndarray, world_from_cam: np
     qs = quad_scene(quads, K, world_from_cam, size, max_distance)
     if qs is None:
         return empty
-    pixel, direction = pixel_rays(K, world_from_cam, size, config.pixel_stride)
+    pixel, direction = pixel_rays(K, world_from_cam, size, config.stride(size))
     first = trace(qs, None, direction, np.zeros(len(direction)), 0)
     blocks = quads.kind[first.quad] != BILLBOARD          # a billboard's alpha stays as sampled
     first = Traced(*(getattr(first, f)[blocks] for f in Traced.__dataclass_fields__))

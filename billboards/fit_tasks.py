@@ -54,9 +54,10 @@ def write_view_records(path: os.PathLike | str, quads: Quads, rgba: np.ndarray, 
     out, rays, hidden = [], 0, 0
     for i in view_ids:
         w, h = (int(s) for s in views.sizes[i])
-        hits = cast_view(quads, alpha, views.K[i], views.world_from_cam[i], (w, h), stride=config.pixel_stride,
+        stride = config.stride((w, h))
+        hits = cast_view(quads, alpha, views.K[i], views.world_from_cam[i], (w, h), stride=stride,
                          max_distance=max_distance, see_through=config.see_through)
-        rays += len(range(0, w, config.pixel_stride)) * len(range(0, h, config.pixel_stride))
+        rays += len(range(0, w, stride)) * len(range(0, h, stride))
         if occluders is not None and len(hits.quad):
             seen = unoccluded(hits, views.K[i], *occluders(int(i)))
             hidden += int((~seen).sum())

@@ -179,9 +179,19 @@ def test_config_refuses_what_cannot_run():
         with pytest.raises(ValueError, match="transients"):
             FitConfig(transients=bad)
     for bad in (dict(prior=0.0), dict(prior=float("nan")), dict(seconds=-1.0), dict(seconds=float("inf")),
-                dict(pixel_stride=0), dict(iterations=-1), dict(iterations=1.5), dict(see_through=True)):
+                dict(pixel_stride=0), dict(iterations=-1), dict(iterations=1.5), dict(see_through=True),
+                dict(max_rays_side=0)):
         with pytest.raises(ValueError):
             FitConfig(**bad)
+
+
+def test_large_photos_are_measured_on_a_coarser_grid():
+    conf = FitConfig()
+    # the demo's 416×736 views and KITTI's 1241×376: every second pixel of every second row
+    assert conf.stride((416, 736)) == 2 and conf.stride((1241, 376)) == 2
+    # a 2832×2128 photo: every fourth (708 rays along its width); a 4000×3000 one: every fifth
+    assert conf.stride((2832, 2128)) == 4 and conf.stride((3000, 4000)) == 5
+    assert FitConfig(pixel_stride=1, max_rays_side=10_000).stride((2832, 2128)) == 1
 
 
 # ----------------------------------------------------------------------------------------------
