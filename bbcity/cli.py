@@ -121,6 +121,8 @@ def _draw_modes_parent() -> argparse.ArgumentParser:
 
 
 def _add_synth(sub) -> None:
+    from data_synth.dataset import ORBIT_CLEARANCE_M, PATHS, SynthConfig
+
     p = sub.add_parser(
         "synth", help="generate a synthetic dataset (street or town) with ground truth",
         description="Generate a synthetic scene, drive the camera rig (three cameras by default) through it and write "
@@ -154,6 +156,15 @@ def _add_synth(sub) -> None:
     p.add_argument("--spp", type=int_range(1, MAX_SPP), default=2,
                    help="anti-aliasing: spp×spp rays per pixel (default 2)")
     p.add_argument("--no-return", action="store_true", help="drive one pass only (one side of the street)")
+    p.add_argument("--path", choices=PATHS, default=SynthConfig.path,
+                   help=f"drive (along the street, and back unless --no-return) or orbit (one loop round a "
+                        f"free-standing building: the street opens into a square round the building of its "
+                        f"right-hand row nearest its middle, the rig walks a circle of --orbit-radius about the "
+                        f"building's centre, its cameras facing it; --frames or --frame-spacing along the circle) "
+                        f"(default {SynthConfig.path})")
+    p.add_argument("--orbit-radius", type=float_range(0.0, MAX_LENGTH), default=None, metavar="M",
+                   help=f"--path orbit: the circle's radius about the building's centre, metres; nothing but the "
+                        f"building stands within {ORBIT_CLEARANCE_M:g} m of it (default {SynthConfig.orbit_radius:g})")
     p.add_argument("--no-gt-depth", action="store_true", help="skip per-image ground-truth depth and ids")
     p.add_argument("--lazy", action="store_true",
                    help="write no images (nor ground-truth depth and ids): each frame is ray cast from a section "
@@ -170,26 +181,35 @@ def _synth_config(args):
     """The SynthConfig the ``synth`` options describe; UsageError when the images its
     workers render at once would not fit in the available memory."""
     from data_synth import RigConfig, StreetConfig, SynthConfig, TownConfig, frames_for_spacing
+    from data_synth.dataset import ORBIT_CLEARANCE_M
 
     from .executor import default_workers
 
-    frames = args.frames
-    if args.frame_spacing is not None:
-        frames = frames_for_spacing(args.length, args.frame_spacing)
-        if frames > MAX_FRAMES:
-            raise UsageError(f"--frame-spacing {args.frame_spacing:g} over {args.length:g} m makes {frames} frames "
-                             f"per pass, more than {MAX_FRAMES}")
+    orbit = args.path == "orbit"
+    if args.orbit_radius is not None and not orbit:
+        raise UsageError("--orbit-radius applies to --path orbit")
+    if orbit and args.scene != "street":
+        raise UsageError("--path orbit needs the street scene: the town's houses stand in closed rows, with no free "
+                         "path round one")
+    radius = SynthConfig.orbit_radius if args.orbit_radius is None else args.orbit_radius
     cfg = SynthConfig(
-        scene=args.scene,
-        street=StreetConfig(length=args.length, seed=args.seed),
+        scene=args.scene, path=args.path, orbit_radius=radius,
+        # an orbit's street opens into a square round its building, clear of the circle
+        street=StreetConfig(length=args.length, seed=args.seed, square=radius + ORBIT_CLEARANCE_M if orbit else 0.0),
         town=TownConfig(seed=args.seed),
         rig=RigConfig(**{k: v for k, v in (("width", args.width), ("height", args.height),
                                            ("hfov_deg", args.hfov), ("pitch_deg", args.pitch),
                                            ("distortion", args.distortion),
                                            ("baselines", _CAMERA_BASELINES.get(args.cameras))) if v is not None}),
-        frames=frames, return_pass=not args.no_return, town_path_length=args.length,
+        frames=args.frames, return_pass=not args.no_return, town_path_length=args.length,
         spp=args.spp, ground_truth_depth=not args.no_gt_depth, lazy=args.lazy)
-    rig, frames = cfg.rig, cfg.frames * (2 if cfg.return_pass else 1)
+    if args.frame_spacing is not None:
+        frames = frames_for_spacing(cfg.path_length, args.frame_spacing, closed=orbit)
+        if frames > MAX_FRAMES:
+            raise UsageError(f"--frame-spacing {args.frame_spacing:g} over {cfg.path_length:g} m makes {frames} "
+                             f"frames per pass, more than {MAX_FRAMES}")
+        cfg = dataclasses.replace(cfg, frames=frames)
+    rig, frames = cfg.rig, cfg.frames * cfg.passes
     concurrent = min(args.workers or default_workers(), frames)  # each worker renders one frame at a time
     check_memory(synth_bytes(rig.width, rig.height, cfg.spp, rig.distortion != "none", concurrent),
                  f"synth --width {rig.width} --height {rig.height} --spp {cfg.spp} with {concurrent} workers")

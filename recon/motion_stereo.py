@@ -60,7 +60,7 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class MotionStereoConfig:
     min_baseline_ratio: float = 0.0375  # shortest baseline to a partner, over the scene depth (shorter: imprecise)
-    max_baseline_ratio: float = 0.4  # longest baseline over the scene depth (longer: occlusions, perspective)
+    max_baseline_ratio: float = 0.75  # longest baseline over the scene depth (longer: occlusions, perspective)
     target_baseline_ratio: float = 0.1  # preferred baseline on each side over the scene depth (0.8 m at 8 m)
     max_view_angle_deg: float = 15.0  # largest angle between the two frames' optical axes, degrees
     max_baseline_angle_deg: float = MAX_BASELINE_ANGLE_DEG  # largest baseline angle from the x axis, degrees

@@ -29,6 +29,7 @@ from data_synth import Dataset
 from data_synth.colmap_export import colmap_camera_model, to_rigid3d
 
 from .colmap_log import colmap_log_to_logging
+from .ground_plane import ground_up
 from .colmap_poses import _image_index, poses_from_reconstruction
 from .poses import frame_passes, poses_unknown
 from .trajectory import _nan_poses, _valid, level_from_world, rig_baseline_ratio, up_direction
@@ -405,7 +406,11 @@ def _level_and_scale(rec: pycolmap.Reconstruction, world_from_rig: np.ndarray, w
     ok = np.flatnonzero(_valid(world_from_rig))
     positions = world_from_rig[ok, :3, 3]
     factor, kind = scale_factor(scale, positions, ok)
-    up = up_direction(world_from_cam.reshape(-1, 4, 4), positions)
+    cams = world_from_cam.reshape(-1, 4, 4)
+    up = up_direction(cams, positions)
+    points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    ground = ground_up(points, cams[_valid(cams), :3, 3], up)  # a pitched camera tilts the cameras' up
+    up = up if ground is None else ground
     L = level_from_world(up, world_from_rig[ok[0], :3, 0], positions[0])
     rec.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(np.ascontiguousarray(L[:3, :3])),
                                  np.ascontiguousarray(factor * L[:3, 3])))
@@ -447,8 +452,10 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
     frames (``progress``: None = only on a terminal).
 
     A dataset with no known poses (:func:`poses_unknown`, e.g. a photo folder) has no scale
-    and no up: each component is then moved to a z-up world (:func:`up_direction`, cameras
-    held roughly level; origin and heading from its first registered frame) and scaled as
+    and no up: each component is then moved to a z-up world (the normal of the ground plane
+    its sparse points show under the cameras, :func:`recon.ground_plane.ground_up`, else
+    :func:`up_direction` from cameras held roughly level; origin and heading from its first
+    registered frame) and scaled as
     :func:`capture_scale` says: the median distance between consecutive frames becomes the
     dataset's step length (metres), or the distances between frames far apart become those
     of their GPS positions, or consecutive frames end up 1 apart in arbitrary units (the
