@@ -357,7 +357,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     if spill_root.exists() and _spilled_inputs(spill_root) != inputs:
         TileSpill(spill_root, origin, conf.fusion).cleanup()  # never mix with another run's frames
     write_json(spill_root / SPILL_INPUTS, inputs)
-    # each worker's matcher may take its share of half the memory free now (recon.stereo)
+    # each worker's matcher may take its share of a quarter of the memory free now (recon.stereo)
     budget = conf.trinocular.stereo.memory_budget or available_bytes() * MEMORY_SHARE / executor_workers(executor)
     tasks = [_FrameTask(str(dataset_dir), f, world_from_rig[f].tolist(), str(spill_root), origin.tolist(),
                         _frame_trinocular(conf, depths[f], budget), conf.fusion, conf.pixel_stride,

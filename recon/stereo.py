@@ -174,9 +174,10 @@ class StereoMemoryError(ValueError):
     """Even the coarsest matching level of a pair needs more memory than the machine has free."""
 
 
-#: Share of the memory free when a pair is matched that its matcher may take (the other
-#: workers matching at the same time check against what is left).
-MEMORY_SHARE = 0.5
+#: Share of the memory free that a pair's matcher may take when its config sets no budget
+#: (recon splits this share between its workers: with 2 workers on 24 GB, 3 GB each; the
+#: matcher's real use is about half the estimate of recon.working_size.matcher_bytes).
+MEMORY_SHARE = 0.25
 #: A pair is never matched coarser than this many pixels along its longer side.
 MIN_MATCH_SIZE = 64
 _COARSER: set = set()  # (w, h, ws, hs) pairs already reported as matched coarser (log once)

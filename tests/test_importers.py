@@ -503,6 +503,30 @@ def test_cli_import_photos_then_recon_with_sfm(one_camera_street, tmp_path):
     report = json.loads((tmp_path / "work" / "recon_report.json").read_text())
     assert report["poses"]["source"] == "sfm" and report["poses"]["registered_frames"] == 16
     assert report["points"] > 1000
+    assert report["poses"]["scale_from"] == ["step_length"]
+    # photos larger than the working size: stereo and SIFT at 240 px, the cloud still there
+    assert main(["-q", "recon", str(tmp_path / "ds"), "--out", str(tmp_path / "small"), "--poses", "sfm",
+                 "--preset", "fast", "--workers", "1", "--max-image-size", "240"]) == 0
+    small = json.loads((tmp_path / "small" / "recon_report.json").read_text())
+    assert small["config"]["max_image_size"] == 240 and 0.1 * report["points"] < small["points"] < report["points"]
+
+
+@pytest.mark.slow
+def test_stereo_that_cannot_fit_in_memory_is_one_clear_error_from_a_worker(one_camera_street, tmp_path):
+    from dataclasses import replace
+
+    from bbcity.executor import executor_scope
+    from recon.pipeline import ReconConfig, main as recon_main
+    from recon.stereo import StereoMemoryError
+
+    conf = ReconConfig(evaluate=False)
+    conf = replace(conf, trinocular=replace(conf.trinocular, stereo=replace(conf.trinocular.stereo,
+                                                                            memory_budget=1000.0)))
+    with pytest.raises(StereoMemoryError, match=r"^not enough memory for stereo: a 480x360 pair searching \d+ "
+                                                r"disparities at \d+x\d+ needs [\d.]+ GB, its budget is 0.0 GB"):
+        with executor_scope(1) as executor:
+            recon_main(conf, one_camera_street, tmp_path / "work", executor=executor, progress=False)
+    assert not (tmp_path / "work" / "cloud.ply").exists() and not (tmp_path / "work" / "recon_report.json").exists()
 
 
 @pytest.mark.parametrize("baseline", [-0.537, 1e6, 0.0])
