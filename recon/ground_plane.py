@@ -1,12 +1,15 @@
-"""The world's up from the ground that the sparse points show: :func:`ground_up`.
+"""The world's up from the planes that the sparse points show: :func:`ground_up`.
 
 Cameras held level give the world's up as the mean of their image-up axes
 (:func:`recon.trajectory.up_direction`), but a camera pitched up to see a facade's
 top tilts that estimate by its pitch about the travel direction, and nothing in the
-trajectory of a sideways walk can tell. SfM's sparse points can: the ground below the
-cameras (road, sidewalk, a square) is the largest plane under them whose normal lies
-near that estimate. It is found by RANSAC (Open3D's ``segment_plane``); planes
-too steep to be ground (the foot of a facade) are set aside and the search goes on.
+trajectory of a sideways walk can tell. SfM's sparse points can. Their planes are found
+by RANSAC (Open3D's ``segment_plane``), largest first: the ground (below the cameras, a
+normal near the cameras' estimate: road, sidewalk, a square) gives the up itself; the
+largest wall (a normal near horizontal: a facade) is vertical, so the up is the
+cameras' estimate with its component along the wall's normal removed, which undoes a
+pitch about the wall's direction. Asphalt gives SIFT few points, so on a street the
+walls are often all there is.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 logger = logging.getLogger(__name__)
 
@@ -24,12 +28,13 @@ __all__ = ["GroundUpConfig", "ground_up"]
 
 @dataclass(frozen=True)
 class GroundUpConfig:
-    max_tilt_deg: float = 20.0  # a plane whose normal is farther than this from the cameras' up is no ground
-    below: float = 0.05  # points this far below the cameras (× their median distance to the points) are candidates
-    distance: float = 0.01  # RANSAC inlier distance, × the points' median distance from the cameras
-    min_inliers: int = 50  # a ground plane holds at least this many points ...
-    min_share: float = 0.05  # ... and this share of the candidates
-    attempts: int = 4  # planes tried at most (steep ones are removed and the search repeated)
+    max_tilt_deg: float = 20.0  # ground: a normal within this of the cameras' up; wall: within this of horizontal
+    below: float = 0.05  # the ground lies at least this far below the cameras (× the points' median distance
+                         # from the nearest camera): a roof or a table top is no ground
+    distance: float = 0.01  # RANSAC inlier distance, × that median distance
+    min_inliers: int = 50  # a plane holds at least this many points ...
+    min_share: float = 0.02  # ... and this share of them all
+    attempts: int = 6  # planes tried at most, largest first (each one that is not the ground is set aside)
     iterations: int = 1000  # RANSAC iterations per plane
     seed: int = 0  # RANSAC's random seed (the same points, the same plane)
 
@@ -44,11 +49,12 @@ class GroundUpConfig:
 
 def ground_up(points: np.ndarray, centres: np.ndarray, up: np.ndarray,
               config: GroundUpConfig = GroundUpConfig()) -> np.ndarray | None:
-    """The normal of the ground plane under the cameras, or None when no plane qualifies.
+    """The world's up from the planes under the cameras (see the module doc), or None when
+    neither ground nor wall qualifies.
 
     points: (m, 3) float64 sparse points; centres: (k, 3) float64 camera centres; up: (3,)
     the up estimated from the cameras (any length). All in one (SfM) frame and unit.
-    Returns a (3,) float64 unit vector on the cameras' side of the plane.
+    Returns a (3,) float64 unit vector on the cameras' side of the ground.
     """
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     C = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
@@ -57,28 +63,39 @@ def ground_up(points: np.ndarray, centres: np.ndarray, up: np.ndarray,
     if len(P) < config.min_inliers or len(C) == 0 or not np.linalg.norm(u) > 0:
         return None
     u = u / np.linalg.norm(u)
-    reach = float(np.median(np.linalg.norm(P - np.median(C, axis=0), axis=1)))
+    reach = float(np.median(cKDTree(C).query(P)[0]))  # how far the points lie from the cameras that saw them
     if not reach > 0:
         return None
-    height = (P - C.mean(axis=0)) @ u
-    candidates = P[height < -config.below * reach]
-    need = max(config.min_inliers, int(np.ceil(config.min_share * len(candidates))))
-    cos_limit = np.cos(np.radians(config.max_tilt_deg))
+    candidates = P
+    need = max(config.min_inliers, int(np.ceil(config.min_share * len(P))))
+    cos_limit, sin_limit = np.cos(np.radians(config.max_tilt_deg)), np.sin(np.radians(config.max_tilt_deg))
+    level = float(C.mean(axis=0) @ u)
+    wall = None
     o3d.utility.random.seed(config.seed)
     for _ in range(config.attempts):
         if len(candidates) < need:
-            return None
+            break
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(candidates))
         plane, inliers = cloud.segment_plane(distance_threshold=config.distance * reach, ransac_n=3,
                                              num_iterations=config.iterations)
         if len(inliers) < need:
-            return None
+            break
         normal = np.asarray(plane[:3], dtype=np.float64)
         normal /= np.linalg.norm(normal)
-        if abs(normal @ u) >= cos_limit:
+        below = float(np.median(candidates[inliers] @ u)) < level - config.below * reach
+        if abs(normal @ u) >= cos_limit and below:
             normal = normal if normal @ u > 0 else -normal
             logger.info("up from the ground plane of %d sparse points: %.2f° from the cameras' estimate",
                         len(inliers), np.degrees(np.arccos(np.clip(normal @ u, -1.0, 1.0))))
             return normal
-        candidates = np.delete(candidates, inliers, axis=0)  # a wall's foot: look further
-    return None
+        if wall is None and abs(normal @ u) <= sin_limit:
+            wall = (normal, len(inliers))
+        candidates = np.delete(candidates, inliers, axis=0)  # not the ground: look further
+    if wall is None:
+        return None
+    normal, count = wall
+    out = u - (u @ normal) * normal
+    out /= np.linalg.norm(out)
+    logger.info("up from a wall of %d sparse points (no ground found): %.2f° from the cameras' estimate",
+                count, np.degrees(np.arccos(np.clip(out @ u, -1.0, 1.0))))
+    return out

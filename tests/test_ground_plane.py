@@ -41,14 +41,23 @@ def test_the_ground_corrects_the_pitch_of_the_cameras(pitch):
     assert up @ cameras_up > 0  # on the cameras' side
 
 
-def test_no_ground_in_view_keeps_the_cameras_estimate():
+@pytest.mark.parametrize("pitch", [0.0, 8.0, -12.0])
+def test_with_no_ground_the_wall_corrects_the_pitch(pitch):
+    # asphalt gives SIFT no points: only the facade, whose foot lies below the cameras
     rng = np.random.default_rng(2)
     points, centres = _street(rng, n_ground=0)
-    # only the facade: its lower part lies below the cameras but is far too steep for ground
-    assert ground_up(points, centres, np.array([0.0, 0.0, 1.0])) is None
-    # a tilted "ground" (a ramp of 30°) is no ground either
+    up = ground_up(points, centres, _turn(np.array([0.0, 0.0, 1.0]), pitch))
+    assert up is not None and np.degrees(np.arccos(np.clip(up[2], -1, 1))) < 0.5
+
+
+def test_neither_ground_nor_wall_keeps_the_cameras_estimate():
+    rng = np.random.default_rng(3)
+    _, centres = _street(rng)
+    # a ramp of 30° is no ground, nor a wall
     ramp = _turn(_street(rng, n_facade=0)[0], 30.0)
     assert ground_up(ramp, centres, np.array([0.0, 0.0, 1.0])) is None
+    # points in no plane at all
+    assert ground_up(rng.normal(0, 5, (2000, 3)) - [0, 0, 5], centres, np.array([0.0, 0.0, 1.0])) is None
 
 
 def test_degenerate_inputs():
