@@ -134,7 +134,8 @@ def _rig_config(dataset: Dataset) -> pycolmap.RigConfig:
     return pycolmap.RigConfig(cameras=cameras)
 
 
-def _extract(db: Path, dataset: Dataset, image_names: list[str], cfg: SfmConfig, max_image_size: int | None) -> None:
+def _extract(db: Path, dataset: Dataset, image_names: list[str], cfg: SfmConfig,
+             max_image_size: int | None = None) -> None:
     model, params = _raw_camera(dataset, 0)
     reader = pycolmap.ImageReaderOptions(
         camera_model=model,
