@@ -4,12 +4,14 @@ Cameras held level give the world's up as the mean of their image-up axes
 (:func:`recon.trajectory.up_direction`), but a camera pitched up to see a facade's
 top tilts that estimate by its pitch about the travel direction, and nothing in the
 trajectory of a sideways walk can tell. SfM's sparse points can. Their planes are found
-by RANSAC (Open3D's ``segment_plane``), largest first: the ground (below the cameras, a
-normal near the cameras' estimate: road, sidewalk, a square) gives the up itself; the
-largest wall (a normal near horizontal: a facade) is vertical, so the up is the
-cameras' estimate with its component along the wall's normal removed, which undoes a
-pitch about the wall's direction. Asphalt gives SIFT few points, so on a street the
-walls are often all there is.
+by RANSAC (Open3D's ``segment_plane``), largest first, and the first that is ground or
+wall decides: the ground (below the cameras, a normal near the cameras' estimate: road,
+sidewalk, a square) gives the up itself; a wall (a normal near horizontal: a facade) is
+vertical, so the up is the cameras' estimate with its component along the wall's normal
+removed, which undoes a pitch about the wall's direction. On a street the facades are
+the larger planes and the better ones: asphalt gives SIFT few points, and a plane through
+road and sidewalk leans by the kerb (2.3° on a synthetic street, against 0.01° from its
+facade).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ class GroundUpConfig:
     distance: float = 0.01  # RANSAC inlier distance, × that median distance
     min_inliers: int = 50  # a plane holds at least this many points ...
     min_share: float = 0.02  # ... and this share of them all
-    attempts: int = 6  # planes tried at most, largest first (each one that is not the ground is set aside)
+    attempts: int = 6  # planes tried at most, largest first (each one neither ground nor wall is set aside)
     iterations: int = 1000  # RANSAC iterations per plane
     seed: int = 0  # RANSAC's random seed (the same points, the same plane)
 
@@ -49,8 +51,8 @@ class GroundUpConfig:
 
 def ground_up(points: np.ndarray, centres: np.ndarray, up: np.ndarray,
               config: GroundUpConfig = GroundUpConfig()) -> np.ndarray | None:
-    """The world's up from the planes under the cameras (see the module doc), or None when
-    neither ground nor wall qualifies.
+    """The world's up from the sparse points' largest ground or wall plane (see the module
+    doc), or None when no plane qualifies.
 
     points: (m, 3) float64 sparse points; centres: (k, 3) float64 camera centres; up: (3,)
     the up estimated from the cameras (any length). All in one (SfM) frame and unit.
@@ -70,7 +72,6 @@ def ground_up(points: np.ndarray, centres: np.ndarray, up: np.ndarray,
     need = max(config.min_inliers, int(np.ceil(config.min_share * len(P))))
     cos_limit, sin_limit = np.cos(np.radians(config.max_tilt_deg)), np.sin(np.radians(config.max_tilt_deg))
     level = float(C.mean(axis=0) @ u)
-    wall = None
     o3d.utility.random.seed(config.seed)
     for _ in range(config.attempts):
         if len(candidates) < need:
@@ -88,14 +89,11 @@ def ground_up(points: np.ndarray, centres: np.ndarray, up: np.ndarray,
             logger.info("up from the ground plane of %d sparse points: %.2f° from the cameras' estimate",
                         len(inliers), np.degrees(np.arccos(np.clip(normal @ u, -1.0, 1.0))))
             return normal
-        if wall is None and abs(normal @ u) <= sin_limit:
-            wall = (normal, len(inliers))
-        candidates = np.delete(candidates, inliers, axis=0)  # not the ground: look further
-    if wall is None:
-        return None
-    normal, count = wall
-    out = u - (u @ normal) * normal
-    out /= np.linalg.norm(out)
-    logger.info("up from a wall of %d sparse points (no ground found): %.2f° from the cameras' estimate",
-                count, np.degrees(np.arccos(np.clip(out @ u, -1.0, 1.0))))
-    return out
+        if abs(normal @ u) <= sin_limit:
+            out = u - (u @ normal) * normal
+            out /= np.linalg.norm(out)
+            logger.info("up from a wall of %d sparse points: %.2f° from the cameras' estimate", len(inliers),
+                        np.degrees(np.arccos(np.clip(out @ u, -1.0, 1.0))))
+            return out
+        candidates = np.delete(candidates, inliers, axis=0)  # neither ground nor wall: look further
+    return None
