@@ -453,10 +453,10 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
     frames (``progress``: None = only on a terminal).
 
     A dataset with no known poses (:func:`poses_unknown`, e.g. a photo folder) has no scale
-    and no up: each component is then moved to a z-up world (the normal of the ground plane
-    its sparse points show under the cameras, :func:`recon.ground_plane.ground_up`, else
-    :func:`up_direction` from cameras held roughly level; origin and heading from its first
-    registered frame) and scaled as
+    and no up: each component is then moved to a z-up world (from its sparse points' largest
+    ground or wall plane, :func:`recon.ground_plane.ground_up`, else :func:`up_direction`
+    from cameras held roughly level; origin and heading from its first registered frame)
+    and scaled as
     :func:`capture_scale` says: the median distance between consecutive frames becomes the
     dataset's step length (metres), or the distances between frames far apart become those
     of their GPS positions, or consecutive frames end up 1 apart in arbitrary units (the
