@@ -22,12 +22,12 @@ from tqdm import tqdm
 
 # data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
 # pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
-from core import DataFormatError
-from core.fileio import atomic_dir, read_json
+from core.fileio import atomic_dir
 from core.rigid import rigid_inverse
 from data_synth import Dataset
 from data_synth.colmap_export import colmap_camera_model, to_rigid3d
 
+from .capture_scale import CaptureScale, capture_scale, scale_factor
 from .colmap_log import colmap_log_to_logging
 from .ground_plane import ground_up
 from .colmap_poses import _image_index, poses_from_reconstruction
@@ -38,7 +38,7 @@ import pycolmap  # noqa: E402  (after data_synth, see above)
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CaptureScale", "SfmConfig", "SfmResult", "capture_scale", "poses_sfm", "scale_factor"]
+__all__ = ["SfmConfig", "SfmResult", "poses_sfm"]
 
 
 @dataclass(frozen=True)
@@ -333,69 +333,6 @@ def _map_seeded(db: Path, dataset: Dataset, out: Path, cfg: SfmConfig, bar: tqdm
             done, _ = poses_from_reconstruction(rec, dataset, "SfM")
             todo = np.array([f for f in todo if not np.isfinite(done[f]).all()], dtype=np.int64)
     return models
-
-
-#: GPS positions fix SfM's scale only where two of them lie this far apart (metres): a phone's
-#: GPS errs by a few metres.
-MIN_GPS_SPAN = 20.0
-
-
-@dataclass(frozen=True)
-class CaptureScale:
-    """Where the scale of a dataset without poses comes from (``dataset.json`` "source"):
-    ``kind`` "step_length" (metres between consecutive frames: ``step``), "gps" (positions
-    (n, 3) float64 east/north/up metres per frame, NaN rows where a frame has none:
-    ``gps``) or "arbitrary" (none: SfM's units, consecutive frames 1 unit apart)."""
-
-    kind: str
-    step: float | None = None
-    gps: np.ndarray | None = None
-
-
-def capture_scale(dataset: Dataset) -> CaptureScale:
-    """The scale a dataset without poses asks SfM for: its "source" "step_length" (the
-    importers' ``--step-length``) when given, else its "gps_enu_m" positions, else none."""
-    path = dataset.root / "dataset.json"
-    source = read_json(path).get("source", {}) if path.is_file() else {}
-    source = source if isinstance(source, dict) else {}
-    value = source.get("step_length")
-    if value is not None:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
-            raise DataFormatError(path, f"source.step_length must be a positive number of metres, got {value!r}")
-        return CaptureScale("step_length", step=float(value))
-    gps = source.get("gps_enu_m")
-    if gps is not None:
-        try:
-            positions = np.asarray(gps, dtype=np.float64)
-        except (TypeError, ValueError):
-            positions = np.zeros((0,))
-        if positions.shape != (dataset.num_frames, 3) or not np.isfinite(positions).all():
-            raise DataFormatError(path, f"source.gps_enu_m must hold {dataset.num_frames} finite [east, north, up] "
-                                        "positions, one per frame")
-        return CaptureScale("gps", gps=positions)
-    return CaptureScale("arbitrary")
-
-
-def scale_factor(scale: CaptureScale, positions: np.ndarray, ok: np.ndarray) -> tuple[float, str]:
-    """The factor that brings SfM ``positions`` (m, 3) of frames ``ok`` (m,) int to the capture's
-    scale, and the scale's kind as applied ("gps" falls back to "arbitrary" when the positions
-    span less than :data:`MIN_GPS_SPAN`)."""
-    gaps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
-    adjacent = gaps[np.diff(ok) == 1]  # frames next to each other in the capture, where there are any
-    median = float(np.median(adjacent if adjacent.size else gaps)) if gaps.size else 0.0
-    if scale.kind == "gps":
-        g = scale.gps[ok]
-        i, j = np.triu_indices(len(ok), k=1)
-        far = np.linalg.norm(g[i] - g[j], axis=1) >= MIN_GPS_SPAN
-        sfm = np.linalg.norm(positions[i] - positions[j], axis=1)
-        far &= sfm > 1e-12
-        if far.any():
-            # pairs far apart: the GPS error is small against their distance
-            return float(np.median(np.linalg.norm(g[i[far]] - g[j[far]], axis=1) / sfm[far])), "gps"
-        logger.warning("the photos' GPS positions span less than %g m: too little to scale SfM by; the model "
-                       "stays in arbitrary units", MIN_GPS_SPAN)
-    step = scale.step if scale.kind == "step_length" else 1.0
-    return (step / median if median > 1e-12 else 1.0), ("step_length" if scale.kind == "step_length" else "arbitrary")
 
 
 def _level_and_scale(rec: pycolmap.Reconstruction, world_from_rig: np.ndarray, world_from_cam: np.ndarray,

@@ -550,7 +550,7 @@ def test_kitti_pose_at_an_absurd_position_is_one_clear_error(tmp_path):
 
 
 def test_sfm_scale_from_step_length_gps_or_nothing():
-    from recon.sfm import CaptureScale, scale_factor
+    from recon.capture_scale import CaptureScale, scale_factor
     rng = np.random.default_rng(4)
     truth = np.cumsum(rng.uniform([2.0, -0.5, -0.1], [4.0, 0.5, 0.1], (12, 3)), axis=0)  # a walk, 2–4 m a step
     sfm = truth / 7.3  # SfM's arbitrary units
