@@ -685,7 +685,9 @@ def _run_build(args) -> int:
     if args.work is None and args.cloud is None:
         raise UsageError("give a recon WORK directory or --cloud")
     cloud = args.cloud or args.work / "cloud.ply"
+    _refuse_out_over(args.out, [cloud] + ([args.work / "recon_report.json"] if args.work is not None else []))
     dataset = _work_dataset(args) if args.work is not None and args.texture_source == "images" else args.images
+    _refuse_out_over(args.out, [p for p in (dataset, args.poses) if p is not None])
     if args.holdout is None:
         args.holdout = _work_holdout(args.work) if args.work is not None and args.cloud is None else 0
     poses = args.poses
@@ -699,6 +701,17 @@ def _run_build(args) -> int:
     logger.info("%d billboards, compression %.1f× at %s dB (decoded RGB), %.1f s → %s", r["billboards"],
                 r["compression_ratio"], "n/a" if psnr is None else f"{psnr:.2f}", r["total_s"], result.model)
     return 0
+
+
+def _refuse_out_over(out: Path, inputs: list[Path]) -> None:
+    """UsageError when the output directory ``out`` is one of ``inputs`` or holds one: a
+    command writes its output whole in place of ``out``, and would delete what it reads."""
+    where = out.resolve()
+    for path in inputs:
+        source = Path(path).resolve()
+        if where == source or where in source.parents:
+            raise UsageError(f"--out {out} holds {path}, which this command reads; its output would replace "
+                             "it: choose another directory")
 
 
 def _work_dataset(args) -> Path:

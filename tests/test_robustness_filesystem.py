@@ -213,3 +213,22 @@ def test_eval_replaces_its_own_earlier_report(inputs, tmp_path, caplog):
     assert code == 0 and errors == []
     assert "view_000000_training.png" not in {p.name for p in out.iterdir()}
     assert (out / "eval.json").read_bytes() != b"old"
+
+
+def test_build_into_what_it_reads_is_refused(inputs, tmp_path, caplog):
+    """`build W --out W` (or --out above W, or over the dataset) would replace what it reads."""
+    import shutil
+
+    work = tmp_path / "work"
+    shutil.copytree(inputs["work"], work)
+    before = {p.name: p.read_bytes() for p in work.iterdir()}
+    for out in (work, tmp_path):
+        code, errors = run_cli(["build", str(work), "--out", str(out), "--workers", "1", "--layer", "none",
+                                "--photometry", "off"], caplog)
+        assert code == 2 and len(errors) == 1, errors
+        assert f"--out {out} holds {work / 'cloud.ply'}, which this command reads" in errors[0]
+    dataset = Path(inputs["dataset"])
+    code, errors = run_cli(["build", "--cloud", str(work / "cloud.ply"), "--images", str(dataset), "--out",
+                            str(dataset), "--workers", "1", "--layer", "none", "--photometry", "off"], caplog)
+    assert code == 2 and len(errors) == 1 and f"holds {dataset}" in errors[0], errors
+    assert {p.name: p.read_bytes() for p in work.iterdir()} == before and (dataset / "rig.json").is_file()
