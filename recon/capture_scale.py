@@ -25,6 +25,9 @@ __all__ = ["CaptureScale", "MIN_GPS_SPAN", "capture_scale", "scale_factor"]
 #: GPS positions fix SfM's scale only where two of them lie this far apart (metres): a phone's
 #: GPS errs by a few metres.
 MIN_GPS_SPAN = 20.0
+#: At most this many frames, evenly spread, are paired to fix the scale by GPS (pairs grow as
+#: their square).
+MAX_GPS_FRAMES = 500
 
 
 @dataclass(frozen=True)
@@ -71,8 +74,9 @@ def scale_factor(scale: CaptureScale, positions: np.ndarray, ok: np.ndarray) -> 
     adjacent = gaps[np.diff(ok) == 1]  # frames next to each other in the capture, where there are any
     median = float(np.median(adjacent if adjacent.size else gaps)) if gaps.size else 0.0
     if scale.kind == "gps":
-        g = scale.gps[ok]
-        i, j = np.triu_indices(len(ok), k=1)
+        pick = np.linspace(0, len(ok) - 1, min(len(ok), MAX_GPS_FRAMES)).round().astype(np.int64)
+        g, positions = scale.gps[ok][pick], positions[pick]  # pairs of at most MAX_GPS_FRAMES frames
+        i, j = np.triu_indices(len(pick), k=1)
         far = np.linalg.norm(g[i] - g[j], axis=1) >= MIN_GPS_SPAN
         sfm = np.linalg.norm(positions[i] - positions[j], axis=1)
         far &= sfm > 1e-12

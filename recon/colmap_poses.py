@@ -129,15 +129,20 @@ def frame_depths(rec: pycolmap.Reconstruction, dataset: Dataset, min_points: int
     n = dataset.num_frames
     out = np.full((n, len(DEPTH_QUANTILES)), np.nan)
     frame_index = {name: i for i, name in enumerate(dataset.frame_names)}
-    xyz = {pid: p.xyz for pid, p in rec.points3D.items()}
+    point_ids = np.fromiter(rec.points3D.keys(), np.int64, count=rec.num_points3D())
+    order = np.argsort(point_ids)
+    point_ids = point_ids[order]
+    xyz = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)[order]
     for image in rec.images.values():
         where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
         if where is None or where[1] != 0 or not image.has_pose:
             continue
-        ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
-        if len(ids) < min_points:
+        ids = np.fromiter((p.point3D_id for p in image.get_observation_points2D()), np.int64)
+        rows = np.searchsorted(point_ids, ids)
+        rows = rows[(rows < len(point_ids)) & (point_ids[np.minimum(rows, len(point_ids) - 1)] == ids)]
+        if len(rows) < min_points:
             continue
-        X = np.array([xyz[i] for i in ids if i in xyz], dtype=np.float64).reshape(-1, 3)
+        X = xyz[rows]
         T = _to_4x4(image.cam_from_world())
         z = X @ T[2, :3] + T[2, 3]
         z = z[z > 0]

@@ -484,9 +484,16 @@ def test_sfm_of_photos_with_unknown_poses_is_level_and_step_scaled(one_camera_st
     assert res.scale_from == ["step_length"]
     # the depths of the sparse points each frame sees: near < median < far, the facades' metres
     from recon.colmap_poses import frame_depths, read_reconstruction
-    d = frame_depths(read_reconstruction(res.model_dirs[0]), ds)
+    rec = read_reconstruction(res.model_dirs[0])
+    d = frame_depths(rec, ds)
     assert np.isfinite(d).all() and (d[:, 0] < d[:, 1]).all() and (d[:, 1] < d[:, 2]).all()
     assert 4.0 < np.median(d[:, 1]) < 15.0
+    # against a plain loop over each image's observations
+    for image in rec.images.values():
+        X = np.array([rec.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()])
+        z = X @ image.cam_from_world().matrix()[2, :3] + image.cam_from_world().matrix()[2, 3]
+        f = list(ds.frame_names).index(Path(image.name).stem)
+        np.testing.assert_allclose(d[f], np.quantile(z[z > 0], (0.02, 0.5, 0.98)), rtol=1e-12)
 
 
 @pytest.mark.slow
@@ -569,5 +576,10 @@ def test_sfm_scale_from_step_length_gps_or_nothing():
     # GPS spanning less than 20 m says nothing: arbitrary units, 1 between consecutive frames
     f, kind = scale_factor(CaptureScale("gps", gps=gps[:4] * 0.1), sfm[:4], ok[:4])
     assert kind == "arbitrary" and np.median(np.linalg.norm(np.diff(sfm[:4] * f, axis=0), axis=1)) == pytest.approx(1)
+    # a long video's frames: the scale from 500 of them, evenly spread
+    long_truth = np.cumsum(rng.uniform([0.5, -0.2, -0.05], [1.5, 0.2, 0.05], (1500, 3)), axis=0)
+    f, kind = scale_factor(CaptureScale("gps", gps=long_truth + rng.normal(0, 3.0, long_truth.shape)),
+                           long_truth / 2.0, np.arange(1500))
+    assert kind == "gps" and f == pytest.approx(2.0, rel=0.02)
     f, kind = scale_factor(CaptureScale("arbitrary"), sfm, ok)
     assert kind == "arbitrary" and np.median(np.linalg.norm(np.diff(sfm * f, axis=0), axis=1)) == pytest.approx(1)

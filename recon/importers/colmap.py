@@ -39,7 +39,6 @@ from pathlib import Path, PurePosixPath
 
 import cv2
 import numpy as np
-from PIL import Image as PILImage
 
 from core.fileio import DataFormatError, write_bytes
 from core.rigid import nearest_rotation, rigid_inverse
@@ -50,7 +49,7 @@ from data_synth.rig import Rig
 # recon.colmap_poses loads data_synth (open3d, OpenCV) before pycolmap: see the note there
 from ..colmap_poses import _to_4x4, read_reconstruction
 from ..trajectory import level_from_world, up_direction
-from .common import frame_names, write_imported_dataset
+from .common import check_image, frame_names, write_imported_dataset
 
 import pycolmap  # noqa: E402  (after data_synth, see above)
 
@@ -353,19 +352,6 @@ def level_layout(cam_from_ref: np.ndarray, ref_from_world: np.ndarray) -> tuple[
 # --------------------------------------------------------------------------- import
 
 
-def _check_size(path: Path, size: tuple[int, int], camera_id: int) -> None:
-    if not path.is_file():
-        raise DataFormatError(path, "image named in the COLMAP model is missing")
-    try:
-        with PILImage.open(path) as im:
-            got = im.size
-    except Exception as e:  # Pillow raises many kinds for broken files
-        raise DataFormatError(path, f"image could not be read ({e})") from None
-    if got != tuple(size):
-        raise DataFormatError(path, f"image is {got[0]}x{got[1]} but COLMAP camera {camera_id} is "
-                                    f"{size[0]}x{size[1]}")
-
-
 def _undistorted(source: Path, target: Path, maps: tuple[np.ndarray, np.ndarray]) -> Path:
     image = cv2.imread(str(source), cv2.IMREAD_UNCHANGED)
     if image is None:
@@ -402,7 +388,7 @@ def import_colmap(model_dir: os.PathLike | str, image_dir: os.PathLike | str, ou
     sources = [[image_dir / name for name in row] for row in layout.images]
     for row in sources:
         for path, size, cid in zip(row, raw_sizes, layout.camera_ids):
-            _check_size(path, size, cid)
+            check_image(path, size, "the COLMAP model", f"COLMAP camera {cid} is")
     undistorted = [c for c, cam in enumerate(cams) if cam.raw is not None]
     source = {"kind": "colmap", "model": str(model_dir.resolve()), "images": str(image_dir.resolve()),
               "frames_from": layout.how,

@@ -75,6 +75,21 @@ def read_number_rows(path: Path, columns: int, what: str) -> np.ndarray:
     return np.array(rows, dtype=np.float64).reshape(-1, columns)
 
 
+def check_image(path: Path, size: tuple[int, int], named_in: str, expected: str) -> None:
+    """DataFormatError naming ``path`` when the image is missing, unreadable or not ``size``
+    (w, h) pixels; ``named_in`` says what named it ("the COLMAP model"), ``expected`` what
+    gives its size ("COLMAP camera 3 is")."""
+    if not path.is_file():
+        raise DataFormatError(path, f"image named in {named_in} is missing")
+    try:
+        with PILImage.open(path) as im:
+            got = im.size
+    except Exception as e:  # Pillow raises many kinds for broken files
+        raise DataFormatError(path, f"image could not be read ({e})") from None
+    if got != tuple(size):
+        raise DataFormatError(path, f"image is {got[0]}x{got[1]} but {expected} {size[0]}x{size[1]}")
+
+
 def frame_names(image_names: Sequence[str]) -> list[str]:
     """Dataset frame names for image files: their stems, or the paths (without extension,
     "/" → "_") when stems repeat, or indices ``000000`` … when those repeat too."""

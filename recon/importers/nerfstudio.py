@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image as PILImage
 
 from core.fileio import DataFormatError, read_json
 from core.rigid import rigid_inverse
@@ -46,7 +45,7 @@ from data_synth.distortion import Distortion
 from data_synth.rig import Rig
 
 from ..trajectory import level_from_world, up_direction
-from .common import clean_rigid, frame_names, write_imported_dataset
+from .common import check_image, clean_rigid, frame_names, write_imported_dataset
 
 logger = logging.getLogger(__name__)
 
@@ -222,19 +221,6 @@ def z_up_world(world_from_cam: np.ndarray, world: str) -> tuple[np.ndarray, floa
     return level_from_world(up, world_from_cam[0, :3, 2], world_from_cam[0, :3, 3]), tilt
 
 
-def _check_image(path: Path, size: tuple[int, int], json_path: Path) -> None:
-    if not path.is_file():
-        raise DataFormatError(path, f"image named in {json_path.name} is missing")
-    try:
-        with PILImage.open(path) as im:
-            got = im.size
-    except Exception as e:  # Pillow raises many kinds for broken files
-        raise DataFormatError(path, f"image could not be read ({e})") from None
-    if got != tuple(size):
-        raise DataFormatError(path, f"image is {got[0]}x{got[1]} but {json_path.name} gives w×h "
-                                    f"{size[0]}x{size[1]}")
-
-
 def import_nerfstudio(transforms: os.PathLike | str, out_dir: os.PathLike | str,
                       config: NerfstudioImportConfig = NerfstudioImportConfig(), progress=None) -> Path:
     """Import a nerfstudio ``transforms.json`` (or the folder holding one) and its images into
@@ -248,7 +234,7 @@ def import_nerfstudio(transforms: os.PathLike | str, out_dir: os.PathLike | str,
     K, size, distortion = raw_camera(camera, path)
     images = [path.parent / n for n in names]
     for image in images:
-        _check_image(image, size, path)
+        check_image(image, size, path.name, f"{path.name} gives w×h")
     level, tilt = z_up_world(world_from_cam, config.world)
     world_from_cam = level[None] @ world_from_cam
     cam_from_rig = level_rig(world_from_cam)
