@@ -72,6 +72,21 @@ def stage_sources(name: str, defines: dict[str, object] | None = None) -> dict[s
     return out
 
 
+#: What a GLSL ES 3.00 (WebGL2) stage starts with instead of ``#version 330 core``: ES has no
+#: default precision for floats in fragment shaders nor for samplers of arrays.
+ES_HEADER = ("#version 300 es", "precision highp float;", "precision highp int;",
+             "precision highp sampler2D;", "precision highp sampler2DArray;")
+
+
+def es_stage_sources(name: str, defines: dict[str, object] | None = None) -> dict[str, str]:
+    """:func:`stage_sources` of ``render/shaders/<name>`` for WebGL2: the same text (the web viewer
+    decodes and draws with the desktop's shaders) under :data:`ES_HEADER`."""
+    out = {}
+    for stage, text in stage_sources(name, defines).items():
+        out[stage] = "\n".join(ES_HEADER) + "\n" + text.split("\n", 1)[1]
+    return out
+
+
 def load_program(ctx: moderngl.Context, name: str, defines: dict[str, object] | None = None) -> moderngl.Program:
     """Compile and link ``render/shaders/<name>``; ShaderError names the file on failure."""
     try:

@@ -37,6 +37,7 @@ void main() {
     v_mean_scale = slot_entry(in_slot.x, 0);
     v_mean_offset = slot_entry(in_slot.x, 1);
     v_mean_tile = tile_address(in_slot.x);
+    gl_PointSize = float(u_tile);   // WebGL sizes points here; the desktop's glPointSize is the same
     gl_Position = vec4((vec2(in_origin) + 0.5 * float(u_tile)) / u_decoded_size * 2.0 - 1.0, 0.0, 1.0);
 }
 
