@@ -12,6 +12,9 @@ runs no second copy of it:
   blocks' decoded tiles lie one below the other (:func:`render.gpu_decode.atlas_layout`).
 - **Culling.** The octree node table as it is (its billboard ranges in model order) and each
   billboard's column, so culled ranges become whole columns, as the desktop's ``whole_columns``.
+- **View atlas.** Where large quads are blended once per texel for the view (the desktop's
+  pre-blend, ``billboard_blend.glsl``): one tile per position, :func:`render.gpu_decode.atlas_layout`
+  with one slot.
 - **Slot table.** :func:`render.resources.slot_table` for a texture of at most
   :data:`MAX_TEXTURE` texels (WebGL2's guaranteed size on this kind of machine is 8192).
 
@@ -57,6 +60,7 @@ def model_tables(model: BillboardModel) -> tuple[dict[str, np.ndarray], dict]:
     within = np.arange(n) - np.repeat(slits.column_start, slits.column_count)
     place = np.repeat(first, slits.column_count) + within
     decoded_origin, decoded_size = atlas_layout(place, slots, model.tile, MAX_TEXTURE)
+    view_origin, view_size = atlas_layout(place, 1, model.tile, MAX_TEXTURE)
     slots_per_row = 1 << int(np.log2(MAX_TEXTURE // 3))
     table = slot_table(model, slots_per_row)
     if table.shape[0] > MAX_TEXTURE:
@@ -71,6 +75,7 @@ def model_tables(model: BillboardModel) -> tuple[dict[str, np.ndarray], dict]:
         "first_slot": model.first_slot[order].astype("<i4"),
         "rank": model.rank[order].astype(np.uint8),
         "decoded_origin": decoded_origin.astype("<i4"),
+        "view_origin": view_origin.astype("<i4"),
         "column_start": slits.column_start.astype("<i4"),
         "column_count": slits.column_count.astype("<i4"),
         "column_of": slits.column[slits.position].astype("<i4"),
@@ -88,6 +93,7 @@ def model_tables(model: BillboardModel) -> tuple[dict[str, np.ndarray], dict]:
         "pitches": [float(v) for v in model.pitches],
         "pad": float(model_quad_radius(model)),
         "decoded_size": [int(v) for v in decoded_size],
+        "view_size": [int(v) for v in view_size],
         "uniforms": {"u_tile": int(model.tile), "u_slots_per_row": slots_per_row,
                      "u_tiles_per_row": tiles.tiles_per_row, "u_tiles_per_page": tiles.tiles_per_page,
                      "u_d": model.num_directions, "u_rows_per_line": rows.tiles_per_row,
@@ -115,9 +121,10 @@ def write_model(model: BillboardModel, out: Path) -> dict:
             offset += len(data)
     pages = _write_pages(model.pages, "atlas", out)
     coef_pages = _write_pages(model.coef_pages, "coef", out)
-    width, height = layout["decoded_size"]
+    (width, height), (view_width, view_height) = layout["decoded_size"], layout["view_size"]
     gpu_bytes = (sum(p.nbytes for p in model.pages) + sum(p.nbytes for p in model.coef_pages)
-                 + arrays["slot_table"].nbytes + width * height * 8)  # the decoded atlas is RGBA16F
+                 + arrays["slot_table"].nbytes + width * height * 8  # the decoded atlas is RGBA16F,
+                 + view_width * view_height * 4)  # the view atlas RGBA8
     doc = {"format": FORMAT, "version": VERSION, "origin": [float(v) for v in model.origin],
            "billboards": int(model.num_billboards), "slots": int(model.num_slots),
            "columns": int(len(arrays["column_start"])), "nodes": int(model.num_nodes),

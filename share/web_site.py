@@ -55,10 +55,13 @@ class WebConfig:
 
 
 def web_programs() -> dict[str, tuple[str, dict]]:
-    """The viewer's programs: name → (shader file, defines). The draw pass per storage-slot count
-    and filter (``draw_s2_l1``: two slots, bilinear), the decode pass and the sky."""
-    programs = {f"draw_s{s}_l{lin}": ("billboard.glsl", {"STORAGE_SLOTS": s, "VIEW": 0, "LINEAR": lin, "MULTIVIEW": 0})
-                for s in (2, 4) for lin in (0, 1)}
+    """The viewer's programs: name → (shader file, defines). The draw pass per storage-slot count,
+    source and filter (``draw_s2_v0_l1``: two slots, from the decoded atlas, bilinear), the
+    pre-blend pass per storage-slot count, the decode pass and the sky."""
+    programs = {f"draw_s{s}_v{view}_l{lin}": ("billboard.glsl", {"STORAGE_SLOTS": s, "VIEW": view, "LINEAR": lin,
+                                                                  "MULTIVIEW": 0})
+                for s in (2, 4) for view in (0, 1) for lin in (0, 1)}
+    programs.update({f"blend_s{s}": ("billboard_blend.glsl", {"STORAGE_SLOTS": s}) for s in (2, 4)})
     programs["decode"] = ("billboard_decode.glsl", {})
     programs["sky"] = ("sky.glsl", {})
     return programs

@@ -8,6 +8,13 @@ import {glMat, fround, multiply, viewMatrix} from './camera.js';
 
 const QUAD_WORDS = 17;   // centre 3f, base_yaw f, kind i, size f, blocks i, origin 2f, weights 4f, corner_dz 4f
 const DECODE_WORDS = 5;  // origin 2i, slot 2i, direction i
+const BLEND_WORDS = 9;   // source 2i, target 2i, blocks i, weights 4f
+// Quads are drawn as indexed triangles, their record repeated at each of their 4 corners, not as
+// instances: SwiftShader (software WebGL) pays per instance about what llvmpipe pays per draw
+// (the street's 38 000 quads took 180 ms instanced). The shaders' corner from gl_VertexID is the
+// same: vertex 4q + c is corner c of quad q.
+const CORNERS = 4;
+const PREBLEND_TEXEL_PX = 2.0;  // render.gpu_decode.PREBLEND_TEXEL_PX
 const DECODED_UNIT = 6;
 
 const DTYPES = {'<f4': Float32Array, '<i4': Int32Array, '|u1': Uint8Array};
@@ -88,16 +95,23 @@ export class WebModel {
     this.columns = doc.columns;
     this.held = new Int32Array(this.n * this.slots).fill(-1);  // direction each position's slot holds
     this.marked = new Uint8Array(this.columns);
-    this.quads = new ArrayBuffer(Math.max(this.columns, 1) * QUAD_WORDS * 4);
+    this.quads = new ArrayBuffer(Math.max(this.columns, 1) * QUAD_WORDS * 4 * CORNERS);
     this.quadF = new Float32Array(this.quads);
     this.quadI = new Int32Array(this.quads);
     this.decodes = new Int32Array(1024 * DECODE_WORDS);
+    this.blends = new ArrayBuffer(1024 * BLEND_WORDS * 4 * CORNERS);
+    this.viewBlends();
     this.dirs = new Int32Array(4);
     this.weights = new Float64Array(4);
     this.programs = programs;
     this.objects = [];
     this.upload(pages, coefPages);
     this.gpuBytes = doc.gpu_bytes;
+  }
+
+  viewBlends() {
+    this.blendI = new Int32Array(this.blends);
+    this.blendF = new Float32Array(this.blends);
   }
 
   upload(pages, coefPages) {
@@ -133,16 +147,39 @@ export class WebModel {
     if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE)
       throw new Error('this browser cannot render into a half-float texture (EXT_color_buffer_float)');
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    this.quadBuffer = this.keep(gl.createBuffer());
+    const [vw, vh] = doc.view_size;
+    this.viewTiles = this.keep(gl.createTexture());
+    gl.bindTexture(gl.TEXTURE_2D, this.viewTiles);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, vw, vh);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    this.viewFbo = this.keep(gl.createFramebuffer());
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.viewFbo);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.viewTiles, 0);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    this.quadBuffers = [this.keep(gl.createBuffer()), this.keep(gl.createBuffer())];
+    this.indexBuffer = this.keep(gl.createBuffer());
+    const indices = new Uint32Array(Math.max(this.columns, 1) * 6);
+    for (let q = 0; q < this.columns; ++q) indices.set([0, 1, 2, 2, 1, 3].map((c) => 4 * q + c), q * 6);
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.indexBuffer);
+    gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, indices, gl.STATIC_DRAW);
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, null);
     this.decodeBuffer = this.keep(gl.createBuffer());
+    this.blendBuffer = this.keep(gl.createBuffer());
     this.drawVaos = {};
-    for (const linear of [0, 1]) {
-      const prog = this.programs[`draw_s${this.slots}_l${linear}`];
-      this.drawVaos[linear] = this.vertexArray(prog, this.quadBuffer, QUAD_WORDS * 4, [
-        ['in_centre', 3, 'f', 0], ['in_base_yaw', 1, 'f', 3], ['in_kind', 1, 'i', 4], ['in_size', 1, 'f', 5],
-        ['in_blocks', 1, 'i', 6], ['in_origin', 2, 'f', 7], ['in_weights', 4, 'f', 9], ['in_corner_dz', 4, 'f', 13]]);
+    for (const view of [0, 1]) {
+      for (const linear of [0, 1]) {
+        const prog = this.programs[`draw_s${this.slots}_v${view}_l${linear}`];
+        this.drawVaos[`${view}${linear}`] = this.vertexArray(prog, this.quadBuffers[view], QUAD_WORDS * 4, this.indexBuffer, [
+          ['in_centre', 3, 'f', 0], ['in_base_yaw', 1, 'f', 3], ['in_kind', 1, 'i', 4], ['in_size', 1, 'f', 5],
+          ['in_blocks', 1, 'i', 6], ['in_origin', 2, 'f', 7], ['in_weights', 4, 'f', 9], ['in_corner_dz', 4, 'f', 13]]);
+      }
     }
-    this.decodeVao = this.vertexArray(this.programs.decode, this.decodeBuffer, DECODE_WORDS * 4, [
+    this.blendVao = this.vertexArray(this.programs[`blend_s${this.slots}`], this.blendBuffer, BLEND_WORDS * 4, this.indexBuffer, [
+      ['in_source', 2, 'i', 0], ['in_target', 2, 'i', 2], ['in_blocks', 1, 'i', 4], ['in_weights', 4, 'f', 5]]);
+    this.decodeVao = this.vertexArray(this.programs.decode, this.decodeBuffer, DECODE_WORDS * 4, null, [
       ['in_origin', 2, 'i', 0], ['in_slot', 2, 'i', 2], ['in_direction', 1, 'i', 4]]);
   }
 
@@ -171,10 +208,12 @@ export class WebModel {
     return tex;
   }
 
-  vertexArray(prog, buffer, stride, attributes) {
+  // A vertex array of `prog`'s attributes, one record per vertex in `buffer` (and `indices`, if any).
+  vertexArray(prog, buffer, stride, indices, attributes) {
     const gl = this.gl;
     const vao = this.keep(gl.createVertexArray());
     gl.bindVertexArray(vao);
+    if (indices) gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, indices);
     gl.bindBuffer(gl.ARRAY_BUFFER, buffer);
     for (const [name, size, kind, word] of attributes) {
       const loc = gl.getAttribLocation(prog, name);
@@ -182,7 +221,6 @@ export class WebModel {
       gl.enableVertexAttribArray(loc);
       if (kind === 'i') gl.vertexAttribIPointer(loc, size, gl.INT, stride, word * 4);
       else gl.vertexAttribPointer(loc, size, gl.FLOAT, false, stride, word * 4);
-      gl.vertexAttribDivisor(loc, 1);
     }
     gl.bindVertexArray(null);
     return vao;
@@ -207,19 +245,22 @@ export class WebModel {
     return count;
   }
 
-  // Draw into the bound framebuffer (viewport = the camera's size). cam: {R, eye (world), K};
-  // proj: row-major GL projection. Returns {quads, instances, decoded, nodes}.
-  draw(cam, proj, {cull = true, linear = true} = {}) {
-    const gl = this.gl, t = this.t, doc = this.doc, S = this.slots;
+  // Everything a draw from `cam` ({R, eye (world), K}; proj: row-major GL projection) needs before
+  // the frame's framebuffer is bound: the columns in the frustum, their direction brackets, the
+  // tiles decoded and the large quads pre-blended (render.gpu_decode: quads whose texel spans
+  // PREBLEND_TEXEL_PX pixels or more are blended once per texel into the RGBA8 view atlas). Each
+  // pass that writes an atlas leaves the default framebuffer bound; the frame's pass is never cut.
+  // Returns {quads, instances, decoded, blended, nodes}.
+  prepare(cam, proj, {cull = true} = {}) {
+    const t = this.t, doc = this.doc, S = this.slots;
     const eye = [cam.eye[0] - this.origin[0], cam.eye[1] - this.origin[1], cam.eye[2] - this.origin[2]];
-    const view = fround(viewMatrix(cam.R, eye));
-    const viewProj = multiply(fround(proj), view);
-    const count = this.visibleColumns(viewProj, cull);
-    if (count === 0) return {quads: 0, instances: 0, decoded: 0, nodes: this.nodesTested};
-    const tile = doc.tile, yawOffsets = doc.yaw_offsets, pitches = doc.pitches;
+    this.eye = eye;
+    this.view = fround(viewMatrix(cam.R, eye));
+    const count = this.visibleColumns(multiply(fround(proj), this.view), cull);
+    const tile = doc.tile, yawOffsets = doc.yaw_offsets, pitches = doc.pitches, focal = cam.K[0];
     const centres = t.centres, starts = t.column_start, counts = t.column_count, held = this.held;
     const qF = this.quadF, qI = this.quadI, dirs = this.dirs, weights = this.weights;
-    let decodes = 0, instances = 0;
+    let decodes = 0, instances = 0, front = 0, back = count, blended = 0;
     for (let i = 0; i < count; ++i) {
       const col = this.list[i], start = starts[col], n = counts[col], end = start + n - 1;
       const cx = 0.5 * (centres[start * 3] + centres[end * 3]);
@@ -234,32 +275,69 @@ export class WebModel {
           held[p * S + s] = d;
         }
       }
-      const o = i * QUAD_WORDS;
+      const dist = Math.hypot(cx - eye[0], cy - eye[1], cz - eye[2]);
+      const texelPx = dist > 0 ? focal * t.edge[start] / (tile * dist) : Infinity;
+      let used = 0;
+      for (let s = 0; s < S; ++s) used += weights[s] !== 0 ? 1 : 0;
+      const blend = texelPx >= PREBLEND_TEXEL_PX && used > 1;
+      const o = (blend ? --back : front++) * QUAD_WORDS * CORNERS;  // decoded-atlas quads first, then the view atlas's
+      const origin = blend ? t.view_origin : t.decoded_origin;
       qF[o] = cx; qF[o + 1] = cy; qF[o + 2] = cz;
       qF[o + 3] = t.base_yaw[start];
       qI[o + 4] = t.kind[start];
       qF[o + 5] = t.edge[start];
       qI[o + 6] = n;
-      qF[o + 7] = t.decoded_origin[start * 2]; qF[o + 8] = t.decoded_origin[start * 2 + 1];
+      qF[o + 7] = origin[start * 2]; qF[o + 8] = origin[start * 2 + 1];
       for (let s = 0; s < 4; ++s) qF[o + 9 + s] = s < S ? weights[s] : 0;
       for (let k = 0; k < 4; ++k) qF[o + 13 + k] = t.corner_dz[start * 4 + k];
+      for (let c = 1; c < CORNERS; ++c) qF.copyWithin(o + c * QUAD_WORDS, o, o + QUAD_WORDS);
+      if ((blended + 1) * BLEND_WORDS * 4 * CORNERS > this.blends.byteLength) {
+        const grown = new ArrayBuffer(this.blends.byteLength * 2);
+        new Uint8Array(grown).set(new Uint8Array(this.blends));
+        this.blends = grown;
+        this.viewBlends();
+      }
+      if (blend) {
+        const b = blended++ * BLEND_WORDS * CORNERS;
+        this.blendI[b] = t.decoded_origin[start * 2]; this.blendI[b + 1] = t.decoded_origin[start * 2 + 1];
+        this.blendI[b + 2] = t.view_origin[start * 2]; this.blendI[b + 3] = t.view_origin[start * 2 + 1];
+        this.blendI[b + 4] = n;
+        for (let s = 0; s < 4; ++s) this.blendF[b + 5 + s] = s < S ? weights[s] : 0;
+        for (let c = 1; c < CORNERS; ++c) this.blendF.copyWithin(b + c * BLEND_WORDS, b, b + BLEND_WORDS);
+      }
       instances += n;
     }
     if (decodes) this.runDecode(decodes);
-    const prog = this.programs[`draw_s${S}_l${linear ? 1 : 0}`];
-    gl.useProgram(prog);
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.quadBuffer);
-    gl.bufferData(gl.ARRAY_BUFFER, this.quadF.subarray(0, count * QUAD_WORDS), gl.STREAM_DRAW);
-    gl.activeTexture(gl.TEXTURE0 + DECODED_UNIT);
-    gl.bindTexture(gl.TEXTURE_2D, this.decoded);
-    uniforms(gl, prog, {
-      u_tiles_in: ['1i', DECODED_UNIT], u_atlas_texel: ['2f', 1 / doc.decoded_size[0], 1 / doc.decoded_size[1]],
-      u_projection: ['m4', glMat(proj)], u_view: ['m4', glMat(view)], u_eye: ['3f', ...eye.map(Math.fround)],
-      u_spherical: ['1i', doc.spherical ? 1 : 0], u_tile: ['1i', tile]});
-    gl.bindVertexArray(this.drawVaos[linear ? 1 : 0]);
-    gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, count);
+    if (blended) this.runBlend(blended);
+    this.counts = [front, count - front];
+    return {quads: count, instances, decoded: decodes, blended, nodes: this.nodesTested};
+  }
+
+  // Draw what prepare() planned into the bound framebuffer (viewport = the camera's size):
+  // one instanced draw from the decoded atlas, one from the view atlas.
+  emit(proj, {linear = true} = {}) {
+    const gl = this.gl, doc = this.doc, S = this.slots;
+    if (!this.counts) return;
+    const sources = [[this.decoded, doc.decoded_size, 0], [this.viewTiles, doc.view_size, this.counts[0]]];
+    sources.forEach(([atlas, atlasSize, first], view) => {
+      const n = this.counts[view];
+      if (!n) return;
+      const prog = this.programs[`draw_s${S}_v${view}_l${linear ? 1 : 0}`];
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.quadBuffers[view]);
+      gl.bufferData(gl.ARRAY_BUFFER, this.quadF.subarray(first * QUAD_WORDS * CORNERS, (first + n) * QUAD_WORDS * CORNERS),
+                    gl.STREAM_DRAW);
+      gl.useProgram(prog);
+      gl.activeTexture(gl.TEXTURE0 + DECODED_UNIT);
+      gl.bindTexture(gl.TEXTURE_2D, atlas);
+      uniforms(gl, prog, {
+        u_tiles_in: ['1i', DECODED_UNIT], u_atlas_texel: ['2f', 1 / atlasSize[0], 1 / atlasSize[1]],
+        u_projection: ['m4', glMat(proj)], u_view: ['m4', glMat(this.view)], u_eye: ['3f', ...this.eye.map(Math.fround)],
+        u_spherical: ['1i', doc.spherical ? 1 : 0], u_tile: ['1i', doc.tile]});
+      gl.bindVertexArray(this.drawVaos[`${view}${linear ? 1 : 0}`]);
+      gl.drawElements(gl.TRIANGLES, 6 * n, gl.UNSIGNED_INT, 0);
+    });
     gl.bindVertexArray(null);
-    return {quads: count, instances, decoded: decodes, nodes: this.nodesTested};
+    this.counts = null;
   }
 
   addDecode(k, position, slot, direction, tile) {
@@ -277,32 +355,50 @@ export class WebModel {
     return k + 1;
   }
 
-  // The decode pass: `count` tiles into the decoded atlas, one point each; restores the framebuffer.
+  // The decode pass: `count` tiles into the decoded atlas, one point each.
   runDecode(count) {
     const gl = this.gl, doc = this.doc, prog = this.programs.decode;
-    const target = gl.getParameter(gl.FRAMEBUFFER_BINDING), viewport = gl.getParameter(gl.VIEWPORT);
     gl.useProgram(prog);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.decodeBuffer);
     gl.bufferData(gl.ARRAY_BUFFER, this.decodes.subarray(0, count * DECODE_WORDS), gl.STREAM_DRAW);
     const units = [[this.tiles, gl.TEXTURE_2D_ARRAY, 'u_tiles'], [this.coefs, gl.TEXTURE_2D_ARRAY, 'u_coefs'],
                    [this.slotTable, gl.TEXTURE_2D, 'u_slot_table']];
     const values = {u_linear: ['1i', 0], u_decoded_size: ['2f', ...doc.decoded_size]};
-    units.forEach(([tex, target_, name], unit) => {
+    units.forEach(([tex, target, name], unit) => {
       gl.activeTexture(gl.TEXTURE0 + unit);
-      gl.bindTexture(target_, tex);
+      gl.bindTexture(target, tex);
       values[name] = ['1i', unit];
     });
     for (const [name, v] of Object.entries(doc.uniforms)) values[name] = ['1i', v];
     uniforms(gl, prog, values);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, this.decodedFbo);
-    gl.viewport(0, 0, doc.decoded_size[0], doc.decoded_size[1]);
+    this.offscreen(this.decodedFbo, doc.decoded_size, this.decodeVao, count, true);
+  }
+
+  // The pre-blend pass: `count` runs' bracket tiles blended into the view atlas, a quad per run.
+  runBlend(count) {
+    const gl = this.gl, doc = this.doc, prog = this.programs[`blend_s${this.slots}`];
+    gl.useProgram(prog);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.blendBuffer);
+    gl.bufferData(gl.ARRAY_BUFFER, new Uint8Array(this.blends, 0, count * BLEND_WORDS * 4 * CORNERS), gl.STREAM_DRAW);
+    gl.activeTexture(gl.TEXTURE0 + DECODED_UNIT);
+    gl.bindTexture(gl.TEXTURE_2D, this.decoded);
+    uniforms(gl, prog, {u_tile: ['1i', doc.tile], u_decoded: ['1i', DECODED_UNIT],
+                        u_target_size: ['2f', ...doc.view_size]});
+    this.offscreen(this.viewFbo, doc.view_size, this.blendVao, count);
+  }
+
+  // Draw `count` points (one a tile) or indexed quads into an atlas's framebuffer without depth;
+  // the default framebuffer bound after.
+  offscreen(fbo, size, vao, count, points = false) {
+    const gl = this.gl;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+    gl.viewport(0, 0, size[0], size[1]);
     gl.disable(gl.DEPTH_TEST);
-    gl.bindVertexArray(this.decodeVao);
-    gl.drawArraysInstanced(gl.POINTS, 0, 1, count);
+    gl.bindVertexArray(vao);
+    if (points) gl.drawArrays(gl.POINTS, 0, count);
+    else gl.drawElements(gl.TRIANGLES, 6 * count, gl.UNSIGNED_INT, 0);
     gl.bindVertexArray(null);
-    gl.enable(gl.DEPTH_TEST);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, target);
-    gl.viewport(viewport[0], viewport[1], viewport[2], viewport[3]);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
   }
 
   release() {

@@ -1,5 +1,7 @@
-// The sky behind the model (render/sky.py): one full-screen triangle drawn first with the depth
-// test off, each pixel coloured by its view ray's world elevation from the sky's bins (sky.glsl).
+// The sky behind the model (render/sky.py, sky.glsl): one full-screen triangle at the far plane,
+// each pixel coloured by its view ray's world elevation from the sky's bins. The desktop draws
+// it first without depth; here it is drawn last with the depth test (LEQUAL, no depth writes), so
+// only pixels the model left empty run it: the same picture for fewer fragments.
 
 import {glMat, worldFromPixel} from './camera.js';
 import {uniforms} from './model.js';
@@ -22,7 +24,7 @@ export class SkyPass {
     this.vao = gl.createVertexArray();
   }
 
-  // Fill the viewport (height h pixels) with the sky seen by the camera {R, K}.
+  // Draw the sky seen by the camera {R, K} into the viewport (height h pixels) where the depth test lets it.
   draw(cam, h) {
     const gl = this.gl, [lo, hi] = this.sky.elevation_deg;
     gl.useProgram(this.program);
@@ -31,10 +33,8 @@ export class SkyPass {
     uniforms(gl, this.program, {
       u_world_from_pixel: ['m3', glMat(worldFromPixel(cam))], u_height: ['1f', h],
       u_elevation: ['2f', lo * Math.PI / 180, hi * Math.PI / 180], u_bins: ['1i', this.bins], u_sky: ['1i', 0]});
-    gl.disable(gl.DEPTH_TEST);
     gl.bindVertexArray(this.vao);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     gl.bindVertexArray(null);
-    gl.enable(gl.DEPTH_TEST);
   }
 }

@@ -85,15 +85,22 @@ export class TileStreamer {
     return [...want].filter((t) => !t.model).length;
   }
 
-  // Draw every resident tile, nearest first; returns summed stats.
-  draw(cam, proj, options) {
-    const total = {quads: 0, instances: 0, decoded: 0, nodes: 0, tiles: 0};
-    for (const t of [...this.tiles].sort((a, b) => a.distance - b.distance)) {
-      if (!t.model) continue;
-      const s = t.model.draw(cam, proj, options);
-      for (const k of ['quads', 'instances', 'decoded', 'nodes']) total[k] += s[k];
+  // Plan every resident tile's draw from `cam` (decoding and pre-blending what it needs,
+  // WebModel.prepare), nearest first; returns summed stats.
+  prepare(cam, proj, options) {
+    const total = {quads: 0, instances: 0, decoded: 0, blended: 0, nodes: 0, tiles: 0};
+    this.drawn = [...this.tiles].sort((a, b) => a.distance - b.distance).filter((t) => t.model);
+    for (const t of this.drawn) {
+      const s = t.model.prepare(cam, proj, options);
+      for (const k of ['quads', 'instances', 'decoded', 'blended', 'nodes']) total[k] += s[k];
       total.tiles += 1;
     }
     return total;
+  }
+
+  // Draw what prepare() planned into the bound framebuffer.
+  emit(proj, options) {
+    for (const t of this.drawn || []) if (t.model) t.model.emit(proj, options);
+    this.drawn = null;
   }
 }

@@ -4,9 +4,9 @@
 //
 // window.bbcity, for scripts and tests: ready (a Promise of the first frame with the model),
 // firstFrameMs (from navigation start), setView(view), render() (a frame drawn now, its stats),
-// pixels() (the last frame's RGBA, bottom row first, base64), idle() (a Promise of every tile the
-// view wants being resident), benchmark(first, count) (capture-path poses drawn one by one,
-// each waited for: {frames, seconds}), stats().
+// pixels() (a frame drawn now, read back: RGBA, bottom row first, base64), idle() (a Promise of every tile the
+// view wants being resident), benchmark(rows, K) (poses, each 9 rotation numbers row by row
+// then the eye, drawn and read back one by one with intrinsics K = [fx, fy, cx, cy]: each frame's ms), stats().
 
 import {cameraView, poseCamera, projection, viewCamera, DEFAULT_FOV_DEG} from './camera.js';
 import {SkyPass} from './sky.js';
@@ -58,7 +58,7 @@ async function main() {
   const tiles = new TileStreamer(gl, site.tiles, site.gpu_budget_bytes, programs, fail);
   let view = parseView(location.hash, [...site.start, site.fov_deg || DEFAULT_FOV_DEG]);
   let mode = 'fly', linear = params.get('filter') !== 'nearest', playing = -1, last = performance.now(), frames = 0, fpsTime = last, fps = 0;
-  let stats = {}, hashTime = 0, hashView = '';
+  let stats = {}, hashTime = 0, hashView = '', bench = null;
   const keys = new Set();
 
   function size() {
@@ -68,6 +68,7 @@ async function main() {
   }
 
   function camera(w, h) {
+    if (bench) return bench;
     return playing >= 0 ? poseCamera(site.path[playing], view[5], w, h) : viewCamera(view, w, h);
   }
 
@@ -80,14 +81,21 @@ async function main() {
     }
     const cam = camera(w, h);
     tiles.update(cam.eye);
+    const proj = projection(cam.K, w, h), options = {linear, cull: params.get('cull') !== 'none'};
+    stats = tiles.prepare(cam, proj, options);  // atlas passes first: the frame's pass is not cut
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, w, h);
     gl.disable(gl.BLEND); gl.disable(gl.CULL_FACE);
     gl.clearColor(0, 0, 0, 1); gl.clearDepth(1);
+    gl.depthMask(true);
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
-    if (sky) sky.draw(cam, h);
     gl.enable(gl.DEPTH_TEST); gl.depthFunc(gl.LESS);
-    stats = tiles.draw(cam, projection(cam.K, w, h), {linear, cull: params.get('cull') !== 'none'});
+    tiles.emit(proj, options);
+    if (sky) {  // behind the model: only where it drew nothing (sky.glsl's depth is the far plane)
+      gl.depthFunc(gl.LEQUAL); gl.depthMask(false);
+      sky.draw(cam, h);
+      gl.depthMask(true); gl.depthFunc(gl.LESS);
+    }
     stats.resident = tiles.resident; stats.gpuMB = tiles.residentBytes / 1e6;
     if (api.firstFrameMs === null && stats.tiles > 0) {
       api.firstFrameMs = performance.now();
@@ -161,7 +169,8 @@ async function main() {
   Object.assign(api, {
     setView(v) { view = [...v.slice(0, 5), v.length > 5 ? v[5] : view[5]]; playing = -1; },
     render() { return frame(); },
-    pixels() {
+    pixels() {  // drawn and read in one task: the canvas is cleared once the browser shows it
+      frame();
       const [w, h] = size(), px = new Uint8Array(w * h * 4);
       gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);
       let s = '';
@@ -175,15 +184,20 @@ async function main() {
         await new Promise((r) => setTimeout(r, 20));
       }
     },
-    benchmark(first, count) {
-      const px = new Uint8Array(4), t0 = performance.now();
-      const end = Math.min(site.path.length, first + count);
-      for (playing = first; playing < end; ++playing) {
+    benchFrame(cam) { bench = cam; const s = frame(); bench = null; return s; },
+    benchmark(rows, K) {
+      const [w, h] = size(), px = new Uint8Array(w * h * 4), ms = [];
+      bench = {K, R: rows[0].slice(0, 9), eye: rows[0].slice(9, 12)};
+      frame();  // untimed: the first pose's tiles decoded
+      for (const row of rows) {
+        const t0 = performance.now();
+        bench = {K, R: row.slice(0, 9), eye: row.slice(9, 12)};
         frame();
-        gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);  // waits for the frame
+        gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);  // the frame read back, as bbcity fps does
+        ms.push(performance.now() - t0);
       }
-      playing = -1;
-      return {frames: Math.max(end - first, 0), seconds: (performance.now() - t0) / 1000};
+      bench = null;
+      return ms;
     },
     stats() { return {...stats, fps, peakMB: tiles.peakBytes / 1e6, budgetMB: tiles.budget / 1e6,
                       loads: tiles.loads, releases: tiles.releases, pathPoses: site.path.length}; },

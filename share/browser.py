@@ -1,0 +1,101 @@
+"""A site opened in a real browser: Debian's Chromium, headless, driven by Playwright.
+
+Chromium draws WebGL2 in software here (SwiftShader through ANGLE), as on a machine without a
+GPU; Playwright starts the system's Chromium (``executable_path``) and downloads no browser.
+:func:`open_site` serves the site on a free loopback port and opens its viewer at a fixed
+canvas size; :func:`page_image` reads the last frame back; :func:`browser_fps` times a walk;
+:func:`browser_memory` is what the browser's processes hold.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import os
+import shutil
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import psutil
+
+from .serve import serve_in_background
+
+CHROMIUM_ARGS = ("--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--ignore-gpu-blocklist")
+READY_TIMEOUT_MS = 120_000  # the first frame of a large site in software WebGL
+
+
+class BrowserError(RuntimeError):
+    """No browser to drive, or the viewer failed (the message says which)."""
+
+
+def chromium_path() -> str:
+    """The system Chromium (``$BBCITY_CHROMIUM``, else ``chromium`` on PATH); BrowserError if none."""
+    path = os.environ.get("BBCITY_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    if not path:
+        raise BrowserError("no Chromium: install Debian's chromium package (make test does), or set BBCITY_CHROMIUM")
+    return path
+
+
+@contextlib.contextmanager
+def open_site(site: Path, size=(1280, 720), view=None, query: str = "") -> Iterator:
+    """A Playwright page showing ``site``'s viewer at canvas ``size`` (w, h), from ``view``
+    (x, y, z, yaw°, pitch°[, fov°]; None: the site's start), after its first frame. ``query``:
+    more URL parameters (``&filter=nearest``). The page's ``first_frame_ms`` attribute is the
+    first frame's time from navigation start."""
+    from playwright.sync_api import Error as PlaywrightError
+    from playwright.sync_api import sync_playwright
+
+    server, url = serve_in_background(site)
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium_path(), args=list(CHROMIUM_ARGS))
+            try:
+                page = browser.new_page(viewport={"width": int(size[0]), "height": int(size[1])})
+                page.set_default_timeout(READY_TIMEOUT_MS)
+                fragment = "" if view is None else "#" + ",".join(f"{float(v):.6f}" for v in view)
+                page.goto(f"{url}index.html?size={int(size[0])}x{int(size[1])}{query}{fragment}")
+                try:
+                    page.first_frame_ms = float(page.evaluate("window.bbcity.ready"))
+                except PlaywrightError as e:
+                    raise BrowserError(f"the viewer of {site} did not draw: {e.message.splitlines()[0]}") from None
+                page.browser_process = browser
+                yield page
+            finally:
+                browser.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def page_image(page, size) -> np.ndarray:
+    """(h, w, 3) uint8 of the viewer's frame drawn now (row 0 at the top)."""
+    raw = base64.b64decode(page.evaluate("window.bbcity.pixels()"))
+    w, h = int(size[0]), int(size[1])
+    return np.frombuffer(raw, np.uint8).reshape(h, w, 4)[::-1, :, :3].copy()
+
+
+def pose_rows(poses: np.ndarray) -> list[list[float]]:
+    """Poses (n, 4, 4) world_from_cam as the viewer takes them: rotation row by row, then the eye."""
+    p = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    return np.concatenate([p[:, :3, :3].reshape(-1, 9), p[:, :3, 3]], 1).tolist()
+
+
+def browser_fps(page, poses: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(n,) float64 seconds of each frame along ``poses`` (n, 4, 4) with intrinsics ``K`` (3, 3),
+    drawn and read back one by one in the page (after one untimed frame at the first pose)."""
+    k = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+    ms = page.evaluate("([rows, K]) => window.bbcity.benchmark(rows, K)", [pose_rows(poses), k])
+    return np.asarray(ms, np.float64) / 1000.0
+
+
+def browser_memory() -> int:
+    """Bytes the browser processes under this one hold (proportional set size, so shared
+    pages count once across them)."""
+    total = 0
+    for child in psutil.Process().children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            if "chrom" in child.name().lower():
+                info = child.memory_full_info()
+                total += getattr(info, "pss", info.rss)
+    return total
