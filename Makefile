@@ -4,10 +4,13 @@ SHELL := /bin/bash
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
-# Debian packages: libusb for Open3D, EGL/Mesa for headless OpenGL, Xvfb for window tests.
-DEB_PACKAGES := libusb-1.0-0 libgomp1 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri xvfb xauth
+# Debian packages: libusb for Open3D, EGL/Mesa for headless OpenGL, Xvfb for window tests, Chromium
+# for the web viewer's tests (driven by Playwright, which downloads no browser), Node.js and npm for
+# the export tests' validators (tests/npm, pinned in its package-lock.json).
+DEB_PACKAGES := libusb-1.0-0 libgomp1 libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri xvfb xauth chromium nodejs
 SYSDEPS_STAMP := $(VENV)/.sysdeps
 INSTALL_STAMP := $(VENV)/.installed
+NPM_STAMP := tests/npm/node_modules/.installed
 DEMO_DIR ?= demo
 BENCH_DIR ?= bench
 KITTI_DIR ?= ../shared/data/kitti06
@@ -24,6 +27,8 @@ $(SYSDEPS_STAMP):
 		SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
 		$$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q $$missing; \
 	fi
+	@command -v npm >/dev/null || { SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q npm; }
 	@[ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV)
 	@touch $@
 
@@ -50,7 +55,11 @@ kitti: $(INSTALL_STAMP)
 	$(BIN)/bbcity eval $(KITTI_OUT)/model $(KITTI_OUT)/dataset --cloud $(KITTI_OUT)/work/cloud.ply \
 		--workprecision-depths --panel-width 960 --out $(KITTI_OUT)/eval
 
-test: $(INSTALL_STAMP)
+$(NPM_STAMP): $(SYSDEPS_STAMP) tests/npm/package-lock.json
+	npm ci --prefix tests/npm --no-audit --no-fund --loglevel=error
+	@touch $@
+
+test: $(INSTALL_STAMP) $(NPM_STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(INSTALL_STAMP)

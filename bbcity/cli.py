@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from . import __version__
+from .cli_share import add_export_kinds, add_fps_web_options, add_serve, print_web_fps
 from .executor import DEFAULT_RETRIES, EXECUTORS
 from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH,
                       MAX_REPEATS, MAX_SPP, MAX_TILE, MIN_LENGTH, RENDER_BYTES_PER_PIXEL, CommandParser, UsageError,
@@ -396,6 +397,7 @@ def _add_export(sub) -> None:
                    help="hold every n-th frame out of training, as recon/build --holdout (default 0: none; "
                         "nerfstudio then splits by its own rule)")
     n.set_defaults(func=_run_export_nerfstudio, check_options=_nerfstudio_export_config)
+    add_export_kinds(kinds)
 
 
 def _nerfstudio_export_config(args):
@@ -929,6 +931,7 @@ def _add_fps(sub) -> None:
                    help="culling of the decode rows and the capture path (default frustum, as render and view "
                         "draw; none: every billboard decoded and drawn)")
     p.add_argument("--cull", action="store_true", help="also compare the culling modes (GPU decode)")
+    add_fps_web_options(p)
     p.add_argument("--town", action="store_true",
                    help="culling on the town scene's meshes along its capture path (default TownConfig)")
     p.add_argument("--walk-step", type=positive_float, default=1.0, metavar="M",
@@ -1041,6 +1044,7 @@ def _print_model_fps(ctx, model, args, size) -> None:
 
     from render.benchmark import cull_fps, decode_fps, path_fps
     from render.lod import LodConfig
+    from render.camera import default_intrinsics
     from render.paths import capture_camera_poses, capture_walk, street_views
 
     capture = capture_camera_poses(model, args.dataset)  # a bad dataset fails before the timings
@@ -1060,7 +1064,8 @@ def _print_model_fps(ctx, model, args, size) -> None:
             print(f"GPU/CPU decode fps ratio, {view}: {by[gpu]['fps'] / by['cpu']['fps']:.1f}× median, "
                   f"{by[gpu]['fps_p5'] / by['cpu']['fps_p5']:.1f}× p5")
     if capture is None:
-        print("capture path: the model records no dataset that is still there (give --dataset DIR)")
+        print("capture path: the model records no dataset that is still there (give --dataset DIR)"
+              + ("; --web walks it too, so it has nothing to time" if args.web is not None else ""))
     else:
         poses = capture_walk(capture, args.path_step, args.path_frames)
         eyes = poses[:, :3, 3]
@@ -1075,6 +1080,12 @@ def _print_model_fps(ctx, model, args, size) -> None:
         print(_fps_row(f"{'cpu':>9} {'capture path':>12}", c))
         print(f"GPU/CPU decode fps ratio, capture path: {g['fps'] / c['fps']:.1f}× median, "
               f"{g['fps_p5'] / c['fps_p5']:.1f}× p5 (CPU on {len(pick)} poses spread along it)")
+        if args.web is not None:
+            rows = {names[gpu]: g}
+            if not args.exact:  # the web viewer decodes every eigen image, as --exact does
+                rows["gpu exact"] = path_fps(ctx, model, poses, size, "gpu", cull=args.cull_mode, lod=None)
+                print(_fps_row(f"{'gpu exact':>9} {'capture path':>12}", rows["gpu exact"]))
+            print_web_fps(args, poses, default_intrinsics(*size), size, rows)
     if args.cull:
         for r in cull_fps(ctx, model, street_views(), size, args.gpu_frames, lod=lod):
             print(f"cull {r['cull']:>9} {r['view']:>10}: {r['fps']:6.1f} fps median, {r['fps_p5']:6.1f} p5, "
@@ -1310,6 +1321,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_view(sub)
     _add_render(sub)
     _add_eval(sub)
+    add_serve(sub)
     return parser
 
 
@@ -1356,7 +1368,7 @@ def _main(argv: list[str] | None) -> int:
             _absolute_paths(args)
         # every writing command names its output --out: one live run at a time writes it
         out = getattr(args, "out", None)
-        if out is not None:
+        if out is not None and not getattr(args, "writes_file", False):
             _check_output(args.command, out)
         with owned_output(out) if out is not None else contextlib.nullcontext():
             return args.func(args)

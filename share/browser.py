@@ -1,7 +1,7 @@
 """A site opened in a real browser: Debian's Chromium, headless, driven by Playwright.
 
-Chromium draws WebGL2 in software here (SwiftShader through ANGLE), as on a machine without a
-GPU; Playwright starts the system's Chromium (``executable_path``) and downloads no browser.
+Chromium draws WebGL2 in software here (:data:`BROWSER_GL`), as on a machine without a GPU;
+Playwright starts the system's Chromium (``executable_path``) and downloads no browser.
 :func:`open_site` serves the site on a free loopback port and opens its viewer at a fixed
 canvas size; :func:`page_image` reads the last frame back; :func:`browser_fps` times a walk;
 :func:`browser_memory` is what the browser's processes hold.
@@ -21,7 +21,11 @@ import psutil
 
 from .serve import serve_in_background
 
-CHROMIUM_ARGS = ("--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--ignore-gpu-blocklist")
+#: Software WebGL2 backends of Chromium on a machine without a GPU: Mesa's llvmpipe under ANGLE's
+#: OpenGL ES backend (the rasterizer bbcity's moderngl renderer draws with), or SwiftShader under
+#: ANGLE's Vulkan backend (what Chrome falls back to on a machine whose GPU it refuses).
+BROWSER_GL = {"llvmpipe": ("--use-angle=gl-egl",),
+              "swiftshader": ("--use-angle=swiftshader", "--enable-unsafe-swiftshader")}
 READY_TIMEOUT_MS = 120_000  # the first frame of a large site in software WebGL
 
 
@@ -38,18 +42,22 @@ def chromium_path() -> str:
 
 
 @contextlib.contextmanager
-def open_site(site: Path, size=(1280, 720), view=None, query: str = "") -> Iterator:
+def open_site(site: Path, size=(1280, 720), view=None, query: str = "", gl: str = "llvmpipe") -> Iterator:
     """A Playwright page showing ``site``'s viewer at canvas ``size`` (w, h), from ``view``
-    (x, y, z, yaw°, pitch°[, fov°]; None: the site's start), after its first frame. ``query``:
-    more URL parameters (``&filter=nearest``). The page's ``first_frame_ms`` attribute is the
-    first frame's time from navigation start."""
+    (x, y, z, yaw°, pitch°[, fov°]; None: the site's start), after its first frame, drawn with
+    the software WebGL2 of ``gl`` (:data:`BROWSER_GL`). ``query``: more URL parameters
+    (``&filter=nearest``). The page's ``first_frame_ms`` attribute is the first frame's time
+    from navigation start."""
+    if gl not in BROWSER_GL:
+        raise ValueError(f"gl must be one of {list(BROWSER_GL)}, got {gl!r}")
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
 
     server, url = serve_in_background(site)
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=chromium_path(), args=list(CHROMIUM_ARGS))
+            browser = p.chromium.launch(executable_path=chromium_path(),
+                                        args=[*BROWSER_GL[gl], "--ignore-gpu-blocklist"])
             try:
                 page = browser.new_page(viewport={"width": int(size[0]), "height": int(size[1])})
                 page.set_default_timeout(READY_TIMEOUT_MS)
@@ -59,7 +67,6 @@ def open_site(site: Path, size=(1280, 720), view=None, query: str = "") -> Itera
                     page.first_frame_ms = float(page.evaluate("window.bbcity.ready"))
                 except PlaywrightError as e:
                     raise BrowserError(f"the viewer of {site} did not draw: {e.message.splitlines()[0]}") from None
-                page.browser_process = browser
                 yield page
             finally:
                 browser.close()
