@@ -75,8 +75,12 @@ def open_site(site: Path, size=(1280, 720), view=None, query: str = "", gl: str 
         server.server_close()
 
 
-def page_image(page, size) -> np.ndarray:
-    """(h, w, 3) uint8 of the viewer's frame drawn now (row 0 at the top)."""
+def page_image(page, size, pose=None, K=None) -> np.ndarray:
+    """(h, w, 3) uint8 of the viewer's frame drawn now (row 0 at the top); from the OpenCV camera
+    ``pose`` (4, 4) world_from_cam with intrinsics ``K`` (3, 3) when given (it stays until the
+    next view is set)."""
+    if pose is not None:
+        page.evaluate("([row, K]) => window.bbcity.setCamera(row, K)", [pose_rows(pose)[0], _k(K)])
     raw = base64.b64decode(page.evaluate("window.bbcity.pixels()"))
     w, h = int(size[0]), int(size[1])
     return np.frombuffer(raw, np.uint8).reshape(h, w, 4)[::-1, :, :3].copy()
@@ -91,9 +95,30 @@ def pose_rows(poses: np.ndarray) -> list[list[float]]:
 def browser_fps(page, poses: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(n,) float64 seconds of each frame along ``poses`` (n, 4, 4) with intrinsics ``K`` (3, 3),
     drawn and read back one by one in the page (after one untimed frame at the first pose)."""
-    k = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
-    ms = page.evaluate("([rows, K]) => window.bbcity.benchmark(rows, K)", [pose_rows(poses), k])
+    ms = page.evaluate("([rows, K]) => window.bbcity.benchmark(rows, K)", [pose_rows(poses), _k(K)])
     return np.asarray(ms, np.float64) / 1000.0
+
+
+def _k(K) -> list[float]:
+    K = np.asarray(K, np.float64)
+    return [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+
+
+def web_walk(site: Path, poses: np.ndarray, K: np.ndarray, size, gl: str = "llvmpipe") -> dict:
+    """Open ``site`` at the first of ``poses`` (n, 4, 4) and let the viewer show each in turn, its
+    tiles streaming in the background as they do for a user: {first_frame_s (from page load),
+    frames, ms (median between frames), ms_max, peak_mb and budget_mb (the tiles' GPU bytes),
+    resident, loads, releases, browser_mb (:func:`browser_memory`, at the end)}."""
+    with open_site(site, size, gl=gl, view=None) as page:
+        first = page.first_frame_ms
+        page.evaluate("([row, K]) => window.bbcity.setCamera(row, K)", [pose_rows(poses[:1])[0], _k(K)])
+        ms = np.asarray(page.evaluate("([rows, K]) => window.bbcity.walk(rows, K)", [pose_rows(poses), _k(K)]))
+        stats = page.evaluate("window.bbcity.stats()")
+        memory = browser_memory()
+    return {"first_frame_s": first / 1000.0, "frames": len(ms), "ms": float(np.median(ms)) if len(ms) else float("nan"),
+            "ms_max": float(ms.max()) if len(ms) else float("nan"), "peak_mb": stats["peakMB"],
+            "budget_mb": stats["budgetMB"], "resident": stats["resident"], "loads": stats["loads"],
+            "releases": stats["releases"], "browser_mb": memory / 1e6}
 
 
 def browser_memory() -> int:

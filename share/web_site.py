@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-from billboards.model_reader import load
 from billboards.model_set import ModelSet, load_model_set
 from billboards.sky import read_sky
 from core.fileio import atomic_dir, write_json

@@ -16,14 +16,20 @@ export function frustumPlanes(m) {
   return planes;
 }
 
-// 0: outside, 1: partial, 2: inside — box [lo, hi] grown by pad against the planes.
+const PLANE_REL_EPS = 1e-5;  // render/culling.py: float32 clip coordinates on the GPU are this coarse
+
+// 0: outside, 1: partial (or unsure), 2: inside — box [lo − pad, hi + pad] against the planes by its
+// centre's distance ± its half-extent along each normal, within render/culling.py's tolerance.
 export function classifyBox(planes, lo, hi, pad) {
   let inside = true;
   for (const [a, b, c, d] of planes) {
-    const far = a * (a > 0 ? hi[0] : lo[0]) + b * (b > 0 ? hi[1] : lo[1]) + c * (c > 0 ? hi[2] : lo[2]) + d;
-    if (far < -pad) return 0;
-    const near = a * (a > 0 ? lo[0] : hi[0]) + b * (b > 0 ? lo[1] : hi[1]) + c * (c > 0 ? lo[2] : hi[2]) + d;
-    if (near < pad) inside = false;
+    const cx = 0.5 * (lo[0] + hi[0]), cy = 0.5 * (lo[1] + hi[1]), cz = 0.5 * (lo[2] + hi[2]);
+    const ext = Math.abs(a) * (0.5 * (hi[0] - lo[0]) + pad) + Math.abs(b) * (0.5 * (hi[1] - lo[1]) + pad)
+              + Math.abs(c) * (0.5 * (hi[2] - lo[2]) + pad);
+    const dist = a * cx + b * cy + c * cz + d;
+    const tol = PLANE_REL_EPS * (Math.abs(a * cx) + Math.abs(b * cy) + Math.abs(c * cz) + Math.abs(d) + ext);
+    if (dist + ext < -tol) return 0;
+    if (dist - ext <= tol) inside = false;
   }
   return inside ? 2 : 1;
 }

@@ -3,7 +3,9 @@
 // (tests, benchmarks); otherwise the canvas fills the window.
 //
 // window.bbcity, for scripts and tests: ready (a Promise of the first frame with the model),
-// firstFrameMs (from navigation start), setView(view), render() (a frame drawn now, its stats),
+// firstFrameMs (from navigation start), setView(view), setCamera(pose, K) (a pose as 9 rotation
+// numbers row by row then the eye, K = [fx, fy, cx, cy]), walk(poses, K) (the loop shows each
+// pose in turn: the ms between its frames), render() (a frame drawn now, its stats),
 // pixels() (a frame drawn now, read back: RGBA, bottom row first, base64), idle() (a Promise of every tile the
 // view wants being resident), benchmark(rows, K) (poses, each 9 rotation numbers row by row
 // then the eye, drawn and read back one by one with intrinsics K = [fx, fy, cx, cy]: each frame's ms), stats().
@@ -167,7 +169,20 @@ async function main() {
   });
 
   Object.assign(api, {
-    setView(v) { view = [...v.slice(0, 5), v.length > 5 ? v[5] : view[5]]; playing = -1; },
+    setView(v) { view = [...v.slice(0, 5), v.length > 5 ? v[5] : view[5]]; playing = -1; bench = null; },
+    setCamera(row, K) { bench = {K, R: row.slice(0, 9), eye: row.slice(9, 12)}; },  // until setView
+    async walk(rows, K) {  // the loop draws each pose in turn: [ms between frames], peak GPU MB
+      const ms = [];
+      let last = performance.now();
+      for (const row of rows) {
+        bench = {K, R: row.slice(0, 9), eye: row.slice(9, 12)};
+        await new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)));
+        const now = performance.now();
+        ms.push(now - last);
+        last = now;
+      }
+      return ms;
+    },
     render() { return frame(); },
     pixels() {  // drawn and read in one task: the canvas is cleared once the browser shows it
       frame();
@@ -184,7 +199,6 @@ async function main() {
         await new Promise((r) => setTimeout(r, 20));
       }
     },
-    benchFrame(cam) { bench = cam; const s = frame(); bench = null; return s; },
     benchmark(rows, K) {
       const [w, h] = size(), px = new Uint8Array(w * h * 4), ms = [];
       bench = {K, R: rows[0].slice(0, 9), eye: rows[0].slice(9, 12)};
