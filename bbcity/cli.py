@@ -1085,7 +1085,7 @@ def _print_model_fps(ctx, model, args, size) -> None:
             if not args.exact:  # the web viewer decodes every eigen image, as --exact does
                 rows["gpu exact"] = path_fps(ctx, model, poses, size, "gpu", cull=args.cull_mode, lod=None)
                 print(_fps_row(f"{'gpu exact':>9} {'capture path':>12}", rows["gpu exact"]))
-            print_web_fps(args, poses, default_intrinsics(*size), size, rows)
+            print_web_fps(args, model, street_views(), poses, default_intrinsics(*size), size, rows)
     if args.cull:
         for r in cull_fps(ctx, model, street_views(), size, args.gpu_frames, lod=lod):
             print(f"cull {r['cull']:>9} {r['view']:>10}: {r['fps']:6.1f} fps median, {r['fps_p5']:6.1f} p5, "

@@ -156,13 +156,22 @@ def add_fps_web_options(p) -> None:
                         "swiftshader (default llvmpipe)")
 
 
-def print_web_fps(args, poses, K, size, rows: dict) -> None:
-    """The browser's frame rate along ``poses`` (n, 4, 4) with ``K`` at ``size`` (the walk ``bbcity
-    fps`` timed) beside ``rows`` (name → that renderer's path_fps row)."""
+def print_web_fps(args, model, views: dict, poses, K, size, rows: dict) -> None:
+    """The browser's frames against this renderer's: PSNR at each of ``views`` (name → (4, 4)
+    world_from_cam, with the model's sky) and the frame rate along ``poses`` (n, 4, 4), both with
+    ``K`` at ``size``, beside ``rows`` (name → this renderer's path_fps row of the same walk)."""
+    from billboards.sky import read_sky
+    from core.metrics import psnr
     from render.benchmark import frame_time_stats
-    from share.browser import browser_fps, browser_memory, open_site
+    from render.offscreen import render_view
+    from share.browser import browser_fps, browser_memory, open_site, page_image
 
+    sky = read_sky(args.model)
     with open_site(args.web, size, gl=args.browser_gl) as page:
+        for name, pose in views.items():
+            ours = render_view(model, K, pose, size, sky=sky)
+            print(f"{'web':>9} {name:>12}: {psnr(page_image(page, size, pose, K), ours):5.1f} dB against this renderer "
+                  f"(same camera, {size[0]}×{size[1]}, sky on)")
         stats = frame_time_stats(browser_fps(page, poses, K))
         memory = browser_memory()
         first = page.first_frame_ms
