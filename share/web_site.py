@@ -88,7 +88,7 @@ def export_web(model_path: Path, out: Path, config: WebConfig = WebConfig(), dat
         sky = read_sky(model_set.root)
         if sky is None and first is not None:
             sky = read_sky(model_set.tiles[0].path)
-        site["sky"] = None if sky is None else {"colours": sky.colours.astype(float).round(6).tolist(),
+        site["sky"] = None if sky is None else {"colours": sky.colours.astype(float).tolist(),
                                                 "elevation_deg": list(sky.elevation_deg)}
         write_json(tmp / "site.json", site)
         write_json(tmp / "shaders.json", {name: es_stage_sources(file, defines)

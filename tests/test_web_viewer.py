@@ -102,6 +102,15 @@ def test_the_view_is_in_the_link(site):
         page.wait_for_function("(x) => location.hash.startsWith('#' + x)", arg=f"{moved[0]:.3f}".rstrip("0").rstrip("."))
         numbers = [float(v) for v in page.evaluate("location.hash")[1:].split(",")]
         np.testing.assert_allclose(numbers, moved, atol=1e-3)
+        page.keyboard.down("w")  # fly forward along the line of sight: the link follows
+        page.wait_for_timeout(400)
+        page.keyboard.up("w")
+        page.wait_for_timeout(300)
+        flown = [float(v) for v in page.evaluate("location.hash")[1:].split(",")]
+        forward = np.array([np.cos(np.radians(moved[4])) * np.cos(np.radians(moved[3])),
+                            np.cos(np.radians(moved[4])) * np.sin(np.radians(moved[3])), np.sin(np.radians(moved[4]))])
+        step = np.subtract(flown[:3], moved[:3])
+        assert step @ forward > 0.3 and np.linalg.norm(np.cross(step, forward)) < 1e-2 * np.linalg.norm(step)
         page.evaluate("(v) => { location.hash = v.join(','); }", list(view))
         page.wait_for_function("(x) => window.bbcity.stats().quads > 0 && location.hash.length > 1", arg=0)
         page.wait_for_timeout(100)

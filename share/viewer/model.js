@@ -72,7 +72,7 @@ function bracket(index, count) {
 export class WebModel {
   // gl: WebGL2 context; base: URL of the model's folder; programs: {draw_s2_l1: …, decode: …}.
   static async load(gl, base, programs) {
-    const doc = await (await fetch(`${base}/model.json`)).json();
+    const doc = JSON.parse(new TextDecoder().decode(await fetchBytes(`${base}/model.json`)));
     const fetches = [fetchBytes(`${base}/${doc.tables.file}`),
                      ...doc.pages.map((p) => fetchBytes(`${base}/${p.file}`)),
                      ...doc.coef_pages.map((p) => fetchBytes(`${base}/${p.file}`))];
