@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from playwright.sync_api import sync_playwright
 
+from billboards.model_writer import save
 from share.browser import BROWSER_GL, chromium_path
 from share.gltf import export_gltf
 
-from .test_export_gltf import NPM, model_dir, read_glb  # noqa: F401  (model_dir: the fixture)
+from .test_export_gltf import NPM, read_glb, street_model
 
 SIZE = (320, 240)
 PAGE = """<!DOCTYPE html>
@@ -46,7 +47,8 @@ new GLTFLoader().load('street.glb', (gltf) => {
 </script></body></html>"""
 
 
-def test_threejs_loads_and_draws_the_glb(model_dir, tmp_path):  # noqa: F811
+def test_threejs_loads_and_draws_the_glb(tmp_path):
+    model_dir = save(street_model(), tmp_path / "model")
     three = NPM / "node_modules" / "three"
     if not three.is_dir():
         pytest.fail("tests/npm/node_modules/three is missing: run `make test` (it runs `npm ci --prefix tests/npm`)")
