@@ -16,9 +16,9 @@ import time
 from pathlib import Path
 
 from . import __version__
-from .cli_share import add_export_kinds, add_fps_web_options, add_serve, print_web_fps
+from .cli_share import add_export_kinds, add_fps_web_options, add_serve, check_fps_web, print_web_fps
 from .executor import DEFAULT_RETRIES, EXECUTORS
-from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH,
+from .options import (gpu_budget_mb, EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH,
                       MAX_REPEATS, MAX_SPP, MAX_TILE, MIN_LENGTH, RENDER_BYTES_PER_PIXEL, CommandParser, UsageError,
                       build_bytes, check_memory, dimension, float_range, holdout, int_range, length,
                       nonnegative_float, nonnegative_int, positive_float, positive_int, scheduler_address,
@@ -84,7 +84,7 @@ def _size_parent(default: tuple[int, int] | None, bytes_per_pixel: int, help: st
 def _gpu_budget_parent() -> argparse.ArgumentParser:
     """``--gpu-budget MB`` of the commands that draw a model (render, view, fps)."""
     p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("--gpu-budget", type=positive_float, default=None, metavar="MB",
+    p.add_argument("--gpu-budget", type=gpu_budget_mb, default=None, metavar="MB",
                    help="GPU memory the model's tiles may hold, MB: a tiled model's tiles are loaded in the "
                         "background and uploaded and released as the eye moves (default: no limit; a plain "
                         "model is then paged as one tile)")
@@ -953,6 +953,7 @@ def _run_fps(args) -> int:
     from render.paths import town_views
     from render.context import create_context, describe
 
+    check_fps_web(args)  # a site of another model would time and compare nothing useful
     drawable = None if args.model is None else _load_drawable(args.model, args.gpu_budget is not None)
     tiled = isinstance(drawable, ModelSet) and drawable.tiled  # a bad model fails before any GL work
     model = (None if drawable is None or tiled else

@@ -11,7 +11,7 @@ import dataclasses
 import logging
 from pathlib import Path
 
-from .options import float_range, int_range, positive_float
+from .options import float_range, gpu_budget_mb, int_range
 
 logger = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ def add_export_kinds(kinds) -> None:
     w.add_argument("--dataset", type=Path, default=None, metavar="DIR",
                    help="dataset whose camera-0 poses are the start view and the capture path played on P "
                         "(default: the model's, when it is still there)")
-    w.add_argument("--gpu-budget", type=positive_float, default=_default(WebConfig, "gpu_budget_mb"), metavar="MB",
+    w.add_argument("--gpu-budget", type=gpu_budget_mb, default=_default(WebConfig, "gpu_budget_mb"), metavar="MB",
                    help="GPU memory a tiled set's resident tiles may take in the browser "
                         f"(default {_default(WebConfig, 'gpu_budget_mb'):g})")
     w.add_argument("--fov", type=float_range(1.0, 170.0, lo_open=False), default=_default(WebConfig, "fov_deg"),
@@ -66,7 +66,8 @@ def add_export_kinds(kinds) -> None:
     t.add_argument("--out", type=Path, required=True, help="new tileset folder")
     t.add_argument("--refine", choices=REFINES, default=_default(Tiles3dConfig, "refine"),
                    help=f"the root's refinement (default {_default(Tiles3dConfig, 'refine')})")
-    t.add_argument("--lonlat-height", type=float, nargs=3, default=None, metavar=("LON", "LAT", "H"),
+    t.add_argument("--lonlat-height", type=float_range(allow_inf=False), nargs=3, default=None,
+                   metavar=("LON", "LAT", "H"),
                    help="place the world's (0, 0, 0) at this WGS84 longitude, latitude (degrees) and height (m) "
                         "on the globe (default: local coordinates)")
     t.add_argument("--texture", choices=TEXTURES, default=_default(GltfConfig, "texture"),
@@ -80,9 +81,16 @@ def _web_config(args):
     return WebConfig(gpu_budget_mb=args.gpu_budget, fov_deg=args.fov)
 
 
+def _refuse_out_inside(out: Path, model: Path) -> None:
+    """An export's --out inside the model directory it reads would change that directory."""
+    if out.resolve().is_relative_to(model.resolve()):
+        raise ValueError(f"--out {out} lies inside the model directory {model}; write the export elsewhere")
+
+
 def _run_export_web(args) -> int:
     from share.web_site import export_web
 
+    _refuse_out_inside(args.out, args.model)
     report = export_web(args.model, args.out, _web_config(args), dataset=args.dataset)
     print(f"wrote {report['site']}: {report['tiles']} tile(s), {report['site_bytes'] / 1e6:.1f} MB "
           f"({report['size_ratio']:.2f}× the model), {report['path_poses']} capture-path poses, "
@@ -97,8 +105,13 @@ def _gltf_config(args):
 
 
 def _run_export_gltf(args) -> int:
+    from billboards.model_set import is_model_set
     from share.gltf import export_gltf
 
+    _refuse_out_inside(args.out, args.model)
+    if is_model_set(args.model):
+        raise ValueError(f"{args.model} is a tiled model set: export gltf writes one model "
+                         f"(export 3dtiles writes a set, a GLB per tile)")
     r = export_gltf(args.model, args.out, _gltf_config(args))
     print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
                                             for k, v in r.items() if not isinstance(v, (list, dict))))
@@ -116,6 +129,7 @@ def _tiles3d_config(args):
 def _run_export_3dtiles(args) -> int:
     from share.tiles3d import export_3dtiles
 
+    _refuse_out_inside(args.out, args.model)
     r = export_3dtiles(args.model, args.out, _tiles3d_config(args))
     print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
                                             for k, v in r.items() if not isinstance(v, (list, dict))))
@@ -133,12 +147,14 @@ def add_serve(sub) -> None:
 
 
 def _run_serve(args) -> int:
-    from share.serve import make_server
+    from share.serve import make_server, site_url
 
     server = make_server(args.site, args.port, args.host)
-    print(f"serving {args.site} at http://{args.host}:{server.server_port}/ (Ctrl-C to stop)", flush=True)
+    print(f"serving {args.site} at {site_url(args.host, server.server_port)} (Ctrl-C to stop)", flush=True)
     try:
         server.serve_forever()
+    except KeyboardInterrupt:  # the way to stop a server: not an error
+        print("stopped")
     finally:
         server.server_close()
     return 0
@@ -154,6 +170,18 @@ def add_fps_web_options(p) -> None:
     p.add_argument("--browser-gl", choices=list(BROWSER_GL), default="llvmpipe",
                    help="Chromium's software WebGL2: llvmpipe (Mesa, the rasterizer this renderer uses) or "
                         "swiftshader (default llvmpipe)")
+
+
+def check_fps_web(args) -> None:
+    """Before any timing: ``--web`` is a site exported from ``MODEL``."""
+    if args.web is None:
+        return
+    from share.serve import check_site
+    from share.web_site import check_site_of
+
+    if args.model is None:
+        raise ValueError("--web needs MODEL: the site's frames are compared with MODEL's")
+    check_site_of(check_site(args.web), args.model)
 
 
 def print_web_fps(args, model, views: dict, poses, K, size, rows: dict) -> None:

@@ -129,6 +129,8 @@ length = float_range(MIN_LENGTH, lo_open=False)
 nonnegative_float = float_range(0.0, lo_open=False)
 #: A finite number.
 finite_float = float_range()
+#: A GPU memory budget in MB: more than 0, at most a petabyte (its bytes stay an exact integer).
+gpu_budget_mb = float_range(0.0, 1e9)
 #: A size edge in pixels or texels: an integer in [1, GL_MAX_SIZE].
 dimension = int_range(1, GL_MAX_SIZE, "the OpenGL texture and renderbuffer limit")
 

@@ -29,11 +29,16 @@ def _check_page_entries(r: _Doc, entries: list[tuple[str, int, int]], layout: At
             raise r.fail(f"{what}[{i}] is {h}×{w} (height×width), the layout needs {shape[0]}×{shape[1]}")
 
 
+_CHECK_BYTES = 16 << 20  # a memory-mapped float array is checked finite in bands of about this many bytes
+
+
 def _load_array(path: Path, dtype: np.dtype, shape: tuple, mmap: bool, hint: str = "") -> np.ndarray:
     """Check the header of ``path`` against ``dtype``/``shape`` and the file's size, then load it.
 
     Nothing is allocated before the header has been checked, so a header claiming terabytes
-    fails with a DataFormatError. ``mmap``: map read-only (finiteness is then not checked).
+    fails with a DataFormatError. ``mmap``: map read-only; a float array is then checked finite
+    band by band (at most _CHECK_BYTES at a time), so a page of NaN coefficients is refused
+    before anything draws it.
     """
     file_shape, fortran, file_dtype, offset = read_npy_header(path)
     if file_dtype.hasobject:
@@ -51,9 +56,15 @@ def _load_array(path: Path, dtype: np.dtype, shape: tuple, mmap: bool, hint: str
         raise DataFormatError(path, f"has {size - nbytes} bytes after the array data")
     if mmap and nbytes > 0:
         try:
-            return np.load(path, mmap_mode="r", allow_pickle=False)
+            array = np.load(path, mmap_mode="r", allow_pickle=False)
         except (ValueError, TypeError, OSError) as e:
             raise DataFormatError(path, f"cannot be memory-mapped ({e})") from None
+        if array.dtype.kind == "f":
+            rows = max(_CHECK_BYTES // max(array[:1].nbytes, 1), 1)
+            for y0 in range(0, len(array), rows):
+                if not np.isfinite(array[y0:y0 + rows]).all():
+                    raise DataFormatError(path, "contains NaN or inf")
+        return array
     return load_npy(path, dtype=dtype, shape=shape, finite=True, max_bytes=nbytes)
 
 
@@ -71,8 +82,8 @@ def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
     """Read and validate the model in directory ``path``.
 
     mmap: memory-map the atlas and coefficient pages read-only (their headers, shapes,
-    dtypes and file sizes are checked; with ``mmap=False`` they are read and checked
-    finite too). Every other array is read and checked in full. Any problem raises
+    dtypes and file sizes are checked, float pages checked finite a band at a time; with
+    ``mmap=False`` they are read and checked finite). Every other array is read and checked in full. Any problem raises
     DataFormatError naming manifest.json or the offending ``.npy``.
     """
     path = Path(path)

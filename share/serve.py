@@ -10,10 +10,14 @@ from __future__ import annotations
 import errno
 import functools
 import http.server
+import socket
 import threading
 from pathlib import Path
 
+from core.fileio import DataFormatError, read_json
+
 SITE_FILES = ("index.html", "site.json", "shaders.json", "viewer.js")
+SITE_FORMAT = "bbcity-web-site"  # share.web_site.FORMAT (web_site imports render; serving needs none of it)
 
 
 class NotASiteError(ValueError):
@@ -28,6 +32,14 @@ def check_site(site: Path) -> Path:
     missing = [name for name in SITE_FILES if not (site / name).is_file()]
     if missing:
         raise NotASiteError(f"{site}: not a site of bbcity export web (no {', '.join(missing)})")
+    doc = read_json(site / "site.json")
+    if not isinstance(doc, dict) or doc.get("format") != SITE_FORMAT or not isinstance(doc.get("tiles"), list):
+        raise DataFormatError(site / "site.json", f"not a site's manifest (expected \"format\": \"{SITE_FORMAT}\" "
+                                                  "and its tiles)")
+    absent = [t.get("dir") for t in doc["tiles"] if not isinstance(t, dict) or not isinstance(t.get("dir"), str)
+              or not (site / t["dir"] / "model.json").is_file()]
+    if absent:
+        raise DataFormatError(site / "site.json", f"{len(absent)} tile folder(s) without model.json, e.g. {absent[0]}")
     return site
 
 
@@ -43,17 +55,26 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
         pass
 
 
+class _Server6(http.server.ThreadingHTTPServer):
+    address_family = socket.AF_INET6
+
+
 def make_server(site: Path, port: int = 8000, host: str = "127.0.0.1") -> http.server.ThreadingHTTPServer:
-    """A server of ``site`` on ``host:port`` (port 0: any free one; ``server.server_port`` tells
-    which), not started. A port in use raises OSError(EADDRINUSE) naming it."""
+    """A server of ``site`` on ``host:port`` (an IPv4 or IPv6 address or a name; port 0: any free
+    one, ``server.server_port`` tells which), not started. An empty host (every interface) must be
+    asked for as 0.0.0.0 or ::. A port in use or a host this machine cannot listen on raises
+    OSError naming the option."""
     site = check_site(site)
+    if not host.strip():
+        raise ValueError("--host is empty: give 127.0.0.1 (this machine), or 0.0.0.0 / :: (every interface)")
     handler = functools.partial(_Handler, directory=str(site))
     try:
-        return http.server.ThreadingHTTPServer((host, int(port)), handler)
+        server = _Server6 if ":" in host else http.server.ThreadingHTTPServer
+        return server((host, int(port)), handler)
     except OSError as e:
         if e.errno == errno.EADDRINUSE:
             raise OSError(errno.EADDRINUSE, f"port {port} on {host} is in use; give another --port") from None
-        raise
+        raise OSError(e.errno, f"--host {host}: cannot listen there ({e.strerror or e})") from None
 
 
 def serve_in_background(site: Path, port: int = 0, host: str = "127.0.0.1"):
@@ -61,4 +82,9 @@ def serve_in_background(site: Path, port: int = 0, host: str = "127.0.0.1"):
     ``server.shutdown(); server.server_close()``."""
     server = make_server(site, port, host)
     threading.Thread(target=server.serve_forever, daemon=True).start()
-    return server, f"http://{host}:{server.server_port}/"
+    return server, site_url(host, server.server_port)
+
+
+def site_url(host: str, port: int) -> str:
+    """The address of a server on ``host:port`` (an IPv6 address in brackets)."""
+    return f"http://[{host}]:{port}/" if ":" in host else f"http://{host}:{port}/"

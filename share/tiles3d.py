@@ -70,8 +70,9 @@ class Tiles3dConfig:
             if (not isinstance(v, (tuple, list)) or len(v) != 3
                     or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
                 raise ValueError(f"lonlat_height must be three finite numbers (lon °, lat °, height m), got {v!r}")
-            if not (-180.0 <= v[0] <= 180.0 and -90.0 <= v[1] <= 90.0):
-                raise ValueError(f"lonlat_height: longitude must be in [−180, 180] and latitude in [−90, 90], got {v!r}")
+            if not (-180.0 <= v[0] <= 180.0 and -90.0 <= v[1] <= 90.0 and -11_000.0 <= v[2] <= 100_000.0):
+                raise ValueError(f"lonlat_height: longitude must be in [−180, 180], latitude in [−90, 90] and height "
+                                 f"in [−11 000, 100 000] m (the ocean's floor to the edge of space), got {v!r}")
 
 
 def enu_to_ecef(lon_deg: float, lat_deg: float, height: float) -> np.ndarray:

@@ -14,6 +14,7 @@ The site is written whole or not at all (a temporary folder renamed into place);
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass
 from importlib import resources
@@ -21,9 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from billboards.model_set import ModelSet, load_model_set
+from billboards.model import MANIFEST
+from billboards.model_set import TILES_FILE, ModelSet, load_model_set
 from billboards.sky import read_sky
-from core.fileio import atomic_dir, write_json
+from core.fileio import atomic_dir, read_json, write_json
 from render.paths import capture_camera_poses, densify_poses, drive_path_for
 from render.program import es_stage_sources
 
@@ -34,6 +36,7 @@ FORMAT = "bbcity-web-site"
 VERSION = 1
 VIEWER_FILES = ("index.html", "viewer.js", "camera.js", "culling.js", "model.js", "tiles.js", "sky.js")
 MAX_PATH_POSES = 20000  # capture-path poses kept for playback
+MAX_BUDGET_MB = 1e9  # a petabyte: the budget's bytes stay an exact integer
 
 
 @dataclass(frozen=True)
@@ -45,8 +48,9 @@ class WebConfig:
     path_step: float = 0.25  # the capture path played back ('P') with the eye at most this far per frame (m)
 
     def __post_init__(self):
-        if not (np.isfinite(self.gpu_budget_mb) and self.gpu_budget_mb > 0):
-            raise ValueError(f"gpu_budget_mb must be a positive number of megabytes, got {self.gpu_budget_mb}")
+        if not (np.isfinite(self.gpu_budget_mb) and 0 < self.gpu_budget_mb <= MAX_BUDGET_MB):
+            raise ValueError(f"gpu_budget_mb must be a number of megabytes in (0, {MAX_BUDGET_MB:g}], "
+                             f"got {self.gpu_budget_mb}")
         if not (np.isfinite(self.fov_deg) and 1.0 <= self.fov_deg <= 170.0):
             raise ValueError(f"fov_deg must lie within [1, 170] degrees, got {self.fov_deg}")
         if not (np.isfinite(self.path_step) and self.path_step > 0):
@@ -81,7 +85,7 @@ def export_web(model_path: Path, out: Path, config: WebConfig = WebConfig(), dat
         poses = _capture_path(first, dataset)
         if poses is not None:
             poses = densify_poses(poses, config.path_step)[:MAX_PATH_POSES]
-        site.update(format=FORMAT, version=VERSION, fov_deg=config.fov_deg,
+        site.update(format=FORMAT, version=VERSION, model_digest=model_digest(model_set), fov_deg=config.fov_deg,
                     gpu_budget_bytes=int(config.gpu_budget_mb * 1e6),
                     path=[] if poses is None else [_pose_row(p) for p in poses],
                     start=_start_view(poses, first))
@@ -102,6 +106,24 @@ def export_web(model_path: Path, out: Path, config: WebConfig = WebConfig(), dat
     return {"site": str(out), "tiles": len(model_set), "site_bytes": site_bytes, "model_bytes": int(model_bytes),
             "size_ratio": site_bytes / max(model_bytes, 1), "path_poses": len(site["path"]),
             "seconds": time.perf_counter() - t0}
+
+
+def model_digest(model_set: ModelSet) -> str:
+    """SHA-256 of the manifests of a set's tiles (tiles.json first, for a tiled set): what names
+    the model a site was exported from."""
+    h = hashlib.sha256()
+    files = ([model_set.root / TILES_FILE] if model_set.tiled else []) + [t.path / MANIFEST for t in model_set.tiles]
+    for f in files:
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def check_site_of(site: Path, model_path: Path) -> None:
+    """ValueError unless ``site`` (a checked site folder) was exported from the model at ``model_path``."""
+    doc = read_json(Path(site) / "site.json")
+    if not isinstance(doc, dict) or doc.get("model_digest") != model_digest(load_model_set(model_path)):
+        raise ValueError(f"{site}: this site was not exported from {model_path} (export it again: "
+                         f"bbcity export web {model_path} --out NEW_SITE)")
 
 
 def _write_models(model_set: ModelSet, tmp: Path) -> dict:

@@ -4,6 +4,7 @@ tiled set streamed within its GPU budget, refusals of bbcity export web and bbci
 
 from __future__ import annotations
 
+import shutil
 import socket
 
 import numpy as np
@@ -173,8 +174,36 @@ def test_export_web_refusals(model_dir, site, tmp_path, capsys):
     assert not (tmp_path / "y").exists()
 
 
+def test_export_refuses_nan_pages_and_out_inside_the_model(model_dir, tmp_path):
+    damaged = tmp_path / "damaged"
+    shutil.copytree(model_dir, damaged)
+    page = np.load(damaged / "coef_000.npy")
+    page[0, 0] = np.nan
+    np.save(damaged / "coef_000.npy", page)
+    with pytest.raises(DataFormatError, match="coef_000.npy: contains NaN"):
+        export_web(damaged, tmp_path / "site")
+    assert main(["export", "gltf", str(damaged), "--out", str(tmp_path / "x.glb")]) == 2
+    copy = tmp_path / "copy"
+    shutil.copytree(model_dir, copy)
+    before = sorted(p.name for p in copy.iterdir())
+    for kind, out in (("web", "site"), ("gltf", "x.glb"), ("3dtiles", "tiles")):
+        assert main(["export", kind, str(copy), "--out", str(copy / out)]) == 2
+    assert sorted(p.name for p in copy.iterdir() if not p.name.startswith(".")) == before
+
+
+def test_fps_refuses_a_site_of_another_model_before_timing(site, tmp_path, capsys):
+    other = save(street_model(seed=1), tmp_path / "other")
+    assert main(["fps", str(other), "--web", str(site), "--gpu-frames", "1", "--cpu-frames", "1"]) == 2
+    assert "fps" not in capsys.readouterr().out  # no row was timed
+
+
 def test_serve_refusals(site, tmp_path):
     assert main(["serve", str(tmp_path)]) == 2  # not a site
+    assert main(["serve", str(site), "--host", ""]) == 2
+    broken = tmp_path / "broken"
+    shutil.copytree(site, broken)
+    (broken / "site.json").write_text("{bad")
+    assert main(["serve", str(broken)]) == 2
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
