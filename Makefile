@@ -43,6 +43,7 @@ demo: $(INSTALL_STAMP)
 	$(BIN)/bbcity build $(DEMO_DIR)/work --out $(DEMO_DIR)/model --holdout 10
 	$(BIN)/bbcity build $(DEMO_DIR)/work --out $(DEMO_DIR)/model-billboards --holdout 10 --layer none
 	$(BIN)/bbcity render $(DEMO_DIR)/model --path capture --frames 300 --out $(DEMO_DIR)/flythrough.mp4
+	rm -rf $(DEMO_DIR)/site && $(BIN)/bbcity export web $(DEMO_DIR)/model --out $(DEMO_DIR)/site
 	$(BIN)/bbcity eval $(DEMO_DIR)/model $(DEMO_DIR)/street --cloud $(DEMO_DIR)/work/cloud.ply \
 		--billboards-only $(DEMO_DIR)/model-billboards --out $(DEMO_DIR)/eval
 
