@@ -18,9 +18,9 @@ from pathlib import Path
 from . import __version__
 from .cli_share import add_export_kinds, add_fps_web_options, add_serve, check_fps_web, print_web_fps
 from .executor import DEFAULT_RETRIES, EXECUTORS
-from .options import (gpu_budget_mb, EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH,
+from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH,
                       MAX_REPEATS, MAX_SPP, MAX_TILE, MIN_LENGTH, RENDER_BYTES_PER_PIXEL, CommandParser, UsageError,
-                      build_bytes, check_memory, dimension, float_range, holdout, int_range, length,
+                      build_bytes, check_memory, dimension, float_range, gpu_budget_mb, holdout, int_range, length,
                       nonnegative_float, nonnegative_int, positive_float, positive_int, scheduler_address,
                       size_action, synth_bytes, worker_count)
 
