@@ -432,6 +432,17 @@ def test_kitti_poses_and_images_of_different_lengths_is_one_clear_error(tmp_path
     assert not (tmp_path / "ds").exists()
 
 
+def test_kitti_gap_in_the_numbering_is_one_clear_error(tmp_path):
+    """000002 missing, 000004 present (as many images as poses): 000003 would silently take pose
+    line 3; line i of poses.txt is frame i, so the names must run 0, 1, 2 …"""
+    seq = _fake_kitti(tmp_path / "seq", frames=4)
+    for folder in ("image_0", "image_1"):
+        (seq / folder / "000002.png").rename(seq / folder / "000004.png")
+    with pytest.raises(DataFormatError, match=r"000003\.png: is image 2 of image_0/.*frame 2 000002"):
+        import_kitti(seq, tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
+
+
 @pytest.mark.skipif(not KITTI06.is_dir(), reason="../shared/data/kitti06 is not here")
 def test_kitti06_imports(tmp_path):
     ds = load_dataset(import_kitti(KITTI06, tmp_path / "ds", KittiConfig(count=6)))

@@ -182,6 +182,10 @@ def import_kitti(sequence_dir: os.PathLike | str, out_dir: os.PathLike | str,
                                                        f"{len(listed)} images")
     if [p.stem for p in files[0]] != [p.stem for p in files[1]]:
         raise DataFormatError(root / folders[1], f"image names differ from those in {folders[0]}/")
+    for i, path in enumerate(files[0]):  # line i of poses.txt is frame i: the images must number 0, 1, 2 …
+        if not path.stem.isdigit() or int(path.stem) != i:
+            raise DataFormatError(path, f"is image {i} of {folders[0]}/ in name order, but KITTI names frame {i} "
+                                        f"{i:06d} (line {i + 1} of poses.txt): a frame is missing or misnamed")
     stop = len(world_from_cam0) if config.count is None else min(len(world_from_cam0), config.first + config.count * config.step)
     keep = list(range(config.first, stop, config.step))
     if not keep:
