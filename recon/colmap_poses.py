@@ -160,9 +160,34 @@ def read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
         raise DataFormatError(model_dir, "not a COLMAP model (needs cameras and images as .bin or .txt)")
     try:
         with colmap_log_to_logging():
-            return pycolmap.Reconstruction(model_dir)
+            rec = pycolmap.Reconstruction(model_dir)
     except Exception as e:  # pycolmap raises ValueError/RuntimeError with C++ messages
         raise DataFormatError(model_dir, f"cannot read the COLMAP model ({e})") from None
+    check_poses(rec, model_dir)
+    return rec
+
+
+#: COLMAP writes unit quaternions; one whose norm is this far from 1 is no rotation (pycolmap
+#: turns the quaternion 0 0 0 0 into the identity without a word).
+QUATERNION_TOLERANCE = 1e-3
+#: A camera or rig this far from the model's origin (in its units) is a damaged file, as in KITTI's poses.
+MAX_TRANSLATION = 1e7
+
+
+def check_poses(rec: pycolmap.Reconstruction, model_dir: Path) -> None:
+    """DataFormatError naming ``model_dir`` and the image or frame whose pose is no rigid
+    transform: a quaternion whose norm is not 1, a translation that is not finite or beyond
+    :data:`MAX_TRANSLATION`."""
+    poses = [(f"image {im.image_id} ({im.name})", im.cam_from_world()) for im in rec.images.values() if im.has_pose]
+    poses += [(f"frame {fr.frame_id}", fr.rig_from_world) for fr in rec.frames.values() if fr.has_pose()]
+    for what, rigid in poses:
+        q, t = np.asarray(rigid.rotation.quat, np.float64), np.asarray(rigid.translation, np.float64)
+        norm = float(np.linalg.norm(q))
+        if not (np.isfinite(norm) and abs(norm - 1.0) <= QUATERNION_TOLERANCE):
+            raise DataFormatError(model_dir, f"{what}: its quaternion {q[[3, 0, 1, 2]].tolist()} (w, x, y, z) has "
+                                             f"norm {norm:g}, not 1: no rotation")
+        if not (np.all(np.isfinite(t)) and np.abs(t).max() <= MAX_TRANSLATION):
+            raise DataFormatError(model_dir, f"{what}: translation {t.tolist()} is not within ±{MAX_TRANSLATION:g}")
 
 
 def poses_from_colmap(model_dir: os.PathLike | str, dataset: Dataset, allow_missing: bool = False,

@@ -95,6 +95,29 @@ def test_colmap_text_model_gives_the_same_rig_and_poses(synth, tmp_path):
     assert source["kind"] == "colmap" and source["frames_from"] == "rig 1" and "metric" in source["units"]
 
 
+@pytest.mark.parametrize("name", ["frames.txt", "images.txt"])
+@pytest.mark.parametrize("value, message", [("q", r"quaternion \[0\.0, 0\.0, 0\.0, 0\.0\].*norm 0"),
+                                            ("t", r"translation \[1e\+300.*not within")])
+def test_colmap_pose_that_is_no_rigid_transform_is_one_clear_error(synth, tmp_path, name, value, message):
+    """pycolmap reads the quaternion 0 0 0 0 as the identity, and 1e300 m as a place: in a rig's
+    frame (frames.txt) or, in a model without rigs, an image (images.txt)."""
+    drop = () if name == "frames.txt" else ("rigs.txt", "frames.txt")
+    model = _copy_model(synth / "colmap", tmp_path / "model", drop=drop)
+    lines = (model / name).read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    parts = lines[first].split()
+    q = 2 if name == "frames.txt" else 1  # FRAME_ID RIG_ID QW … / IMAGE_ID QW …
+    if value == "q":
+        parts[q:q + 4] = ["0"] * 4
+    else:
+        parts[q + 4:q + 7] = ["1e300", "0", "0"]
+    lines[first] = " ".join(parts)
+    (model / name).write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFormatError, match=message) as caught:
+        import_colmap(model, synth / "images", tmp_path / "ds")
+    assert caught.value.path == model and not (tmp_path / "ds").exists()
+
+
 def test_colmap_binary_model_and_model_without_rig_match_the_text_model(synth, tmp_path):
     text = load_dataset(import_colmap(synth / "colmap", synth / "images", tmp_path / "text"))
     binary_dir = tmp_path / "bin"
