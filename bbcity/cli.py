@@ -1188,18 +1188,32 @@ _EVAL_REPORT_FILES = re.compile(r"eval\.json|eval\.md|workprecision\.png|view_\d
 def _check_eval(args) -> None:
     """The eval options, and an --out that is new or an earlier eval report (it is replaced whole)."""
     _eval_config(args)
-    out = args.out
+    check_own_output(args.out, _EVAL_REPORT_FILES, "an eval report's", "the report replaces its directory whole")
+
+
+#: What each command that writes into a directory of its own may find there from an earlier run
+#: of itself (hidden names, its own and its killed runs' temporaries, are always its own).
+_OWN_OUTPUT = {
+    "render": (re.compile(r"frame_\d{6}\.png"), "a render's frames", "its frames replace those there"),
+    "recon": (re.compile(r"cloud\.ply|cloud_tiles\.json|poses\.json|recon_report\.json|sfm|spill"),
+              "a recon work directory's", "a recon writes its cloud there and resumes what it finds"),
+    "texture-sweep": (re.compile(r"texture_sweep\.(json|md|png)"), "a texture sweep's",
+                      "its report files replace those there"),
+}
+
+
+def check_own_output(out: Path, own: re.Pattern, what: str, why: str) -> None:
+    """UsageError unless ``out`` is new or holds only names ``own`` matches (and hidden ones):
+    a command's output mixed into a model, a dataset or anything else would damage both."""
     try:
         if out.is_symlink() or (out.exists() and not out.is_dir()):
-            raise UsageError(f"--out {out} is not a directory (a link or a file); give a new report directory")
+            raise UsageError(f"--out {out} is not a directory (a link or a file); give a new directory")
         names = [p.name for p in out.iterdir()] if out.is_dir() else []
     except OSError as e:  # a name too long, a directory not readable
         raise UsageError(f"--out {out}: {e.strerror}") from None
-    if names:
-        foreign = [name for name in names if not _EVAL_REPORT_FILES.fullmatch(name)]
-        if foreign:
-            raise UsageError(f"--out {out} holds {foreign[0]!r}, not an eval report's; the report replaces its "
-                             "directory whole: give a new one")
+    foreign = sorted(name for name in names if not name.startswith(".") and not own.fullmatch(name))
+    if foreign:
+        raise UsageError(f"--out {out} holds {foreign[0]!r}, not {what}; {why}: give a new directory")
 
 
 def _eval_config(args):
@@ -1371,6 +1385,8 @@ def _main(argv: list[str] | None) -> int:
         out = getattr(args, "out", None)
         if out is not None and not getattr(args, "writes_file", False):
             _check_output(args.command, out)
+            if args.command in _OWN_OUTPUT and not _is_video(args.command, out):
+                check_own_output(out, *_OWN_OUTPUT[args.command])
         with owned_output(out) if out is not None else contextlib.nullcontext():
             return args.func(args)
     # one line for the user; -v adds the traceback (a ValueError may be a bug as well as bad input)
@@ -1399,13 +1415,17 @@ def worker_died(error: BaseException) -> bool:
     return isinstance(error, BrokenProcessPool) or type(error).__name__ == "KilledWorker"
 
 
+def _is_video(command: str, out: Path) -> bool:
+    """Whether ``out`` is a video file ``render`` writes (rather than a folder of frames)."""
+    from render.fly_through import VIDEO_SUFFIXES
+
+    return command == "render" and out.suffix.lower() in VIDEO_SUFFIXES
+
+
 def _check_output(command: str, out: Path) -> None:
     """Refuse a file where a command writes a directory (all but ``render`` of a video) before any work."""
-    if command == "render":
-        from render.fly_through import VIDEO_SUFFIXES
-
-        if out.suffix.lower() in VIDEO_SUFFIXES:
-            return
+    if _is_video(command, out):
+        return
     if (out.exists() or out.is_symlink()) and not out.is_dir():
         raise NotADirectoryError(errno.ENOTDIR, "exists and is not a directory; not writing over it", str(out))
 

@@ -329,3 +329,26 @@ def _bad_values(rng: random.Random, np_rng: np.random.Generator, nargs) -> list[
         else:
             draws.append([rng.choice(BAD)])
     return draws
+
+
+@pytest.mark.parametrize("argv, marker", [
+    (["render", "{model}", "--out", "{out}", "--frames", "1", "--size", "16", "16"], "manifest.json"),
+    (["recon", "{dataset}", "--out", "{out}"], "rig.json"),
+    (["texture-sweep", "{work}", "--out", "{out}"], "notes.txt")])
+def test_outputs_are_not_mixed_into_foreign_directories(tmp_path, caplog, argv, marker):
+    """render's frames, recon's WORK and texture-sweep's report go into a new directory or an
+    earlier one of their own kind: one holding a model's, a dataset's or anybody's files is
+    refused before any work (issue 35: they were mixed into it), and left as it was."""
+    out = tmp_path / "taken"
+    out.mkdir()
+    (out / marker).write_text("theirs")
+    (out / ".hidden").write_text("hidden names are a run's own temporaries")
+    paths = {"model": tmp_path / "missing", "dataset": tmp_path / "missing", "work": tmp_path / "missing", "out": out}
+    assert main([a.format(**paths) for a in argv]) == 2
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert len(errors) == 1 and f"holds '{marker}'" in errors[0]
+    assert sorted(p.name for p in out.iterdir()) == [".hidden", marker]
+    caplog.clear()
+    (out / marker).unlink()  # only its own kind of file, or nothing: the command goes on to its input
+    assert main([a.format(**paths) for a in argv]) == 2
+    assert not any("holds" in r.getMessage() for r in caplog.records)
