@@ -455,6 +455,23 @@ def test_kitti_poses_and_images_of_different_lengths_is_one_clear_error(tmp_path
     assert not (tmp_path / "ds").exists()
 
 
+def test_kitti_calib_that_is_no_lens_is_refused_before_writing(tmp_path):
+    """fx 5e6 px on a 48-px image (a field of view of 0.0006°): the import used to write a dataset
+    that check and every stage refuse."""
+    seq = _fake_kitti(tmp_path / "seq")
+    lines = (seq / "calib.txt").read_text().splitlines()
+    for i in (0, 1):
+        head, values = lines[i].split(": ")
+        v = [float(x) for x in values.split()]
+        v[0] *= 5e6 / 40.0
+        v[3] *= 5e6 / 40.0  # P[0, 3] = −fx·b: the baseline stays
+        lines[i] = f"{head}: " + " ".join(f"{x:.12e}" for x in v)
+    (seq / "calib.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"refused by the dataset format.*fx 5e\+06 px is not a lens's"):
+        import_kitti(seq, tmp_path / "ds")
+    assert not (tmp_path / "ds").exists() and not list(tmp_path.glob(".ds*"))
+
+
 def test_kitti_gap_in_the_numbering_is_one_clear_error(tmp_path):
     """000002 missing, 000004 present (as many images as poses): 000003 would silently take pose
     line 3; line i of poses.txt is frame i, so the names must run 0, 1, 2 …"""

@@ -176,12 +176,17 @@ def write_imported_dataset(out_dir: os.PathLike | str, rig: Rig, world_from_rig:
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
     try:
+        rig.save(tmp / "rig.json")
+        try:  # the rig as check and every stage will read it: an import writes no dataset they refuse
+            Rig.load(tmp / "rig.json")
+        except DataFormatError as e:
+            raise ValueError(f"{source.get('path', source.get('kind', 'the input'))}: the camera it describes is "
+                             f"refused by the dataset format ({e.problem})") from None
         for f, row in enumerate(images):
             for cam, src in enumerate(row):
                 _copy_png(Path(src), tmp / "images" / f"cam{cam}" / f"{names[f]}.png", rig.sizes[cam], upright)
             if progress is not None:
                 progress(f + 1, n)
-        rig.save(tmp / "rig.json")
         save_poses(tmp / "poses.json", world_from_rig, np.zeros(n, dtype=np.int32), names=names)
         write_json(tmp / "dataset.json", {"format": DATASET_FORMAT, "version": FORMAT_VERSION, "frames": n, "cameras": c,
                                           "image_size": list(rig.sizes[0]), "ground_truth": False,
