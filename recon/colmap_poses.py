@@ -190,6 +190,22 @@ def check_poses(rec: pycolmap.Reconstruction, model_dir: Path) -> None:
             raise DataFormatError(model_dir, f"{what}: translation {t.tolist()} is not within ±{MAX_TRANSLATION:g}")
 
 
+def check_image_sizes(rec: pycolmap.Reconstruction, dataset: Dataset, model_dir: Path) -> None:
+    """DataFormatError naming ``model_dir`` when an image matched to the dataset was posed with a
+    camera of another size than the dataset's (a model made from other images: its poses and
+    the dataset's pixels would not belong together)."""
+    frame_index = {name: i for i, name in enumerate(dataset.frame_names)}
+    for image in rec.images.values():
+        where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
+        if where is None:
+            continue
+        camera, (w, h) = rec.cameras[image.camera_id], (int(v) for v in dataset.rig.sizes[where[1]])
+        if (camera.width, camera.height) != (w, h):
+            raise DataFormatError(model_dir, f"image {image.name} was posed with a {camera.width}×{camera.height} "
+                                             f"camera; the dataset's camera {where[1]} is {w}×{h}: a model of "
+                                             "other images")
+
+
 def poses_from_colmap(model_dir: os.PathLike | str, dataset: Dataset, allow_missing: bool = False,
                       metric_tolerance: float = 0.01) -> np.ndarray:
     """Rig poses from an existing COLMAP model (text or binary, with or without rigs).
@@ -213,6 +229,7 @@ def poses_from_colmap(model_dir: os.PathLike | str, dataset: Dataset, allow_miss
     """
     model_dir = Path(model_dir)
     rec = read_reconstruction(model_dir)
+    check_image_sizes(rec, dataset, model_dir)
     world_from_rig, world_from_cam = poses_from_reconstruction(rec, dataset, model_dir)
     ratio = rig_baseline_ratio(world_from_cam, dataset.rig.cam_from_rig)
     if np.isfinite(ratio) and abs(ratio - 1.0) > metric_tolerance:

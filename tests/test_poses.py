@@ -200,6 +200,19 @@ def test_colmap_import_errors_name_the_directory(tiny_dataset, tmp_path):
     assert str(bad) in str(err.value)
 
 
+def test_colmap_model_of_other_images_is_refused(tiny_dataset, tmp_path):
+    """A model made for 320×240 images given for this 160×120 dataset (issue 35: it was taken)."""
+    ds = load_dataset(tiny_dataset)
+    model = tmp_path / "model"
+    shutil.copytree(tiny_dataset / "colmap", model)
+    text = (model / "cameras.txt").read_text()
+    (model / "cameras.txt").write_text(text.replace("PINHOLE 160 120 104.25802982729645 104.25802982729645 80 60",
+                                                    "PINHOLE 320 240 208.5160596545929 208.5160596545929 160 120"))
+    with pytest.raises(DataFormatError, match=r"posed with a 320×240 camera; the dataset's camera \d is 160×120") as err:
+        poses_from_colmap(model, ds)
+    assert err.value.path == model
+
+
 def test_colmap_import_warns_when_the_model_is_not_metric(tiny_dataset, tmp_path, caplog):
     ds = load_dataset(tiny_dataset)
     scaled = ds.world_from_rig.copy()
