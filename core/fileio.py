@@ -61,6 +61,8 @@ def atomic_path(path: os.PathLike | str) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}{path.suffix}")
+    if tmp.is_symlink() or tmp.is_file():  # a dead run's, or planted: writing through a link would change its target
+        tmp.unlink()
     try:
         yield tmp
         os.replace(tmp, path)

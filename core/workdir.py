@@ -20,6 +20,7 @@ import logging
 import os
 import re
 import shutil
+import stat
 from pathlib import Path
 from typing import Iterator
 
@@ -49,8 +50,10 @@ def temporary(name: str) -> tuple[str, str, int | None] | None:
 
 
 def lock_path(output: os.PathLike | str) -> Path:
-    """The lock file of an output directory or file: ``.NAME.lock`` beside it."""
-    output = Path(output).absolute()
+    """The lock file of an output directory or file: ``.NAME.lock`` beside it, the output's path
+    resolved first (links followed), so that two runs reaching one output through a link and
+    through its real path take the same lock."""
+    output = Path(output).resolve()
     return output.with_name(f".{output.name}.lock")
 
 
@@ -64,8 +67,16 @@ def exclusive_output(output: os.PathLike | str) -> Iterator[Path]:
     output = Path(output)
     path = lock_path(output)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:  # never through a link: a lock planted as a link to another file would truncate that file
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o666)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise OSError(errno.ELOOP, "the lock file is a symbolic link; remove it (a lock is a plain file)",
+                          str(path)) from None
+        raise
     try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(errno.EINVAL, "the lock file is not a plain file (a FIFO, a device?); remove it", str(path))
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -276,6 +276,44 @@ def test_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):
         pass
 
 
+def test_lock_is_taken_on_the_real_path_never_through_a_link(tmp_path):
+    """Issue 35: a run reaching its output through a link and another through the real path held
+    two locks and wrote one output at once; a lock planted as a link to another file had that
+    file truncated and a pid written into it; a FIFO there ended in "Invalid argument"."""
+    real, link = tmp_path / "work", tmp_path / "link"
+    real.mkdir()
+    link.symlink_to(real)
+    assert lock_path(link) == lock_path(real)
+    with exclusive_output(real):
+        with pytest.raises(BlockingIOError, match="another bbcity run"):
+            with exclusive_output(link):
+                pass
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    out = tmp_path / "out"
+    lock_path(out).symlink_to(victim)
+    with pytest.raises(OSError, match="lock file is a symbolic link"):
+        with exclusive_output(out):
+            pass
+    assert victim.read_text() == "precious"
+    fifo = tmp_path / "fifo_out"
+    os.mkfifo(lock_path(fifo))
+    with pytest.raises(OSError, match="not a plain file"):
+        with exclusive_output(fifo):
+            pass
+
+
+def test_atomic_writes_never_write_through_a_planted_link(tmp_path):
+    from core.fileio import write_bytes
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    out = tmp_path / "report.json"
+    (tmp_path / f".report.json.tmp-{os.getpid()}.json").symlink_to(victim)
+    write_bytes(out, b"new")
+    assert out.read_bytes() == b"new" and victim.read_text() == "precious"
+
+
 def test_sweep_removes_dead_runs_leftovers_and_restores_a_set_aside_model(tmp_path):
     out = tmp_path / "model"
     build_state = tmp_path / ".model.build-abc12345"
