@@ -438,6 +438,11 @@ class Dataset:
             raw = self.lazy.ground_truth(kind, int(self.frame_names[frame]), cam)
         else:
             raw = load_npy(path, dtype=dtype, shape=(h, w))
+            if kind == "depth":  # NaN where nothing is hit; a hit lies in front of the camera
+                bad = ~(np.isnan(raw) | (np.isfinite(raw) & (raw > 0)))
+                if bad.any():
+                    raise DataFormatError(path, f"holds {int(bad.sum())} depths that are neither NaN (no hit) nor "
+                                                f"a positive distance, e.g. {raw[bad][0]:g}")
         # nearest raw pixel: no blending across depth edges or between object ids
         return self.rig.undistort(raw, cam, nearest=True)
 

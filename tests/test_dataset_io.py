@@ -169,3 +169,17 @@ def test_png_roundtrip(tmp_path):
     rgb = np.random.default_rng(0).integers(0, 256, (7, 9, 3), dtype=np.uint8)
     write_png(tmp_path / "x.png", rgb)
     np.testing.assert_array_equal(read_png(tmp_path / "x.png", (9, 7)), rgb)
+
+
+def test_ground_truth_depth_behind_the_camera_names_the_file(dataset_copy):
+    """Issue 35: negative ground-truth depths were scored against (stereo-sweep's bad-pixel rate
+    0.033 became 0.156); a depth is NaN (no hit) or a positive distance."""
+    ds = load_dataset(dataset_copy)
+    path = dataset_copy / "gt" / "depth" / "cam0" / f"{ds.frame_names[0]}.npy"
+    depth = np.load(path)
+    depth[2, 3] = -depth[2, 3] if np.isfinite(depth[2, 3]) else -1.0
+    save_npy(path, depth)
+    with pytest.raises(DataFormatError, match=r"holds 1 depths that are neither NaN \(no hit\) nor a positive") as err:
+        ds.gt_depth(0, 0)
+    assert err.value.path == path
+    assert np.isfinite(ds.gt_depth(1, 0)).any()  # the other frames still read
