@@ -38,6 +38,9 @@ FORMAT_VERSION = 1
 
 #: A focal length lies within this factor of its image edge (pixels), either way.
 FOCAL_RANGE = 1000.0
+#: How much narrower than the raw image a lens's undistorted pinhole image may be (fisheye
+#: k1 = 100 makes it 6×; k1 = 1e6, 126×: a reconstruction then sees nothing).
+MAX_UNDISTORT_ZOOM = 20.0
 
 
 def _is_int(value) -> bool:
@@ -207,9 +210,16 @@ class Rig:
             Ts.append(check_rigid(as_matrix(cam["cam_from_rig"], (4, 4), path, f"{where}.cam_from_rig"),
                                   path, f"{where}.cam_from_rig"))
         try:
-            return cls.from_raw(np.array(Ks), tuple(sizes), np.array(Ts), distortions)
+            rig = cls.from_raw(np.array(Ks), tuple(sizes), np.array(Ts), distortions)
         except ValueError as e:  # a lens that leaves no pinhole image inside the raw one
             raise DataFormatError(path, f"cannot undistort the cameras ({e})") from None
+        for i, K in enumerate(Ks):
+            zoom = rig.intrinsics[i][0, 0] / K[0, 0]
+            if zoom > MAX_UNDISTORT_ZOOM:  # fisheye k1 = 1e6: the stages would see a few raw pixels
+                raise DataFormatError(path, f"cameras[{i}].distortion leaves an undistorted image {zoom:.0f}× "
+                                            f"narrower than the raw one (at most {MAX_UNDISTORT_ZOOM:g}×): "
+                                            "coefficients no lens has")
+        return rig
 
 
 def pinhole(width: int, height: int, hfov_deg: float) -> np.ndarray:

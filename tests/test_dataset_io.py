@@ -183,3 +183,12 @@ def test_ground_truth_depth_behind_the_camera_names_the_file(dataset_copy):
         ds.gt_depth(0, 0)
     assert err.value.path == path
     assert np.isfinite(ds.gt_depth(1, 0)).any()  # the other frames still read
+
+
+def test_lens_that_leaves_almost_nothing_of_the_image_names_the_file(dataset_copy):
+    """Issue 35: a fisheye with k1 = 1e6 reconstructed to an empty cloud with exit 0."""
+    rig = json.loads((dataset_copy / "rig.json").read_text())
+    rig["cameras"][1]["distortion"] = {"model": "fisheye", "k1": 1e6, "k2": 0.0, "k3": 0.0, "k4": 0.0}
+    (dataset_copy / "rig.json").write_text(json.dumps(rig))
+    with pytest.raises(DataFormatError, match=r"cameras\[1\]\.distortion leaves an undistorted image \d+× narrower"):
+        load_dataset(dataset_copy)
