@@ -726,19 +726,25 @@ def _work_dataset(args) -> Path:
 
 def _work_poses(work: Path) -> Path | None:
     """The poses.json a recon WORK directory wrote (its recon_report.json "poses_file": the
-    poses were not the dataset's own), else None (the dataset's poses.json)."""
+    poses were not the dataset's own), else None (the dataset's poses.json). Recon writes it
+    into WORK, so it is read there, wherever WORK was when recon ran, and only when it is the
+    file recon wrote (its "poses_digest")."""
     from core.fileio import read_json
+    from recon.pipeline import file_digest
 
-    report = read_json(work / "recon_report.json")
+    report_path = work / "recon_report.json"
+    report = read_json(report_path)
     name = report.get("poses_file") if isinstance(report, dict) else None
     if not isinstance(name, str):
         return None
-    path = Path(name)
-    if not path.is_file() and (work / path.name).is_file():  # WORK moved since: the file beside the report
-        path = work / path.name
+    path = work / Path(name).name
     if not path.is_file():
-        raise ValueError(f"{work / 'recon_report.json'}: its poses file {name} is missing (the cloud lies in the "
-                         "frame of those poses; rerun recon or pass --poses)")
+        raise ValueError(f"{report_path}: its poses file {path} is missing (the cloud lies in the frame of those "
+                         "poses; rerun recon or pass --poses)")
+    digest = report.get("poses_digest")
+    if isinstance(digest, str) and file_digest(path) != digest:
+        raise ValueError(f"{path}: not the poses file recon wrote (changed or truncated since; the cloud lies in "
+                         "the frame of those poses): rerun recon or pass --poses")
     return path
 
 

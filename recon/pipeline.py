@@ -301,11 +301,33 @@ def write_work_poses(work: Path, ds, world_from_rig: np.ndarray, source: str) ->
     return save_poses(path, world_from_rig, frame_passes(ds), names=list(ds.frame_names))
 
 
+#: The files that name a dataset's capture: a dataset whose files differ is another capture.
+DATASET_IDENTITY = ("rig.json", "poses.json", "dataset.json")
+
+
+def file_digest(path: os.PathLike | str) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def dataset_digest(dataset_dir: os.PathLike | str) -> str:
+    """SHA-256 of the dataset's :data:`DATASET_IDENTITY` files (those present, named and in order):
+    what a WORK records of the dataset it was reconstructed from."""
+    h = hashlib.sha256()
+    for name in DATASET_IDENTITY:
+        path = Path(dataset_dir) / name
+        if path.is_file():
+            h.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def dataset_of_work(work: os.PathLike | str) -> Path:
     """The dataset a recon WORK directory was built from, the same from any current directory.
 
-    Its recon_report.json names it by absolute path and relative to WORK; the absolute
-    one wins while it exists, the relative one finds it after both were moved together.
+    Its recon_report.json names it relative to WORK and by absolute path, with a digest of
+    its files (:func:`dataset_digest`): the relative one wins (WORK and its dataset moved
+    together), then the absolute one (WORK moved alone), and either only when its files are
+    the ones recon read; another dataset found there is refused (pass --images).
     """
     work = Path(work)
     path = work / "recon_report.json"
@@ -314,15 +336,20 @@ def dataset_of_work(work: os.PathLike | str) -> Path:
     if not isinstance(named, str):
         raise DataFormatError(path, "does not name the dataset; pass --images")
     relative = report.get("dataset_from_work")
-    candidates = [Path(named)] if Path(named).is_absolute() else []
-    if isinstance(relative, str):
-        candidates.append(work / relative)
-    for candidate in candidates:
-        if candidate.is_dir():
-            return candidate
+    digest = report.get("dataset_digest")
+    candidates = [work / relative] if isinstance(relative, str) else []
+    if Path(named).is_absolute():
+        candidates.append(Path(named))
     if not candidates:  # written before reports named it absolutely: relative to an unknown directory
         raise DataFormatError(path, f"names the dataset {named!r} relative to the directory recon ran in; "
                                     "pass --images")
+    found = [c for c in candidates if c.is_dir()]
+    for candidate in found:
+        if not isinstance(digest, str) or dataset_digest(candidate) == digest:  # older reports hold no digest
+            return candidate.resolve()
+    if found:
+        raise DataFormatError(path, f"its dataset is not at {found[0]} any more: that folder holds another "
+                                    "capture (its rig.json, poses.json or dataset.json differ); pass --images")
     raise DataFormatError(path, f"its dataset {named} is gone (nor is it at {relative} from the work directory); "
                                 "pass --images")
 
@@ -406,6 +433,8 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     report = {
         "dataset": str(dataset_dir.resolve()),
         "dataset_from_work": os.path.relpath(dataset_dir.resolve(), work.resolve()),
+        "dataset_digest": dataset_digest(dataset_dir),
+        "poses_digest": None if poses_file is None else file_digest(poses_file),
         "config": json.loads(json.dumps(asdict(conf), default=str)),
         "frames": len(frames), "resumed_frames": len(resumed), "held_out_frames": held_out, "points": num_points,
         "origin": origin.tolist(),

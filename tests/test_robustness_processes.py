@@ -351,7 +351,21 @@ def test_work_names_its_dataset_from_any_directory(street, work, tmp_path, monke
     shutil.copytree(work, moved / "data" / "work")
     doc = dict(report, dataset=str(tmp_path / "nowhere"))
     (moved / "data" / "work" / "recon_report.json").write_text(json.dumps(doc))
-    assert dataset_of_work(moved / "data" / "work") == moved / "data" / "work" / report["dataset_from_work"]
+    assert dataset_of_work(moved / "data" / "work") == (moved / "data" / "work" / report["dataset_from_work"]).resolve()
+
+    # moved together, another capture now at the old absolute path: the one beside WORK, not that one
+    other = tmp_path / "other"
+    shutil.copytree(street, other)
+    poses = json.loads((other / "poses.json").read_text())
+    poses["frames"] = poses["frames"][:-1]
+    (other / "poses.json").write_text(json.dumps(poses))
+    doc = dict(report, dataset=str(other))
+    (moved / "data" / "work" / "recon_report.json").write_text(json.dumps(doc))
+    assert dataset_of_work(moved / "data" / "work") == (moved / "data" / street.name).resolve()
+    # and with the moved copy gone, that other capture is refused, not used
+    shutil.rmtree(moved / "data" / street.name)
+    with pytest.raises(DataFormatError, match="holds another capture"):
+        dataset_of_work(moved / "data" / "work")
 
     # an old report's relative path is not guessed at
     legacy = tmp_path / "legacy"
@@ -359,6 +373,30 @@ def test_work_names_its_dataset_from_any_directory(street, work, tmp_path, monke
     (legacy / "recon_report.json").write_text(json.dumps({"dataset": street.name}))
     with pytest.raises(DataFormatError, match="relative to the directory recon ran in"):
         dataset_of_work(legacy)
+
+
+def test_work_poses_are_read_in_work_and_only_as_recon_wrote_them(work, tmp_path):
+    """Issue 35: a WORK whose poses.json was truncated or removed silently used the poses.json
+    of the directory it was first reconstructed in (an absolute "poses_file")."""
+    from bbcity.cli import _work_poses
+    from recon.pipeline import file_digest
+
+    moved = tmp_path / "work"
+    shutil.copytree(work, moved)
+    report = json.loads((moved / "recon_report.json").read_text())
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "poses.json").write_text((work / "recon_report.json").read_text())  # any file at the old path
+    (moved / "poses.json").write_text("{}")
+    doc = dict(report, poses_file=str(elsewhere / "poses.json"), poses_digest=file_digest(moved / "poses.json"))
+    (moved / "recon_report.json").write_text(json.dumps(doc))
+    assert _work_poses(moved) == moved / "poses.json"
+    (moved / "poses.json").write_text("{")  # truncated
+    with pytest.raises(ValueError, match="not the poses file recon wrote"):
+        _work_poses(moved)
+    (moved / "poses.json").unlink()
+    with pytest.raises(ValueError, match="its poses file .* is missing"):
+        _work_poses(moved)
 
 
 def test_killed_synth_stops_writing_and_the_next_run_completes_it(tmp_path):
