@@ -209,9 +209,10 @@ def load_npy(
     shape: required shape; ``None`` entries match any length.
     finite: reject NaN/inf (floating arrays only).
     max_bytes: refuse arrays whose header claims more bytes than this.
+    A file shorter or longer than its header says is refused.
     """
     path = Path(path)
-    file_shape, _, file_dtype, _ = read_npy_header(path)
+    file_shape, _, file_dtype, offset = read_npy_header(path)
     if file_dtype.hasobject:
         raise DataFormatError(path, "holds Python objects (pickles are not loaded)")
     if any(n < 0 for n in file_shape):
@@ -219,6 +220,9 @@ def load_npy(
     nbytes = math.prod(file_shape) * file_dtype.itemsize  # Python ints: no int64 overflow
     if nbytes > max_bytes:
         raise DataFormatError(path, f"array of {nbytes} bytes exceeds the limit of {max_bytes}")
+    size = path.stat().st_size - offset
+    if size > nbytes:  # a file written over another, or damaged: not the array its header describes
+        raise DataFormatError(path, f"has {size - nbytes} bytes after the array data")
     try:
         array = np.load(path, allow_pickle=False)
     except (ValueError, TypeError, OSError, EOFError, OverflowError) as e:

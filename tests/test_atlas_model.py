@@ -753,12 +753,16 @@ def test_array_file_fuzz(saved_model, tmp_path, data, keep, name):
         shutil.copytree(saved_model, target)
     for other in ("atlas_001.npy", "rank.npy"):  # undo the previous example
         shutil.copyfile(saved_model / other, target / other)
-    (target / name).write_bytes((saved_model / name).read_bytes()[:keep] + data)
+    written = (saved_model / name).read_bytes()[:keep] + data
+    (target / name).write_bytes(written)
     for mmap in (True, False):
         try:
-            load(target, mmap=mmap)
+            model = load(target, mmap=mmap)
         except DataFormatError as e:
             assert e.path == target / name and str(target / name) in str(e)
+        else:  # it loaded: then the file is the one saved (a cut or longer file is refused)
+            assert written == (saved_model / name).read_bytes()
+            model.check()
 
 
 def test_pickle_is_never_loaded(saved_model, tmp_path, monkeypatch):

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from core import DataFormatError
-from core.fileio import load_npy, read_png, write_png
+from core.fileio import load_npy, read_npy_header, read_png, write_png
 
 from . import fuzzing
 
@@ -58,13 +58,21 @@ def test_poses_json_reader(tmp_path, path, value):
 @example(data=b"\x00\x00\x00\x00\x00\x00(", keep=121)  # header garbage that numpy's tokenizer rejects
 def test_npy_reader(tmp_path, data, keep):
     buf = io.BytesIO()
-    np.save(buf, np.arange(12, dtype=np.float32).reshape(3, 4))
+    original = np.arange(12, dtype=np.float32).reshape(3, 4)
+    np.save(buf, original)
+    full = buf.getvalue()
     target = tmp_path / "a.npy"
-    target.write_bytes(buf.getvalue()[:keep] + data)  # a valid prefix, then anything
+    written = full[:keep] + data  # a valid prefix, then anything
+    target.write_bytes(written)
     try:
-        load_npy(target, max_bytes=1 << 20)
+        array = load_npy(target, max_bytes=1 << 20)
     except DataFormatError as e:
         assert str(target) in str(e)
+    else:  # what loads is exactly the data its header describes: nothing cut, nothing after it
+        offset = read_npy_header(target)[3]
+        assert len(written) - offset == array.nbytes and array.tobytes(order="A") == written[offset:]
+        if written[:offset] == full[:offset]:
+            assert array.shape == original.shape and array.dtype == original.dtype
 
 
 @pytest.mark.parametrize("shape", ["(1000000000000,)", "(100000, 100000, 100)"])

@@ -177,7 +177,13 @@ def test_injected_enospc_leaves_nothing_half_written(tmp_path, monkeypatch, capl
         write_dataset(tiny_config(), out, progress=False)
     assert hidden(out) == []
     monkeypatch.setattr(fileio.os, "replace", real_replace)
-    write_dataset(tiny_config(), out, progress=False)  # the next run completes it
+    write_dataset(tiny_config(), out, progress=False)  # the next run completes it: the same bytes as a clean run
+    clean = write_dataset(tiny_config(), tmp_path / "clean", progress=False)
+    files = sorted(p.relative_to(clean) for p in clean.rglob("*") if p.is_file() and p.name != "synth_report.json")
+    assert files and files == sorted(p.relative_to(out) for p in out.rglob("*")
+                                     if p.is_file() and p.name != "synth_report.json")
+    assert all((out / f).read_bytes() == (clean / f).read_bytes() for f in files)
+    assert hidden(out) == []
 
 
 def test_eval_does_not_replace_a_directory_of_other_files(inputs, tmp_path, caplog):
