@@ -18,11 +18,12 @@ from pathlib import Path
 from . import __version__
 from .cli_share import add_export_kinds, add_fps_web_options, add_serve, check_fps_web, print_web_fps
 from .executor import DEFAULT_RETRIES, EXECUTORS
-from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_FPS, MAX_FRAMES, MAX_LENGTH, MAX_PANEL_WIDTH,
-                      MAX_REPEATS, MAX_SPP, MAX_TILE, MIN_LENGTH, RENDER_BYTES_PER_PIXEL, CommandParser, UsageError,
+from .options import (EVAL_BYTES_PER_PIXEL, GL_MAX_SIZE, MAX_CITY_SCALE, MAX_FPS, MAX_FRAMES, MAX_LENGTH,
+                      MAX_PANEL_WIDTH, MAX_REPEATS, MAX_TILE, MIN_LENGTH, MIN_STEP, RENDER_BYTES_PER_PIXEL,
+                      CommandParser, UsageError,
                       build_bytes, check_memory, dimension, float_range, gpu_budget_mb, holdout, int_range, length,
                       nonnegative_float, nonnegative_int, positive_float, positive_int, scheduler_address,
-                      size_action, synth_bytes, worker_count)
+                      size_action, synth_bytes, worker_count, zero_or_at_least)
 
 logger = logging.getLogger("bbcity")
 
@@ -122,7 +123,7 @@ def _draw_modes_parent() -> argparse.ArgumentParser:
 
 
 def _add_synth(sub) -> None:
-    from data_synth.dataset import ORBIT_CLEARANCE_M, PATHS, SynthConfig
+    from data_synth.dataset import MAX_SPP, ORBIT_CLEARANCE_M, PATHS, SynthConfig
 
     p = sub.add_parser(
         "synth", help="generate a synthetic dataset (street or town) with ground truth",
@@ -508,6 +509,7 @@ def _run_recon(args) -> int:
 
 def _add_build(sub) -> None:
     from billboards.fit import FitConfig
+    from billboards.octree import MAX_MIN_POINTS
     from billboards.geometry import MAX_SPLIT
     from billboards.layer import LayerConfig
     from billboards.resolution import ResolutionConfig
@@ -537,7 +539,7 @@ def _add_build(sub) -> None:
                    help="billboard/voxel edge in metres (default 0.5)")
     p.add_argument("--depth", type=int_range(0, MAX_DEPTH, "a Morton code's bits"), default=None,
                    help="octree depth instead of --voxel-size")
-    p.add_argument("--min-points", type=positive_int, default=10,
+    p.add_argument("--min-points", type=int_range(1, MAX_MIN_POINTS), default=10,
                    help="points a voxel needs to get a billboard (default 10)")
     p.add_argument("--directions", type=positive_int, default=32, help="yaw directions per billboard (default 32)")
     p.add_argument("--spacing", type=float_range(0.0, 360.0), default=6.0,
@@ -861,7 +863,7 @@ def _add_bench(sub) -> None:
                    help="street: the pipeline and everything measured on its model; town: culling on the town; "
                         "executor: recon and build through the local pool and through Dask; city (not in all): "
                         "streets of --city-scales × --street-length built tile by tile and paged by the viewer")
-    p.add_argument("--city-scales", type=positive_int, nargs="+", default=None,
+    p.add_argument("--city-scales", type=int_range(1, MAX_CITY_SCALE), nargs="+", default=None,
                    help="street lengths of the city runs in multiples of --street-length (default 1 4 16)")
     p.add_argument("--gpu-budget", type=positive_int, default=None, metavar="MB",
                    help="city: the viewer's GPU budget (256); memory is flat from 1× only if the 1× street fills it")
@@ -918,18 +920,18 @@ def _add_fps(sub) -> None:
         parents=[_size_parent((1280, 720), RENDER_BYTES_PER_PIXEL, "default 1280 720"), _gpu_budget_parent()])
     p.add_argument("model", type=Path, nargs="?", default=None,
                    help="billboard model directory, plain or tiled (optional with --town)")
-    p.add_argument("--gpu-frames", type=positive_int, default=10, metavar="N",
+    p.add_argument("--gpu-frames", type=int_range(1, MAX_FRAMES), default=10, metavar="N",
                    help="timed frames per view with GPU decode, and per culling mode (default 10)")
-    p.add_argument("--cpu-frames", type=positive_int, default=3, metavar="N",
+    p.add_argument("--cpu-frames", type=int_range(1, MAX_FRAMES), default=3, metavar="N",
                    help="timed frames per view, and along the capture path, with CPU decode (default 3)")
     p.add_argument("--exact", action="store_true",
                    help="GPU decode without level of detail (every eigen image everywhere)")
     p.add_argument("--dataset", type=Path, default=None, metavar="DIR",
                    help="dataset whose camera-0 poses are the capture path (default: the model's, when its "
                         "manifest records one that is still there)")
-    p.add_argument("--path-step", type=nonnegative_float, default=0.25, metavar="M",
+    p.add_argument("--path-step", type=zero_or_at_least(MIN_STEP), default=0.25, metavar="M",
                    help="the capture path walked with the eye at most M metres per frame, rotations "
-                        "interpolated (default 0.25; 0: the capture frames as they are)")
+                        f"interpolated (default 0.25, at least {MIN_STEP:g}; 0: the capture frames as they are)")
     p.add_argument("--path-frames", type=int_range(0, MAX_FRAMES), default=240, metavar="N",
                    help="timed GPU frames along the capture path: N consecutive poses centred a quarter of "
                         "the way along (the middle of a there-and-back drive's outbound pass); 0: all (default 240)")
@@ -940,8 +942,9 @@ def _add_fps(sub) -> None:
     add_fps_web_options(p)
     p.add_argument("--town", action="store_true",
                    help="culling on the town scene's meshes along its capture path (default TownConfig)")
-    p.add_argument("--walk-step", type=positive_float, default=1.0, metavar="M",
-                   help="paging walk: metres the eye moves per frame along the drive path (default 1)")
+    p.add_argument("--walk-step", type=float_range(MIN_STEP, lo_open=False), default=1.0, metavar="M",
+                   help=f"paging walk: metres the eye moves per frame along the drive path (default 1, at least "
+                        f"{MIN_STEP:g})")
     p.add_argument("--walk-frames", type=int_range(0, MAX_FRAMES), default=0, metavar="N",
                    help="paging walk: frames (default 0: the whole drive path once)")
     p.set_defaults(func=_run_fps, check_options=_check_fps)

@@ -22,8 +22,6 @@ GL_MAX_SIZE = 16384
 #: already holds 8 M texels per billboard.
 MAX_TILE = 256
 
-#: Largest anti-aliasing factor of ``synth --spp`` (spp² rays per pixel).
-MAX_SPP = 16
 
 #: Longest synthetic street or town drive, metres.
 MAX_LENGTH = 100_000.0
@@ -129,6 +127,23 @@ length = float_range(MIN_LENGTH, lo_open=False)
 nonnegative_float = float_range(0.0, lo_open=False)
 #: A finite number.
 finite_float = float_range()
+#: A step along a path (m): at least a centimetre, so that a walk's poses stay countable.
+MIN_STEP = 0.01
+#: Street lengths of bench's city runs, in multiples of --street-length.
+MAX_CITY_SCALE = 64
+
+
+def zero_or_at_least(lo: float):
+    """An argparse type: 0, or a finite number ≥ lo."""
+    at_least = float_range(lo, lo_open=False)
+
+    def parse(text: str) -> float:
+        value = _parse_float(text)
+        return 0.0 if value == 0 else at_least(text)
+    parse.__name__ = "zero_or_at_least"
+    return parse
+
+
 #: A GPU memory budget in MB: more than 0, at most a petabyte (its bytes stay an exact integer).
 gpu_budget_mb = float_range(0.0, 1e9)
 #: A size edge in pixels or texels: an integer in [1, GL_MAX_SIZE].

@@ -37,6 +37,9 @@ _EXACT_FLOAT = float(1 << 53)  # linear keys below this are exact in float64
 _DEPTH_PAD = 1e-9  # depth-given root edge = max extent·(1 + this), so the max point lies inside
 
 
+MAX_MIN_POINTS = 1_000_000  # points a voxel may be asked to need (more: no leaf of any size holds them)
+
+
 @dataclass(frozen=True)
 class OctreeConfig:
     voxel_size: float | None = 0.5  # leaf edge in metres; None → derived from depth
@@ -56,8 +59,9 @@ class OctreeConfig:
             if isinstance(self.depth, bool) or int(self.depth) != self.depth or not 0 <= self.depth <= MAX_DEPTH:
                 raise ValueError(f"OctreeConfig: depth must be an integer in [0, {MAX_DEPTH}] "
                                  f"(2**{MAX_DEPTH} cells per axis fit a uint64 Morton code), got {self.depth!r}")
-        if int(self.min_points) != self.min_points or self.min_points < 1:
-            raise ValueError(f"OctreeConfig: min_points must be an integer ≥ 1, got {self.min_points!r}")
+        if int(self.min_points) != self.min_points or not 1 <= self.min_points <= MAX_MIN_POINTS:
+            raise ValueError(f"OctreeConfig: min_points must be an integer in [1, {MAX_MIN_POINTS}], "
+                             f"got {self.min_points!r}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -68,6 +68,9 @@ PATHS = ("drive", "orbit")
 ORBIT_CLEARANCE_M = 2.0
 
 
+MAX_SPP = 16  # supersampling per pixel axis at most (256 rays a pixel)
+
+
 @dataclass(frozen=True)
 class SynthConfig:
     scene: str = "street"  # "street" or "town"
@@ -93,6 +96,8 @@ class SynthConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"SynthConfig.{name} must be an integer ≥ 1, got {value!r}")
+        if self.spp > MAX_SPP:  # spp² rays a pixel: a lazy dataset's reader would cast for ever
+            raise ValueError(f"SynthConfig.spp must be at most {MAX_SPP} (spp² rays a pixel), got {self.spp}")
         for name in ("lane_offset", "town_path_length", "orbit_radius"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):

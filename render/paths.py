@@ -133,15 +133,22 @@ def orbit_poses(model, frames: int, height: float = 15.0) -> np.ndarray:
     return np.stack([look_at(e, centre) for e in eyes]) if frames else np.zeros((0, 4, 4))
 
 
+#: Poses a path file may hold (as ``render --frames`` at most): each becomes a frame.
+MAX_PATH_POSES = 100_000
+
+
 def file_poses(path: os.PathLike | str) -> np.ndarray:
     """Poses from a dataset directory (camera 0 of every frame) or a JSON list of 4×4
-    ``world_from_cam`` matrices; errors name the file."""
+    ``world_from_cam`` matrices, at most :data:`MAX_PATH_POSES`; errors name the file."""
     path = Path(path)
     if path.is_dir():
         from data_synth import load_dataset
 
         ds = load_dataset(path)
         posed = np.flatnonzero(ds.posed).tolist()
+        if len(posed) > MAX_PATH_POSES:
+            raise DataFormatError(path / "poses.json", f"holds {len(posed)} posed frames; a path renders at most "
+                                                       f"{MAX_PATH_POSES} frames")
         if not posed:
             raise DataFormatError(path / "poses.json", "no frame has a pose (--path capture follows the poses "
                                                        "the model was built with)")
@@ -149,6 +156,8 @@ def file_poses(path: os.PathLike | str) -> np.ndarray:
     data = read_json(path)
     if not isinstance(data, list) or not data:
         raise DataFormatError(path, "expected a non-empty JSON list of 4×4 world_from_cam matrices")
+    if len(data) > MAX_PATH_POSES:
+        raise DataFormatError(path, f"holds {len(data)} poses; a path renders at most {MAX_PATH_POSES} frames")
     return np.stack([check_rigid(as_matrix(m, (4, 4), path, f"[{i}]"), path, f"[{i}]") for i, m in enumerate(data)])
 
 

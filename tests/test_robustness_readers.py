@@ -521,3 +521,18 @@ def test_render_pose_file_fuzz(tmp_path, path, value):
         assert np.all(np.isfinite(poses))
         R = poses[:, :3, :3]
         np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-6)
+
+
+def test_render_pose_file_with_more_poses_than_frames_is_refused(tmp_path, monkeypatch):
+    """Issue 35: 200 001 poses rendered past the frames cap (Ctrl-C then took 25 s and left
+    45 540 temporary frames); a path file holds at most as many poses as render makes frames."""
+    import render.paths as paths
+
+    monkeypatch.setattr(paths, "MAX_PATH_POSES", 3)
+    target = tmp_path / "poses.json"
+    save_poses_json(target, np.stack([look_at([float(i), 0, 1.5], [5.0, 1, 1.5]) for i in range(4)]))
+    with pytest.raises(DataFormatError, match="holds 4 poses; a path renders at most 3 frames") as err:
+        file_poses(target)
+    _assert_named(err.value, target)
+    save_poses_json(target, np.stack([look_at([float(i), 0, 1.5], [5.0, 1, 1.5]) for i in range(3)]))
+    assert len(file_poses(target)) == 3

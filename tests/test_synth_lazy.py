@@ -325,3 +325,20 @@ def test_synth_cli_lazy_and_frame_spacing(tmp_path):
     assert ds.image(3, 1).shape == (48, 64, 3)
     with pytest.raises(SystemExit):
         main(["-q", "synth", "street", "--frames", "5", "--frame-spacing", "3", "--out", str(tmp_path / "e")])
+
+
+def test_lazy_dataset_with_unbounded_supersampling_is_refused(stored_and_lazy, tmp_path):
+    """Issue 35: spp 100000 in a lazy dataset's settings made check --deep cast for ever."""
+    import shutil
+
+    _, lazy = stored_and_lazy
+    copy = tmp_path / "lazy"
+    shutil.copytree(lazy.root, copy)
+    doc = json.loads((copy / "dataset.json").read_text())
+    doc["synth"]["spp"] = 100_000
+    (copy / "dataset.json").write_text(json.dumps(doc))
+    with pytest.raises(DataFormatError, match=r"spp must be at most 16") as err:
+        load_dataset(copy)
+    assert err.value.path == copy / "dataset.json"
+    with pytest.raises(ValueError, match="spp must be at most"):
+        SynthConfig(spp=17)
