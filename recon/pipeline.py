@@ -181,7 +181,7 @@ def _spill_inputs(conf: ReconConfig, dataset_dir: Path, world_from_rig: np.ndarr
                   origin: np.ndarray, depths: np.ndarray) -> dict:
     """What the spilled frames depend on: the stereo and fusion settings, the dataset, the poses,
     sparse depths and frames used, the origin (JSON; equal inputs, equal dict)."""
-    settings = {k: v for k, v in json.loads(json.dumps(asdict(conf), default=str)).items()
+    settings = {k: v for k, v in config_json(conf).items()
                 if k in ("trinocular", "fusion", "pixel_stride", "motion", "poses", "colmap_model", "sfm",
                          "max_image_size", "near_margin", "far_margin")}
     manifest = Path(dataset_dir) / "dataset.json"
@@ -299,6 +299,13 @@ def write_work_poses(work: Path, ds, world_from_rig: np.ndarray, source: str) ->
         path.unlink(missing_ok=True)
         return None
     return save_poses(path, world_from_rig, frame_passes(ds), names=list(ds.frame_names))
+
+
+def config_json(conf: "ReconConfig") -> dict:
+    """The config as JSON values: paths and other objects as strings, and the non-finite numbers
+    a config may hold (``max_depth`` inf: no limit) as "Infinity"/"-Infinity"/"NaN" strings
+    (strict JSON has no such numbers)."""
+    return json.loads(json.dumps(asdict(conf), default=str), parse_constant=str)
 
 
 #: The files that name a dataset's capture: a dataset whose files differ is another capture.
@@ -435,7 +442,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         "dataset_from_work": os.path.relpath(dataset_dir.resolve(), work.resolve()),
         "dataset_digest": dataset_digest(dataset_dir),
         "poses_digest": None if poses_file is None else file_digest(poses_file),
-        "config": json.loads(json.dumps(asdict(conf), default=str)),
+        "config": config_json(conf),
         "frames": len(frames), "resumed_frames": len(resumed), "held_out_frames": held_out, "points": num_points,
         "origin": origin.tolist(),
         "poses": pose_report, "poses_file": None if poses_file is None else str(poses_file.resolve()), "stages": stages,

@@ -112,3 +112,16 @@ def test_stereo_sweep_writes_its_table_and_plot(tiny_dataset, tmp_path):
         assert row["seconds_per_frame"] > 0 and 0 <= row["bad_pixel_rate"] <= 1
     for name in ("stereo_sweep.json", "stereo_sweep.md", "stereo_sweep.png"):
         assert (tmp_path / name).stat().st_size > 100
+
+
+def test_max_depth_inf_means_no_limit_and_the_report_is_strict_json(tiny_dataset, tmp_path):
+    """Issue 35: ``recon --max-depth inf`` (no limit, its help says) failed writing its report
+    ("Out of range float values are not JSON compliant: inf") and left an empty WORK."""
+    from bbcity.cli import main
+
+    work = tmp_path / "w"
+    assert main(["recon", str(tiny_dataset), "--out", str(work), "--max-depth", "inf", "--no-eval",
+                 "--frame-stride", "3"]) == 0
+    report = json.loads((work / "recon_report.json").read_text(),
+                        parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
+    assert report["config"]["trinocular"]["stereo"]["max_depth"] == "Infinity" and report["points"] > 0
