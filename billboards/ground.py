@@ -23,11 +23,14 @@ something from every camera).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from .geometry import HALF_DIAGONAL, base_yaw_toward, toward_cameras
+
+logger = logging.getLogger(__name__)
 
 #: a cell whose points rise this far (m, 10th to 90th percentile of their heights) stands on the ground
 _BARRIER_RISE = 0.25
@@ -237,6 +240,10 @@ def ground_blocks(cloud: np.ndarray, free: np.ndarray, grid_origin: np.ndarray, 
     # Only surfaces below the nearest camera can be ground (the road may climb along the path).
     good = (n_on >= min_points) & (height < _nearest_height(centre_xy, viewpoints) - 0.5)
     sums = np.bincount(cell_of[on], weights=p[on, 2], minlength=len(starts))
+    if not good.any():  # no cell holds enough level points below the cameras: no ground blocks
+        logger.warning("no ground found (no %g m cell holds %d level points below the cameras); the ground is "
+                       "left to billboards", size, min_points)
+        return Ground.empty(len(cloud))
     ground_z = sums[good] / np.maximum(n_on[good], 1)
     ground_cells = cells[good]
     near = _neighbour_heights(ground_cells, ground_z, ground_cells)

@@ -113,6 +113,21 @@ def test_ground_blocks_of_an_empty_cloud():
     assert len(g.centres) == 0 and len(g.continued) == 0 and len(g.synthesised) == 0
 
 
+@pytest.mark.parametrize("case", ["sparse", "above the cameras"])
+def test_ground_blocks_where_no_cell_is_ground(case, caplog):
+    """Issue 35: a sparse cloud (fewer than min_points a cell), or points only above the cameras,
+    ended in numpy's "zero-size array to reduction operation minimum"; no ground is no blocks."""
+    rng = np.random.default_rng(0)
+    if case == "sparse":
+        cloud = np.stack([rng.uniform(0, 10, 30), rng.uniform(0, 10, 30), np.zeros(30)], 1)
+    else:
+        cloud = np.stack([rng.uniform(0, 2, 400), rng.uniform(0, 2, 400), np.full(400, 5.0)], 1)
+    with caplog.at_level("WARNING"):
+        g = ground_blocks(cloud, np.ones(len(cloud), bool), np.zeros(3), 0.5, np.array([[1.0, 1.0, 1.6]]),
+                          tolerance=0.06, min_points=20, step=0.05, fill_neighbours=5, fill_passes=2, reach=12.0)
+    assert len(g.centres) == 0 and "no ground found" in caplog.text
+
+
 def test_cell_index_against_a_dictionary():
     rng = np.random.default_rng(2)
     cells = np.unique(rng.integers(-40, 40, (300, 2)), axis=0)
