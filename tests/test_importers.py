@@ -118,6 +118,14 @@ def test_colmap_pose_that_is_no_rigid_transform_is_one_clear_error(synth, tmp_pa
     assert caught.value.path == model and not (tmp_path / "ds").exists()
 
 
+def test_colmap_camera_of_negative_width_is_shown_as_written(synth, tmp_path):
+    """Issue 35: a width of −160 was reported as 18446744073709551456 (pycolmap's unsigned read)."""
+    model = _copy_model(synth / "colmap", tmp_path / "model", replace={"PINHOLE 160 120": "PINHOLE -160 120"})
+    with pytest.raises(DataFormatError, match=r"has width -160: not an image width"):
+        import_colmap(model, synth / "images", tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
+
+
 def test_colmap_binary_model_and_model_without_rig_match_the_text_model(synth, tmp_path):
     text = load_dataset(import_colmap(synth / "colmap", synth / "images", tmp_path / "text"))
     binary_dir = tmp_path / "bin"

@@ -132,12 +132,19 @@ def read_model(model_dir: os.PathLike | str) -> pycolmap.Reconstruction:
     return read_reconstruction(model_dir)
 
 
+MAX_IMAGE_EDGE = 65536  # pixels along an image's side (rig.json's limit)
+
+
 def camera_from_colmap(camera: pycolmap.Camera, where: Path) -> _Camera:
     """A dataset camera for a COLMAP camera (see the module doc for the models); ``where``
     (the cameras file) is named in errors."""
     name = camera.model.name
     w, h = int(camera.width), int(camera.height)
     what = f"camera {camera.camera_id} ({name})"
+    for side, value in (("width", w), ("height", h)):
+        if not 0 < value <= MAX_IMAGE_EDGE:  # pycolmap reads a negative width as an unsigned 2⁶⁴ − n
+            shown = value - (1 << 64) if value >= 1 << 63 else value
+            raise DataFormatError(where, f"{what} has {side} {shown}: not an image {side} (1 to {MAX_IMAGE_EDGE} px)")
     params = np.asarray(camera.params, dtype=np.float64)
     if not np.all(np.isfinite(params)):
         raise DataFormatError(where, f"{what} has non-finite parameters")
