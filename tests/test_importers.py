@@ -368,6 +368,19 @@ def test_photo_folder_with_no_focal_length_is_one_clear_error(synth, tmp_path):
     assert not (tmp_path / "ds").exists()
 
 
+def test_photo_exif_focal_of_zero_over_zero_is_no_focal_length(synth, tmp_path):
+    """Issue 35: EXIF FocalLength 0/0 (a rational Pillow reads as NaN) ended in "Out of range
+    float values are not JSON compliant: nan"; it is no focal length."""
+    exif = PILImage.Exif()
+    exif.get_ifd(0x8769)[0x920A] = IFDRational(0, 0)
+    exif.get_ifd(0x8769)[0xA405] = IFDRational(0, 0)
+    photo = _write_photos(tmp_path / "photos", synth / "images" / "cam0", 2, exif=exif)[0]
+    assert exif_focal_px(photo, (160, 120), sensor_width_mm=6.4) is None
+    with pytest.raises(DataFormatError, match=r"no focal length: give --intrinsics"):
+        import_photos(tmp_path / "photos", tmp_path / "ds", PhotosConfig(sensor_width_mm=6.4))
+    assert not (tmp_path / "ds").exists()
+
+
 def test_photos_of_another_size_name_the_odd_file(synth, tmp_path):
     _write_photos(tmp_path / "photos", synth / "images" / "cam0", 3)
     PILImage.new("RGB", (120, 160)).save(tmp_path / "photos" / "IMG_0001.jpg")

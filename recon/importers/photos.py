@@ -136,9 +136,10 @@ def _exif_value(exif, tag: int):
     if value is None:
         value = exif.get(tag)
     try:
-        return None if value is None else float(value)
+        number = None if value is None else float(value)
     except (TypeError, ValueError, ZeroDivisionError):
         return None
+    return number if number is not None and np.isfinite(number) else None  # a rational 0/0 reads as NaN
 
 
 def exif_focal_px(path: Path, size: tuple[int, int], sensor_width_mm: float | None = None
