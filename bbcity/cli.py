@@ -751,13 +751,17 @@ def _work_poses(work: Path) -> Path | None:
 
 
 def _work_holdout(work: Path) -> int:
-    """The ``--holdout`` a recon WORK directory was made with (0 when its report predates it)."""
-    from core.fileio import read_json
+    """The ``--holdout`` a recon WORK directory was made with (0 when its report predates it);
+    a value that is no holdout is one error naming the report and the key."""
+    from core.fileio import DataFormatError, read_json
 
-    report = read_json(work / "recon_report.json")
+    path = work / "recon_report.json"
+    report = read_json(path)
     config = report.get("config") if isinstance(report, dict) else None
     holdout = config.get("holdout", 0) if isinstance(config, dict) else 0
-    return holdout if isinstance(holdout, int) and not isinstance(holdout, bool) else 0
+    if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 0 or holdout == 1:
+        raise DataFormatError(path, f"config.holdout must be 0 (none) or an integer ≥ 2, got {holdout!r}")
+    return holdout
 
 
 def _add_texture_sweep(sub) -> None:

@@ -500,3 +500,18 @@ def test_a_dead_worker_is_told_apart_from_other_errors():
 
     assert worker_died(BrokenProcessPool("a worker died")) and worker_died(KilledWorker("task", "worker"))
     assert not worker_died(RuntimeError("a bug")) and not worker_died(ValueError("bad input"))
+
+
+@pytest.mark.parametrize("holdout", [-3, 1, 2.5, "4", True])
+def test_bad_holdout_in_a_work_report_names_the_file_and_the_key(work, tmp_path, holdout):
+    """Issue 35: a bad holdout in recon_report.json named neither the file nor the key."""
+    from bbcity.cli import _work_holdout
+
+    moved = tmp_path / "work"
+    shutil.copytree(work, moved)
+    report = json.loads((moved / "recon_report.json").read_text())
+    report["config"]["holdout"] = holdout
+    (moved / "recon_report.json").write_text(json.dumps(report))
+    with pytest.raises(DataFormatError, match="config.holdout must be 0") as err:
+        _work_holdout(moved)
+    assert err.value.path == moved / "recon_report.json"
