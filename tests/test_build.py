@@ -139,7 +139,9 @@ def test_bad_inputs_fail_clearly_and_keep_the_old_model(tiny_dataset, tiny_cloud
     with pytest.raises(DataFormatError, match="missing.ply"):
         build_main(small_config(), tmp_path / "missing.ply", tiny_dataset, out)
     with pytest.raises(ValueError, match="no voxel holds"):
-        build_main(small_config(octree=OctreeConfig(voxel_size=0.5, min_points=10**9)), tiny_cloud, tiny_dataset, out)
+        build_main(small_config(octree=OctreeConfig(voxel_size=0.5, min_points=10**6)), tiny_cloud, tiny_dataset, out)
+    with pytest.raises(ValueError, match=r"min_points must be an integer in \[1, 1000000\]"):
+        OctreeConfig(voxel_size=0.5, min_points=10**9)
     broken = tmp_path / "broken.ply"
     broken.write_bytes(tiny_cloud.read_bytes()[:-100])
     with pytest.raises(DataFormatError, match="truncated"):
