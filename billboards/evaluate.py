@@ -49,6 +49,13 @@ def near_occluders(centres: np.ndarray, scene, size: float, reach: float = 4.0) 
 
 
 def _errors(sampler_aware, sampler_naive, ids, scene, renderer, config: SamplingConfig, base_yaw, size, spp):
+    if len(ids) == 0:  # no billboard in this set (none near an occluder, say): no measurement
+        empty = np.zeros((0, config.tile, config.tile, 4), np.float32)
+        out = dict.fromkeys(("billboards", "samples", "texels_behind_occluders", "hidden_texels",
+                             "fallback_texels"), 0)
+        for name in ("occlusion_aware", "naive", "occlusion_aware_behind_occluders", "naive_behind_occluders"):
+            out[name] = texture_psnr(empty, empty)
+        return out
     aware = sampler_aware.sample(ids)
     naive = sampler_naive.sample(ids)
     # Same first camera in both (the ranking is the same); compare where both sampled.
@@ -97,6 +104,9 @@ def compare_sampling(dataset_dir: os.PathLike | str, cloud_path: os.PathLike | s
     views = views_from_dataset(load_dataset(dataset_dir))
     points, _ = read_cloud_arrays(cloud_path)
     octree = build_octree(points, octree_config)
+    if octree.num_voxels == 0:
+        raise ValueError(f"{cloud_path}: no voxel holds {octree_config.min_points} points at voxel size "
+                         f"{octree.voxel_size:g} m; nothing to sample")
     placed = place_billboards(points, octree, views.centres)
     del points
     centres, base_yaw = placed.voxels.centres, placed.base_yaw

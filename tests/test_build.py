@@ -188,6 +188,13 @@ def test_sampling_eval_cli(tiny_dataset, tiny_cloud, tmp_path):
             assert agreement is None or 0 <= agreement <= 1  # None: no billboard in the set
     assert report["random"]["samples"] > 0 and report["random"]["occlusion_aware"]["psnr_rgb"] > 10
     assert "occlusion-aware" in (out / "sampling_eval.md").read_text()
+    # issue 35: a set with no billboard (none near an occluder in one huge voxel) is no measurement,
+    # not numpy's "cannot reshape array of size 0"; no voxel at all is one clear line
+    huge = tmp_path / "huge"
+    assert cli_main(["-q", "sampling-eval", str(work), "--out", str(huge), "--voxel-size", "1e4"]) == 0
+    report = json.loads((huge / "sampling_eval.json").read_text())
+    assert report["near_occluders"]["billboards"] == 0 and report["near_occluders"]["naive"]["psnr_rgb"] is None
+    assert cli_main(["-q", "sampling-eval", str(work), "--out", str(tmp_path / "none"), "--voxel-size", "1e-4"]) == 2
 
 
 def test_city_coordinates_give_the_same_model(tiny_dataset, tiny_cloud, tiny_model, tmp_path):
