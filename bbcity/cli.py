@@ -1273,9 +1273,9 @@ def _num(value, spec: str = ".2f") -> str:
 
 def _add_view(sub) -> None:
     try:
-        from render.viewer import KEYS_HELP
+        from render.viewer import KEYS_HELP, WINDOWS
     except ImportError:  # the viewer's GL dependencies are missing; the command still parses
-        KEYS_HELP = None
+        KEYS_HELP, WINDOWS = None, None
 
     p = sub.add_parser(
         "view", help="open a billboard model in an interactive window (fly, drive, toggles, screenshots)",
@@ -1292,7 +1292,7 @@ def _add_view(sub) -> None:
     p.add_argument("--mode", choices=("drive", "fly"), default="drive", help="camera mode at start")
     p.add_argument("--exact", action="store_true",
                    help="start with level of detail off (GPU decode of every eigen image everywhere; key L toggles)")
-    p.add_argument("--window", default="auto",
+    p.add_argument("--window", default="auto", choices=WINDOWS,
                    help="moderngl-window backend: auto (pyglet, else headless), pyglet, glfw, headless, ...")
     p.add_argument("--screenshot-dir", type=Path, default=Path("."), help="where F12/P screenshots go")
     p.add_argument("--script-frames", type=int_range(0, MAX_FRAMES), default=0,
@@ -1305,8 +1305,16 @@ def _add_view(sub) -> None:
 
 
 def _check_view(args) -> None:
+    from render.viewer import KEY_NAMES
+
     if args.window == "headless" and args.script_frames == 0:
         raise UsageError("--window headless takes no input and never closes: give --script-frames N")
+    keys = [k.strip().upper() for k in args.script_keys.split(",") if k.strip()]
+    unknown = [k for k in keys if k not in KEY_NAMES]
+    if unknown:
+        raise UsageError(f"--script-keys: unknown key {unknown[0]!r}; the viewer answers {', '.join(KEY_NAMES)}")
+    if "ESCAPE" in keys:
+        raise UsageError("--script-keys: ESCAPE closes the viewer before its screenshot; leave it out")
 
 
 def _run_view(args) -> int:

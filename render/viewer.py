@@ -132,6 +132,14 @@ def _window_class(name: str):
     return get_local_window_cls(name)
 
 
+class WindowError(ValueError):
+    """No window of the kind asked for could be opened (no display, a backend not installed)."""
+
+
+#: moderngl-window's window backends ("auto": pyglet, else headless)
+WINDOWS = ("auto", "pyglet", "glfw", "sdl2", "pyside2", "pyqt5", "tk", "headless")
+
+
 def _make_window(kind: str, size, title: str):
     """A moderngl-window window; "auto" tries pyglet (needs a display) then headless."""
     import moderngl_window
@@ -152,7 +160,8 @@ def _make_window(kind: str, size, title: str):
             return wnd
         except Exception as e:
             errors.append(f"{name}: {e}")
-    raise RuntimeError("no window: " + "; ".join(errors))
+    raise WindowError(f"--window {kind}: no window could be opened ({'; '.join(errors)}); without a display run "
+                      "under xvfb-run, or give --window headless with --script-frames N")
 
 
 try:

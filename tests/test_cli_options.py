@@ -48,6 +48,9 @@ FINDINGS = [
     *((["recon", "D", "--out", "O", "--frame-stride", v], "--frame-stride") for v in ("0", "-1")),
     (["view", "M", "--script-frames", "-1"], "--script-frames"),
     (["view", "M", "--window", "headless"], "--script-frames"),  # would never close
+    (["view", "M", "--window", "nosuch"], "--window"),  # issue 35: a traceback
+    (["view", "M", "--script-frames", "2", "--script-keys", "ESCAPE"], "--script-keys"),  # closed, then a traceback
+    (["view", "M", "--script-frames", "2", "--script-keys", "C,NOSUCH"], "--script-keys"),
     (["recon", "D", "--out", "O", "--voxel-size", "1e-320"], "--voxel-size"),  # denormal: an infinite grid
     (["recon", "D", "--out", "O", "--min-depth", "1e-320"], "--min-depth"),
     (["eval", "M", "D", "--out", "O", "--views", "99999999999"], "--views"),

@@ -268,3 +268,15 @@ def test_culling_in_a_window_draws_what_frustum_culling_draws(tmp_path):
     assert np.mean(np.abs(shots["frustum"].astype(int) - BG_U8).sum(-1) > 6) > 0.05
     for cull in ("hzb", "auto"):
         assert np.array_equal(shots[cull], shots["frustum"]), cull
+
+
+def test_no_display_is_one_line_naming_the_window(tmp_path, monkeypatch, caplog):
+    """Issue 35: pyglet without a display ended in a traceback; it is one line naming --window."""
+    from bbcity.cli import main
+
+    save(street_model(), tmp_path / "model")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["view", str(tmp_path / "model"), "--window", "pyglet"]) == 2
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert len(errors) == 1 and errors[0].startswith("--window pyglet: no window could be opened"), errors
