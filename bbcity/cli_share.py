@@ -7,7 +7,6 @@ before any work (exit 2).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from pathlib import Path
 
@@ -16,13 +15,8 @@ from .options import float_range, gpu_budget_mb, int_range
 logger = logging.getLogger(__name__)
 
 
-def _default(config_class, name: str):
-    return next(f.default for f in dataclasses.fields(config_class) if f.name == name)
-
-
 def add_export_kinds(kinds) -> None:
     """``export web``, ``export gltf`` and ``export 3dtiles`` on the ``export`` command's kinds."""
-    from share.gltf import TEXTURES, GltfConfig
     from share.tiles3d import REFINES, Tiles3dConfig
     from share.web_site import WebConfig
 
@@ -39,11 +33,11 @@ def add_export_kinds(kinds) -> None:
     w.add_argument("--dataset", type=Path, default=None, metavar="DIR",
                    help="dataset whose camera-0 poses are the start view and the capture path played on P "
                         "(default: the model's, when it is still there)")
-    w.add_argument("--gpu-budget", type=gpu_budget_mb, default=_default(WebConfig, "gpu_budget_mb"), metavar="MB",
+    w.add_argument("--gpu-budget", type=gpu_budget_mb, default=WebConfig.gpu_budget_mb, metavar="MB",
                    help="GPU memory a tiled set's resident tiles may take in the browser "
-                        f"(default {_default(WebConfig, 'gpu_budget_mb'):g})")
-    w.add_argument("--fov", type=float_range(1.0, 170.0, lo_open=False), default=_default(WebConfig, "fov_deg"),
-                   metavar="DEG", help=f"vertical field of view (default {_default(WebConfig, 'fov_deg'):g})")
+                        f"(default {WebConfig.gpu_budget_mb:g})")
+    w.add_argument("--fov", type=float_range(1.0, 170.0, lo_open=False), default=WebConfig.fov_deg,
+                   metavar="DEG", help=f"vertical field of view (default {WebConfig.fov_deg:g})")
     w.set_defaults(func=_run_export_web, check_options=_web_config)
 
     g = kinds.add_parser(
@@ -53,8 +47,7 @@ def add_export_kinds(kinds) -> None:
                     "capture path, unlit, in glTF's y-up axes with the model's origin on the root node.")
     g.add_argument("model", type=Path, help="billboard model directory")
     g.add_argument("--out", type=Path, required=True, help="new .glb file")
-    g.add_argument("--texture", choices=TEXTURES, default=_default(GltfConfig, "texture"),
-                   help=f"each quad's texture (default {_default(GltfConfig, 'texture')})")
+    _texture_option(g)
     g.set_defaults(func=_run_export_gltf, check_options=_gltf_config, writes_file=True)
 
     t = kinds.add_parser(
@@ -64,15 +57,21 @@ def add_export_kinds(kinds) -> None:
                     "or not at all; an existing DIR is refused.")
     t.add_argument("model", type=Path, help="tiled model set (tiles.json) or plain model directory")
     t.add_argument("--out", type=Path, required=True, help="new tileset folder")
-    t.add_argument("--refine", choices=REFINES, default=_default(Tiles3dConfig, "refine"),
-                   help=f"the root's refinement (default {_default(Tiles3dConfig, 'refine')})")
+    t.add_argument("--refine", choices=REFINES, default=Tiles3dConfig.refine,
+                   help=f"the root's refinement (default {Tiles3dConfig.refine})")
     t.add_argument("--lonlat-height", type=float_range(allow_inf=False), nargs=3, default=None,
                    metavar=("LON", "LAT", "H"),
                    help="place the world's (0, 0, 0) at this WGS84 longitude, latitude (degrees) and height (m) "
                         "on the globe (default: local coordinates)")
-    t.add_argument("--texture", choices=TEXTURES, default=_default(GltfConfig, "texture"),
-                   help=f"each quad's texture (default {_default(GltfConfig, 'texture')})")
+    _texture_option(t)
     t.set_defaults(func=_run_export_3dtiles, check_options=_tiles3d_config)
+
+
+def _texture_option(p) -> None:
+    from share.gltf import TEXTURES, GltfConfig
+
+    p.add_argument("--texture", choices=TEXTURES, default=GltfConfig.texture,
+                   help=f"each quad's texture (default {GltfConfig.texture})")
 
 
 def _web_config(args):

@@ -45,8 +45,12 @@ _ALIGN = 16
 
 
 def model_tables(model: BillboardModel) -> tuple[dict[str, np.ndarray], dict]:
-    """The arrays the viewer reads (name → array, per-quad ones in slit order) and the layout
-    numbers its shaders take. Raises ValueError where the model does not fit WebGL2 textures
+    """The arrays the viewer reads and the layout numbers its shaders take. Per position (n quads
+    in slit order): centres (n, 3) float32, base_yaw, edge (n,) float32, kind, rank (n,) uint8,
+    corner_dz (n, 4) float32, first_slot (n,) int32, decoded_origin, view_origin (n, 2) int32;
+    per column (c): column_start, column_count (c,) int32; per billboard in model order:
+    column_of (n,) int32; the node table as the model holds it; slot_table (rows, 3·2048, 4)
+    float32. Raises ValueError where the model does not fit WebGL2 textures
     of :data:`MAX_TEXTURE` texels."""
     if model.page_size > MAX_TEXTURE:
         raise ValueError(f"atlas pages of {model.page_size} texels exceed the web's {MAX_TEXTURE}; "

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from billboards.model import MANIFEST
-from billboards.model_set import TILES_FILE, ModelSet, load_model_set
+from billboards.model_set import TILES_FILE, ModelSet, directory_bytes, load_model_set
 from billboards.sky import read_sky
 from core.fileio import atomic_dir, read_json, write_json
 from render.paths import capture_camera_poses, densify_poses, drive_path_for
@@ -100,10 +100,8 @@ def export_web(model_path: Path, out: Path, config: WebConfig = WebConfig(), dat
         viewer = resources.files("share").joinpath("viewer")
         for name in VIEWER_FILES:
             (tmp / name).write_bytes(viewer.joinpath(name).read_bytes())
-    site_bytes = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
-    model_bytes = model_set.bytes + sum(p.stat().st_size for p in Path(model_path).glob("*") if p.is_file()
-                                        and model_set.tiled)
-    return {"site": str(out), "tiles": len(model_set), "site_bytes": site_bytes, "model_bytes": int(model_bytes),
+    site_bytes, model_bytes = directory_bytes(out), directory_bytes(model_path)
+    return {"site": str(out), "tiles": len(model_set), "site_bytes": site_bytes, "model_bytes": model_bytes,
             "size_ratio": site_bytes / max(model_bytes, 1), "path_poses": len(site["path"]),
             "seconds": time.perf_counter() - t0}
 

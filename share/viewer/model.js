@@ -120,8 +120,7 @@ export class WebModel {
     const f16 = doc.tile_mode === 'f16';
     this.tiles = this.pageArray(doc.pages, pages, doc.atlas_width, f16 ? gl.RGBA16F : gl.RGBA8, gl.RGBA,
                                 f16 ? gl.HALF_FLOAT : gl.UNSIGNED_BYTE, f16 ? Uint16Array : Uint8Array, 4);
-    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
-    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    this.sampling(gl.TEXTURE_2D_ARRAY, gl.LINEAR);
     const coef = {u8: [gl.R8, gl.UNSIGNED_BYTE, Uint8Array], f16: [gl.R16F, gl.HALF_FLOAT, Uint16Array],
                   f32: [gl.R32F, gl.FLOAT, Float32Array]}[doc.coef_mode];
     this.coefs = this.pageArray(doc.coef_pages, coefPages, doc.coef_width, coef[0], gl.RED, coef[1], coef[2], 1);
@@ -131,34 +130,11 @@ export class WebModel {
     gl.bindTexture(gl.TEXTURE_2D, this.slotTable);
     gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA32F, tableShape[1], tableShape[0]);
     gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, tableShape[1], tableShape[0], gl.RGBA, gl.FLOAT, table);
-    this.nearest(gl.TEXTURE_2D);
+    this.sampling(gl.TEXTURE_2D, gl.NEAREST);
     delete this.t.slot_table;
-    const [w, h] = doc.decoded_size;
-    this.decoded = this.keep(gl.createTexture());
-    gl.bindTexture(gl.TEXTURE_2D, this.decoded);
-    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA16F, w, h);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
-    this.decodedFbo = this.keep(gl.createFramebuffer());
-    gl.bindFramebuffer(gl.FRAMEBUFFER, this.decodedFbo);
-    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.decoded, 0);
-    if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE)
-      throw new Error('this browser cannot render into a half-float texture (EXT_color_buffer_float)');
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    const [vw, vh] = doc.view_size;
-    this.viewTiles = this.keep(gl.createTexture());
-    gl.bindTexture(gl.TEXTURE_2D, this.viewTiles);
-    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, vw, vh);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
-    this.viewFbo = this.keep(gl.createFramebuffer());
-    gl.bindFramebuffer(gl.FRAMEBUFFER, this.viewFbo);
-    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.viewTiles, 0);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    // the decode pass writes unclamped values (the blend clamps): a half-float target
+    [this.decoded, this.decodedFbo] = this.atlasTarget(gl.RGBA16F, doc.decoded_size);
+    [this.viewTiles, this.viewFbo] = this.atlasTarget(gl.RGBA8, doc.view_size);
     this.quadBuffers = [this.keep(gl.createBuffer()), this.keep(gl.createBuffer())];
     this.indexBuffer = this.keep(gl.createBuffer());
     const indices = new Uint32Array(Math.max(this.columns, 1) * 6);
@@ -185,12 +161,28 @@ export class WebModel {
 
   keep(obj) { this.objects.push(obj); return obj; }
 
-  nearest(target) {
+  // Filter (gl.NEAREST or gl.LINEAR) and clamp the texture bound to `target`.
+  sampling(target, filter) {
     const gl = this.gl;
-    gl.texParameteri(target, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-    gl.texParameteri(target, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    gl.texParameteri(target, gl.TEXTURE_MIN_FILTER, filter);
+    gl.texParameteri(target, gl.TEXTURE_MAG_FILTER, filter);
     gl.texParameteri(target, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
     gl.texParameteri(target, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+  }
+
+  // An atlas a pass renders into: a bilinear texture of `internal` format and [w, h] texels
+  // (sampled only within its tiles) and its framebuffer.
+  atlasTarget(internal, [w, h]) {
+    const gl = this.gl, tex = this.keep(gl.createTexture()), fbo = this.keep(gl.createFramebuffer());
+    gl.bindTexture(gl.TEXTURE_2D, tex);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, internal, w, h);
+    this.sampling(gl.TEXTURE_2D, gl.LINEAR);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+    const complete = gl.checkFramebufferStatus(gl.FRAMEBUFFER) === gl.FRAMEBUFFER_COMPLETE;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    if (!complete) throw new Error('this browser cannot render into the atlases (EXT_color_buffer_float)');
+    return [tex, fbo];
   }
 
   // A texture array of pages (one layer each, the tallest page's height), NEAREST.
@@ -204,7 +196,7 @@ export class WebModel {
       const data = new View(buffers[layer], 0, p.width * p.height * components);
       gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, layer, p.width, p.height, 1, format, type, data);
     });
-    this.nearest(gl.TEXTURE_2D_ARRAY);
+    this.sampling(gl.TEXTURE_2D_ARRAY, gl.NEAREST);
     return tex;
   }
 
