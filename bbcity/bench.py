@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Callable, Iterator
 
 import numpy as np
 
+from core.errors import InputError
 from core.memory import rss_bytes
 
 if TYPE_CHECKING:
@@ -48,10 +49,10 @@ class BenchConfig:
 
     def __post_init__(self):
         if self.scene not in SCENES:
-            raise ValueError(f"scene must be one of {SCENES}, got {self.scene!r}")
+            raise InputError(f"scene must be one of {SCENES}, got {self.scene!r}")
         if not (0 < self.street_length < float("inf") and self.scales and all(int(s) >= 1 for s in self.scales)
                 and self.repeats >= 1 and self.workers >= 1 and self.city_gpu_budget_mb >= 1):
-            raise ValueError(f"invalid BenchConfig: {self}")
+            raise InputError(f"invalid BenchConfig: {self}")
 
     @classmethod
     def quick_config(cls, **overrides) -> "BenchConfig":

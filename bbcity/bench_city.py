@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
+
 from .bench import BenchConfig, Report
 from .bench_pipeline import StageTime, stage_in_fresh_process
 
@@ -119,10 +121,10 @@ def added_metre_seconds(lengths, seconds) -> np.ndarray:
     length = np.asarray(lengths, np.float64).reshape(-1)
     sec = np.asarray(seconds, np.float64).reshape(-1)
     if len(length) != len(sec) or len(length) == 0:
-        raise ValueError(f"need one time per length, got {len(sec)} for {len(length)}")
+        raise InputError(f"need one time per length, got {len(sec)} for {len(length)}")
     added = length[1:] - length[0]
     if np.any(~(added > 0)):
-        raise ValueError(f"every length must exceed the first, got {length.tolist()}")
+        raise InputError(f"every length must exceed the first, got {length.tolist()}")
     return (sec[1:] - sec[0]) / added
 
 

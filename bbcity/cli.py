@@ -15,6 +15,8 @@ import threading
 import time
 from pathlib import Path
 
+from core.errors import InputError
+
 from . import __version__
 from .cli_share import add_export_kinds, add_fps_web_options, add_serve, check_fps_web, print_web_fps
 from .executor import DEFAULT_RETRIES, EXECUTORS
@@ -741,11 +743,11 @@ def _work_poses(work: Path) -> Path | None:
         return None
     path = work / Path(name).name
     if not path.is_file():
-        raise ValueError(f"{report_path}: its poses file {path} is missing (the cloud lies in the frame of those "
+        raise InputError(f"{report_path}: its poses file {path} is missing (the cloud lies in the frame of those "
                          "poses; rerun recon or pass --poses)")
     digest = report.get("poses_digest")
     if isinstance(digest, str) and file_digest(path) != digest:
-        raise ValueError(f"{path}: not the poses file recon wrote (changed or truncated since; the cloud lies in "
+        raise InputError(f"{path}: not the poses file recon wrote (changed or truncated since; the cloud lies in "
                          "the frame of those poses): rerun recon or pass --poses")
     return path
 
@@ -1147,7 +1149,7 @@ def _eval_dataset(model, dataset_dir: Path):
     if not isinstance(poses, str):
         ds = load_dataset(dataset_dir)
         if not ds.posed.any():
-            raise ValueError(f"{dataset_dir}: no frame has a pose, and the model records no poses file (build it "
+            raise InputError(f"{dataset_dir}: no frame has a pose, and the model records no poses file (build it "
                              "from the WORK of `bbcity recon --poses sfm`)")
         return dataset_dir
     logger.info("poses: %s (the model's)", poses)
@@ -1391,7 +1393,6 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     logging.getLogger().setLevel(logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO)
-    from core import DataFormatError
     from core.workdir import owned_output
 
     from .executor import tune_allocator
@@ -1410,8 +1411,8 @@ def _main(argv: list[str] | None) -> int:
                 check_own_output(out, *_OWN_OUTPUT[args.command])
         with owned_output(out) if out is not None else contextlib.nullcontext():
             return args.func(args)
-    # one line for the user; -v adds the traceback (a ValueError may be a bug as well as bad input)
-    except (DataFormatError, ValueError) as e:  # UsageError included
+    # one line for the user; -v adds the traceback
+    except InputError as e:  # DataFormatError and UsageError included
         logger.error("%s", e, exc_info=args.verbose)
         return 2
     except OSError as e:  # a file-system error: read-only, full, a name too long, a file where a directory goes
@@ -1422,7 +1423,9 @@ def _main(argv: list[str] | None) -> int:
         return 130
     except Exception as e:
         if not worker_died(e):
-            raise
+            # not bad input: a bug in bbcity or a library; -v shows where
+            logger.error("internal error, please report: %s: %s", type(e).__name__, e, exc_info=args.verbose)
+            return 1
         logger.error("a worker process died (killed, or out of memory: try fewer --workers); what finished is kept, "
                      "and running the command again resumes (%s)", type(e).__name__, exc_info=args.verbose)
         return 1

@@ -10,6 +10,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from core.errors import InputError
+
 from .options import float_range, gpu_budget_mb, int_range
 
 logger = logging.getLogger(__name__)
@@ -83,7 +85,7 @@ def _web_config(args):
 def _refuse_out_inside(out: Path, model: Path) -> None:
     """An export's --out inside the model directory it reads would change that directory."""
     if out.resolve().is_relative_to(model.resolve()):
-        raise ValueError(f"--out {out} lies inside the model directory {model}; write the export elsewhere")
+        raise InputError(f"--out {out} lies inside the model directory {model}; write the export elsewhere")
 
 
 def _run_export_web(args) -> int:
@@ -109,7 +111,7 @@ def _run_export_gltf(args) -> int:
 
     _refuse_out_inside(args.out, args.model)
     if is_model_set(args.model):
-        raise ValueError(f"{args.model} is a tiled model set: export gltf writes one model "
+        raise InputError(f"{args.model} is a tiled model set: export gltf writes one model "
                          f"(export 3dtiles writes a set, a GLB per tile)")
     r = export_gltf(args.model, args.out, _gltf_config(args))
     print(f"wrote {args.out}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
@@ -179,7 +181,7 @@ def check_fps_web(args) -> None:
     from share.web_site import check_site_of
 
     if args.model is None:
-        raise ValueError("--web needs MODEL: the site's frames are compared with MODEL's")
+        raise InputError("--web needs MODEL: the site's frames are compared with MODEL's")
     check_site_of(check_site(args.web), args.model)
 
 

@@ -39,6 +39,8 @@ from concurrent.futures._base import CANCELLED, CANCELLED_AND_NOTIFIED, FINISHED
 import distributed
 from distributed.diagnostics.plugin import WorkerPlugin
 
+from core.errors import InputError
+
 from .executor import _call_in_worker, tune_allocator
 
 logger = logging.getLogger(__name__)
@@ -183,7 +185,7 @@ class DaskExecutor(Executor):
 
     def __init__(self, client: distributed.Client, cluster=None, retries: int = 2):
         if retries < 0:
-            raise ValueError(f"retries must be at least 0, got {retries}")
+            raise InputError(f"retries must be at least 0, got {retries}")
         self.client = client
         self.cluster = cluster
         self.retries = retries

@@ -18,6 +18,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterator
 
+from core.errors import InputError
+
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
@@ -151,20 +153,20 @@ class ExecutorConfig:
 
     def __post_init__(self):
         if self.kind not in EXECUTORS:
-            raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {self.kind!r}")
+            raise InputError(f"executor must be one of {', '.join(EXECUTORS)}, got {self.kind!r}")
         if self.workers is not None and (isinstance(self.workers, bool) or not isinstance(self.workers, int)
                                          or self.workers < 1):
-            raise ValueError(f"workers must be at least 1, got {self.workers}")
+            raise InputError(f"workers must be at least 1, got {self.workers}")
         if self.scheduler is not None:
             if self.kind != "dask":
-                raise ValueError("a scheduler address needs the dask executor")
+                raise InputError("a scheduler address needs the dask executor")
             if not self.scheduler.strip():
-                raise ValueError("the scheduler address is empty")
+                raise InputError("the scheduler address is empty")
             if self.workers is not None:
-                raise ValueError("workers sizes a cluster started here; a running scheduler's cluster has the "
+                raise InputError("workers sizes a cluster started here; a running scheduler's cluster has the "
                                  "workers started on its machines")
         if isinstance(self.retries, bool) or not isinstance(self.retries, int) or self.retries < 0:
-            raise ValueError(f"retries must be at least 0, got {self.retries}")
+            raise InputError(f"retries must be at least 0, got {self.retries}")
 
 
 def make_executor(workers: int | None = None, *, kind: str = "local", scheduler: str | None = None,

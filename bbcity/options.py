@@ -14,6 +14,8 @@ import math
 import os
 import re
 
+from core.errors import InputError
+
 #: Largest texture and renderbuffer edge the renderers rely on (pixels, texels): the
 #: GL_MAX_TEXTURE_SIZE / GL_MAX_RENDERBUFFER_SIZE of current desktop GPUs.
 GL_MAX_SIZE = 16384
@@ -57,7 +59,7 @@ BUILD_BYTES_PER_TEXEL = 32
 FIT_BYTES_PER_UNKNOWN = 48
 
 
-class UsageError(ValueError):
+class UsageError(InputError):
     """Bad command-line input: options that contradict each other, a value no option takes,
     a size the memory cannot hold. Before the command starts it becomes argparse's usage
     line; raised later, ``main`` reports it in one line like any bad input (exit 2)."""

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import atomic_path, write_bytes, write_json
 from data_synth import load_dataset
 
@@ -49,7 +50,7 @@ def stereo_sweep(dataset_dir: Path, out_dir: Path, num_frames: int = 4) -> dict:
 
     ds = load_dataset(dataset_dir)
     if not ds.has_ground_truth:
-        raise ValueError(f"{dataset_dir}: the stereo sweep needs a dataset with ground truth (gt/)")
+        raise InputError(f"{dataset_dir}: the stereo sweep needs a dataset with ground truth (gt/)")
     pairs = rectify_rig(ds.rig)
     wide = max(pairs.values(), key=lambda p: p.baseline)
     f, B = ds.rig.intrinsics[0][0, 0], wide.baseline

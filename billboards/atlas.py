@@ -30,6 +30,8 @@ from typing import Sequence
 
 import numpy as np
 
+from core.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 TILE_DTYPES = (np.dtype(np.uint8), np.dtype(np.float16))
@@ -74,19 +76,19 @@ def _positive_int(value, what: str) -> int:
     except TypeError:
         raise TypeError(f"{what} must be an integer, got {value!r}") from None
     if value < 1:
-        raise ValueError(f"{what} must be ≥ 1, got {value}")
+        raise InputError(f"{what} must be ≥ 1, got {value}")
     return value
 
 
 def _layout(num_cells: int, cell_h: int, cell_w: int, page_size: int, what: str) -> AtlasLayout:
     num_cells = operator.index(num_cells)
     if num_cells < 0:
-        raise ValueError(f"number of {what}s must be ≥ 0, got {num_cells}")
+        raise InputError(f"number of {what}s must be ≥ 0, got {num_cells}")
     cell_h = _positive_int(cell_h, f"{what} height")
     cell_w = _positive_int(cell_w, f"{what} width")
     page_size = _positive_int(page_size, "page_size")
     if page_size < cell_h or page_size < cell_w:
-        raise ValueError(f"page_size {page_size} is smaller than one {what} ({cell_h}×{cell_w} texels)")
+        raise InputError(f"page_size {page_size} is smaller than one {what} ({cell_h}×{cell_w} texels)")
     per_row = page_size // cell_w
     rows = page_size // cell_h
     per_page = per_row * rows
@@ -173,7 +175,7 @@ def _gather(pages: Sequence[np.ndarray], slots, layout: AtlasLayout) -> np.ndarr
         data = pages[p]
         row, col = y[sel] // ch, x[sel] // cw
         if data.shape[0] % ch or data.shape[1] != layout.tiles_per_row * cw:
-            raise ValueError(f"page {p} of shape {data.shape[:2]} does not fit the layout")
+            raise InputError(f"page {p} of shape {data.shape[:2]} does not fit the layout")
         if row.max() >= data.shape[0] // ch:
             raise IndexError(f"slot {slots[sel[np.argmax(row)]]} lies outside page {p} of shape {data.shape[:2]}")
         out[sel] = _cell_view(data, ch, cw)[row, :, col]
@@ -209,7 +211,7 @@ def pack_tiles(tiles: np.ndarray, page_size: int) -> list[np.ndarray]:
     """In-memory atlas: tiles (m, t, t, 4) → pages (H, W, 4) of the tiles' dtype, last page cropped."""
     tiles = np.asarray(tiles)
     if tiles.ndim != 4 or tiles.shape[1] != tiles.shape[2] or tiles.shape[3] != 4:
-        raise ValueError(f"tiles must be (m, t, t, 4), got {tiles.shape}")
+        raise InputError(f"tiles must be (m, t, t, 4), got {tiles.shape}")
     return _pack(tiles, atlas_layout(len(tiles), tiles.shape[1], page_size))
 
 
@@ -220,7 +222,7 @@ def pack_rows(rows: np.ndarray, page_size: int) -> list[np.ndarray]:
     """
     rows = np.asarray(rows)
     if rows.ndim != 2:
-        raise ValueError(f"rows must be (m, d), got {rows.shape}")
+        raise InputError(f"rows must be (m, d), got {rows.shape}")
     layout = row_layout(len(rows), rows.shape[1], page_size)
     return _pack(rows.reshape(len(rows), 1, rows.shape[1]), layout)
 
@@ -238,7 +240,7 @@ class _PageWriter:
         if self.dtype not in self._dtypes:
             raise TypeError(f"page dtype must be one of {[str(d) for d in self._dtypes]}, got {self.dtype}")
         if not prefix or "/" in prefix or os.sep in prefix or prefix.startswith("."):
-            raise ValueError(f"prefix must be a plain file name stem, got {prefix!r}")
+            raise InputError(f"prefix must be a plain file name stem, got {prefix!r}")
         self.prefix = prefix
         self.directory.mkdir(parents=True, exist_ok=True)
         self.count = 0  # cells appended so far
@@ -374,7 +376,7 @@ class AtlasWriter(_PageWriter):
         tiles = np.asarray(tiles)
         t = self.tile
         if tiles.ndim != 4 or tiles.shape[1:] != (t, t, 4):
-            raise ValueError(f"tiles must be (m, {t}, {t}, 4), got {tiles.shape}")
+            raise InputError(f"tiles must be (m, {t}, {t}, 4), got {tiles.shape}")
         return self._append_cells(_cast(tiles, self.dtype, "tiles"))
 
 
@@ -394,7 +396,7 @@ class RowWriter(_PageWriter):
         """Append rows (m, d) of the writer's dtype (floats are cast for float pages); returns their slots."""
         rows = np.asarray(rows)
         if rows.ndim != 2 or rows.shape[1] != self.d:
-            raise ValueError(f"rows must be (m, {self.d}), got {rows.shape}")
+            raise InputError(f"rows must be (m, {self.d}), got {rows.shape}")
         rows = _cast(rows, self.dtype, "coefficient rows")
         return self._append_cells(rows.reshape(len(rows), 1, self.d))
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import write_json
 from core.memory import peak_memory
 from core.metrics import psnr_from_mse
@@ -81,17 +82,17 @@ class BuildConfig:
 
     def __post_init__(self):
         if self.source not in SOURCES:
-            raise ValueError(f"source must be one of {SOURCES}, got {self.source!r}")
+            raise InputError(f"source must be one of {SOURCES}, got {self.source!r}")
         if self.holdout < 0 or self.holdout == 1:
-            raise ValueError("holdout must be 0 (none) or ≥ 2 (every n-th frame left out)")
+            raise InputError("holdout must be 0 (none) or ≥ 2 (every n-th frame left out)")
         if self.chunk < 1 or self.task_chunks < 1 or self.error_stride < 1:
-            raise ValueError("chunk, task_chunks and error_stride must be ≥ 1")
+            raise InputError("chunk, task_chunks and error_stride must be ≥ 1")
         if self.tile_metres is not None and not (np.isfinite(self.tile_metres) and self.tile_metres > 0):
-            raise ValueError(f"tile_metres must be a finite number > 0 or None, got {self.tile_metres!r}")
+            raise InputError(f"tile_metres must be a finite number > 0 or None, got {self.tile_metres!r}")
         if not (np.isfinite(self.tile_margin) and self.tile_margin >= 0) or self.sample_points < 1:
-            raise ValueError("tile_margin must be finite and ≥ 0, sample_points ≥ 1")
+            raise InputError("tile_margin must be finite and ≥ 0, sample_points ≥ 1")
         if self.fit_views_per_task < 1:
-            raise ValueError("fit_views_per_task must be ≥ 1")
+            raise InputError("fit_views_per_task must be ≥ 1")
 
 
 @dataclass(frozen=True, eq=False)
@@ -470,7 +471,7 @@ def _run_task(task: _Task):
         return _compress_range(root, task.begin, task.end, conf, eig), fit_stats
     if task.stage == "compress":
         return _compress_range(root, task.begin, task.end, conf)
-    raise ValueError(f"unknown task stage {task.stage!r}")
+    raise InputError(f"unknown task stage {task.stage!r}")
 
 
 def texture_tasks(state: Path, conf: BuildConfig, n: int) -> list[_Task]:
@@ -580,7 +581,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         posed = dataset.posed
         if not posed.any():
             where = poses if poses is not None else Path(dataset_dir) / "poses.json"
-            raise ValueError(f"{where}: no frame has a pose (a photo folder: `bbcity recon DATASET --poses sfm`, "
+            raise InputError(f"{where}: no frame has a pose (a photo folder: `bbcity recon DATASET --poses sfm`, "
                              "then `bbcity build WORK`)")
         # the frames left out of the textures that can be viewpoints (eval needs their poses)
         held_out = [f for f in held_out_frames(dataset.num_frames, conf.holdout) if posed[f]]
@@ -589,10 +590,10 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         cameras = dataset.rig.num_cameras
         if conf.source == "images" and len(views) and not sees_any(views, points, conf.sampling.max_distance):
             # every texel would stay transparent: an empty-looking model that builds without complaint
-            raise ValueError(f"no camera of {dataset_dir} sees any point of {cloud_path}: wrong dataset or "
+            raise InputError(f"no camera of {dataset_dir} sees any point of {cloud_path}: wrong dataset or "
                              f"poses? (cloud within {_box(points)}, cameras within {_box(views.centres)})")
     elif conf.source == "images":
-        raise ValueError("source 'images' needs the dataset's images and poses (--images DATASET)")
+        raise InputError("source 'images' needs the dataset's images and poses (--images DATASET)")
 
     photometry_report: dict = {"enabled": False}
     exposure = None
@@ -644,7 +645,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         block_size = None
     stages["octree_s"] = time.perf_counter() - t1
     if octree.num_voxels == 0:
-        raise ValueError(f"{cloud_path}: no voxel holds {conf.octree.min_points} points "
+        raise InputError(f"{cloud_path}: no voxel holds {conf.octree.min_points} points "
                          f"at voxel size {octree.voxel_size:g} m; nothing to build")
     logger.info("%d points → %d voxels of %.3g m (depth %d)", len(points), octree.num_voxels,
                 octree.voxel_size, octree.depth)

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, read_json, replace_dir, write_json
 from core.memory import peak_memory
 from core.metrics import psnr_from_mse
@@ -347,9 +348,9 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
     Arguments as :func:`billboards.build.main`. Writes ``model_dir/build_report.json`` too.
     """
     if conf.tile_metres is None:
-        raise ValueError("build_tiled needs BuildConfig.tile_metres")
+        raise InputError("build_tiled needs BuildConfig.tile_metres")
     if conf.octree.voxel_size is None:
-        raise ValueError("a tiled build needs a voxel size (OctreeConfig.voxel_size), not an octree depth")
+        raise InputError("a tiled build needs a voxel size (OctreeConfig.voxel_size), not an octree depth")
     if conf.source != "images" and dataset_dir is None and conf.layer is not None:
         conf = replace(conf, layer=None)
     cloud_path, model_dir = Path(cloud_path), Path(model_dir)
@@ -367,7 +368,7 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
         grid = TileGrid(tuple(float(v) for v in grid_origin), float(conf.tile_metres))
         voxel = float(conf.octree.voxel_size)
         if not np.isclose(conf.tile_metres / voxel, round(conf.tile_metres / voxel), rtol=0, atol=1e-9):
-            raise ValueError(f"tile_metres {conf.tile_metres:g} must be a whole number of voxels ({voxel:g} m)")
+            raise InputError(f"tile_metres {conf.tile_metres:g} must be a whole number of voxels ({voxel:g} m)")
         block_size = (conf.layer.block_size or voxel) if conf.layer is not None else None
 
         dataset, frames, views, held_out, exposure = None, [], None, [], None
@@ -375,12 +376,12 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
             dataset = load_dataset(dataset_dir, poses=poses)
             posed = dataset.posed
             if not posed.any():
-                raise ValueError(f"{poses or Path(dataset_dir) / 'poses.json'}: no frame has a pose")
+                raise InputError(f"{poses or Path(dataset_dir) / 'poses.json'}: no frame has a pose")
             held_out = [f for f in held_out_frames(dataset.num_frames, conf.holdout) if posed[f]]
             frames = [f for f in range(dataset.num_frames) if f not in set(held_out) and posed[f]]
             views = views_from_dataset(dataset, frames)
         elif conf.source == "images":
-            raise ValueError("source 'images' needs the dataset's images and poses (--images DATASET)")
+            raise InputError("source 'images' needs the dataset's images and poses (--images DATASET)")
 
         t0 = time.perf_counter()
         sample, _ = cloud_sample(cloud, conf.sample_points)
@@ -430,7 +431,7 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
                 reports.append(report)
         stages["tiles_s"] = time.perf_counter() - t0
         if not reports:
-            raise ValueError(f"{cloud_path}: no voxel holds {conf.octree.min_points} points at voxel size "
+            raise InputError(f"{cloud_path}: no voxel holds {conf.octree.min_points} points at voxel size "
                              f"{voxel:g} m; nothing to build")
         for leftover in work.glob("*.empty"):
             leftover.unlink()

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.errors import InputError
+
 from .atlas import read_rows, read_tiles
 from .model import BillboardModel
 
@@ -74,7 +76,7 @@ def decode(model: BillboardModel, billboards, yaw_index, pitch_index=None) -> np
     yi = np.broadcast_to(np.asarray(yaw_index, dtype=np.float64), (B,))
     pi = np.zeros(B) if pitch_index is None else np.broadcast_to(np.asarray(pitch_index, dtype=np.float64), (B,))
     if not (np.all(np.isfinite(yi)) and np.all(np.isfinite(pi))):
-        raise ValueError("direction indices must be finite")
+        raise InputError("direction indices must be finite")
     corners, weights = direction_corners(yi, pi, len(model.yaw_offsets), len(model.pitches))
     first = model.first_slot[b].astype(np.int64)
     rank = model.rank[b].astype(np.int64)
@@ -115,7 +117,7 @@ def direction_index(model: BillboardModel, billboards, view_dirs) -> tuple[np.nd
     b = _billboards(model, billboards)
     v = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
     if len(v) != b.size:
-        raise ValueError(f"{b.size} billboards but {len(v)} view directions")
+        raise InputError(f"{b.size} billboards but {len(v)} view directions")
     return view_direction_index(v, model.base_yaw[b], model.yaw_offsets, model.pitches)
 
 

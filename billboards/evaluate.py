@@ -22,6 +22,8 @@ from data_synth.raycast import Renderer
 from data_synth.scene import OCCLUDER_KINDS
 from recon.cloud_io import read_cloud_arrays
 
+from core.errors import InputError
+
 from .build import place_billboards
 from .geometry import direction_angles, quad_frames, ray_box_interval, texel_points
 from .octree import build_octree
@@ -105,7 +107,7 @@ def compare_sampling(dataset_dir: os.PathLike | str, cloud_path: os.PathLike | s
     points, _ = read_cloud_arrays(cloud_path)
     octree = build_octree(points, octree_config)
     if octree.num_voxels == 0:
-        raise ValueError(f"{cloud_path}: no voxel holds {octree_config.min_points} points at voxel size "
+        raise InputError(f"{cloud_path}: no voxel holds {octree_config.min_points} points at voxel size "
                          f"{octree.voxel_size:g} m; nothing to sample")
     placed = place_billboards(points, octree, views.centres)
     del points

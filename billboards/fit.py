@@ -46,6 +46,8 @@ from functools import cached_property
 import numpy as np
 from scipy import sparse
 
+from core.errors import InputError
+
 from .decode import direction_corners, view_direction_index
 from .geometry import GROUND, GROUND_OVERLAP, kind_frames, quad_edges
 from .slits import Slits, build_slits
@@ -82,24 +84,24 @@ class FitConfig:
 
     def __post_init__(self):
         if not (np.isfinite(self.seconds) and self.seconds >= 0):
-            raise ValueError(f"fit seconds must be a finite number ≥ 0, got {self.seconds!r}")
+            raise InputError(f"fit seconds must be a finite number ≥ 0, got {self.seconds!r}")
         for name in ("iterations", "pixel_stride", "max_rays_side", "see_through", "alpha_min_views",
                      "alpha_min_rays"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-                raise ValueError(f"fit {name} must be an integer, got {value!r}")
+                raise InputError(f"fit {name} must be an integer, got {value!r}")
         if self.iterations < 0 or self.pixel_stride < 1 or self.see_through < 0 or self.max_rays_side < 1:
-            raise ValueError("fit iterations and see_through must be ≥ 0, pixel_stride and max_rays_side ≥ 1")
+            raise InputError("fit iterations and see_through must be ≥ 0, pixel_stride and max_rays_side ≥ 1")
         if not (np.isfinite(self.prior) and self.prior > 0):
-            raise ValueError(f"fit prior must be a finite number > 0 (it keeps the solve regular), got {self.prior!r}")
+            raise InputError(f"fit prior must be a finite number > 0 (it keeps the solve regular), got {self.prior!r}")
         if not isinstance(self.alpha, (bool, np.bool_)):
-            raise ValueError(f"fit alpha must be true or false, got {self.alpha!r}")
+            raise InputError(f"fit alpha must be true or false, got {self.alpha!r}")
         if self.alpha_min_views < 1 or self.alpha_min_rays < 1:
-            raise ValueError("fit alpha_min_views and alpha_min_rays must be ≥ 1")
+            raise InputError("fit alpha_min_views and alpha_min_rays must be ≥ 1")
         if not (np.isfinite(self.alpha_tolerance) and self.alpha_tolerance >= 0):
-            raise ValueError(f"fit alpha_tolerance must be a finite number ≥ 0, got {self.alpha_tolerance!r}")
+            raise InputError(f"fit alpha_tolerance must be a finite number ≥ 0, got {self.alpha_tolerance!r}")
         if self.transients is not None and not (np.isfinite(self.transients) and self.transients > 0):
-            raise ValueError(f"fit transients must be a finite number > 0 or None, got {self.transients!r}")
+            raise InputError(f"fit transients must be a finite number > 0 or None, got {self.transients!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -273,7 +275,7 @@ def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: 
     measured side (None: there must be no such tap)."""
     quad = records["quad"].astype(np.int64)
     if len(quad) and (quad.min() < begin or quad.max() >= begin + count):
-        raise ValueError(f"records of quads outside [{begin}, {begin + count})")
+        raise InputError(f"records of quads outside [{begin}, {begin + count})")
     d_pitch, d_yaw, T = len(quads.pitches), len(quads.yaw_offsets), quads.tile * quads.tile
     tap_quad, taps, tap_w = column_taps(quads, quad, records["texel"])                 # (r, 4)
     corner = records["corner"].astype(np.int64)                                        # (r, c)
@@ -287,7 +289,7 @@ def problem(quads: Quads, records: np.ndarray, begin: int, count: int, outside: 
     if not inside.all():
         far = ~inside
         if outside is None:
-            raise ValueError(f"records of quads [{begin}, {begin + count}) tap quads outside it")
+            raise InputError(f"records of quads [{begin}, {begin + count}) tap quads outside it")
         known = np.asarray(outside[tq[far], cc[far], tt[far]], np.float64)[:, :3] / 255.0
         np.subtract.at(y, np.nonzero(far)[0], a[far][:, None] * known)
         a = np.where(inside, a, 0.0)
@@ -317,7 +319,7 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, iterations: int,
     measurement touches stay exactly at x0.
     """
     if not prior > 0:
-        raise ValueError(f"prior must be > 0, got {prior!r}")
+        raise InputError(f"prior must be > 0, got {prior!r}")
     t0 = time.perf_counter()
     x = np.array(x0, np.float64)
     e = prob.apply(x) - prob.y                                  # data residual A·x − y, kept up to date

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 
 #: Quad kinds: one quad of the voxel edge each, the same textures and decode.
 BILLBOARD, FACADE, GROUND = 0, 1, 2
@@ -60,12 +62,12 @@ class DirectionConfig:
 
     def __post_init__(self):
         if self.count < 1 or not np.isfinite(self.spacing_deg) or self.spacing_deg <= 0:
-            raise ValueError(f"need count ≥ 1 and spacing > 0, got {self.count}, {self.spacing_deg}")
+            raise InputError(f"need count ≥ 1 and spacing > 0, got {self.count}, {self.spacing_deg}")
         if self.count * self.spacing_deg > 360.0 + 1e-9:
-            raise ValueError(f"{self.count} directions {self.spacing_deg}° apart span more than 360°")
+            raise InputError(f"{self.count} directions {self.spacing_deg}° apart span more than 360°")
         p = np.asarray(self.pitches_deg, dtype=np.float64)
         if p.size < 1 or not np.all(np.isfinite(p)) or np.any(np.abs(p) >= 90) or np.any(np.diff(p) <= 0):
-            raise ValueError(f"pitches must be ascending, finite and within (−90°, 90°), got {self.pitches_deg}")
+            raise InputError(f"pitches must be ascending, finite and within (−90°, 90°), got {self.pitches_deg}")
 
     @property
     def yaw_offsets(self) -> np.ndarray:

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 from .ground import cell_index
 
 #: the lower level of a kerb is at most max_step above the lowest ground within this many cells
@@ -45,9 +47,9 @@ class KerbConfig:
 
     def __post_init__(self):
         if not (0 < self.min_step < self.max_step and np.isfinite(self.max_step)):
-            raise ValueError(f"0 < min_step < max_step required, got {self.min_step}, {self.max_step}")
+            raise InputError(f"0 < min_step < max_step required, got {self.min_step}, {self.max_step}")
         if self.face_points < 1 or not (self.face_width > 0 and self.tolerance >= 0):
-            raise ValueError("face_points ≥ 1, face_width > 0 and tolerance ≥ 0 required")
+            raise InputError("face_points ≥ 1, face_width > 0 and tolerance ≥ 0 required")
 
 
 def neighbour_pairs(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

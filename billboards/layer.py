@@ -27,6 +27,8 @@ import numpy as np
 
 from recon.epi import EpiConfig, EpiPass
 
+from core.errors import InputError
+
 from .geometry import FACADE, GROUND, HALF_DIAGONAL
 from .ground import ground_blocks
 from .kerbs import KerbConfig, kerb_blocks
@@ -73,22 +75,22 @@ class LayerConfig:
 
     def __post_init__(self):
         if self.block_size is not None and not (np.isfinite(self.block_size) and self.block_size > 0):
-            raise ValueError(f"block_size must be a finite number > 0 or None, got {self.block_size}")
+            raise InputError(f"block_size must be a finite number > 0 or None, got {self.block_size}")
         if not (np.isfinite(self.ground_reach) and self.ground_reach >= 0):
-            raise ValueError(f"ground_reach must be a finite number ≥ 0 (m), got {self.ground_reach}")
+            raise InputError(f"ground_reach must be a finite number ≥ 0 (m), got {self.ground_reach}")
         if not (np.isfinite(self.end_reach) and self.end_reach >= 0) or self.end_min_points < 1:
-            raise ValueError(f"end_reach must be a finite number ≥ 0 (m) and end_min_points ≥ 1, got "
+            raise InputError(f"end_reach must be a finite number ≥ 0 (m) and end_min_points ≥ 1, got "
                              f"{self.end_reach}, {self.end_min_points}")
         if not (np.isfinite(self.top_raise) and self.top_raise >= 0):
-            raise ValueError(f"top_raise must be a finite number ≥ 0 (m), got {self.top_raise}")
+            raise InputError(f"top_raise must be a finite number ≥ 0 (m), got {self.top_raise}")
         if not (self.slab > 0 and self.histogram_bin > 0 and self.ground_tolerance > 0 and self.min_depth > 0):
-            raise ValueError("slab, histogram_bin, ground_tolerance and min_depth must be > 0")
+            raise InputError("slab, histogram_bin, ground_tolerance and min_depth must be > 0")
         if not (self.ground_step >= 0 and 1 <= self.ground_fill_neighbours <= 8 and self.ground_fill_passes >= 0):
-            raise ValueError("ground_step ≥ 0, ground_fill_neighbours in [1, 8] and ground_fill_passes ≥ 0 required")
+            raise InputError("ground_step ≥ 0, ground_fill_neighbours in [1, 8] and ground_fill_passes ≥ 0 required")
         if self.min_points < 1 or self.ground_min_points < 1 or self.smooth_columns < 0 or self.top_columns < 0:
-            raise ValueError("min_points, ground_min_points ≥ 1 and smooth_columns, top_columns ≥ 0 required")
+            raise InputError("min_points, ground_min_points ≥ 1 and smooth_columns, top_columns ≥ 0 required")
         if not (0 <= self.top_fraction < 1):
-            raise ValueError(f"top_fraction must be in [0, 1), got {self.top_fraction}")
+            raise InputError(f"top_fraction must be in [0, 1), got {self.top_fraction}")
 
 
 @dataclass(frozen=True, eq=False)

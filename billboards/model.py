@@ -59,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError
 
 from .geometry import GROUND, KINDS, MAX_SPLIT, quad_edges
@@ -193,29 +194,29 @@ class BillboardModel:
         try:
             doc = _manifest_doc(self)
         except (TypeError, ValueError, OverflowError) as e:
-            raise ValueError(f"invalid model: {e}") from None
+            raise InputError(f"invalid model: {e}") from None
         meta = _checked(lambda: _parse_manifest(doc, Path(MANIFEST)))
         for name, (dtype, _) in ARRAYS.items():
             array = getattr(self, name)
             if not isinstance(array, np.ndarray):
-                raise ValueError(f"invalid model: {name} is not a numpy array")
+                raise InputError(f"invalid model: {name} is not a numpy array")
             problem = _array_problem(array.dtype, array.shape, dtype, _shape(name, meta))
             if problem:
-                raise ValueError(f"invalid model: {name}: {problem}")
+                raise InputError(f"invalid model: {name}: {problem}")
             if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
-                raise ValueError(f"invalid model: {name} contains NaN or inf")
+                raise InputError(f"invalid model: {name} contains NaN or inf")
         problem = _table_problem({name: getattr(self, name) for name in ARRAYS}, meta.d)
         if problem:
-            raise ValueError(f"invalid model: {problem[0]}: {problem[1]}")
+            raise InputError(f"invalid model: {problem[0]}: {problem[1]}")
         for what, pages, layout, dtype, channels in (
                 ("pages", self.pages, self.tile_layout(), TILE_MODES[self.tile_mode], (4,)),
                 ("coef_pages", self.coef_pages, self.coef_layout(), COEF_MODES[self.coef_mode], ())):
             if len(pages) != layout.num_pages:
-                raise ValueError(f"invalid model: {len(pages)} {what}, the layout needs {layout.num_pages}")
+                raise InputError(f"invalid model: {len(pages)} {what}, the layout needs {layout.num_pages}")
             for i, (page, shape) in enumerate(zip(pages, layout.page_shapes)):
                 problem = _array_problem(np.asarray(page).dtype, np.shape(page), dtype, shape + channels)
                 if problem:
-                    raise ValueError(f"invalid model: {what}[{i}]: {problem}")
+                    raise InputError(f"invalid model: {what}[{i}]: {problem}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -451,7 +452,7 @@ def _checked(fn):
     try:
         return fn()
     except DataFormatError as e:
-        raise ValueError(f"invalid model: {e.problem}") from None
+        raise InputError(f"invalid model: {e.problem}") from None
 
 
 # ----------------------------------------------------------------------------------------------

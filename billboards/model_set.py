@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, read_json, write_json
 
 from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP
@@ -315,39 +316,39 @@ def write_model_set(root: os.PathLike | str, origin, tile_size: float, tiles: li
     root = Path(root)
     o = np.asarray(origin, np.float64)
     if o.shape != (3,) or not np.all(np.isfinite(o)):
-        raise ValueError(f"origin must be 3 finite numbers, got {origin!r}")
+        raise InputError(f"origin must be 3 finite numbers, got {origin!r}")
     tile_size = float(tile_size)
     if not (math.isfinite(tile_size) and tile_size > 0):
-        raise ValueError(f"tile_size must be a finite number > 0, got {tile_size}")
+        raise InputError(f"tile_size must be a finite number > 0, got {tile_size}")
     info = {} if info is None else info
     if not isinstance(info, dict):
-        raise ValueError("info must be a dict")
+        raise InputError("info must be a dict")
     json.dumps(info, allow_nan=False)
     entries, names, indices = [], set(), set()
     for i, t in enumerate(tiles):
         missing = {"name", "index", "lo", "hi"} - set(t)
         if missing:
-            raise ValueError(f"tiles[{i}] lacks {sorted(missing)}")
+            raise InputError(f"tiles[{i}] lacks {sorted(missing)}")
         name = t["name"]
         if not isinstance(name, str) or not _TILE_NAME.fullmatch(name) or name in (".", ".."):
-            raise ValueError(f"tiles[{i}]: name must be a plain sub-directory name, got {name!r}")
+            raise InputError(f"tiles[{i}]: name must be a plain sub-directory name, got {name!r}")
         if name in names:
-            raise ValueError(f"tiles[{i}]: name {name!r} given twice")
+            raise InputError(f"tiles[{i}]: name {name!r} given twice")
         names.add(name)
         index = tuple(int(v) for v in t["index"])
         if len(index) != 2 or any(int(v) != v for v in t["index"]):
-            raise ValueError(f"tiles[{i}]: index must be 2 integers, got {t['index']!r}")
+            raise InputError(f"tiles[{i}]: index must be 2 integers, got {t['index']!r}")
         if index in indices:
-            raise ValueError(f"tiles[{i}]: index {list(index)} given twice")
+            raise InputError(f"tiles[{i}]: index {list(index)} given twice")
         indices.add(index)
         lo, hi = (np.asarray(t[k], np.float64) for k in ("lo", "hi"))
         if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-            raise ValueError(f"tiles[{i}]: lo and hi must be 3 finite numbers each")
+            raise InputError(f"tiles[{i}]: lo and hi must be 3 finite numbers each")
         if np.any(lo > hi):
-            raise ValueError(f"tiles[{i}]: lo {lo.tolist()} lies above hi {hi.tolist()}")
+            raise InputError(f"tiles[{i}]: lo {lo.tolist()} lies above hi {hi.tolist()}")
         tile_dir = root / name
         if tile_dir.is_symlink() or not tile_dir.is_dir():
-            raise ValueError(f"tiles[{i}]: {tile_dir} is not a directory")
+            raise InputError(f"tiles[{i}]: {tile_dir} is not a directory")
         meta = read_manifest(tile_dir)
         entries.append({"name": name, "index": list(index), "lo": lo.tolist(), "hi": hi.tolist(),
                         "billboards": int(meta.n), "bytes": directory_bytes(tile_dir)})
@@ -427,7 +428,7 @@ def split_tiles(model: BillboardModel, root: os.PathLike | str, tile_size: float
     root = Path(root)
     tile_size = float(tile_size)
     if not (math.isfinite(tile_size) and tile_size > 0):
-        raise ValueError(f"tile_size must be a finite number > 0, got {tile_size}")
+        raise InputError(f"tile_size must be a finite number > 0, got {tile_size}")
     grid = np.asarray(model.origin if grid_origin is None else grid_origin, np.float64).reshape(3)
     cells = tile_indices(model, tile_size, grid)
     entries = []

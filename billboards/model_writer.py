@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import replace_dir, save_npy, write_json
 
 from .atlas import AtlasWriter, RowWriter, atlas_layout, row_layout
@@ -111,9 +112,9 @@ class ModelWriter:
                  coef_mode: str, num_directions: int):
         self.path = Path(path)
         if tile_mode not in TILE_MODES:
-            raise ValueError(f"tile_mode must be one of {sorted(TILE_MODES)}, got {tile_mode!r}")
+            raise InputError(f"tile_mode must be one of {sorted(TILE_MODES)}, got {tile_mode!r}")
         if coef_mode not in COEF_MODES:
-            raise ValueError(f"coef_mode must be one of {sorted(COEF_MODES)}, got {coef_mode!r}")
+            raise InputError(f"coef_mode must be one of {sorted(COEF_MODES)}, got {coef_mode!r}")
         atlas_layout(0, tile, page_size)
         row_layout(0, num_directions, page_size)
         _check_replaceable(self.path)
@@ -145,10 +146,10 @@ class ModelWriter:
         d, t = self.num_directions, self.tile
         rank = np.asarray(rank)
         if rank.ndim != 1 or (rank.size and rank.dtype.kind not in "iu"):
-            raise ValueError(f"rank must be (b,) integers, got {rank.shape} {rank.dtype}")
+            raise InputError(f"rank must be (b,) integers, got {rank.shape} {rank.dtype}")
         b = len(rank)
         if b and (rank.min() < 0 or rank.max() > min(d, 255)):
-            raise ValueError(f"rank must lie in [0, {min(d, 255)}], got {rank.min()}…{rank.max()}")
+            raise InputError(f"rank must lie in [0, {min(d, 255)}], got {rank.min()}…{rank.max()}")
         m = b + int(rank.sum())
         arrays = {
             "centres": _as(centres, np.float32, (b, 3), "centres"),
@@ -168,15 +169,15 @@ class ModelWriter:
         tiles = np.asarray(tiles)
         coef_rows = np.asarray(coef_rows)
         if tiles.shape != (m, t, t, 4):
-            raise ValueError(f"tiles must be ({m}, {t}, {t}, 4) for ranks summing to {m - b}, got {tiles.shape}")
+            raise InputError(f"tiles must be ({m}, {t}, {t}, 4) for ranks summing to {m - b}, got {tiles.shape}")
         if coef_rows.shape != (m, d):
-            raise ValueError(f"coef_rows must be ({m}, {d}), got {coef_rows.shape}")
+            raise InputError(f"coef_rows must be ({m}, {d}), got {coef_rows.shape}")
         if tiles.dtype.kind == "f" and not np.all(np.isfinite(tiles.astype(TILE_MODES[self.tile_mode]))):
-            raise ValueError("tiles contain NaN or inf (after conversion to float16)")
+            raise InputError("tiles contain NaN or inf (after conversion to float16)")
         if coef_rows.dtype.kind == "f" and not np.all(np.isfinite(coef_rows.astype(COEF_MODES[self.coef_mode]))):
-            raise ValueError(f"coef_rows contain NaN or inf (after conversion to {COEF_MODES[self.coef_mode]})")
+            raise InputError(f"coef_rows contain NaN or inf (after conversion to {COEF_MODES[self.coef_mode]})")
         if self.num_slots + m >= 2**31:
-            raise ValueError("more than 2³¹ slots")
+            raise InputError("more than 2³¹ slots")
         self._tiles.append(tiles)
         self._coefs.append(coef_rows)
         for name, array in arrays.items():
@@ -193,7 +194,7 @@ class ModelWriter:
             yaw = np.asarray(yaw_offsets, dtype=np.float64)
             pitch = np.asarray(pitches, dtype=np.float64)
             if yaw.size * pitch.size != self.num_directions:
-                raise ValueError(f"{yaw.size} yaw offsets × {pitch.size} pitches ≠ num_directions "
+                raise InputError(f"{yaw.size} yaw offsets × {pitch.size} pitches ≠ num_directions "
                                  f"{self.num_directions}")
             pages = self._tiles.close()
             coef_pages = self._coefs.close()
@@ -247,10 +248,10 @@ class ModelWriter:
 def _as(value, dtype, shape: tuple, what: str) -> np.ndarray:
     array = np.asarray(value)
     if array.shape != shape:
-        raise ValueError(f"{what} must have shape {shape}, got {array.shape}")
+        raise InputError(f"{what} must have shape {shape}, got {array.shape}")
     if array.size and array.dtype.kind not in "fiu":
-        raise ValueError(f"{what} must be numeric, got {array.dtype}")
+        raise InputError(f"{what} must be numeric, got {array.dtype}")
     array = array.astype(dtype)
     if not np.all(np.isfinite(array)):
-        raise ValueError(f"{what} contains NaN or inf")
+        raise InputError(f"{what} contains NaN or inf")
     return array

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 #: Deepest leaf level: 3×21 bits fit a uint64 Morton code (2**21 cells per axis).
@@ -48,19 +50,19 @@ class OctreeConfig:
 
     def __post_init__(self):
         if (self.voxel_size is None) == (self.depth is None):
-            raise ValueError("OctreeConfig: give exactly one of voxel_size and depth "
+            raise InputError("OctreeConfig: give exactly one of voxel_size and depth "
                              f"(got voxel_size={self.voxel_size!r}, depth={self.depth!r}); "
                              "set voxel_size=None to build to a depth")
         if self.voxel_size is not None:
             v = float(self.voxel_size)
             if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"OctreeConfig: voxel_size must be a finite number > 0, got {self.voxel_size!r}")
+                raise InputError(f"OctreeConfig: voxel_size must be a finite number > 0, got {self.voxel_size!r}")
         if self.depth is not None:
             if isinstance(self.depth, bool) or int(self.depth) != self.depth or not 0 <= self.depth <= MAX_DEPTH:
-                raise ValueError(f"OctreeConfig: depth must be an integer in [0, {MAX_DEPTH}] "
+                raise InputError(f"OctreeConfig: depth must be an integer in [0, {MAX_DEPTH}] "
                                  f"(2**{MAX_DEPTH} cells per axis fit a uint64 Morton code), got {self.depth!r}")
         if int(self.min_points) != self.min_points or not 1 <= self.min_points <= MAX_MIN_POINTS:
-            raise ValueError(f"OctreeConfig: min_points must be an integer in [1, {MAX_MIN_POINTS}], "
+            raise InputError(f"OctreeConfig: min_points must be an integer in [1, {MAX_MIN_POINTS}], "
                              f"got {self.min_points!r}")
 
 
@@ -181,9 +183,9 @@ def morton_encode(ijk: np.ndarray) -> np.ndarray:
     """
     ijk = np.asarray(ijk)
     if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
-        raise ValueError(f"morton_encode: expected an (n, 3) integer array, got {ijk.dtype} {ijk.shape}")
+        raise InputError(f"morton_encode: expected an (n, 3) integer array, got {ijk.dtype} {ijk.shape}")
     if len(ijk) and (ijk.min() < 0 or ijk.max() >= 1 << MAX_DEPTH):
-        raise ValueError(f"morton_encode: indices must lie in [0, 2**{MAX_DEPTH})")
+        raise InputError(f"morton_encode: indices must lie in [0, 2**{MAX_DEPTH})")
     return _morton_axes(ijk[:, 0], ijk[:, 1], ijk[:, 2])
 
 
@@ -204,9 +206,9 @@ def _as_points(points: np.ndarray) -> np.ndarray:
     """Validate an (N, 3) real array → C-contiguous float64 (a copy only when needed)."""
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"points must be an (N, 3) array, got shape {p.shape}")
+        raise InputError(f"points must be an (N, 3) array, got shape {p.shape}")
     if not (np.issubdtype(p.dtype, np.floating) or np.issubdtype(p.dtype, np.integer)):
-        raise ValueError(f"points must be a real float array, got dtype {p.dtype}")
+        raise InputError(f"points must be a real float array, got dtype {p.dtype}")
     return np.ascontiguousarray(p, dtype=np.float64)
 
 
@@ -236,7 +238,7 @@ def _depth_for(extent: float, voxel: float) -> int:
     if d > MAX_DEPTH:
         ratio = extent / voxel
         need = f"depth {math.floor(math.log2(ratio)) + 1}" if math.isfinite(ratio) else "an unbounded depth"
-        raise ValueError(f"an extent of {extent:.6g} m at {voxel:.6g} m voxels needs {need} > {MAX_DEPTH} "
+        raise InputError(f"an extent of {extent:.6g} m at {voxel:.6g} m voxels needs {need} > {MAX_DEPTH} "
                          f"(at most 2**{MAX_DEPTH} cells per axis); use a coarser voxel_size or split the cloud")
     return d
 
@@ -341,7 +343,7 @@ def _node_table(leaf_codes: np.ndarray, depth: int) -> tuple[np.ndarray, np.ndar
     offset = np.concatenate([[0], np.cumsum(sizes)])
     k = int(offset[-1])
     if k >= 1 << 31:
-        raise ValueError(f"octree has {k} nodes; int32 child indices hold at most 2**31 − 1")
+        raise InputError(f"octree has {k} nodes; int32 child indices hold at most 2**31 − 1")
     children = np.full((k, 8), -1, dtype=np.int32)
     flat = children.reshape(-1)
     for level in range(depth):  # children of level `level` live at level + 1
@@ -383,10 +385,10 @@ def build_octree(points: np.ndarray, config: OctreeConfig = OctreeConfig(),
     lo, hi = _min_max(p)
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
         bad = np.flatnonzero(~np.isfinite(p).all(axis=1))
-        raise ValueError(f"points contain NaN or infinite coordinates ({len(bad)} rows, the first is row {bad[0]})")
+        raise InputError(f"points contain NaN or infinite coordinates ({len(bad)} rows, the first is row {bad[0]})")
     if grid_origin is not None:
         if config.voxel_size is None:
-            raise ValueError("build_octree: a grid origin needs OctreeConfig.voxel_size")
+            raise InputError("build_octree: a grid origin needs OctreeConfig.voxel_size")
         g = np.asarray(grid_origin, dtype=np.float64).reshape(3)
         lo = g + np.floor((lo - g) / float(config.voxel_size)) * float(config.voxel_size)
     origin, voxel, depth = _root_cube(lo, hi, config)
@@ -442,7 +444,7 @@ def build_octree_reference(points: np.ndarray, config: OctreeConfig = OctreeConf
         voxel = float(config.voxel_size) if config.voxel_size is not None else 1.0 / 2 ** config.depth
         return _empty_octree(np.zeros(3), voxel, 0 if config.depth is None else config.depth)
     if not np.isfinite(p).all():
-        raise ValueError("points contain NaN or infinite coordinates")
+        raise InputError("points contain NaN or infinite coordinates")
     origin = p.min(axis=0)
     extent = max(float(h - o) for h, o in zip(p.max(axis=0), origin))
     if config.voxel_size is not None:
@@ -450,7 +452,7 @@ def build_octree_reference(points: np.ndarray, config: OctreeConfig = OctreeConf
         while not voxel * 2 ** depth > extent:
             depth += 1
         if depth > MAX_DEPTH:
-            raise ValueError(f"needs depth {depth} > {MAX_DEPTH}")
+            raise InputError(f"needs depth {depth} > {MAX_DEPTH}")
     else:
         depth = config.depth
         voxel = (extent * (1.0 + _DEPTH_PAD) if extent > 0 else 1.0) / 2 ** depth

@@ -37,6 +37,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from tqdm import tqdm
 
+from core.errors import InputError
 from core.metrics import PSNR_MAX_DB
 
 logger = logging.getLogger(__name__)
@@ -70,18 +71,18 @@ class PcaConfig:
 
     def __post_init__(self):
         if self.ratio is not None and not 0.0 < self.ratio <= 1.0:
-            raise ValueError(f"PcaConfig.ratio must lie in (0, 1] or be None, got {self.ratio}")
+            raise InputError(f"PcaConfig.ratio must lie in (0, 1] or be None, got {self.ratio}")
         if self.max_error is not None and not (math.isfinite(self.max_error) and self.max_error >= 0.0):
-            raise ValueError(f"PcaConfig.max_error must be finite and ≥ 0 or None, got {self.max_error}")
+            raise InputError(f"PcaConfig.max_error must be finite and ≥ 0 or None, got {self.max_error}")
         if self.max_rank < 0:
-            raise ValueError(f"PcaConfig.max_rank must be ≥ 0, got {self.max_rank}")
+            raise InputError(f"PcaConfig.max_rank must be ≥ 0, got {self.max_rank}")
         if self.fixed_rank is not None and not 0 <= self.fixed_rank <= self.max_rank:
-            raise ValueError(f"PcaConfig.fixed_rank must lie in [0, max_rank={self.max_rank}], "
+            raise InputError(f"PcaConfig.fixed_rank must lie in [0, max_rank={self.max_rank}], "
                              f"got {self.fixed_rank} (raise max_rank too)")
         if self.chunk < 1:
-            raise ValueError(f"PcaConfig.chunk must be ≥ 1, got {self.chunk}")
+            raise InputError(f"PcaConfig.chunk must be ≥ 1, got {self.chunk}")
         if self.precision not in PRECISIONS:
-            raise ValueError(f"PcaConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
+            raise InputError(f"PcaConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,7 +122,7 @@ class EigenTextures:
         """
         samples = np.asarray(samples)
         if samples.shape != (len(self.rank), self.num_views, self.mean.shape[1]):
-            raise ValueError(f"samples of shape {samples.shape} do not match the eigen-textures "
+            raise InputError(f"samples of shape {samples.shape} do not match the eigen-textures "
                              f"({len(self.rank)}, {self.num_views}, {self.mean.shape[1]})")
         diff = self.reconstruct().astype(np.float64) - samples
         valid = ~np.isnan(diff)
@@ -153,7 +154,7 @@ def choose_rank(eigenvalues: np.ndarray, num_values: int, config: PcaConfig = Pc
     """
     lam = np.clip(np.asarray(eigenvalues, dtype=np.float64), 0.0, None)
     if lam.ndim != 2:
-        raise ValueError(f"eigenvalues must be (B, d), got shape {lam.shape}")
+        raise InputError(f"eigenvalues must be (B, d), got shape {lam.shape}")
     count, d = lam.shape
     if count == 0:
         return np.zeros(0, np.int32)
@@ -244,11 +245,11 @@ def eigen_textures_reference(samples: np.ndarray, config: PcaConfig = PcaConfig(
 def _check_samples(samples: np.ndarray) -> np.ndarray:
     samples = np.asarray(samples)
     if samples.ndim != 3:
-        raise ValueError(f"samples must be (B, d, n), got shape {samples.shape}")
+        raise InputError(f"samples must be (B, d, n), got shape {samples.shape}")
     if samples.dtype not in (np.float32, np.float64):
-        raise ValueError(f"samples must be float32 or float64, got {samples.dtype}")
+        raise InputError(f"samples must be float32 or float64, got {samples.dtype}")
     if samples.shape[1] < 1 and samples.shape[0]:
-        raise ValueError("samples need at least one view (d ≥ 1)")
+        raise InputError("samples need at least one view (d ≥ 1)")
     return samples
 
 
@@ -257,7 +258,7 @@ def _check_range(x: np.ndarray, first: int) -> None:
     bad = np.isinf(x) | (np.abs(np.nan_to_num(x)) > TOL.max_abs_value)
     if bad.any():
         b = first + int(np.argwhere(bad)[0, 0])
-        raise ValueError(f"samples of billboard {b} hold inf or values beyond ±{TOL.max_abs_value:g} "
+        raise InputError(f"samples of billboard {b} hold inf or values beyond ±{TOL.max_abs_value:g} "
                          "(textures are in [0, 1]; NaN marks missing values)")
 
 

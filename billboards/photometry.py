@@ -43,6 +43,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from core.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 SOLVERS = ("fast", "reference")
@@ -76,24 +78,24 @@ class PhotometryConfig:
 
     def __post_init__(self):
         if self.samples < 1 or self.iterations < 1 or self.zbuffer_scale < 1 or self.zbuffer_points < 1:
-            raise ValueError("PhotometryConfig: samples, iterations, zbuffer_scale and zbuffer_points must be ≥ 1")
+            raise InputError("PhotometryConfig: samples, iterations, zbuffer_scale and zbuffer_points must be ≥ 1")
         if self.min_observations < 2:
-            raise ValueError(f"PhotometryConfig.min_observations must be ≥ 2 (a point seen once ties nothing), "
+            raise InputError(f"PhotometryConfig.min_observations must be ≥ 2 (a point seen once ties nothing), "
                              f"got {self.min_observations}")
         if self.min_image_observations < 1:
-            raise ValueError(f"PhotometryConfig.min_image_observations must be ≥ 1, got {self.min_image_observations}")
+            raise InputError(f"PhotometryConfig.min_image_observations must be ≥ 1, got {self.min_image_observations}")
         if not (math.isfinite(self.robust_threshold) and self.robust_threshold > 0):
-            raise ValueError(f"PhotometryConfig.robust_threshold must be finite and > 0, got {self.robust_threshold}")
+            raise InputError(f"PhotometryConfig.robust_threshold must be finite and > 0, got {self.robust_threshold}")
         if not 0 <= self.dark < self.saturated <= 256:
-            raise ValueError(f"PhotometryConfig: need 0 ≤ dark < saturated ≤ 256, got {self.dark}, {self.saturated}")
+            raise InputError(f"PhotometryConfig: need 0 ≤ dark < saturated ≤ 256, got {self.dark}, {self.saturated}")
         if self.blur_sigma < 0 or self.max_distance <= 0 or self.cell <= 0:
-            raise ValueError("PhotometryConfig: blur_sigma must be ≥ 0, max_distance and cell > 0")
+            raise InputError("PhotometryConfig: blur_sigma must be ≥ 0, max_distance and cell > 0")
         if self.abs_tolerance < 0 or self.rel_tolerance < 0:
-            raise ValueError("PhotometryConfig: depth tolerances must be ≥ 0")
+            raise InputError("PhotometryConfig: depth tolerances must be ≥ 0")
         if self.loss not in LOSSES:
-            raise ValueError(f"PhotometryConfig.loss must be one of {LOSSES}, got {self.loss!r}")
+            raise InputError(f"PhotometryConfig.loss must be one of {LOSSES}, got {self.loss!r}")
         if self.solver not in SOLVERS:
-            raise ValueError(f"PhotometryConfig.solver must be one of {SOLVERS}, got {self.solver!r}")
+            raise InputError(f"PhotometryConfig.solver must be one of {SOLVERS}, got {self.solver!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -334,7 +336,7 @@ def solve_reference(image: np.ndarray, point: np.ndarray, y: np.ndarray, w: np.n
     """
     n, k = y.shape
     if n * (num_images + num_points) > REFERENCE_MAX_ENTRIES:
-        raise ValueError(f"{n} observations of {num_images} images and {num_points} points are too many for the "
+        raise InputError(f"{n} observations of {num_images} images and {num_points} points are too many for the "
                          f"dense reference solver (use solver='fast')")
     ncomp = int(comp.max() + 1) if len(comp) and comp.max() >= 0 else 0
     A = np.zeros((n + ncomp, num_images + num_points))
@@ -432,7 +434,7 @@ def solve_gains(obs: Observations, config: PhotometryConfig = PhotometryConfig()
     """
     solver = solver or config.solver
     if solver not in SOLVERS:
-        raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+        raise InputError(f"solver must be one of {SOLVERS}, got {solver!r}")
     V, P = obs.num_images, obs.num_points
     keep = prune(obs.image, obs.point, V, P, config.min_observations, config.min_image_observations)
     image, point = obs.image[keep], obs.point[keep]

@@ -26,6 +26,8 @@ import numpy as np
 
 from billboards.pca import EigenTextures
 
+from core.errors import InputError
+
 TILE_MODES = ("u8", "f16")  # eigen/mean tiles
 ROW_MODES = ("f32", "f16", "u8")  # coefficient rows
 
@@ -78,12 +80,12 @@ def quantize_tiles(tiles: np.ndarray, mode: str) -> QuantizedTiles:
     """Quantise tiles (m, t, t, 4) float32 with ``mode`` in TILE_MODES."""
     tiles = _check_values(tiles, 4, "tiles")
     if tiles.shape[-1] != 4:
-        raise ValueError(f"tiles must be (m, t, t, 4), got shape {tiles.shape}")
+        raise InputError(f"tiles must be (m, t, t, 4), got shape {tiles.shape}")
     m = len(tiles)
     if mode == "f16":
         return QuantizedTiles(_to_f16(tiles), np.ones((m, 4), np.float32), np.zeros((m, 4), np.float32))
     if mode != "u8":
-        raise ValueError(f"tile mode must be one of {TILE_MODES}, got {mode!r}")
+        raise InputError(f"tile mode must be one of {TILE_MODES}, got {mode!r}")
     flat = tiles.reshape(m, tiles.shape[1] * tiles.shape[2], 4)
     data, scale, offset = _to_u8(flat)
     return QuantizedTiles(data.reshape(tiles.shape), scale, offset)
@@ -105,7 +107,7 @@ def quantize_rows(rows: np.ndarray, mode: str) -> QuantizedRows:
         data = rows.astype(np.float32) if mode == "f32" else _to_f16(rows)
         return QuantizedRows(data, np.ones(m, np.float32), np.zeros(m, np.float32))
     if mode != "u8":
-        raise ValueError(f"row mode must be one of {ROW_MODES}, got {mode!r}")
+        raise InputError(f"row mode must be one of {ROW_MODES}, got {mode!r}")
     data, scale, offset = _to_u8(rows[:, :, None])
     return QuantizedRows(data[:, :, 0], scale[:, 0], offset[:, 0])
 
@@ -142,7 +144,7 @@ def tile_size(n: int) -> int:
     """Side t of the t×t RGBA tiles holding n = t·t·4 values."""
     t = math.isqrt(n // 4)
     if t * t * 4 != n:
-        raise ValueError(f"{n} values per image are not a t×t RGBA tile")
+        raise InputError(f"{n} values per image are not a t×t RGBA tile")
     return t
 
 
@@ -222,9 +224,9 @@ def _rms(per_billboard: np.ndarray, samples: np.ndarray) -> float:
 def _check_values(x: np.ndarray, ndim: int, name: str) -> np.ndarray:
     x = np.asarray(x)
     if x.ndim != ndim or x.dtype.kind != "f":
-        raise ValueError(f"{name} must be a {ndim}-d float array, got shape {x.shape} {x.dtype}")
+        raise InputError(f"{name} must be a {ndim}-d float array, got shape {x.shape} {x.dtype}")
     if not np.isfinite(x).all():
-        raise ValueError(f"{name} contain NaN or inf")
+        raise InputError(f"{name} contain NaN or inf")
     return x
 
 
@@ -243,7 +245,7 @@ def _to_u8(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         offset = lo.astype(np.float32)
         scale = (hi - lo).astype(np.float32)
     if not np.isfinite(scale).all():
-        raise ValueError("value range exceeds float32; cannot quantise to 8 bits")
+        raise InputError("value range exceeds float32; cannot quantise to 8 bits")
     # levels against the stored float32 scale/offset, so the decode error is ≤ scale/510 + round-off
     off64, sc64 = offset.astype(np.float64)[:, None, :], scale.astype(np.float64)[:, None, :]
     level = np.divide((x - off64) * 255.0, sc64, out=np.zeros(x.shape), where=sc64 > 0)

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 from .geometry import MAX_SPLIT, seen_in_chunks, surface_dz
 from .ground import CORNERS
 
@@ -37,9 +39,9 @@ class ResolutionConfig:
 
     def __post_init__(self):
         if not (0 <= int(self.max_split) <= MAX_SPLIT) or int(self.max_split) != self.max_split:
-            raise ValueError(f"max_split must be an integer in [0, {MAX_SPLIT}], got {self.max_split!r}")
+            raise InputError(f"max_split must be an integer in [0, {MAX_SPLIT}], got {self.max_split!r}")
         if not (np.isfinite(self.texel_pixels) and self.texel_pixels > 0):
-            raise ValueError(f"texel_pixels must be a finite number > 0, got {self.texel_pixels!r}")
+            raise InputError(f"texel_pixels must be a finite number > 0, got {self.texel_pixels!r}")
 
 
 def capture_footprint(centres: np.ndarray, reach: float, K: np.ndarray, world_from_cam: np.ndarray,

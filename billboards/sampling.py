@@ -36,6 +36,7 @@ from scipy import ndimage
 import numpy as np
 
 
+from core.errors import InputError
 from core.fileio import read_png
 
 from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, DirectionConfig, direction_angles, kind_frames,
@@ -73,13 +74,13 @@ class SamplingConfig:
 
     def __post_init__(self):
         if isinstance(self.tile, bool):
-            raise ValueError(f"tile must be an integer, got {self.tile!r}")
+            raise InputError(f"tile must be an integer, got {self.tile!r}")
         if self.tile < 1 or self.candidates < 1 or self.zbuffer_scale < 1:
-            raise ValueError("tile, candidates and zbuffer_scale must be ≥ 1")
+            raise InputError("tile, candidates and zbuffer_scale must be ≥ 1")
         if not (0 < self.max_angle_deg <= 180) or self.max_distance <= 0:
-            raise ValueError("max_angle_deg must be in (0, 180] and max_distance > 0")
+            raise InputError("max_angle_deg must be in (0, 180] and max_distance > 0")
         if self.transient_threshold < 0 or self.transient_mads < 0 or self.transient_min_views < 3:
-            raise ValueError("transient_threshold and transient_mads must be ≥ 0, transient_min_views ≥ 3")
+            raise InputError("transient_threshold and transient_mads must be ≥ 0, transient_min_views ≥ 3")
 
 
 @dataclass(frozen=True, eq=False)

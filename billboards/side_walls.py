@@ -33,6 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 #: Fronts this far (m) beyond the wall on either side decide which way it faces.
 SIDE_PROBE = 1.0
 
@@ -52,9 +54,9 @@ class SideWallConfig:
 
     def __post_init__(self):
         if self.min_points < 1 or self.cell_points < 1:
-            raise ValueError("min_points and cell_points must be ≥ 1")
+            raise InputError("min_points and cell_points must be ≥ 1")
         if not (self.contrast >= 1 and self.search > 0 and self.slab > 0 and self.histogram_bin > 0):
-            raise ValueError("contrast ≥ 1 and search, slab, histogram_bin > 0 required")
+            raise InputError("contrast ≥ 1 and search, slab, histogram_bin > 0 required")
 
 
 def _window_min(values: np.ndarray, radius: int) -> np.ndarray:

@@ -41,6 +41,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, load_npy, read_json, save_npy, write_json
 
 logger = logging.getLogger(__name__)
@@ -68,16 +69,16 @@ class SkyConfig:
 
     def __post_init__(self):
         if not 2 <= self.bins <= _MAX_BINS:
-            raise ValueError(f"bins must be in [2, {_MAX_BINS}], got {self.bins}")
+            raise InputError(f"bins must be in [2, {_MAX_BINS}], got {self.bins}")
         _check_range(self.elevation_deg, ValueError)
         if self.max_views < 1 or self.zbuffer_scale < 1 or self.margin < 0 or self.max_points < 1:
-            raise ValueError("max_views, zbuffer_scale and max_points must be ≥ 1 and margin ≥ 0")
+            raise InputError("max_views, zbuffer_scale and max_points must be ≥ 1 and margin ≥ 0")
         if not 0 < self.upper <= 1:
-            raise ValueError(f"upper must be in (0, 1], got {self.upper}")
+            raise InputError(f"upper must be in (0, 1], got {self.upper}")
         if not (0 <= self.min_luma <= 1 and self.max_gradient > 0 and self.min_pixels >= 1):
-            raise ValueError("min_luma must be in [0, 1], max_gradient > 0 and min_pixels ≥ 1")
+            raise InputError("min_luma must be in [0, 1], max_gradient > 0 and min_pixels ≥ 1")
         if not -1 <= self.max_warmth <= 1:
-            raise ValueError(f"max_warmth must be in [-1, 1], got {self.max_warmth}")
+            raise InputError(f"max_warmth must be in [-1, 1], got {self.max_warmth}")
 
 
 def _check_range(rng, error, where: str = "elevation_deg") -> tuple[float, float]:
@@ -102,9 +103,9 @@ class Sky:
     def __post_init__(self):
         c = np.asarray(self.colours)
         if c.ndim != 2 or c.shape[1] != 3 or not 2 <= len(c) <= _MAX_BINS:
-            raise ValueError(f"sky colours must be (bins, 3) with 2 ≤ bins ≤ {_MAX_BINS}, got {c.shape}")
+            raise InputError(f"sky colours must be (bins, 3) with 2 ≤ bins ≤ {_MAX_BINS}, got {c.shape}")
         if c.dtype.kind not in "fiu" or not np.all(np.isfinite(c)) or c.min() < 0 or c.max() > 1:
-            raise ValueError("sky colours must be finite and within [0, 1]")
+            raise InputError("sky colours must be finite and within [0, 1]")
         object.__setattr__(self, "colours", np.ascontiguousarray(c, dtype=np.float32))
         object.__setattr__(self, "elevation_deg", _check_range(self.elevation_deg, ValueError))
 
@@ -194,7 +195,7 @@ def estimate_sky(views, points: np.ndarray, origin=None, config: SkyConfig = Sky
     origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points must be (N, 3), got {pts.shape}")
+        raise InputError(f"points must be (N, 3), got {pts.shape}")
     if len(pts) > config.max_points:
         pts = pts[:: -(-len(pts) // config.max_points)]
     if pts.dtype != np.float32:  # world float64: relative to their mean, float32 (as the z-buffer takes them)

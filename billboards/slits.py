@@ -23,6 +23,8 @@ import numpy as np
 
 from billboards.geometry import FACADE
 
+from core.errors import InputError
+
 #: Blocks stack into a column when their xy agree within this fraction of the block edge and
 #: their heights step by one edge within it (the layer writes exact multiples).
 STACK_TOLERANCE = 1e-3
@@ -58,7 +60,7 @@ def build_slits(centres: np.ndarray, kind: np.ndarray, base_yaw: np.ndarray, blo
     pitches) keeps every billboard alone.
     """
     if max_blocks < 1:
-        raise ValueError(f"max_blocks must be at least 1, got {max_blocks}")
+        raise InputError(f"max_blocks must be at least 1, got {max_blocks}")
     n = len(centres)
     c = np.asarray(centres, np.float64).reshape(n, 3)
     facade = np.asarray(kind) == FACADE
@@ -142,7 +144,7 @@ def pack_columns(column_count: np.ndarray, rows: int) -> np.ndarray:
     slits), the single blocks between them are placed in one step each stretch."""
     counts = np.asarray(column_count, np.int64)
     if len(counts) and counts.max() > rows:
-        raise ValueError(f"a column of {counts.max()} blocks does not fit a band of {rows}")
+        raise InputError(f"a column of {counts.max()} blocks does not fit a band of {rows}")
     first = np.empty(len(counts), np.int64)
     place = done = 0
     for i in np.flatnonzero(counts > 1).tolist():
@@ -162,7 +164,7 @@ def pack_columns_reference(column_count, rows: int) -> np.ndarray:
     first, place = [], 0
     for c in (int(c) for c in column_count):
         if c > rows:
-            raise ValueError(f"a column of {c} blocks does not fit a band of {rows}")
+            raise InputError(f"a column of {c} blocks does not fit a band of {rows}")
         if place % rows + c > rows:
             place += rows - place % rows
         first.append(place)

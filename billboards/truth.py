@@ -32,6 +32,8 @@ from data_synth import raycast
 from data_synth.raycast import Renderer
 from data_synth.scene import Scene
 
+from core.errors import InputError
+
 from .geometry import quad_frames, ray_box_interval, texel_offsets, unit_vectors
 
 
@@ -64,27 +66,27 @@ def truth_textures(scene: Scene, centres: np.ndarray, size: float, yaw: np.ndarr
     centres = np.asarray(centres, dtype=np.float64)
     boxes = centres if box_centres is None else np.asarray(box_centres, dtype=np.float64)
     if boxes.shape != centres.shape:
-        raise ValueError(f"box_centres must be shaped like centres {centres.shape}, got {boxes.shape}")
+        raise InputError(f"box_centres must be shaped like centres {centres.shape}, got {boxes.shape}")
     if centres.ndim != 2 or centres.shape[1] != 3:
-        raise ValueError(f"centres must be (m, 3), got {centres.shape}")
+        raise InputError(f"centres must be (m, 3), got {centres.shape}")
     m = len(centres)
     try:
         yaw, pitch, distance = (np.broadcast_to(np.asarray(a, dtype=np.float64), (m,))
                                 for a in (yaw, pitch, distance))
     except ValueError as exc:
-        raise ValueError(f"yaw, pitch and distance must be ({m},) like centres") from exc
+        raise InputError(f"yaw, pitch and distance must be ({m},) like centres") from exc
     size = float(size)
     tile, spp = int(tile), int(spp)
     if not (np.isfinite(size) and size > 0) or tile < 1 or spp < 1:
-        raise ValueError(f"need size > 0, tile ≥ 1 and spp ≥ 1, got {size}, {tile}, {spp}")
+        raise InputError(f"need size > 0, tile ≥ 1 and spp ≥ 1, got {size}, {tile}, {spp}")
     if not all(np.all(np.isfinite(a)) for a in (centres, yaw, pitch, distance)):
-        raise ValueError("centres, yaw, pitch and distance must be finite")
+        raise InputError("centres, yaw, pitch and distance must be finite")
     if np.any(distance <= 0):
-        raise ValueError("distance must be positive")
+        raise InputError("distance must be positive")
     if renderer is None:
         renderer = Renderer(scene)
     elif renderer.scene is not scene:
-        raise ValueError("renderer was built for a different scene")
+        raise InputError("renderer was built for a different scene")
 
     out = np.zeros((m, tile, tile, 4), dtype=np.float32)
     if m == 0:
@@ -146,7 +148,7 @@ def texture_psnr(estimate: np.ndarray, truth: np.ndarray, min_alpha: float = 0.5
     estimate = np.asarray(estimate, dtype=np.float64)
     truth = np.asarray(truth, dtype=np.float64)
     if estimate.shape != truth.shape or truth.ndim != 4 or truth.shape[-1] != 4:
-        raise ValueError(f"estimate and truth must both be (m, t, t, 4), got {estimate.shape}, {truth.shape}")
+        raise InputError(f"estimate and truth must both be (m, t, t, 4), got {estimate.shape}, {truth.shape}")
     mask = truth[..., 3] >= min_alpha
     n = int(mask.sum())
     if n == 0:

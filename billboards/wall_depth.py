@@ -46,6 +46,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.errors import InputError
+
 from .sampling import zbuffer
 from .sky import Sky, ray_elevation
 
@@ -72,16 +74,16 @@ class WallDepthConfig:
 
     def __post_init__(self):
         if not (np.isfinite(self.reach) and self.reach >= 0 and np.isfinite(self.rise) and self.rise >= 0):
-            raise ValueError(f"wall depth reach and rise must be finite numbers ≥ 0 (m), got {self.reach!r}, "
+            raise InputError(f"wall depth reach and rise must be finite numbers ≥ 0 (m), got {self.reach!r}, "
                              f"{self.rise!r}")
         if not (0 < self.sky_distance and 0 < self.agree <= 1 and 0 < self.column_share <= 1
                 and 0 < self.grazing <= 1 and 0 < self.occlusion < 1 and self.max_distance > 0):
-            raise ValueError("sky_distance, max_distance > 0, agree, column_share, grazing in (0, 1] "
+            raise InputError("sky_distance, max_distance > 0, agree, column_share, grazing in (0, 1] "
                              "and occlusion in (0, 1) required")
         if not (np.isfinite(self.step) and self.step > 0):
-            raise ValueError(f"wall depth step must be a finite number > 0 (m), got {self.step!r}")
+            raise InputError(f"wall depth step must be a finite number > 0 (m), got {self.step!r}")
         if min(self.min_views, self.max_views, self.zbuffer_points, self.zbuffer_scale) < 1:
-            raise ValueError("min_views, max_views, zbuffer_points and zbuffer_scale must be ≥ 1")
+            raise InputError("min_views, max_views, zbuffer_points and zbuffer_scale must be ≥ 1")
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,6 +23,8 @@ from typing import Any, Iterator
 import cv2
 import numpy as np
 
+from .errors import InputError
+
 logger = logging.getLogger(__name__)
 
 #: Refuse .npy arrays larger than this unless the caller allows more.
@@ -32,7 +34,7 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"IEND\xaeB`\x82"
 
 
-class DataFormatError(ValueError):
+class DataFormatError(InputError):
     """A file is missing, malformed or inconsistent; the message names it."""
 
     def __init__(self, path: os.PathLike | str, problem: str):
@@ -159,7 +161,7 @@ def read_json(path: os.PathLike | str, max_bytes: int | None = None) -> Any:
 
 def reject_json_constant(name: str) -> None:
     """``json.loads(parse_constant=...)``: NaN and Infinity are not JSON."""
-    raise ValueError(f"{name} is not allowed")
+    raise InputError(f"{name} is not allowed")
 
 
 def save_npy(path: os.PathLike | str, array: np.ndarray) -> Path:
@@ -242,7 +244,7 @@ def load_npy(
 def write_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
     """Atomically write an RGB image ``(h, w, 3) uint8`` (or grey ``(h, w)``) as PNG."""
     if rgb.dtype != np.uint8 or rgb.ndim not in (2, 3):
-        raise ValueError(f"write_png wants (h, w[, 3]) uint8, got {rgb.shape} {rgb.dtype}")
+        raise InputError(f"write_png wants (h, w[, 3]) uint8, got {rgb.shape} {rgb.dtype}")
     image = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else rgb
     ok, buf = cv2.imencode(".png", image)
     if not ok:

@@ -41,6 +41,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import atomic_dir
 from core.rigid import nearest_rotation, rigid_inverse
 from core.signals import python_signal_handlers
@@ -66,18 +67,18 @@ _ROT_TOL = 1e-6  # max |R^T R - I| and |det R - 1| accepted as a rotation
 def _check_rigid(name: str, T: np.ndarray) -> None:
     """Raise ValueError unless every T[j] (m, 4, 4) is finite and rigid."""
     if not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} contains non-finite values")
+        raise InputError(f"{name} contains non-finite values")
     bottom = T[:, 3, :]
     bad = np.flatnonzero(np.abs(bottom - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1) > 1e-12)
     if bad.size:
-        raise ValueError(f"{name}[{bad[0]}] last row is {bottom[bad[0]].tolist()}, expected [0, 0, 0, 1]")
+        raise InputError(f"{name}[{bad[0]}] last row is {bottom[bad[0]].tolist()}, expected [0, 0, 0, 1]")
     R = T[:, :3, :3]
     ortho_err = np.abs(np.einsum("mji,mjk->mik", R, R) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(R)
     bad = np.flatnonzero((ortho_err > _ROT_TOL) | (np.abs(det - 1.0) > _ROT_TOL))
     if bad.size:
         j = bad[0]
-        raise ValueError(
+        raise InputError(
             f"{name}[{j}] rotation block is not a proper rotation "
             f"(max |R^T R - I| = {ortho_err[j]:.3g}, det = {det[j]:.6g}; tolerance {_ROT_TOL:g})"
         )
@@ -86,11 +87,11 @@ def _check_rigid(name: str, T: np.ndarray) -> None:
 def _as_float64(name: str, a: np.ndarray, shape_tail: tuple[int, ...]) -> np.ndarray:
     arr = np.asarray(a)
     if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
-        raise ValueError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
+        raise InputError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
     arr = arr.astype(np.float64, copy=False)
     if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
         want = "(m, " + ", ".join(str(s) for s in shape_tail) + ")"
-        raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+        raise InputError(f"{name} must have shape {want}, got {arr.shape}")
     return arr
 
 
@@ -104,61 +105,61 @@ def _validate(
     K = _as_float64("intrinsics", intrinsics, (3, 3))
     c = K.shape[0]
     if c < 1:
-        raise ValueError("intrinsics must describe at least one camera")
+        raise InputError("intrinsics must describe at least one camera")
     if not np.all(np.isfinite(K)):
-        raise ValueError("intrinsics contains non-finite values")
+        raise InputError("intrinsics contains non-finite values")
     for i in range(c):
         k = K[i]
         if k[0, 0] <= 0 or k[1, 1] <= 0:
-            raise ValueError(f"intrinsics[{i}] focal lengths must be > 0, got fx={k[0, 0]}, fy={k[1, 1]}")
+            raise InputError(f"intrinsics[{i}] focal lengths must be > 0, got fx={k[0, 0]}, fy={k[1, 1]}")
         if k[0, 1] != 0 or k[1, 0] != 0:
-            raise ValueError(f"intrinsics[{i}] has skew/shear terms; PINHOLE supports none")
+            raise InputError(f"intrinsics[{i}] has skew/shear terms; PINHOLE supports none")
         if not np.array_equal(k[2], [0.0, 0.0, 1.0]):
-            raise ValueError(f"intrinsics[{i}] last row is {k[2].tolist()}, expected [0, 0, 1]")
+            raise InputError(f"intrinsics[{i}] last row is {k[2].tolist()}, expected [0, 0, 1]")
 
     if len(sizes) != c:
-        raise ValueError(f"sizes has {len(sizes)} entries but intrinsics describes {c} cameras")
+        raise InputError(f"sizes has {len(sizes)} entries but intrinsics describes {c} cameras")
     sizes_out: list[tuple[int, int]] = []
     for i, wh in enumerate(sizes):
         try:
             w, h = wh
         except (TypeError, ValueError):
-            raise ValueError(f"sizes[{i}] must be a (width, height) pair, got {wh!r}") from None
+            raise InputError(f"sizes[{i}] must be a (width, height) pair, got {wh!r}") from None
         if int(w) != w or int(h) != h or int(w) <= 0 or int(h) <= 0:
-            raise ValueError(f"sizes[{i}] must be positive integers, got {wh!r}")
+            raise InputError(f"sizes[{i}] must be positive integers, got {wh!r}")
         sizes_out.append((int(w), int(h)))
 
     cfr = _as_float64("cam_from_rig", cam_from_rig, (4, 4))
     if cfr.shape[0] != c:
-        raise ValueError(f"cam_from_rig has {cfr.shape[0]} transforms but intrinsics describes {c} cameras")
+        raise InputError(f"cam_from_rig has {cfr.shape[0]} transforms but intrinsics describes {c} cameras")
     _check_rigid("cam_from_rig", cfr)
 
     wfr = _as_float64("world_from_rig", world_from_rig, (4, 4))
     n = wfr.shape[0]
     if n < 1:
-        raise ValueError("world_from_rig must hold at least one frame")
+        raise InputError("world_from_rig must hold at least one frame")
     _check_rigid("world_from_rig", wfr)
 
     if len(image_names) != n:
-        raise ValueError(f"image_names has {len(image_names)} frames but world_from_rig has {n}")
+        raise InputError(f"image_names has {len(image_names)} frames but world_from_rig has {n}")
     seen: set[str] = set()
     names_out: list[list[str]] = []
     for k, row in enumerate(image_names):
         if isinstance(row, str) or len(row) != c:
-            raise ValueError(f"image_names[{k}] must be a list of {c} names, got {row!r}")
+            raise InputError(f"image_names[{k}] must be a list of {c} names, got {row!r}")
         out_row = []
         for i, name in enumerate(row):
             if not isinstance(name, str) or not name:
-                raise ValueError(f"image_names[{k}][{i}] must be a non-empty string, got {name!r}")
+                raise InputError(f"image_names[{k}][{i}] must be a non-empty string, got {name!r}")
             if any(ch.isspace() for ch in name):
                 # COLMAP's text format separates fields by spaces.
-                raise ValueError(f"image_names[{k}][{i}] = {name!r} contains whitespace")
+                raise InputError(f"image_names[{k}][{i}] = {name!r} contains whitespace")
             if "\\" in name or PurePosixPath(name).is_absolute() or ".." in PurePosixPath(name).parts:
-                raise ValueError(
+                raise InputError(
                     f"image_names[{k}][{i}] = {name!r} must be a relative POSIX path inside images/"
                 )
             if name in seen:
-                raise ValueError(f"image_names[{k}][{i}] = {name!r} is duplicated")
+                raise InputError(f"image_names[{k}][{i}] = {name!r} is duplicated")
             seen.add(name)
             out_row.append(name)
         names_out.append(out_row)
@@ -276,7 +277,7 @@ def write_colmap_text(
     K, sizes_v, cfr, wfr, names = _validate(intrinsics, sizes, cam_from_rig, world_from_rig, image_names)
     distortions = [None] * len(K) if distortions is None else list(distortions)
     if len(distortions) != len(K) or not all(d is None or isinstance(d, Distortion) for d in distortions):
-        raise ValueError(f"distortions must hold a Distortion or None for each of the {len(K)} cameras")
+        raise InputError(f"distortions must hold a Distortion or None for each of the {len(K)} cameras")
     rec = _build_reconstruction(K, sizes_v, cfr, wfr, names, distortions)
 
     with atomic_dir(out_dir) as tmp_dir:

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 from .raycast import Renderer
 from .rig import Rig
 from .scene import Kind, Scene
@@ -57,7 +59,7 @@ def sample_surface(scene: Scene, kinds, spacing: float = 0.25, bounds: np.ndarra
     object of :data:`SOLID_KINDS`) are dropped.
     """
     if not spacing > 0:
-        raise ValueError(f"spacing must be positive, got {spacing}")
+        raise InputError(f"spacing must be positive, got {spacing}")
     want = np.isin(scene.object_kind[scene.triangle_object], [int(k) for k in kinds])
     tri_idx = np.flatnonzero(want)
     tri = scene.vertices[scene.triangles[tri_idx]]  # (m, 3, 3)

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from core.errors import InputError
 from core.fileio import DataFormatError, atomic_path, load_npy, read_json, read_png, save_npy, write_json, write_png
 from core.tasks import run_tasks
 from core.workdir import sweep_temporaries, temporary
@@ -89,43 +90,43 @@ class SynthConfig:
 
     def __post_init__(self):
         if self.scene not in SCENES:
-            raise ValueError(f"unknown scene {self.scene!r}; expected one of {SCENES}")
+            raise InputError(f"unknown scene {self.scene!r}; expected one of {SCENES}")
         if self.path not in PATHS:
-            raise ValueError(f"SynthConfig.path must be one of {PATHS}, got {self.path!r}")
+            raise InputError(f"SynthConfig.path must be one of {PATHS}, got {self.path!r}")
         for name in ("frames", "spp"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"SynthConfig.{name} must be an integer ≥ 1, got {value!r}")
+                raise InputError(f"SynthConfig.{name} must be an integer ≥ 1, got {value!r}")
         if self.spp > MAX_SPP:  # spp² rays a pixel: a lazy dataset's reader would cast for ever
-            raise ValueError(f"SynthConfig.spp must be at most {MAX_SPP} (spp² rays a pixel), got {self.spp}")
+            raise InputError(f"SynthConfig.spp must be at most {MAX_SPP} (spp² rays a pixel), got {self.spp}")
         for name in ("lane_offset", "town_path_length", "orbit_radius"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"SynthConfig.{name} must be a finite number, got {value!r}")
+                raise InputError(f"SynthConfig.{name} must be a finite number, got {value!r}")
         if self.town_path_length <= 0:
-            raise ValueError(f"SynthConfig.town_path_length must be positive, got {self.town_path_length}")
+            raise InputError(f"SynthConfig.town_path_length must be positive, got {self.town_path_length}")
         if self.orbit_radius <= 0:
-            raise ValueError(f"SynthConfig.orbit_radius must be positive metres, got {self.orbit_radius}")
+            raise InputError(f"SynthConfig.orbit_radius must be positive metres, got {self.orbit_radius}")
         if self.path == "orbit":
             self._check_orbit()
         for name in ("return_pass", "ground_truth_depth", "lazy"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"SynthConfig.{name} must be true or false, got {getattr(self, name)!r}")
+                raise InputError(f"SynthConfig.{name} must be true or false, got {getattr(self, name)!r}")
 
     def _check_orbit(self) -> None:
         """An orbit circles the street's free-standing building (:func:`street.free_building`)
         clear of it and of everything else by ORBIT_CLEARANCE_M; ValueError otherwise."""
         r, gap = self.orbit_radius, ORBIT_CLEARANCE_M
         if self.scene != "street":
-            raise ValueError("path \"orbit\" needs the street scene: the town's houses stand in closed rows, "
+            raise InputError("path \"orbit\" needs the street scene: the town's houses stand in closed rows, "
                              "with no free path round one")
         if self.street.square < r + gap:
-            raise ValueError(f"path \"orbit\" of radius {r:g} m needs the street's open square (StreetConfig.square) "
+            raise InputError(f"path \"orbit\" of radius {r:g} m needs the street's open square (StreetConfig.square) "
                              f"to reach at least {r + gap:g} m from the building's centre, got {self.street.square:g}")
         lo, hi = free_building(self.street)
         corner = float(np.hypot(*(hi - lo))) / 2
         if r < corner + gap:
-            raise ValueError(f"SynthConfig.orbit_radius (--orbit-radius) {r:g} m passes within {gap:g} m of the "
+            raise InputError(f"SynthConfig.orbit_radius (--orbit-radius) {r:g} m passes within {gap:g} m of the "
                              f"free-standing building's corners (a {hi[0] - lo[0]:.1f} × {hi[1] - lo[1]:.1f} m "
                              f"footprint): at least {math.ceil((corner + gap) * 10) / 10:g} m")
 
@@ -148,7 +149,7 @@ def frames_for_spacing(path_length: float, spacing: float, closed: bool = False)
     pass of ``path_length`` metres: ⌈length / spacing⌉ + 1 with both ends included, or
     ⌈length / spacing⌉ round a ``closed`` loop (an orbit: the last frame's neighbour is the first)."""
     if not (math.isfinite(path_length) and path_length > 0 and math.isfinite(spacing) and spacing > 0):
-        raise ValueError(f"path length and frame spacing must be positive metres, got {path_length}, {spacing}")
+        raise InputError(f"path length and frame spacing must be positive metres, got {path_length}, {spacing}")
     return int(math.ceil(path_length / spacing - 1e-9)) + (0 if closed else 1)
 
 
@@ -157,7 +158,7 @@ def _from_dict(cls, data: dict):
     fields = cls.__dataclass_fields__
     unknown = set(data) - set(fields)
     if unknown:
-        raise ValueError(f"unknown {cls.__name__} fields: {sorted(unknown)}")
+        raise InputError(f"unknown {cls.__name__} fields: {sorted(unknown)}")
     return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
 
 
@@ -167,7 +168,7 @@ def build_scene(name: str, config: dict) -> Scene:
         return build_street(_from_dict(StreetConfig, config))
     if name == "town":
         return build_town(_from_dict(TownConfig, config))
-    raise ValueError(f"unknown scene {name!r}; expected one of {SCENES}")
+    raise InputError(f"unknown scene {name!r}; expected one of {SCENES}")
 
 
 def capture_path(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -541,5 +542,5 @@ def held_out_frames(num_frames: int, every: int) -> list[int]:
     """The frames left out for novel-view evaluation: one in every ``every`` (the middle one
     of each run of ``every``; 0: none). Recon, build and eval all follow this rule."""
     if every < 0 or every == 1:
-        raise ValueError(f"holdout must be 0 (none) or ≥ 2 (every n-th frame left out), got {every}")
+        raise InputError(f"holdout must be 0 (none) or ≥ 2 (every n-th frame left out), got {every}")
     return [f for f in range(num_frames) if every and f % every == every // 2]

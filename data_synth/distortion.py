@@ -35,6 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError
 
 MODELS = ("radtan", "fisheye")
@@ -69,24 +70,24 @@ class Distortion:
 
     def __post_init__(self):
         if self.model not in MODELS:
-            raise ValueError(f"unknown distortion model {self.model!r} (expected one of {', '.join(MODELS)})")
+            raise InputError(f"unknown distortion model {self.model!r} (expected one of {', '.join(MODELS)})")
         names = COEFFICIENTS[self.model]
         coeffs = tuple(self.coeffs)
         if len(coeffs) != len(names):
-            raise ValueError(f"{self.model} takes {len(names)} coefficients ({', '.join(names)}), got {len(coeffs)}")
+            raise InputError(f"{self.model} takes {len(names)} coefficients ({', '.join(names)}), got {len(coeffs)}")
         for name, c in zip(names, coeffs):
             if isinstance(c, bool) or not isinstance(c, (int, float, np.floating, np.integer)) or not math.isfinite(c):
-                raise ValueError(f"{self.model} coefficient {name} must be a finite number, got {c!r}")
+                raise InputError(f"{self.model} coefficient {name} must be a finite number, got {c!r}")
         object.__setattr__(self, "coeffs", tuple(float(c) for c in coeffs))
         object.__setattr__(self, "_limit", _valid_limit(self.model, self.coeffs))
         if self._limit < 0.1:  # folds back right at the centre: no usable image
-            raise ValueError(f"the {self.model} lens is not monotonic even near the image centre (no usable image)")
+            raise InputError(f"the {self.model} lens is not monotonic even near the image centre (no usable image)")
 
     @classmethod
     def preset(cls, name: str) -> "Distortion":
         """A named lens of :data:`PRESETS`."""
         if name not in PRESETS:
-            raise ValueError(f"unknown distortion preset {name!r} (expected one of {', '.join(PRESETS)})")
+            raise InputError(f"unknown distortion preset {name!r} (expected one of {', '.join(PRESETS)})")
         return cls(name, tuple(PRESETS[name][k] for k in COEFFICIENTS[name]))
 
     @property
@@ -169,7 +170,7 @@ def _valid_limit(model: str, c: tuple[float, ...]) -> float:
 def _check_points(xy: np.ndarray) -> np.ndarray:
     xy = np.asarray(xy, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2:
-        raise ValueError(f"points must be (n, 2), got {xy.shape}")
+        raise InputError(f"points must be (n, 2), got {xy.shape}")
     return xy
 
 
@@ -322,7 +323,7 @@ def pinhole_for(K_raw: np.ndarray, distortion: Distortion, size: tuple[int, int]
 
     lo, hi = -12.0, 12.0  # log2 of the scale
     if not inside(2.0 ** hi):
-        raise ValueError("no pinhole camera fits inside the raw image (principal point outside it?)")
+        raise InputError("no pinhole camera fits inside the raw image (principal point outside it?)")
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         lo, hi = (lo, mid) if inside(2.0 ** mid) else (mid, hi)

@@ -27,6 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, read_png
 
 logger = logging.getLogger(__name__)
@@ -48,7 +49,7 @@ def cache_limit_bytes() -> int:
     except ValueError:
         mb = math.nan
     if not (math.isfinite(mb) and mb >= 0):
-        raise ValueError(f"{CACHE_ENV} must be a number of megabytes ≥ 0, got {value!r}")
+        raise InputError(f"{CACHE_ENV} must be a number of megabytes ≥ 0, got {value!r}")
     return int(mb * (1 << 20))
 
 

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from core.errors import InputError
+
 from .distortion import Distortion, undistort
 from .scene import Scene
 from .textures import shade, sky
@@ -40,11 +42,11 @@ def _checked_view(K, world_from_cam, size, spp: int) -> tuple[np.ndarray, np.nda
     world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
     w, h = (int(s) for s in size)
     if K.shape != (3, 3) or world_from_cam.shape != (4, 4):
-        raise ValueError(f"K must be (3, 3) and world_from_cam (4, 4), got {K.shape}, {world_from_cam.shape}")
+        raise InputError(f"K must be (3, 3) and world_from_cam (4, 4), got {K.shape}, {world_from_cam.shape}")
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(world_from_cam))):
-        raise ValueError("K and world_from_cam must be finite")
+        raise InputError("K and world_from_cam must be finite")
     if w < 1 or h < 1 or spp < 1:
-        raise ValueError(f"size must be positive and spp ≥ 1, got {size}, spp={spp}")
+        raise InputError(f"size must be positive and spp ≥ 1, got {size}, spp={spp}")
     return K, world_from_cam, (w, h)
 
 
@@ -226,11 +228,11 @@ class Renderer:
         origins = np.asarray(origins, dtype=np.float64)
         directions = np.asarray(directions, dtype=np.float64)
         if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
-            raise ValueError(f"origins and directions must both be (n, 3), got {origins.shape}, {directions.shape}")
+            raise InputError(f"origins and directions must both be (n, 3), got {origins.shape}, {directions.shape}")
         n = len(origins)
         t_max = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (n,))
         if not (np.all(np.isfinite(origins)) and np.all(np.isfinite(directions))):
-            raise ValueError("origins and directions must be finite")
+            raise InputError("origins and directions must be finite")
         raycaster, offset = self._cast_frame()
         t_all = np.full(n, np.inf)
         ids_all = np.full(n, -1, dtype=np.int32)
@@ -267,7 +269,7 @@ class Renderer:
         origins = np.asarray(origins, dtype=np.float64)
         directions = np.asarray(directions, dtype=np.float64)
         if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
-            raise ValueError(f"origins and directions must both be (n, 3), got {origins.shape}, {directions.shape}")
+            raise InputError(f"origins and directions must both be (n, 3), got {origins.shape}, {directions.shape}")
         raycaster, offset = self._cast_frame()
         t_all = np.empty(len(origins))
         for s in range(0, len(origins), MAX_RAYS_PER_CHUNK):

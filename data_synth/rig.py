@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, as_matrix, check_rigid, read_json, write_json
 
 from .distortion import PRESETS as DISTORTION_PRESETS
@@ -61,20 +62,20 @@ class RigConfig:
     def __post_init__(self):
         for name in ("width", "height"):
             if not _is_int(getattr(self, name)):  # True is an int to Python, never an image size
-                raise ValueError(f"{name} must be an integer, got {getattr(self, name)!r}")
+                raise InputError(f"{name} must be an integer, got {getattr(self, name)!r}")
         if self.distortion != "none" and self.distortion not in DISTORTION_PRESETS:
-            raise ValueError(f"distortion must be \"none\" or one of {', '.join(DISTORTION_PRESETS)}, "
+            raise InputError(f"distortion must be \"none\" or one of {', '.join(DISTORTION_PRESETS)}, "
                              f"got {self.distortion!r}")
         if not (0 < self.hfov_deg < 170):
-            raise ValueError(f"hfov_deg must be in (0, 170), got {self.hfov_deg}")
+            raise InputError(f"hfov_deg must be in (0, 170), got {self.hfov_deg}")
         if isinstance(self.width, bool) or isinstance(self.height, bool):
-            raise ValueError(f"image size must be two integers, got {self.width!r}x{self.height!r}")
+            raise InputError(f"image size must be two integers, got {self.width!r}x{self.height!r}")
         if self.width < 8 or self.height < 8:
-            raise ValueError(f"image size {self.width}x{self.height} is too small")
+            raise InputError(f"image size {self.width}x{self.height} is too small")
         if not -90.0 <= self.pitch_deg <= 90.0:
-            raise ValueError(f"pitch_deg must be in [-90, 90], got {self.pitch_deg}")
+            raise InputError(f"pitch_deg must be in [-90, 90], got {self.pitch_deg}")
         if not self.baselines or not all(np.isfinite(b) for b in self.baselines):
-            raise ValueError(f"baselines must be a non-empty tuple of finite offsets, got {self.baselines!r}")
+            raise InputError(f"baselines must be a non-empty tuple of finite offsets, got {self.baselines!r}")
 
     @property
     def vfov_deg(self) -> float:
@@ -104,10 +105,10 @@ class Rig:
 
     def __post_init__(self):
         if (self.raw_intrinsics is None) != (self.distortions is None):
-            raise ValueError("raw_intrinsics and distortions go together (use Rig.from_raw)")
+            raise InputError("raw_intrinsics and distortions go together (use Rig.from_raw)")
         if self.distortions is not None and (len(self.distortions) != len(self.sizes)
                                              or len(self.raw_intrinsics) != len(self.sizes)):
-            raise ValueError(f"{len(self.sizes)} cameras but {len(self.distortions)} distortions "
+            raise InputError(f"{len(self.sizes)} cameras but {len(self.distortions)} distortions "
                              f"and {len(self.raw_intrinsics)} raw intrinsics")
 
     @classmethod
@@ -261,9 +262,9 @@ def make_rig(cfg: RigConfig) -> Rig:
     """Cameras in a row looking right (−y of the rig), pitched up by ``cfg.pitch_deg``;
     with ``cfg.distortion`` their raw images are distorted (see :func:`raw_camera`)."""
     if not (0 < cfg.hfov_deg < 170):
-        raise ValueError(f"hfov_deg must be in (0, 170), got {cfg.hfov_deg}")
+        raise InputError(f"hfov_deg must be in (0, 170), got {cfg.hfov_deg}")
     if cfg.width < 8 or cfg.height < 8:
-        raise ValueError(f"image size {cfg.width}x{cfg.height} is too small")
+        raise InputError(f"image size {cfg.width}x{cfg.height} is too small")
     a = np.radians(cfg.pitch_deg)
     z_axis = np.array([0.0, -np.cos(a), np.sin(a)])  # forward: right of the car, tilted up
     y_axis = np.array([0.0, -np.sin(a), -np.cos(a)])  # down in the image
@@ -302,7 +303,7 @@ def drive_path(x_start: float, x_end: float, y_centre: float, frames: int, lane_
     Returns world_from_rig (n, 4, 4) float64 and the pass of each frame (n,) int32.
     """
     if frames < 1:
-        raise ValueError(f"frames must be at least 1, got {frames}")
+        raise InputError(f"frames must be at least 1, got {frames}")
     x = np.linspace(x_start, x_end, frames) if frames > 1 else np.array([(x_start + x_end) / 2])
     out = yaw_pose(x, np.full(frames, y_centre - lane_offset), np.zeros(frames))
     passes = [out]
@@ -324,9 +325,9 @@ def orbit_path(centre, radius: float, frames: int) -> tuple[np.ndarray, np.ndarr
     each frame (n,) int32 (all 0).
     """
     if frames < 1:
-        raise ValueError(f"frames must be at least 1, got {frames}")
+        raise InputError(f"frames must be at least 1, got {frames}")
     if not (np.isfinite(radius) and radius > 0):
-        raise ValueError(f"radius must be a positive number of metres, got {radius}")
+        raise InputError(f"radius must be a positive number of metres, got {radius}")
     cx, cy = (float(v) for v in centre)
     angle = np.pi / 2 - 2 * np.pi * np.arange(frames) / frames  # position angle about the centre
     x, y = cx + radius * np.cos(angle), cy + radius * np.sin(angle)

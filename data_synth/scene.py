@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.errors import InputError
+
 
 class Kind(enum.IntEnum):
     """Object kinds; each has its own procedural material."""
@@ -126,7 +128,7 @@ class MeshBuilder:
         lo = np.asarray(lo, dtype=np.float64).reshape(-1, 3)
         hi = np.asarray(hi, dtype=np.float64).reshape(-1, 3)
         if np.any(hi <= lo):
-            raise ValueError("box with non-positive extent")
+            raise InputError("box with non-positive extent")
         verts = lo[:, None, :] + _BOX_CORNERS[None] * (hi - lo)[:, None, :]
         self._add(verts, _BOX_TRIANGLES, np.asarray(objects))
 
@@ -186,7 +188,7 @@ class MeshBuilder:
             return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), np.zeros(0, dtype=np.int32)
         triangles = np.concatenate(self._triangles)
         if triangles.max() >= 2**31:
-            raise ValueError("mesh too large for int32 indices")
+            raise InputError("mesh too large for int32 indices")
         return np.concatenate(self._vertices), triangles.astype(np.int32), np.concatenate(self._triangle_object)
 
     def _tables(self) -> tuple[np.ndarray, np.ndarray]:
@@ -279,7 +281,7 @@ class SectionBuilder(MeshBuilder):
         vertices, triangles, triangle_object = self._arrays()
         kinds, seeds = self._tables()
         if len(bounds) != len(kinds):
-            raise ValueError(f"{len(bounds)} bounds for {len(kinds)} objects")
+            raise InputError(f"{len(bounds)} bounds for {len(kinds)} objects")
         return Scene(name, config, vertices, triangles, triangle_object, kinds, seeds,
                      np.asarray(bounds, dtype=np.float64), section=box)
 
@@ -293,7 +295,7 @@ class DigestBuilder(MeshBuilder):
     def __init__(self, part: str, hasher):
         super().__init__()
         if part not in self.PARTS:
-            raise ValueError(f"part must be one of {self.PARTS}, got {part!r}")
+            raise InputError(f"part must be one of {self.PARTS}, got {part!r}")
         self._part = part
         self._hasher = hasher
 
@@ -305,7 +307,7 @@ class DigestBuilder(MeshBuilder):
             offsets = self._num_vertices + nv * np.arange(b, dtype=np.int64)
             all_tris = tris[None, :, :].astype(np.int64) + offsets[:, None, None]
             if b and all_tris.max() >= 2**31:
-                raise ValueError("mesh too large for int32 indices")
+                raise InputError("mesh too large for int32 indices")
             self._hasher.update(np.ascontiguousarray(all_tris.reshape(-1, 3).astype(np.int32)).tobytes())
         else:
             self._hasher.update(np.repeat(np.asarray(objects).astype(np.int32), len(tris)).tobytes())

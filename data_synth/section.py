@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, read_json
 
 from .scene import BoundsBuilder, DigestBuilder, MeshBuilder, Scene, SectionBuilder
@@ -51,13 +52,13 @@ _VERIFIED: set = set()
 def _config_object(name: str, config: dict):
     """The generator's configuration dataclass from its JSON dict (lists back to tuples)."""
     if name not in GENERATORS:
-        raise ValueError(f"unknown scene {name!r}; expected one of {tuple(GENERATORS)}")
+        raise InputError(f"unknown scene {name!r}; expected one of {tuple(GENERATORS)}")
     cls = GENERATORS[name][0]
     if not isinstance(config, dict):
-        raise ValueError(f"a {name} configuration must be a JSON object, got {type(config).__name__}")
+        raise InputError(f"a {name} configuration must be a JSON object, got {type(config).__name__}")
     unknown = set(config) - set(cls.__dataclass_fields__)
     if unknown:
-        raise ValueError(f"unknown {cls.__name__} fields: {sorted(unknown)}")
+        raise InputError(f"unknown {cls.__name__} fields: {sorted(unknown)}")
     return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()})
 
 
@@ -141,10 +142,10 @@ def _box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
     lo = np.asarray(lo, dtype=np.float64).reshape(-1)
     hi = np.asarray(hi, dtype=np.float64).reshape(-1)
     if lo.shape != hi.shape or len(lo) not in (2, 3):
-        raise ValueError(f"a section box needs lo and hi of 2 (x, y) or 3 (x, y, z) numbers each, got "
+        raise InputError(f"a section box needs lo and hi of 2 (x, y) or 3 (x, y, z) numbers each, got "
                          f"{lo.shape} and {hi.shape}")
     if np.isnan(lo).any() or np.isnan(hi).any() or np.any(lo > hi):
-        raise ValueError(f"a section box needs lo ≤ hi (±inf allowed), got {lo.tolist()} and {hi.tolist()}")
+        raise InputError(f"a section box needs lo ≤ hi (±inf allowed), got {lo.tolist()} and {hi.tolist()}")
     if len(lo) == 2:
         lo, hi = np.append(lo, -np.inf), np.append(hi, np.inf)
     return lo, hi

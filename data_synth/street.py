@@ -20,6 +20,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 from .scene import Kind, MeshBuilder, Scene
 
 
@@ -44,12 +46,12 @@ class StreetConfig:
 
     def __post_init__(self):
         if not (np.isfinite(self.length) and self.length > 0):
-            raise ValueError(f"StreetConfig.length must be a finite number of metres > 0, got {self.length!r}")
+            raise InputError(f"StreetConfig.length must be a finite number of metres > 0, got {self.length!r}")
         if isinstance(self.seed, bool) or int(self.seed) != self.seed or self.seed < 0:
-            raise ValueError(f"StreetConfig.seed must be an integer ≥ 0, got {self.seed!r}")
+            raise InputError(f"StreetConfig.seed must be an integer ≥ 0, got {self.seed!r}")
         if isinstance(self.square, bool) or not isinstance(self.square, (int, float)) \
                 or not (np.isfinite(self.square) and self.square >= 0):
-            raise ValueError(f"StreetConfig.square must be a finite number of metres ≥ 0 (0: no square), "
+            raise InputError(f"StreetConfig.square must be a finite number of metres ≥ 0 (0: no square), "
                              f"got {self.square!r}")
 
 

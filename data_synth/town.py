@@ -12,6 +12,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 from .scene import Kind, MeshBuilder, Scene
 
 
@@ -29,7 +31,7 @@ class TownConfig:
 
     def __post_init__(self):
         if isinstance(self.seed, bool) or int(self.seed) != self.seed or self.seed < 0:
-            raise ValueError(f"TownConfig.seed must be an integer ≥ 0, got {self.seed!r}")
+            raise InputError(f"TownConfig.seed must be an integer ≥ 0, got {self.seed!r}")
 
 
 def street_centres(cfg: TownConfig) -> np.ndarray:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from core.errors import InputError
 from core.fileio import DataFormatError, atomic_path, read_json, write_json
 
 CLOUD_SUFFIXES = (".ply", ".pcd")
@@ -34,9 +35,9 @@ class TileGrid:
 
     def __post_init__(self):
         if not (len(self.origin) == 3 and all(np.isfinite(self.origin))):
-            raise ValueError(f"TileGrid.origin must be three finite numbers, got {self.origin!r}")
+            raise InputError(f"TileGrid.origin must be three finite numbers, got {self.origin!r}")
         if not (np.isfinite(self.size) and self.size > 0):
-            raise ValueError(f"TileGrid.size must be a finite number > 0, got {self.size!r}")
+            raise InputError(f"TileGrid.size must be a finite number > 0, got {self.size!r}")
 
     def tile_of(self, points: np.ndarray) -> np.ndarray:
         """(n, 3) float64 world → (n, 2) int64 tile indices."""
@@ -58,7 +59,7 @@ def write_cloud(path: os.PathLike | str, pcd: o3d.geometry.PointCloud) -> Path:
     """Atomically write a cloud as binary PLY/PCD (float64 positions, colours, normals if any)."""
     path = Path(path)
     if path.suffix.lower() not in CLOUD_SUFFIXES:
-        raise ValueError(f"{path}: clouds are written as {' or '.join(CLOUD_SUFFIXES)}")
+        raise InputError(f"{path}: clouds are written as {' or '.join(CLOUD_SUFFIXES)}")
     with atomic_path(path) as tmp:
         if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False):
             raise OSError(f"{path}: Open3D could not write the point cloud")
@@ -130,7 +131,7 @@ class PlyStreamWriter:
         self.tiles = tiles
         self._ranges: list[tuple[tuple[int, int], int, int, np.ndarray, np.ndarray]] = []
         if self.path.suffix.lower() != ".ply":
-            raise ValueError(f"{self.path}: streamed clouds are PLY")
+            raise InputError(f"{self.path}: streamed clouds are PLY")
         self.dtype = ply_vertex_dtype(normals)
         self.count = 0
         self._body = None
@@ -185,13 +186,13 @@ class PlyStreamWriter:
     def _add_range(self, tile, n: int, lo: np.ndarray, hi: np.ndarray) -> None:
         """Count ``n`` rows with bounds lo, hi (3,) to ``tile``'s range of the index."""
         if tile is None:
-            raise ValueError(f"{self.path}: a tiled cloud's rows need their tile")
+            raise InputError(f"{self.path}: a tiled cloud's rows need their tile")
         tile = (int(tile[0]), int(tile[1]))
         if self._ranges and self._ranges[-1][0] == tile:
             _, first, count, lo0, hi0 = self._ranges[-1]
             self._ranges[-1] = (tile, first, count + n, np.minimum(lo, lo0), np.maximum(hi, hi0))
         elif any(r[0] == tile for r in self._ranges):
-            raise ValueError(f"{self.path}: the rows of tile {tile} must be appended in one run")
+            raise InputError(f"{self.path}: the rows of tile {tile} must be appended in one run")
         else:
             self._ranges.append((tile, self.count, n, lo, hi))
 

@@ -30,6 +30,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from core.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 
@@ -52,12 +54,12 @@ class EpiConfig:
 
     def __post_init__(self):
         if self.row_step < 1 or self.depth_steps < 3 or self.max_edges < 1 or self.window < 1:
-            raise ValueError("row_step, max_edges, window must be ≥ 1 and depth_steps ≥ 3")
+            raise InputError("row_step, max_edges, window must be ≥ 1 and depth_steps ≥ 3")
         if not (0 < self.min_depth < self.max_depth) or self.max_baseline <= 0:
-            raise ValueError(f"need 0 < min_depth < max_depth and max_baseline > 0, got "
+            raise InputError(f"need 0 < min_depth < max_depth and max_baseline > 0, got "
                              f"{self.min_depth}, {self.max_depth}, {self.max_baseline}")
         if self.tolerance_px < 0 or self.min_votes < 1 or not (0 < self.min_vote_fraction <= 1):
-            raise ValueError("tolerance_px ≥ 0, min_votes ≥ 1 and min_vote_fraction in (0, 1] required")
+            raise InputError("tolerance_px ≥ 0, min_votes ≥ 1 and min_vote_fraction in (0, 1] required")
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,7 +241,7 @@ def epi_points(K: np.ndarray, world_from_cam: np.ndarray, image: Callable[[int],
     poses = np.asarray(world_from_cam, np.float64)
     v = len(poses)
     if v == 0 or cameras < 1 or v % cameras:
-        raise ValueError(f"{v} views are not whole frames of {cameras} cameras")
+        raise InputError(f"{v} views are not whole frames of {cameras} cameras")
     frames = v // cameras
     ref_cam = cameras // 2 if config.reference_camera is None else config.reference_camera
     centres = poses[:, :3, 3].reshape(frames, cameras, 3).mean(axis=1)

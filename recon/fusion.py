@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
+from core.errors import InputError
 from core.fileio import load_npy, save_npy
 from core.tasks import executor_workers, ordered_results, run_tasks
 
@@ -45,22 +46,22 @@ class FusionConfig:
 
     def __post_init__(self):
         if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
-            raise ValueError(f"FusionConfig.voxel_size must be a finite number > 0, got {self.voxel_size!r}")
+            raise InputError(f"FusionConfig.voxel_size must be a finite number > 0, got {self.voxel_size!r}")
         if not (np.isfinite(self.tile_size) and self.tile_size > 0):
-            raise ValueError(f"FusionConfig.tile_size must be a finite number > 0, got {self.tile_size!r}")
+            raise InputError(f"FusionConfig.tile_size must be a finite number > 0, got {self.tile_size!r}")
         if not (np.isfinite(self.outlier_std_ratio) and self.outlier_std_ratio > 0):
-            raise ValueError(f"FusionConfig.outlier_std_ratio must be finite and > 0, got {self.outlier_std_ratio!r}")
+            raise InputError(f"FusionConfig.outlier_std_ratio must be finite and > 0, got {self.outlier_std_ratio!r}")
         if not self.tile_size / self.voxel_size < 2 ** 20:  # voxel keys are packed in 21 bits per axis
-            raise ValueError(f"FusionConfig: a {self.tile_size:g} m tile of {self.voxel_size:g} m voxels holds more "
+            raise InputError(f"FusionConfig: a {self.tile_size:g} m tile of {self.voxel_size:g} m voxels holds more "
                              "than 2^20 voxels along an axis; use larger voxels")
         if self.outlier_neighbours < 0 or self.radius_min_points < 0 or self.min_observations < 1:
-            raise ValueError("FusionConfig: outlier_neighbours, radius_min_points ≥ 0 and min_observations ≥ 1 required")
+            raise InputError("FusionConfig: outlier_neighbours, radius_min_points ≥ 0 and min_observations ≥ 1 required")
 
 
 def pack_keys(index: np.ndarray) -> np.ndarray:
     """Voxel indices (n, 3) int64, each in [−2^20, 2^20) → packed keys (n,) int64."""
     if len(index) and (index.min() < -_HALF or index.max() >= _HALF):
-        raise ValueError("points lie more than 2^20 voxels from the model origin; use a coarser voxel "
+        raise InputError("points lie more than 2^20 voxels from the model origin; use a coarser voxel "
                          "size or a nearer origin")
     u = (index + _HALF).astype(np.int64)
     return (u[:, 0] << (2 * _BITS)) | (u[:, 1] << _BITS) | u[:, 2]

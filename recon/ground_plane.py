@@ -23,6 +23,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from core.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["GroundUpConfig", "ground_up"]
@@ -42,11 +44,11 @@ class GroundUpConfig:
 
     def __post_init__(self):
         if not (0 < self.max_tilt_deg < 90):
-            raise ValueError(f"max_tilt_deg must be in (0, 90), got {self.max_tilt_deg}")
+            raise InputError(f"max_tilt_deg must be in (0, 90), got {self.max_tilt_deg}")
         if not (self.below >= 0 and 0 < self.distance < 1 and 0 <= self.min_share <= 1):
-            raise ValueError("below must be ≥ 0, distance in (0, 1), min_share in [0, 1]")
+            raise InputError("below must be ≥ 0, distance in (0, 1), min_share in [0, 1]")
         if self.min_inliers < 3 or self.attempts < 1 or self.iterations < 1:
-            raise ValueError("min_inliers must be ≥ 3, attempts and iterations ≥ 1")
+            raise InputError("min_inliers must be ≥ 3, attempts and iterations ≥ 1")
 
 
 def ground_up(points: np.ndarray, centres: np.ndarray, up: np.ndarray,

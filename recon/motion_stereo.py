@@ -51,6 +51,8 @@ from typing import Sequence
 
 import numpy as np
 
+from core.errors import InputError
+
 from .rectify import MAX_BASELINE_ANGLE_DEG, rectify_views
 from .trinocular import FrameDepth, TrinocularConfig, fuse_depths, pair_depth_in_reference
 
@@ -72,24 +74,24 @@ class MotionStereoConfig:
 
     def __post_init__(self):
         if not (0 < self.min_baseline_ratio <= self.max_baseline_ratio < np.inf):
-            raise ValueError(f"need 0 < min_baseline_ratio <= max_baseline_ratio, got {self.min_baseline_ratio}, "
+            raise InputError(f"need 0 < min_baseline_ratio <= max_baseline_ratio, got {self.min_baseline_ratio}, "
                              f"{self.max_baseline_ratio}")
         if not (self.min_baseline_ratio <= self.target_baseline_ratio <= self.max_baseline_ratio):
-            raise ValueError(f"target_baseline_ratio {self.target_baseline_ratio} must lie in "
+            raise InputError(f"target_baseline_ratio {self.target_baseline_ratio} must lie in "
                              f"[{self.min_baseline_ratio}, {self.max_baseline_ratio}]")
         if not (0 <= self.max_view_angle_deg < 90):
-            raise ValueError(f"max_view_angle_deg must be in [0, 90), got {self.max_view_angle_deg}")
+            raise InputError(f"max_view_angle_deg must be in [0, 90), got {self.max_view_angle_deg}")
         if not (0 <= self.max_baseline_angle_deg <= MAX_BASELINE_ANGLE_DEG):
-            raise ValueError(f"max_baseline_angle_deg must be in [0, {MAX_BASELINE_ANGLE_DEG}] (rectification "
+            raise InputError(f"max_baseline_angle_deg must be in [0, {MAX_BASELINE_ANGLE_DEG}] (rectification "
                              f"rejects steeper baselines), got {self.max_baseline_angle_deg}")
         if not (0 <= self.min_overlap <= 1):
-            raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap}")
+            raise InputError(f"min_overlap must be in [0, 1], got {self.min_overlap}")
         if not (0 < self.scene_depth < np.inf):
-            raise ValueError(f"scene_depth must be a positive number of metres, got {self.scene_depth}")
+            raise InputError(f"scene_depth must be a positive number of metres, got {self.scene_depth}")
         if self.max_frame_gap < 1:
-            raise ValueError(f"max_frame_gap must be at least 1, got {self.max_frame_gap}")
+            raise InputError(f"max_frame_gap must be at least 1, got {self.max_frame_gap}")
         if self.min_agree is not None and self.min_agree < 1:
-            raise ValueError(f"min_agree must be at least 1 or None, got {self.min_agree}")
+            raise InputError(f"min_agree must be at least 1 or None, got {self.min_agree}")
 
     def agreement(self, num_pairs: int) -> int:
         """Estimates that must agree when a frame has ``num_pairs`` pairs (see the module doc)."""
@@ -176,16 +178,16 @@ def select_partners(world_from_cam: np.ndarray, intrinsics: np.ndarray, size: tu
     """
     T = np.asarray(world_from_cam, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4):
-        raise ValueError(f"world_from_cam must be (n, 4, 4), got {T.shape}")
+        raise InputError(f"world_from_cam must be (n, 4, 4), got {T.shape}")
     n = len(T)
     K = np.asarray(intrinsics, dtype=np.float64)
     K = np.broadcast_to(K, (n, 3, 3)) if K.shape == (3, 3) else K
     if K.shape != (n, 3, 3):
-        raise ValueError(f"intrinsics must be (3, 3) or ({n}, 3, 3), got {np.shape(intrinsics)}")
+        raise InputError(f"intrinsics must be (3, 3) or ({n}, 3, 3), got {np.shape(intrinsics)}")
     posed = np.all(np.isfinite(T.reshape(n, -1)), axis=1)
     scene = np.full(n, config.scene_depth) if depth is None else np.asarray(depth, dtype=np.float64)
     if scene.shape != (n,):
-        raise ValueError(f"depth must be ({n},), got {scene.shape}")
+        raise InputError(f"depth must be ({n},), got {scene.shape}")
     scene = np.where(np.isfinite(scene) & (scene > 0), scene, config.scene_depth)
     out = np.full((n, 2), -1, dtype=np.int64)
     for i in (range(n) if frames is None else frames):
@@ -223,12 +225,12 @@ def motion_depth(images: Sequence[np.ndarray], intrinsics: np.ndarray, world_fro
     K = np.asarray(intrinsics, dtype=np.float64)
     W = np.asarray(world_from_cam, dtype=np.float64)
     if K.shape != (c, 3, 3) or W.shape != (c, 4, 4):
-        raise ValueError(f"{c} images need intrinsics ({c}, 3, 3) and world_from_cam ({c}, 4, 4), "
+        raise InputError(f"{c} images need intrinsics ({c}, 3, 3) and world_from_cam ({c}, 4, 4), "
                          f"got {K.shape} and {W.shape}")
     h, w = images[0].shape[:2]
     for i, img in enumerate(images):
         if img.shape[:2] != (h, w):
-            raise ValueError(f"image {i} is {img.shape[1]}x{img.shape[0]}, the reference {w}x{h}")
+            raise InputError(f"image {i} is {img.shape[1]}x{img.shape[0]}, the reference {w}x{h}")
     size = (w, h)
     cam_from_ref = np.stack([relative_pose(W[0], W[i]) for i in range(c)])
     wanted = [(0, i) for i in range(1, c)]

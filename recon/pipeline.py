@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, read_json, write_json
 from core.memory import available_bytes, peak_memory
 from core.tasks import executor_workers, run_tasks
@@ -65,11 +66,11 @@ class ReconConfig:
     def __post_init__(self):
         held_out_frames(0, self.holdout)  # validates
         if self.frame_stride < 1 or self.pixel_stride < 1:
-            raise ValueError("frame_stride and pixel_stride must be ≥ 1")
+            raise InputError("frame_stride and pixel_stride must be ≥ 1")
         if self.max_image_size is not None and (isinstance(self.max_image_size, bool) or self.max_image_size < 64):
-            raise ValueError(f"max_image_size must be at least 64 pixels, got {self.max_image_size}")
+            raise InputError(f"max_image_size must be at least 64 pixels, got {self.max_image_size}")
         if not (1.0 <= self.near_margin < np.inf and 1.0 <= self.far_margin < np.inf):
-            raise ValueError(f"near_margin and far_margin must be finite and ≥ 1, got {self.near_margin}, "
+            raise InputError(f"near_margin and far_margin must be finite and ≥ 1, got {self.near_margin}, "
                              f"{self.far_margin}")
 
     def depth_range(self, depths: np.ndarray) -> tuple[float, float] | None:
@@ -218,7 +219,7 @@ def _with_motion_partners(tasks: list, ds, world_from_rig: np.ndarray, excluded,
                            config.min_baseline_ratio, config.max_baseline_ratio)
         out.append(replace(t, motion=config, partners=chosen))
     if out and not any(t.partners for t in out):
-        raise ValueError(f"{ds.root}: no frame of this one-camera capture has a stereo partner (neighbouring frames "
+        raise InputError(f"{ds.root}: no frame of this one-camera capture has a stereo partner (neighbouring frames "
                          f"{config.min_baseline_ratio:g}–{config.max_baseline_ratio:g} × the scene depth apart, "
                          "moving sideways to the view; walking toward what is photographed gives none)")
     return out
@@ -245,7 +246,7 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
         return poses_given(ds), {"source": "given"}, no_depths
     if conf.poses == "colmap":
         if not conf.colmap_model:
-            raise ValueError("--poses colmap needs --colmap-model DIR (a COLMAP model directory)")
+            raise InputError("--poses colmap needs --colmap-model DIR (a COLMAP model directory)")
         return (poses_from_colmap(Path(conf.colmap_model), ds), {"source": "colmap", "model": str(conf.colmap_model)},
                 _model_depths([Path(conf.colmap_model)], ds))
     if conf.poses == "sfm":
@@ -282,7 +283,7 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
         # places each one, SfM keeps its own relative poses.
         return (align_components(result.world_from_rig, result.component, ds.world_from_rig), report,
                 _model_depths(result.model_dirs, ds))
-    raise ValueError(f"unknown pose source {conf.poses!r}; expected one of {POSE_SOURCES}")
+    raise InputError(f"unknown pose source {conf.poses!r}; expected one of {POSE_SOURCES}")
 
 
 #: The poses a recon used when they are not the dataset's own, beside the cloud (``bbcity build
@@ -382,7 +383,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     frames = [f for f in range(0, ds.num_frames, conf.frame_stride) if f not in set(held_out)]
     frames = [f for f in frames if np.all(np.isfinite(world_from_rig[f]))]
     if not frames:
-        raise ValueError(f"{dataset_dir}: no frame has a pose (source {conf.poses!r}); nothing to reconstruct")
+        raise InputError(f"{dataset_dir}: no frame has a pose (source {conf.poses!r}); nothing to reconstruct")
     # The model origin: float64 world coordinates stay on the CPU, everything
     # stored in voxels is relative to it (a city's UTM coordinates survive).
     origin = np.round(world_from_rig[frames, :3, 3].mean(axis=0), 3)

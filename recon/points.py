@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.errors import InputError
+
 
 def depth_to_points(depth: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, rgb: np.ndarray,
                     confidence: np.ndarray | None = None, stride: int = 1
@@ -18,7 +20,7 @@ def depth_to_points(depth: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray
     Computed in float64 throughout, so a pose 10⁶ m from the origin loses nothing.
     """
     if depth.ndim != 2 or rgb.shape != depth.shape + (3,):
-        raise ValueError(f"depth {depth.shape} and rgb {rgb.shape} do not match")
+        raise InputError(f"depth {depth.shape} and rgb {rgb.shape} do not match")
     d = depth[::stride, ::stride]
     valid = np.isfinite(d) & (d > 0)
     v, u = np.nonzero(valid)

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from core.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 #: The camera pairs of a three-camera rig, (left, right) by index.
@@ -98,7 +100,7 @@ class RectifiedPair:
         for name, img in (("left", left_rgb), ("right", right_rgb)):
             if not isinstance(img, np.ndarray) or img.shape[:2] != (h, w):
                 got = getattr(img, "shape", type(img).__name__)
-                raise ValueError(f"{name} image must be {h}x{w} (h x w) for pair {self.left}-{self.right}, got {got}")
+                raise InputError(f"{name} image must be {h}x{w} (h x w) for pair {self.left}-{self.right}, got {got}")
         out_l = cv2.remap(left_rgb, self.map_left_x, self.map_left_y, cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         out_r = cv2.remap(right_rgb, self.map_right_x, self.map_right_y, cv2.INTER_LINEAR,
@@ -133,11 +135,11 @@ def rectify_pair(rig, left: int, right: int) -> RectifiedPair:
     n = len(rig.sizes)
     for c in (left, right):
         if not 0 <= c < n:
-            raise ValueError(f"camera index {c} out of range for a rig of {n} cameras")
+            raise InputError(f"camera index {c} out of range for a rig of {n} cameras")
     if left == right:
-        raise ValueError(f"a stereo pair needs two different cameras, got {left} twice")
+        raise InputError(f"a stereo pair needs two different cameras, got {left} twice")
     if tuple(rig.sizes[left]) != tuple(rig.sizes[right]):
-        raise ValueError(f"cameras {left} and {right} have different image sizes "
+        raise InputError(f"cameras {left} and {right} have different image sizes "
                          f"{tuple(rig.sizes[left])} and {tuple(rig.sizes[right])}; rectification needs equal sizes")
     size = (int(rig.sizes[left][0]), int(rig.sizes[left][1]))
     K1 = np.asarray(rig.intrinsics[left], dtype=np.float64)
@@ -149,22 +151,22 @@ def rectify_pair(rig, left: int, right: int) -> RectifiedPair:
     centre = -R.T @ t  # right camera's centre in the left camera frame
     baseline = float(np.linalg.norm(centre))
     if baseline < 1e-9:
-        raise ValueError(f"cameras {left} and {right} share their optical centre: no stereo baseline")
+        raise InputError(f"cameras {left} and {right} share their optical centre: no stereo baseline")
     angle = np.degrees(np.arccos(np.clip(centre[0] / baseline, -1.0, 1.0)))
     if angle > 180.0 - MAX_BASELINE_ANGLE_DEG:
-        raise ValueError(f"camera {right} lies to the LEFT of camera {left} (baseline direction "
+        raise InputError(f"camera {right} lies to the LEFT of camera {left} (baseline direction "
                          f"{np.round(centre / baseline, 3).tolist()} in camera {left}'s frame); swap the pair")
     if angle > MAX_BASELINE_ANGLE_DEG:
-        raise ValueError(f"pair {left}-{right} is not horizontal stereo: the baseline is {angle:.1f}° from camera "
+        raise InputError(f"pair {left}-{right} is not horizontal stereo: the baseline is {angle:.1f}° from camera "
                          f"{left}'s x axis (at most {MAX_BASELINE_ANGLE_DEG:.0f}° supported; vertical stereo is not)")
     zero = np.zeros(5)
     R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
         K1, zero, K2, zero, size, R.copy(), t.reshape(3, 1).copy(), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0)
     K = P1[:3, :3].astype(np.float64)
     if not np.allclose(P2[:3, :3], K, atol=1e-9 * max(1.0, abs(K[0, 0]))):
-        raise ValueError(f"pair {left}-{right}: OpenCV returned different rectified intrinsics for the two cameras")
+        raise InputError(f"pair {left}-{right}: OpenCV returned different rectified intrinsics for the two cameras")
     if abs(P2[1, 3]) > 1e-9 * abs(P2[0, 3]) + 1e-12 or P2[0, 3] >= 0:
-        raise ValueError(f"pair {left}-{right}: rectification is not horizontal with the right camera on the right "
+        raise InputError(f"pair {left}-{right}: rectification is not horizontal with the right camera on the right "
                          f"(P2[:, 3] = {P2[:, 3].tolist()})")
     baseline_rect = float(-P2[0, 3] / P2[0, 0])
     mlx, mly = cv2.initUndistortRectifyMap(K1, zero, R1, K, size, cv2.CV_32FC1)
@@ -181,7 +183,7 @@ def rig_pairs(num_cameras: int) -> tuple[tuple[int, int], ...]:
     """The stereo pairs of a rig of ``num_cameras`` ≥ 2 cameras: (0, 1) for two (binocular),
     :data:`RIG_PAIRS` for three (trinocular), every pair for more."""
     if num_cameras < 2:
-        raise ValueError(f"a stereo rig needs at least two cameras, got {num_cameras}")
+        raise InputError(f"a stereo rig needs at least two cameras, got {num_cameras}")
     if num_cameras == 3:
         return RIG_PAIRS
     return tuple((a, b) for a in range(num_cameras) for b in range(a + 1, num_cameras))
@@ -233,7 +235,7 @@ def rectify_views(intrinsics: np.ndarray, cam_from_ref: np.ndarray, size: tuple[
     K = np.asarray(intrinsics, dtype=np.float64)
     T = np.asarray(cam_from_ref, dtype=np.float64)
     if K.ndim != 3 or K.shape[1:] != (3, 3) or T.shape != (len(K), 4, 4):
-        raise ValueError(f"need intrinsics (c, 3, 3) and cam_from_ref (c, 4, 4), got {K.shape} and {T.shape}")
+        raise InputError(f"need intrinsics (c, 3, 3) and cam_from_ref (c, 4, 4), got {K.shape} and {T.shape}")
     views = PosedViews(K, ((int(size[0]), int(size[1])),) * len(K), T)
     return rectify_rig(views, pairs)
 
@@ -248,7 +250,7 @@ def backproject_rectified(depth: np.ndarray, K: np.ndarray, rig_from_cam: np.nda
     """
     depth = np.asarray(depth)
     if depth.ndim != 2:
-        raise ValueError(f"depth must be (h, w), got shape {depth.shape}")
+        raise InputError(f"depth must be (h, w), got shape {depth.shape}")
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(depth) & (depth > 0)
     v, u = np.nonzero(valid)

@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 # data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
 # pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
+from core.errors import InputError
 from core.fileio import atomic_dir
 from core.rigid import rigid_inverse
 from data_synth import Dataset
@@ -65,9 +66,9 @@ class SfmConfig:
 
     def __post_init__(self):
         if self.mapper not in ("seeded", "global", "incremental"):
-            raise ValueError(f"mapper must be \"seeded\", \"global\" or \"incremental\", got {self.mapper!r}")
+            raise InputError(f"mapper must be \"seeded\", \"global\" or \"incremental\", got {self.mapper!r}")
         if self.overlap < 1 or self.max_num_features < 1 or self.min_model_frames < 1:
-            raise ValueError("overlap, max_num_features and min_model_frames must be positive")
+            raise InputError("overlap, max_num_features and min_model_frames must be positive")
 
 
 @dataclass

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from core.errors import InputError
 from core.memory import available_bytes
 
 from .working_size import matcher_bytes
@@ -101,25 +102,25 @@ class StereoConfig:
 
     def __post_init__(self):
         if self.block_size < 1 or self.block_size % 2 == 0:
-            raise ValueError(f"block_size must be a positive odd integer, got {self.block_size}")
+            raise InputError(f"block_size must be a positive odd integer, got {self.block_size}")
         if not (MIN_DEPTH <= self.min_depth < self.max_depth):
-            raise ValueError(f"need {MIN_DEPTH:g} m ≤ min_depth < max_depth, got {self.min_depth}, {self.max_depth}")
+            raise InputError(f"need {MIN_DEPTH:g} m ≤ min_depth < max_depth, got {self.min_depth}, {self.max_depth}")
         if (self.min_disparity is None) != (self.num_disparities is None):
-            raise ValueError("set both min_disparity and num_disparities, or neither")
+            raise InputError("set both min_disparity and num_disparities, or neither")
         if self.num_disparities is not None and (self.num_disparities <= 0 or self.num_disparities % 16):
-            raise ValueError(f"num_disparities must be a positive multiple of 16, got {self.num_disparities}")
+            raise InputError(f"num_disparities must be a positive multiple of 16, got {self.num_disparities}")
         if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {sorted(MODES)}, got {self.mode!r}")
+            raise InputError(f"mode must be one of {sorted(MODES)}, got {self.mode!r}")
         if self.memory_budget is not None and not (0 < self.memory_budget < math.inf):
-            raise ValueError(f"memory_budget must be a positive number of bytes or None, got {self.memory_budget}")
+            raise InputError(f"memory_budget must be a positive number of bytes or None, got {self.memory_budget}")
         if not (0 < self.image_scale <= 1):
-            raise ValueError(f"image_scale must be in (0, 1], got {self.image_scale}")
+            raise InputError(f"image_scale must be in (0, 1], got {self.image_scale}")
         if self.lr_tolerance < 0 or self.texture_threshold < 0 or self.search_margin < 0:
-            raise ValueError("lr_tolerance, texture_threshold and search_margin must be non-negative")
+            raise InputError("lr_tolerance, texture_threshold and search_margin must be non-negative")
         if self.edge_radius is not None and self.edge_radius < 0:
-            raise ValueError(f"edge_radius must be non-negative or None, got {self.edge_radius}")
+            raise InputError(f"edge_radius must be non-negative or None, got {self.edge_radius}")
         if self.texture_window is not None and self.texture_window < 1:
-            raise ValueError(f"texture_window must be positive, got {self.texture_window}")
+            raise InputError(f"texture_window must be positive, got {self.texture_window}")
 
 
 #: Named settings; recon uses "accurate" unless told otherwise. Measured on a 640×480 street
@@ -144,9 +145,9 @@ def disparity_range(focal_px: float, baseline_m: float, min_depth: float, max_de
     disparity clamped to the search bounds falls outside the depth range.
     """
     if not (focal_px > 0 and baseline_m > 0):
-        raise ValueError(f"focal_px and baseline_m must be positive, got {focal_px}, {baseline_m}")
+        raise InputError(f"focal_px and baseline_m must be positive, got {focal_px}, {baseline_m}")
     if not (0 < min_depth < max_depth):
-        raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
+        raise InputError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
     d_lo = focal_px * baseline_m / max_depth
     d_hi = min(focal_px * baseline_m / min_depth, MAX_DISPARITY)  # finite, for the integer range
     lo = max(0, math.floor(d_lo) - 1)
@@ -161,16 +162,16 @@ def _search(config: StereoConfig, focal_px: float | None, baseline_m: float | No
         lo, num = int(config.min_disparity), int(config.num_disparities)
         return lo, num, float(lo), float(lo + num - 1)
     if focal_px is None or baseline_m is None:
-        raise ValueError("give focal_px and baseline_m, or set StereoConfig.min_disparity/num_disparities")
+        raise InputError("give focal_px and baseline_m, or set StereoConfig.min_disparity/num_disparities")
     lo, num = disparity_range(focal_px, baseline_m, config.min_depth, config.max_depth)
     return lo, num, focal_px * baseline_m / config.max_depth, focal_px * baseline_m / config.min_depth
 
 
-class DisparityRangeError(ValueError):
+class DisparityRangeError(InputError):
     """The depth range asks for disparities wider than the images: nothing can be matched."""
 
 
-class StereoMemoryError(ValueError):
+class StereoMemoryError(InputError):
     """Even the coarsest matching level of a pair needs more memory than the machine has free."""
 
 
@@ -229,15 +230,15 @@ def _matcher_range(d_lo: float, d_hi: float, config: StereoConfig, width: int | 
 def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
     for name, img in (("left", left), ("right", right)):
         if not isinstance(img, np.ndarray):
-            raise ValueError(f"{name} image must be a numpy array, got {type(img).__name__}")
+            raise InputError(f"{name} image must be a numpy array, got {type(img).__name__}")
         if img.dtype != np.uint8:
-            raise ValueError(f"{name} image must be uint8, got {img.dtype}")
+            raise InputError(f"{name} image must be uint8, got {img.dtype}")
         if img.ndim != 3 or img.shape[2] != 3:
-            raise ValueError(f"{name} image must be (h, w, 3) RGB, got shape {img.shape}")
+            raise InputError(f"{name} image must be (h, w, 3) RGB, got shape {img.shape}")
     if left.shape != right.shape:
-        raise ValueError(f"left and right images differ in shape: {left.shape} vs {right.shape}")
+        raise InputError(f"left and right images differ in shape: {left.shape} vs {right.shape}")
     if left.shape[0] < 2 or left.shape[1] < 2:
-        raise ValueError(f"images too small for stereo: {left.shape}")
+        raise InputError(f"images too small for stereo: {left.shape}")
 
 
 def texture_mask(image: np.ndarray, window: int, threshold: float) -> np.ndarray:
@@ -482,7 +483,7 @@ def depth_from_disparity(disp: np.ndarray, focal_px: float, baseline_m: float) -
     float32 depth in metres; NaN where disp is NaN, ≤ 0 or not finite (never inf).
     """
     if not (focal_px > 0 and baseline_m > 0):
-        raise ValueError(f"focal_px and baseline_m must be positive, got {focal_px}, {baseline_m}")
+        raise InputError(f"focal_px and baseline_m must be positive, got {focal_px}, {baseline_m}")
     d = np.asarray(disp, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = focal_px * baseline_m / d

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.errors import InputError
 from core.rigid import rigid_inverse
 
 __all__ = [
@@ -54,10 +55,10 @@ def up_direction(world_from_cam: np.ndarray, positions: np.ndarray | None = None
     T = np.asarray(world_from_cam, dtype=np.float64)
     T = T[_valid(T)]
     if len(T) == 0:
-        raise ValueError("no camera pose to estimate the up direction from")
+        raise InputError("no camera pose to estimate the up direction from")
     up = -T[:, :3, 1].mean(axis=0)
     if np.linalg.norm(up) < 1e-6:
-        raise ValueError("the cameras' down axes cancel out: no up direction")
+        raise InputError("the cameras' down axes cancel out: no up direction")
     up /= np.linalg.norm(up)
     if positions is not None:
         P = np.asarray(positions, dtype=np.float64)
@@ -192,12 +193,12 @@ def align_trajectory(estimated: np.ndarray, reference: np.ndarray,
     est = np.asarray(estimated, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     if est.shape != ref.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
-        raise ValueError(f"estimated {est.shape} and reference {ref.shape} must both be (n, 4, 4)")
+        raise InputError(f"estimated {est.shape} and reference {ref.shape} must both be (n, 4, 4)")
     ok = _valid(est) & _valid(ref)
     if not ok.any():
-        raise ValueError("no frame has a pose in both trajectories")
+        raise InputError("no frame has a pose in both trajectories")
     if with_scale and ok.sum() < 2:
-        raise ValueError("a scale needs at least two frames with poses in both trajectories")
+        raise InputError("a scale needs at least two frames with poses in both trajectories")
     R, s, t = _similarity(est[ok], ref[ok], with_scale)
     transform = np.eye(4)
     transform[:3, :3] = s * R
@@ -269,11 +270,11 @@ def trajectory_rmse(estimated: np.ndarray, reference: np.ndarray, with_scale: bo
     est = np.asarray(estimated, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     if est.shape != ref.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
-        raise ValueError(f"estimated {est.shape} and reference {ref.shape} must both be (n, 4, 4)")
+        raise InputError(f"estimated {est.shape} and reference {ref.shape} must both be (n, 4, 4)")
     n = len(est)
     g = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups).astype(np.int64)
     if g.shape != (n,):
-        raise ValueError(f"groups must have shape ({n},), got {g.shape}")
+        raise InputError(f"groups must have shape ({n},), got {g.shape}")
     ok = _valid(est) & _valid(ref) & (g >= 0)
     pos_err = np.full(n, np.nan)
     rot_err = np.full(n, np.nan)

@@ -35,6 +35,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from core.errors import InputError
+
 from .rectify import RectifiedPair, splat_depth
 from .stereo import PRESETS, DisparityRangeError, StereoConfig, depth_from_disparity, disparity
 
@@ -55,11 +57,11 @@ class TrinocularConfig:
 
     def __post_init__(self):
         if self.fusion not in FUSIONS:
-            raise ValueError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
+            raise InputError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
         if self.min_agree < 1:
-            raise ValueError(f"min_agree must be at least 1, got {self.min_agree}")
+            raise InputError(f"min_agree must be at least 1, got {self.min_agree}")
         if min(self.abs_tol, self.rel_tol, self.disp_tol) < 0:
-            raise ValueError("abs_tol, rel_tol and disp_tol must be non-negative")
+            raise InputError("abs_tol, rel_tol and disp_tol must be non-negative")
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,11 +95,11 @@ def fuse_depths(depths: np.ndarray, focal_baselines: Sequence[float],
     """
     D = np.asarray(depths, dtype=np.float32)
     if D.ndim != 3:
-        raise ValueError(f"depths must be (p, h, w), got shape {D.shape}")
+        raise InputError(f"depths must be (p, h, w), got shape {D.shape}")
     fb = np.asarray(focal_baselines, dtype=np.float64)
     P = D.shape[0]
     if fb.shape != (P,) or not np.all(fb > 0):
-        raise ValueError(f"need {P} positive focal·baseline values, got {focal_baselines!r}")
+        raise InputError(f"need {P} positive focal·baseline values, got {focal_baselines!r}")
     with np.errstate(invalid="ignore"):
         finite = np.isfinite(D) & (D > 0)
     Dz = D.astype(np.float64)
@@ -178,7 +180,7 @@ def _reference_camera(pairs: Mapping[tuple[int, int], RectifiedPair], ref: int):
             return p.K_left, p.cam_from_rig_left, p.size
         if p.right == ref:
             return p.K_right, p.cam_from_rig_right, p.size
-    raise ValueError(f"no stereo pair contains the reference camera {ref}")
+    raise InputError(f"no stereo pair contains the reference camera {ref}")
 
 
 def pair_depth_in_reference(images: Sequence[np.ndarray], pair: RectifiedPair, ref_K: np.ndarray,
@@ -206,10 +208,10 @@ def frame_depth(images: Sequence[np.ndarray], pairs: Mapping[tuple[int, int], Re
     :func:`recon.rectify.rectify_rig`. Returns a :class:`FrameDepth`.
     """
     if not pairs:
-        raise ValueError("no stereo pairs given")
+        raise InputError("no stereo pairs given")
     needed = sorted({c for key in pairs for c in key})
     if len(images) <= needed[-1]:
-        raise ValueError(f"pairs use cameras {needed} but only {len(images)} images were given")
+        raise InputError(f"pairs use cameras {needed} but only {len(images)} images were given")
     ref_K, ref_T, ref_size = _reference_camera(pairs, config.reference)
     keys = list(pairs)
     per_pair = {k: pair_depth_in_reference(images, pairs[k], ref_K, ref_T, ref_size, config.stereo) for k in keys}
@@ -241,7 +243,7 @@ def evaluate_depth(depth: np.ndarray, gt_depth: np.ndarray, focal_px: float, bas
     depth = np.asarray(depth, dtype=np.float64)
     gt = np.asarray(gt_depth, dtype=np.float64)
     if depth.shape != gt.shape:
-        raise ValueError(f"depth {depth.shape} and gt_depth {gt.shape} differ in shape")
+        raise InputError(f"depth {depth.shape} and gt_depth {gt.shape} differ in shape")
     fb = focal_px * baseline_m
     with np.errstate(invalid="ignore", divide="ignore"):
         est = np.isfinite(depth) & (depth > 0)

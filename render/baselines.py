@@ -24,6 +24,8 @@ import time
 
 import numpy as np
 
+from core.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 
@@ -85,9 +87,9 @@ class PoissonMesh:
         import open3d as o3d
 
         if not 1 <= int(depth) <= 16:
-            raise ValueError(f"Poisson depth must be in [1, 16], got {depth}")
+            raise InputError(f"Poisson depth must be in [1, 16], got {depth}")
         if not 0 <= trim_quantile < 1:
-            raise ValueError(f"trim_quantile must be in [0, 1), got {trim_quantile}")
+            raise InputError(f"trim_quantile must be in [0, 1), got {trim_quantile}")
         t0 = time.perf_counter()
         self._o3d = o3d
         self.depth = int(depth)

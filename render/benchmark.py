@@ -29,6 +29,8 @@ import numpy as np
 
 from billboards.model import BillboardModel
 
+from core.errors import InputError
+
 from .camera import default_intrinsics
 from .lod import LodConfig
 from .paths import walk
@@ -48,7 +50,7 @@ def frame_time_stats(frame_s) -> dict:
     """
     t = np.asarray(frame_s, np.float64).ravel()
     if len(t) == 0 or not np.all(np.isfinite(t) & (t > 0)):
-        raise ValueError(f"frame times must be a non-empty list of positive seconds, got {t!r}")
+        raise InputError(f"frame times must be a non-empty list of positive seconds, got {t!r}")
     ms, ms_p95, ms_mean = (1000.0 * float(v) for v in (np.median(t), np.percentile(t, 95), t.mean()))
     return {"frames": len(t), "ms": ms, "ms_p95": ms_p95, "ms_mean": ms_mean,
             "fps": 1000.0 / ms, "fps_p5": 1000.0 / ms_p95, "fps_mean": 1000.0 / ms_mean}
@@ -132,7 +134,7 @@ def path_fps(ctx, model: BillboardModel, poses, size=(1280, 720), decode: str = 
     poses close together let the GPU decode reuse its decoded atlas as in a walkthrough."""
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     if len(poses) == 0:
-        raise ValueError("path_fps needs at least one pose")
+        raise InputError("path_fps needs at least one pose")
     K = default_intrinsics(*size) if K is None else K
     with BillboardRenderer(ctx, model, decode, cull=cull, lod=lod if decode == "gpu" else None) as renderer:
         warm_up(renderer, K, poses[0], size, warm_up_frames)
@@ -167,7 +169,7 @@ def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str =
 
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     if len(poses) < 2:
-        raise ValueError("paging_walk needs at least two poses")
+        raise InputError("paging_walk needs at least two poses")
     paging = PagingConfig() if paging is None else paging
     K = default_intrinsics(*size) if K is None else K
     t0 = time.perf_counter()

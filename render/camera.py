@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -34,7 +36,7 @@ class ClipPlanes:
 
     def __post_init__(self):
         if not (np.isfinite(self.near) and np.isfinite(self.far) and 0 < self.near < self.far):
-            raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
+            raise InputError(f"need 0 < near < far, got near={self.near}, far={self.far}")
 
 
 @dataclass(frozen=True)
@@ -51,9 +53,9 @@ def _size(size) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in size)
     except (TypeError, ValueError):
-        raise ValueError(f"size must be (width, height), got {size!r}") from None
+        raise InputError(f"size must be (width, height), got {size!r}") from None
     if w < 1 or h < 1 or (w, h) != tuple(size):
-        raise ValueError(f"size must be two positive integers (width, height), got {size!r}")
+        raise InputError(f"size must be two positive integers (width, height), got {size!r}")
     return w, h
 
 
@@ -61,9 +63,9 @@ def check_intrinsics(K) -> np.ndarray:
     """K as (3, 3) float64 after checking it is a finite upper-triangular pinhole matrix with fx, fy > 0."""
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise ValueError(f"K must be a finite (3, 3) matrix, got shape {K.shape}")
+        raise InputError(f"K must be a finite (3, 3) matrix, got shape {K.shape}")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] or K[2, 0] or K[2, 1] or K[2, 2] != 1:
-        raise ValueError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
+        raise InputError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
     return K
 
 
@@ -76,13 +78,13 @@ def check_pose(world_from_cam) -> np.ndarray:
     """world_from_cam as (4, 4) float64 after checking it is a finite rigid transform."""
     T = np.asarray(world_from_cam, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"world_from_cam must be a finite (4, 4) matrix, got shape {T.shape}")
+        raise InputError(f"world_from_cam must be a finite (4, 4) matrix, got shape {T.shape}")
     R = T[:3, :3]
     # np.allclose (rtol 1e-5; atol 1e-8, and 1e-6 for RᵀR) written out: this runs for every tile
     # of every frame, and allclose's own checks cost more than the test
     if np.any(np.abs(T[3] - _LAST_ROW) > 1e-8 + 1e-5 * _LAST_ROW) \
             or np.any(np.abs(R.T @ R - _I3) > 1e-6 + 1e-5 * _I3) or np.linalg.det(R) <= 0:
-        raise ValueError("world_from_cam must be a rigid transform (rotation + translation)")
+        raise InputError("world_from_cam must be a rigid transform (rotation + translation)")
     return T
 
 
@@ -198,7 +200,7 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     z = target - eye
     x = np.cross(z, np.asarray(up, np.float64))
     if np.linalg.norm(z) == 0 or np.linalg.norm(x) < 1e-12 * np.linalg.norm(z):
-        raise ValueError("look_at needs target ≠ eye and a viewing direction not parallel to up")
+        raise InputError("look_at needs target ≠ eye and a viewing direction not parallel to up")
     z /= np.linalg.norm(z)
     x /= np.linalg.norm(x)
     T = np.eye(4)

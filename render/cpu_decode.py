@@ -21,6 +21,8 @@ from billboards.atlas import atlas_layout, tile_location
 from billboards.decode import decode, direction_index
 from billboards.model import BillboardModel
 
+from core.errors import InputError
+
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
 from .program import load_program
@@ -81,7 +83,7 @@ class CpuDecoder:
         self.chunk = int(chunk)
         self.page_size = min(int(page_size), max_texture_size(ctx))
         if self.page_size < model.tile:
-            raise ValueError(f"page_size {self.page_size} is smaller than a tile ({model.tile})")
+            raise InputError(f"page_size {self.page_size} is smaller than a tile ({model.tile})")
         self.program = load_program(ctx, "billboard_cpu.glsl")
         self._objects = [self.program]
         self.atlas: moderngl.TextureArray | None = None

@@ -37,6 +37,8 @@ import numpy as np
 
 from billboards.model_set import quad_radius
 
+from core.errors import InputError
+
 #: Relative tolerance of plane tests: a point is outside only if its signed distance is
 #: below −PLANE_REL_EPS·(|n|·|x| + |d| + extent). float32 clip coordinates on the GPU are
 #: good to ~1e-7 of the same magnitudes; 1e-5 leaves a wide margin (1 mm at 100 m).
@@ -79,19 +81,19 @@ def frustum_planes(view_proj: np.ndarray) -> np.ndarray:
     """
     m = np.asarray(view_proj, dtype=np.float64)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise ValueError(f"view_proj must be a finite (4, 4) matrix, got shape {m.shape}"
+        raise InputError(f"view_proj must be a finite (4, 4) matrix, got shape {m.shape}"
                          + ("" if m.shape != (4, 4) else " with non-finite entries"))
     planes = np.stack([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] + m[2], m[3] - m[2]])
     norm = np.linalg.norm(planes[:, :3], axis=1)
     if np.any(norm == 0):
-        raise ValueError("view_proj has a degenerate clip plane (zero normal)")
+        raise InputError("view_proj has a degenerate clip plane (zero normal)")
     return planes / norm[:, None]
 
 
 def _check_planes(planes) -> np.ndarray:
     p = np.asarray(planes, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 4 or len(p) == 0:
-        raise ValueError(f"planes must be a (p, 4) array, got shape {p.shape}")
+        raise InputError(f"planes must be a (p, 4) array, got shape {p.shape}")
     return p
 
 
@@ -99,7 +101,7 @@ def _check_boxes(box_min, box_max) -> tuple[np.ndarray, np.ndarray]:
     lo = np.asarray(box_min, dtype=np.float64)
     hi = np.asarray(box_max, dtype=np.float64)
     if lo.ndim != 2 or lo.shape[1] != 3 or lo.shape != hi.shape:
-        raise ValueError(f"box_min and box_max must be two (k, 3) arrays, got {lo.shape} and {hi.shape}")
+        raise InputError(f"box_min and box_max must be two (k, 3) arrays, got {lo.shape} and {hi.shape}")
     return lo, hi
 
 
@@ -178,7 +180,7 @@ def _check_ranges(ranges) -> np.ndarray:
     if r.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
     if r.ndim != 2 or r.shape[1] != 2 or not np.issubdtype(r.dtype, np.integer):
-        raise ValueError(f"ranges must be an (r, 2) integer array of [begin, end), got {r.dtype} {r.shape}")
+        raise InputError(f"ranges must be an (r, 2) integer array of [begin, end), got {r.dtype} {r.shape}")
     return r.astype(np.int64, copy=False)
 
 
@@ -217,7 +219,7 @@ def ranges_to_mask(ranges, n: int) -> np.ndarray:
     mask = np.zeros(int(n), dtype=bool)
     r = merge_ranges(ranges)
     if len(r) and (r[0, 0] < 0 or r[-1, 1] > n):
-        raise ValueError(f"ranges reach outside [0, {n}]")
+        raise InputError(f"ranges reach outside [0, {n}]")
     delta = np.zeros(int(n) + 1, dtype=np.int64)
     np.add.at(delta, r[:, 0], 1)
     np.add.at(delta, r[:, 1], -1)
@@ -298,12 +300,12 @@ def frustum_cull_nodes(planes, node_bounds, node_children, node_range, *, pad: f
     rng = np.asarray(node_range)
     k = len(bounds)
     if bounds.shape != (k, 2, 3) or children.shape != (k, 8) or rng.shape != (k, 2):
-        raise ValueError(f"node table shapes disagree: bounds {bounds.shape}, children {children.shape}, "
+        raise InputError(f"node table shapes disagree: bounds {bounds.shape}, children {children.shape}, "
                          f"range {rng.shape} (want (k, 2, 3), (k, 8), (k, 2))")
     refine = centres is not None
     if refine:
         if radius is None:
-            raise ValueError("frustum_cull_nodes: give radius with centres")
+            raise InputError("frustum_cull_nodes: give radius with centres")
         centres = np.asarray(centres)
     counts = dict(tested=0, inside=0, partial=0, outside=0, bb=0)
     empty = np.zeros(0, dtype=np.int64)

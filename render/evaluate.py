@@ -51,6 +51,7 @@ from billboards.fit import quads_of
 from billboards.fit_cast import cast_view
 from billboards.geometry import BILLBOARD, FACADE, GROUND
 from billboards.model_set import ModelSet
+from core.errors import InputError
 from core.metrics import psnr, ssim
 from data_synth import load_dataset, load_scene, truth_view
 
@@ -98,21 +99,21 @@ class EvalConfig:
 
     def __post_init__(self):
         if self.views is not None and self.views < 1:
-            raise ValueError(f"views must be ≥ 1, got {self.views}")
+            raise InputError(f"views must be ≥ 1, got {self.views}")
         if isinstance(self.views, bool) or (self.size is not None and any(isinstance(s, bool) for s in self.size)):
-            raise ValueError(f"views and size must be integers, got {self.views!r}, {self.size!r}")
+            raise InputError(f"views and size must be integers, got {self.views!r}, {self.size!r}")
         if self.size is not None and (len(self.size) != 2 or min(int(s) for s in self.size) < 1):
-            raise ValueError(f"size must be two positive integers (w, h), got {self.size}")
+            raise InputError(f"size must be two positive integers (w, h), got {self.size}")
         if not all(1 <= int(d) <= 16 for d in (self.poisson_depth, *self.workprecision_depths)):
-            raise ValueError("Poisson depths must lie in [1, 16]")
+            raise InputError("Poisson depths must lie in [1, 16]")
         if not 0 <= self.trim_quantile < 1 or self.panel_width < 0:
-            raise ValueError("trim_quantile must be in [0, 1) and panel_width ≥ 0")
+            raise InputError("trim_quantile must be in [0, 1) and panel_width ≥ 0")
         if isinstance(self.training_views, bool) or self.training_views < 0:
-            raise ValueError(f"training_views must be an integer ≥ 0, got {self.training_views!r}")
+            raise InputError(f"training_views must be an integer ≥ 0, got {self.training_views!r}")
         if not (math.isfinite(self.sideways) and math.isfinite(self.up)):
-            raise ValueError("sideways and up must be finite")
+            raise InputError("sideways and up must be finite")
         if not (math.isfinite(self.near) and self.near > 0):
-            raise ValueError(f"near must be a finite distance > 0 (m), got {self.near}")
+            raise InputError(f"near must be a finite distance > 0 (m), got {self.near}")
 
 
 # --------------------------------------------------------------------------- viewpoints
@@ -194,7 +195,7 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
     and of each of ``training`` (frames the textures came from) at the capture camera itself."""
     ds = load_dataset(dataset_dir)
     if not ds.has_ground_truth:
-        raise ValueError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
+        raise InputError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
     scene = load_scene(dataset_dir)
     K, size, _ = view_camera(ds.rig, config.size)
     views = []

@@ -31,6 +31,8 @@ from typing import NamedTuple
 import moderngl
 import numpy as np
 
+from core.errors import InputError
+
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
 from .lod import LodConfig, lod_levels, texel_pixels
@@ -83,7 +85,7 @@ def atlas_layout(place: np.ndarray, slots: int, tile: int, limit: int) -> tuple[
     bands = -(-places // BAND_ROWS)
     size = (min(bands, per_row) * slots * tile, -(-bands // per_row) * BAND_ROWS * tile)
     if size[1] > limit:
-        raise ValueError(f"{len(place)} billboards need a decoded atlas {size[1]} texels tall; "
+        raise InputError(f"{len(place)} billboards need a decoded atlas {size[1]} texels tall; "
                          f"GL_MAX_TEXTURE_SIZE is {limit} (split the model)")
     band = place // BAND_ROWS
     origin = np.stack([(band % per_row) * slots * tile, ((band // per_row) * BAND_ROWS + place % BAND_ROWS) * tile], 1)
@@ -142,7 +144,7 @@ class GpuDecoder(GpuOwner):
         self.model = model
         largest_point = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
         if model.tile > largest_point:
-            raise ValueError(f"tiles of {model.tile} texels are wider than the largest point this GL draws "
+            raise InputError(f"tiles of {model.tile} texels are wider than the largest point this GL draws "
                              f"({largest_point:g} pixels), and the GPU decode writes a tile as one point; "
                              f"use the CPU decode")
         self.slits = build_slits(model.centres, model.kind, model.base_yaw, model.block_size,

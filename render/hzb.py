@@ -42,6 +42,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.errors import InputError
+
 #: Window-depth margin of the hidden test (see the module notes): about 33 steps of 24-bit depth.
 DEPTH_EPS = 2e-6
 
@@ -55,7 +57,7 @@ def pyramid_shapes(width: int, height: int) -> list[tuple[int, int]]:
     """(h, w) of every pyramid level of a width × height image, level 0 first, down to (1, 1)."""
     w, h = int(width), int(height)
     if w < 1 or h < 1 or (w, h) != (width, height):
-        raise ValueError(f"image size must be two positive integers, got {width!r} × {height!r}")
+        raise InputError(f"image size must be two positive integers, got {width!r} × {height!r}")
     shapes = [(h, w)]
     while shapes[-1] != (1, 1):
         h, w = (h + 1) // 2, (w + 1) // 2
@@ -80,7 +82,7 @@ class DepthPyramid:
     def __init__(self, width: int, height: int, dtype=np.float32):
         dtype = np.dtype(dtype)
         if dtype not in (np.dtype(np.float32), np.dtype(np.uint32)):
-            raise ValueError(f"dtype must be float32 or uint32, got {dtype}")
+            raise InputError(f"dtype must be float32 or uint32, got {dtype}")
         self.dtype = dtype
         shapes = pyramid_shapes(width, height)
         self.width, self.height = int(width), int(height)
@@ -112,7 +114,7 @@ class DepthPyramid:
                 out[:, we] = rows[:, w - 1]
         top = float(self.levels[-1][0, 0])
         if self.dtype == np.float32 and not np.isfinite(top):
-            raise ValueError(f"depth image holds non-finite values (maximum {top})")
+            raise InputError(f"depth image holds non-finite values (maximum {top})")
         return self
 
 
@@ -121,7 +123,7 @@ def depth_pyramid(depth) -> DepthPyramid:
     float window depths, or uint32 depths × (2**32 − 1)."""
     d = np.asarray(depth)
     if d.ndim != 2 or d.size == 0:
-        raise ValueError(f"depth must be a non-empty (h, w) image, got shape {d.shape}")
+        raise InputError(f"depth must be a non-empty (h, w) image, got shape {d.shape}")
     pyr = DepthPyramid(d.shape[1], d.shape[0], np.uint32 if d.dtype == np.uint32 else np.float32)
     pyr.base[...] = d
     return pyr.update()
@@ -136,7 +138,7 @@ def covered_pixels(rects, width: int, height: int):
     """
     r = np.asarray(rects, dtype=np.float64).reshape(-1, 4)
     if not np.all(np.isfinite(r)):
-        raise ValueError("rects must be finite")
+        raise InputError("rects must be finite")
     i0 = np.maximum(np.floor(r[:, 0]), 0)
     j0 = np.maximum(np.floor(r[:, 1]), 0)
     i1 = np.minimum(np.ceil(r[:, 2]) - 1, width - 1)
@@ -151,9 +153,9 @@ def covered_pixels(rects, width: int, height: int):
 def _check_depths(nearest, n: int) -> np.ndarray:
     d = np.asarray(nearest, dtype=np.float64).reshape(-1)
     if len(d) != n:
-        raise ValueError(f"{len(d)} nearest depths for {n} rects")
+        raise InputError(f"{len(d)} nearest depths for {n} rects")
     if not np.all(np.isfinite(d)):
-        raise ValueError("nearest depths must be finite")
+        raise InputError("nearest depths must be finite")
     return d
 
 
@@ -167,9 +169,9 @@ def hzb_occluded(pyramid: DepthPyramid, rects, nearest, eps: float = DEPTH_EPS, 
     gather of (n, span, span) texels.
     """
     if int(span) != span or span < 1:
-        raise ValueError(f"span must be a positive integer, got {span!r}")
+        raise InputError(f"span must be a positive integer, got {span!r}")
     if not eps >= 0:
-        raise ValueError(f"eps must be ≥ 0, got {eps!r}")
+        raise InputError(f"eps must be ≥ 0, got {eps!r}")
     r = np.asarray(rects, dtype=np.float64).reshape(-1, 4)
     d = _check_depths(nearest, len(r))
     if len(r) == 0:

@@ -53,6 +53,8 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
+from core.errors import InputError
+
 from .hzb import DEPTH_EPS, DepthPyramid, hzb_occluded, ndc_to_window
 from .occlusion import CullStats, OcclusionCuller, _batch_bounds
 from .quadtree import project_boxes
@@ -83,7 +85,7 @@ class HzbConfig:
                 and self.occluder_share >= 1 and int(self.cut_reads) == self.cut_reads and self.cut_reads >= 1
                 and self.auto_window >= 1
                 and 1 <= self.auto_backoff <= self.auto_backoff_max and self.auto_margin >= 0):
-            raise ValueError(f"invalid HzbConfig: {self}")
+            raise InputError(f"invalid HzbConfig: {self}")
 
 
 class HzbCuller(OcclusionCuller):
@@ -120,7 +122,7 @@ class HzbCuller(OcclusionCuller):
         if groups is not None:
             groups = np.asarray(groups, dtype=np.int64).reshape(-1)
             if len(groups) != len(np.asarray(ranges).reshape(-1, 2)) or np.any(np.diff(groups) < 0):
-                raise ValueError("cull: groups must give each object a group, non-decreasing")
+                raise InputError("cull: groups must give each object a group, non-decreasing")
         self._groups = groups
         try:
             return super().cull(view_proj, box_min, box_max, ranges, draw_callback, keys=keys)

@@ -43,6 +43,8 @@ import numpy as np
 
 from billboards.model import BillboardModel
 
+from core.errors import InputError
+
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
 from .culling import model_quad_radius, ranges_to_indices
@@ -105,7 +107,7 @@ def impostor_nodes(model: BillboardModel, node_edge: float) -> tuple[np.ndarray,
     owner = np.searchsorted(starts, np.arange(n), side="right") - 1
     inside = (owner >= 0) & (np.arange(n) < model.node_range[nodes[np.maximum(owner, 0)], 1])
     if not inside.all():
-        raise ValueError("octree node ranges do not cover every billboard at one level")
+        raise InputError("octree node ranges do not cover every billboard at one level")
     return nodes.astype(np.int64), owner.astype(np.int64)
 
 
@@ -148,10 +150,10 @@ class Impostors(GpuOwner):
         size = atlas_size(k, t)
         limit = max_texture_size(ctx)
         if size[1] > limit:
-            raise ValueError(f"{k} impostor tiles of {t}² texels need an atlas {size[1]} texels tall; "
+            raise InputError(f"{k} impostor tiles of {t}² texels need an atlas {size[1]} texels tall; "
                              f"GL_MAX_TEXTURE_SIZE is {limit} (fewer texels or a larger node_edge)")
         if studio is not None and studio.texels != t:
-            raise ValueError(f"an impostor studio of {studio.texels}² tiles cannot make images of {t}² texels")
+            raise InputError(f"an impostor studio of {studio.texels}² tiles cannot make images of {t}² texels")
         self._origin = tile_origins(k, t)
         self.atlas_size = size
         # the atlas is allocated with the first image: a tile uploaded while paging does not pay
@@ -374,7 +376,7 @@ class ImpostorStudio(GpuOwner):
         self.texels = int(texels)
         self.slots = max(ATLAS_WIDTH // self.texels, 1) * STUDIO_ROWS if slots is None else int(slots)
         if self.slots < 1:
-            raise ValueError(f"an impostor studio needs at least one tile, got {slots}")
+            raise InputError(f"an impostor studio needs at least one tile, got {slots}")
         self.size = atlas_size(self.slots, self.texels)
         self._origin = tile_origins(self.slots, self.texels)
         self.colour = self.depth = self.fbo = None

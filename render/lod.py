@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 LEVEL_NAMES = ("full", "reduced", "mean")
 
 
@@ -44,19 +46,19 @@ class ImpostorConfig:
 
     def __post_init__(self):
         if not (np.isfinite(self.node_edge) and self.node_edge > 0):
-            raise ValueError(f"node_edge must be a positive length, got {self.node_edge}")
+            raise InputError(f"node_edge must be a positive length, got {self.node_edge}")
         if not 8 <= self.texels <= 1024:
-            raise ValueError(f"texels must lie in [8, 1024], got {self.texels}")
+            raise InputError(f"texels must lie in [8, 1024], got {self.texels}")
         if not (np.isfinite(self.max_error_px) and self.max_error_px > 0):
-            raise ValueError(f"max_error_px must be a positive number of pixels, got {self.max_error_px}")
+            raise InputError(f"max_error_px must be a positive number of pixels, got {self.max_error_px}")
         if not 0 < self.max_angle_deg <= 30:
-            raise ValueError(f"max_angle_deg must lie in (0, 30], got {self.max_angle_deg}")
+            raise InputError(f"max_angle_deg must lie in (0, 30], got {self.max_angle_deg}")
         if self.updates_per_frame < 0:
-            raise ValueError(f"updates_per_frame must be ≥ 0, got {self.updates_per_frame}")
+            raise InputError(f"updates_per_frame must be ≥ 0, got {self.updates_per_frame}")
         if self.in_full_updates_per_frame < 0:
-            raise ValueError(f"in_full_updates_per_frame must be ≥ 0, got {self.in_full_updates_per_frame}")
+            raise InputError(f"in_full_updates_per_frame must be ≥ 0, got {self.in_full_updates_per_frame}")
         if not 0 <= self.hysteresis < 1:
-            raise ValueError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
+            raise InputError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
 
 
 #: Formats of the GPU decode's decoded atlas: "f16" (RGBA16F, the reference decode's
@@ -87,18 +89,18 @@ class LodConfig:
 
     def __post_init__(self):
         if not (0 < self.mean_texel_px <= self.full_texel_px and np.isfinite(self.full_texel_px)):
-            raise ValueError(f"need 0 < mean_texel_px ≤ full_texel_px, got {self.mean_texel_px}, "
+            raise InputError(f"need 0 < mean_texel_px ≤ full_texel_px, got {self.mean_texel_px}, "
                              f"{self.full_texel_px}")
         if not 0 <= self.reduced_rank <= 255:
-            raise ValueError(f"reduced_rank must be 0…255, got {self.reduced_rank}")
+            raise InputError(f"reduced_rank must be 0…255, got {self.reduced_rank}")
         if not 0 <= self.hysteresis < 1:
-            raise ValueError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
+            raise InputError(f"hysteresis must lie in [0, 1), got {self.hysteresis}")
         refresh = self.refresh_tiles_per_frame
         if refresh is not None and (isinstance(refresh, bool) or not isinstance(refresh, (int, np.integer))
                                     or refresh < 0):
-            raise ValueError(f"refresh_tiles_per_frame must be None or an integer ≥ 0, got {refresh!r}")
+            raise InputError(f"refresh_tiles_per_frame must be None or an integer ≥ 0, got {refresh!r}")
         if self.decoded_format not in DECODED_FORMATS:
-            raise ValueError(f"decoded_format must be one of {DECODED_FORMATS}, got {self.decoded_format!r}")
+            raise InputError(f"decoded_format must be one of {DECODED_FORMATS}, got {self.decoded_format!r}")
 
     @property
     def rank_caps(self) -> np.ndarray:

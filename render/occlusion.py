@@ -77,6 +77,8 @@ from dataclasses import dataclass, field
 import moderngl
 import numpy as np
 
+from core.errors import InputError
+
 from .culling import FrustumResult, merge_ranges
 from .program import load_program
 from .quadtree import ScreenQuadtree, project_boxes
@@ -110,11 +112,11 @@ class OcclusionConfig:
 
     def __post_init__(self):
         if not 0 <= int(self.max_depth) <= 12:
-            raise ValueError(f"max_depth must lie in [0, 12], got {self.max_depth!r}")
+            raise InputError(f"max_depth must lie in [0, 12], got {self.max_depth!r}")
         if not (self.depth_eps >= 0 and self.pad_px >= 0 and self.revisit_frames >= 1 and self.auto_window >= 1
                 and self.depth_batches >= 1 and self.depth_batch_growth >= 1 and self.small_fraction > 0
                 and 1 <= self.auto_backoff <= self.auto_backoff_max and self.auto_margin >= 0):
-            raise ValueError(f"invalid OcclusionConfig: {self}")
+            raise InputError(f"invalid OcclusionConfig: {self}")
 
 
 @dataclass
@@ -233,14 +235,14 @@ class OcclusionCuller:
     @mode.setter
     def mode(self, value: str) -> None:
         if value not in self.MODES:
-            raise ValueError(f"mode must be one of {self.MODES}, got {value!r}")
+            raise InputError(f"mode must be one of {self.MODES}, got {value!r}")
         self._mode = value
 
     def resize(self, width: int, height: int) -> None:
         """Set the viewport size (pixels) the frames are drawn in."""
         w, h = int(width), int(height)
         if w < 1 or h < 1 or (w, h) != (width, height):
-            raise ValueError(f"size must be two positive integers, got {width!r} × {height!r}")
+            raise InputError(f"size must be two positive integers, got {width!r} × {height!r}")
         self.width, self.height = w, h
 
     @property
@@ -289,11 +291,11 @@ class OcclusionCuller:
         lo = np.asarray(box_min, dtype=np.float64).reshape(-1, 3)
         hi = np.asarray(box_max, dtype=np.float64).reshape(-1, 3)
         if len(lo) != m or len(hi) != m:
-            raise ValueError(f"cull: {m} ranges but {len(lo)} box_min and {len(hi)} box_max rows")
+            raise InputError(f"cull: {m} ranges but {len(lo)} box_min and {len(hi)} box_max rows")
         if keys is not None:
             keys = np.asarray(keys, dtype=np.int64).reshape(-1)
             if len(keys) != m:
-                raise ValueError(f"cull: {m} objects but {len(keys)} keys")
+                raise InputError(f"cull: {m} objects but {len(keys)} keys")
         active = self.active
         stats = CullStats(frame=self._frame, mode=self._mode, active=active, objects=m,
                           billboards=int((ranges[:, 1] - ranges[:, 0]).sum()))
@@ -368,7 +370,7 @@ class OcclusionCuller:
     def _check_viewport(self) -> None:
         vp = tuple(self.ctx.fbo.viewport)
         if (vp[2], vp[3]) != (self.width, self.height):
-            raise ValueError(f"the bound framebuffer's viewport {vp} is not the culler's size "
+            raise InputError(f"the bound framebuffer's viewport {vp} is not the culler's size "
                              f"{self.width}×{self.height}; call resize()")
 
     def _draw(self, objects: np.ndarray) -> None:

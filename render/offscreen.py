@@ -32,6 +32,8 @@ import numpy as np
 from billboards.model import BillboardModel
 from billboards.sky import Sky
 
+from core.errors import InputError
+
 from .context import create_context
 from .renderer import BillboardRenderer
 from .sky import SkyPass, render_over_sky
@@ -176,7 +178,7 @@ def render_view(model: BillboardModel, K, world_from_cam, size, decode: str = "g
         renderer = _renderer_for(model, decode, **options)
         if isinstance(renderer, TiledRenderer):
             if visible is not None:
-                raise ValueError("visible selects billboards of one model, not of a tiled set")
+                raise InputError("visible selects billboards of one model, not of a tiled set")
             size = (int(size[0]), int(size[1]))
             renderer.targets.begin(size, renderer.background)
             sky_pass = _sky_pass_for(sky)

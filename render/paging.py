@@ -63,6 +63,7 @@ import numpy as np
 from billboards.atlas import atlas_layout as page_layout
 from billboards.model import BillboardModel
 from billboards.model_set import ModelSet
+from core.errors import InputError
 from core.memory import drop_mapped_pages, trim_heap
 
 logger = logging.getLogger(__name__)
@@ -90,24 +91,24 @@ class PagingConfig:
     def __post_init__(self):
         if self.gpu_budget is not None and (isinstance(self.gpu_budget, bool) or int(self.gpu_budget) != self.gpu_budget
                                             or self.gpu_budget <= 0):
-            raise ValueError(f"gpu_budget must be a positive number of bytes or None, got {self.gpu_budget!r}")
+            raise InputError(f"gpu_budget must be a positive number of bytes or None, got {self.gpu_budget!r}")
         for name in ("load_radius", "prefetch", "drop_radius", "wait_radius"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not math.isnan(v) and v >= 0):
-                raise ValueError(f"{name} must be a length ≥ 0 (inf allowed), got {v!r}")
+                raise InputError(f"{name} must be a length ≥ 0 (inf allowed), got {v!r}")
         if self.drop_radius < self.load_radius:
-            raise ValueError(f"drop_radius ({self.drop_radius}) must be ≥ load_radius ({self.load_radius})")
+            raise InputError(f"drop_radius ({self.drop_radius}) must be ≥ load_radius ({self.load_radius})")
         if self.uploads_per_frame < 1 or self.upload_bytes_per_frame < 1 or self.loads_in_flight < 1:
-            raise ValueError("uploads_per_frame, upload_bytes_per_frame and loads_in_flight must be ≥ 1")
+            raise InputError("uploads_per_frame, upload_bytes_per_frame and loads_in_flight must be ≥ 1")
         if self.warm_tiles_per_frame < 0 or self.warm_frames < 1:
-            raise ValueError(f"warm_tiles_per_frame must be ≥ 0 and warm_frames ≥ 1, got "
+            raise InputError(f"warm_tiles_per_frame must be ≥ 0 and warm_frames ≥ 1, got "
                              f"{self.warm_tiles_per_frame}, {self.warm_frames}")
         ms = self.frame_ms
         if ms is not None and not (isinstance(ms, numbers.Real) and not isinstance(ms, bool) and math.isfinite(ms)
                                    and ms > 0):
-            raise ValueError(f"frame_ms must be a positive number of milliseconds or None, got {self.frame_ms!r}")
+            raise InputError(f"frame_ms must be a positive number of milliseconds or None, got {self.frame_ms!r}")
         if not (isinstance(self.max_deferred_frames, numbers.Integral) and self.max_deferred_frames >= 0):
-            raise ValueError(f"max_deferred_frames must be an integer ≥ 0, got {self.max_deferred_frames!r}")
+            raise InputError(f"max_deferred_frames must be an integer ≥ 0, got {self.max_deferred_frames!r}")
 
 
 # ----------------------------------------------------------------------------------------------

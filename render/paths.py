@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, as_matrix, check_rigid, read_json, write_bytes
 
 from .camera import look_at
@@ -38,7 +39,7 @@ class DrivePath:
     def __init__(self, points, speed: float = 8.0, lookahead: float = 5.0):
         pts = np.asarray(points, np.float64).reshape(-1, 3)
         if len(pts) == 0:
-            raise ValueError("a drive path needs at least one point")
+            raise InputError("a drive path needs at least one point")
         keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-9])
         pts = pts[keep]
         if len(pts) == 1:
@@ -96,7 +97,7 @@ def drive_path_for(model, height: float = 2.0) -> DrivePath:
             pts = world_from_rig[:, :3, 3] + [0.0, 0.0, height]
             pts = pts[np.isfinite(pts).all(axis=1)]
             if len(pts) < 2:
-                raise ValueError(f"{poses}: fewer than two frames have a pose")
+                raise InputError(f"{poses}: fewer than two frames have a pose")
             return DrivePath(pts)
         except Exception as e:  # missing or moved dataset: fall back to the model's extent
             logger.info("no capture path from %s (%s); driving along the model", dataset, e)

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import InputError
+
 #: Deepest quadtree level supported (cell coordinates stay exact and ids fit int64).
 MAX_QUADTREE_DEPTH = 24
 
@@ -35,7 +37,7 @@ def level_offset(level) -> np.ndarray:
 def _check_size(width, height) -> tuple[int, int]:
     w, h = int(width), int(height)
     if w < 1 or h < 1 or w != width or h != height:
-        raise ValueError(f"screen size must be two positive integers, got {width!r} × {height!r}")
+        raise InputError(f"screen size must be two positive integers, got {width!r} × {height!r}")
     return w, h
 
 
@@ -44,11 +46,11 @@ def _check_rects(rects) -> np.ndarray:
     if r.size == 0:
         return np.zeros((0, 4))
     if r.ndim != 2 or r.shape[1] != 4:
-        raise ValueError(f"rects must be a (k, 4) array of (x0, y0, x1, y1), got shape {r.shape}")
+        raise InputError(f"rects must be a (k, 4) array of (x0, y0, x1, y1), got shape {r.shape}")
     if not np.all(np.isfinite(r)):
-        raise ValueError("rects must be finite")
+        raise InputError("rects must be finite")
     if np.any(r[:, 2] < r[:, 0]) or np.any(r[:, 3] < r[:, 1]):
-        raise ValueError("rects must have x0 ≤ x1 and y0 ≤ y1")
+        raise InputError("rects must have x0 ≤ x1 and y0 ≤ y1")
     return r
 
 
@@ -76,7 +78,7 @@ def project_boxes(view_proj, box_min, box_max, width: int, height: int, *, pad_p
     hi = np.asarray(box_max, dtype=np.float64).reshape(-1, 3)
     k = len(lo)
     if m.shape != (4, 4) or hi.shape != lo.shape:
-        raise ValueError(f"need view_proj (4, 4) and two (k, 3) box arrays, got {m.shape}, {lo.shape}, {hi.shape}")
+        raise InputError(f"need view_proj (4, 4) and two (k, 3) box arrays, got {m.shape}, {lo.shape}, {hi.shape}")
     if k == 0:
         return np.zeros((0, 4)), np.zeros(0), np.zeros(0, dtype=bool)
     # Component-major (4, 8, k) corners: clip coordinates are affine in the corner (the lo corner
@@ -139,7 +141,7 @@ class ScreenQuadtree:
     def __init__(self, width: int, height: int, max_depth: int = 6):
         self.width, self.height = _check_size(width, height)
         if int(max_depth) != max_depth or not 0 <= max_depth <= MAX_QUADTREE_DEPTH:
-            raise ValueError(f"max_depth must be an integer in [0, {MAX_QUADTREE_DEPTH}], got {max_depth!r}")
+            raise InputError(f"max_depth must be an integer in [0, {MAX_QUADTREE_DEPTH}], got {max_depth!r}")
         self.max_depth = int(max_depth)
         self._store(np.zeros((0, 4)), np.zeros(0), *(np.zeros(0, np.int64),) * 3)
 
@@ -188,7 +190,7 @@ class ScreenQuadtree:
         r = _check_rects(rects)
         d = np.asarray(depth, dtype=np.float64).reshape(-1)
         if len(d) != len(r):
-            raise ValueError(f"depth has {len(d)} values for {len(r)} rects")
+            raise InputError(f"depth has {len(d)} values for {len(r)} rects")
         i0, i1, j0, j1 = self.grid_indices(r)
         # bit_length(a ^ b) via frexp: v = m·2**e with m in [0.5, 1) → e = bit_length(v) (0 for v = 0)
         bx = np.frexp((i0 ^ i1).astype(np.float64))[1].astype(np.int64)

@@ -18,6 +18,8 @@ import numpy as np
 
 from billboards.model import BillboardModel
 
+from core.errors import InputError
+
 from .camera import ClipPlanes, GLCamera, gl_camera
 from .culling import CULL_MODES, frustum_cull_nodes, frustum_planes, model_quad_radius, ranges_to_indices
 from .hzb_culler import HzbCuller
@@ -85,9 +87,9 @@ class BillboardRenderer:
                  lod: LodConfig | None = None, programs: ProgramCache | None = None,
                  studio: ImpostorStudio | None = None):
         if decode not in DECODE_MODES:
-            raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
+            raise InputError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
         if cull not in CULL_MODES:
-            raise ValueError(f"cull must be one of {CULL_MODES}, got {cull!r}")
+            raise InputError(f"cull must be one of {CULL_MODES}, got {cull!r}")
         self.cull = cull
         self._cullers: dict[tuple[int, int], OcclusionCuller | HzbCuller] = {}
         self.ctx = ctx

@@ -31,6 +31,7 @@ import moderngl
 import numpy as np
 
 from billboards.model import BillboardModel
+from core.errors import InputError
 from core.memory import drop_mapped_pages
 
 from .context import max_array_layers, max_texture_size
@@ -94,10 +95,10 @@ def _page_array(ctx: moderngl.Context, pages, width: int, components: int, dtype
         height = max(int(p.shape[0]) for p in pages)
         limit, layers = max_texture_size(ctx), max_array_layers(ctx)
         if width > limit or height > limit:
-            raise ValueError(f"{what} pages of {height}×{width} texels exceed GL_MAX_TEXTURE_SIZE {limit}; "
+            raise InputError(f"{what} pages of {height}×{width} texels exceed GL_MAX_TEXTURE_SIZE {limit}; "
                              f"rebuild the model with page_size ≤ {limit}")
         if len(pages) > layers:
-            raise ValueError(f"{len(pages)} {what} pages exceed GL_MAX_ARRAY_TEXTURE_LAYERS {layers}")
+            raise InputError(f"{len(pages)} {what} pages exceed GL_MAX_ARRAY_TEXTURE_LAYERS {layers}")
         tex = ctx.texture_array((width, height, len(pages)), components, dtype=dtype)
         for layer, page in enumerate(pages):
             row_bytes = max(int(page[:1].nbytes), 1)
@@ -166,11 +167,11 @@ class ModelResources(GpuOwner):
         limit = max_texture_size(ctx)
         self.slots_per_row = 1 << int(np.log2(limit // 3))
         if max(model.num_slots, model.num_billboards) >= 1 << 24:
-            raise ValueError(f"{model.num_billboards} billboards with {model.num_slots} slots: the GPU slot "
+            raise InputError(f"{model.num_billboards} billboards with {model.num_slots} slots: the GPU slot "
                              "table indexes at most 2^24 (float32); split the model")
         table = slot_table(model, self.slots_per_row)
         if table.shape[0] > limit:
-            raise ValueError(f"{model.num_slots} slots need a {table.shape[0]}-row slot table, "
+            raise InputError(f"{model.num_slots} slots need a {table.shape[0]}-row slot table, "
                              f"GL_MAX_TEXTURE_SIZE is {limit}")
         self.slot_table = self._keep(ctx.texture((table.shape[1], table.shape[0]), 4, table, dtype="f4"))
         self.slot_table.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -242,7 +243,7 @@ def check_billboards(visible, n: int) -> np.ndarray | None:
     v = np.asarray(visible)
     if v.dtype == np.bool_:
         if v.shape != (n,):
-            raise ValueError(f"a visibility mask must have shape ({n},), got {v.shape}")
+            raise InputError(f"a visibility mask must have shape ({n},), got {v.shape}")
         return np.flatnonzero(v)
     if v.size == 0:
         return np.zeros(0, np.int64)

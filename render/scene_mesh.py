@@ -24,6 +24,8 @@ import numpy as np
 
 from data_synth.scene import Kind, Scene
 
+from core.errors import InputError
+
 from .camera import ClipPlanes, GLCamera, gl_bytes, gl_camera
 from .culling import CULL_MODES, boxes_outside, classify_boxes, frustum_planes, indices_to_ranges, merge_ranges, ranges_to_indices
 from .hzb_culler import HzbConfig, HzbCuller
@@ -108,7 +110,7 @@ class SceneMeshRenderer(GpuOwner):
                  occlusion: OcclusionConfig = OcclusionConfig(), group_cell: float | None = 60.0,
                  hzb: HzbConfig = HzbConfig()):
         if cull not in CULL_MODES:
-            raise ValueError(f"cull must be one of {CULL_MODES}, got {cull!r}")
+            raise InputError(f"cull must be one of {CULL_MODES}, got {cull!r}")
         self.ctx = ctx
         self.scene = scene
         self.cull = cull

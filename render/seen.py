@@ -21,6 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
+from core.errors import InputError
+
 
 @dataclass(frozen=True)
 class SeenConfig:
@@ -30,7 +32,7 @@ class SeenConfig:
 
     def __post_init__(self):
         if not (self.abs_tol >= 0 and self.rel_tol >= 0 and self.max_distance > 0):
-            raise ValueError("need abs_tol ≥ 0, rel_tol ≥ 0 and max_distance > 0")
+            raise InputError("need abs_tol ≥ 0, rel_tol ≥ 0 and max_distance > 0")
 
 
 def back_project(depth: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray) -> np.ndarray:
@@ -60,7 +62,7 @@ def seen_mask(points_world: np.ndarray, K: np.ndarray, world_from_cam: np.ndarra
     K = np.asarray(K, np.float64).reshape(-1, 3, 3)
     T = np.asarray(world_from_cam, np.float64).reshape(-1, 4, 4)
     if not len(K) == len(T) == len(depths):
-        raise ValueError(f"need as many K ({len(K)}), poses ({len(T)}) and depth maps ({len(depths)})")
+        raise InputError(f"need as many K ({len(K)}), poses ({len(T)}) and depth maps ({len(depths)})")
     seen = np.zeros(len(pts), dtype=bool)
     todo = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
     for Kc, Tc, depth in zip(K, T, depths):

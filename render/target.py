@@ -10,6 +10,8 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
+from core.errors import InputError
+
 from .resources import release_all
 
 
@@ -17,7 +19,7 @@ def background_rgb(colour) -> tuple[float, float, float]:
     """An RGB background in [0, 1] from a triple in [0, 1] or 0–255 (values above 1 mean 0–255)."""
     c = np.asarray(colour, dtype=np.float64).reshape(-1)
     if c.shape != (3,) or not np.all(np.isfinite(c)):
-        raise ValueError(f"background must be an RGB triple, got {colour!r}")
+        raise InputError(f"background must be an RGB triple, got {colour!r}")
     if c.max() > 1:  # given as 0..255
         c = c / 255
     return tuple(float(v) for v in np.clip(c, 0, 1))

@@ -38,6 +38,8 @@ import numpy as np
 from billboards.model import BillboardModel
 from billboards.model_set import ModelSet, ModelTile, quad_bounds
 
+from core.errors import InputError
+
 from .camera import ClipPlanes, camera_at_origin, gl_camera
 from .context import max_texture_size
 from .culling import CULL_MODES, boxes_outside, frustum_planes
@@ -153,9 +155,9 @@ class TiledRenderer:
                  sky=None, spherical: bool | None = None, interpolate: bool = True, linear: bool = True,
                  background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "frustum", lod=None):
         if decode not in DECODE_MODES:
-            raise ValueError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
+            raise InputError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
         if cull not in CULL_MODES:
-            raise ValueError(f"cull must be one of {CULL_MODES}, got {cull!r}")
+            raise InputError(f"cull must be one of {CULL_MODES}, got {cull!r}")
         self.ctx = ctx
         self.model_set, preloaded = as_model_set(source)
         self.decode = decode
@@ -297,7 +299,7 @@ class TiledRenderer:
         if self._released:
             raise RuntimeError("TiledRenderer used after release()")
         if wait not in WAIT_MODES:
-            raise ValueError(f"wait must be one of {WAIT_MODES}, got {wait!r}")
+            raise InputError(f"wait must be one of {WAIT_MODES}, got {wait!r}")
         if wait == "auto":
             wait = "near" if self.frames == 0 else "none"
         self._frame_uploads = self._frame_releases = 0

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
+
 from .camera import default_intrinsics, look_at
 from .hud import HudOverlay
 from .paths import drive_path_for
@@ -132,7 +134,7 @@ def _window_class(name: str):
     return get_local_window_cls(name)
 
 
-class WindowError(ValueError):
+class WindowError(InputError):
     """No window of the kind asked for could be opened (no display, a backend not installed)."""
 
 
@@ -181,9 +183,9 @@ class ViewerApp(_WindowConfig):
                  paging: PagingConfig | None = None, **kwargs):
         super().__init__(**kwargs)
         if decode not in DECODE_MODES:
-            raise ValueError(f"decode must be one of {DECODE_MODES}")
+            raise InputError(f"decode must be one of {DECODE_MODES}")
         if cull not in CULL_MODES:
-            raise ValueError(f"cull must be one of {CULL_MODES}")
+            raise InputError(f"cull must be one of {CULL_MODES}")
         self.model = model  # a BillboardModel, or a ModelSet (paged)
         self.paging = paging
         self.tiled = paging is not None or not hasattr(model, "centres")
@@ -438,7 +440,7 @@ def image_format(path: Path | str) -> str:
     fmt = IMAGE_FORMATS.get(suffix)
     Image.init()
     if fmt is None or fmt not in Image.SAVE:
-        raise ValueError(f"{path}: cannot write an image as {suffix or 'a file without a suffix'!r}; "
+        raise InputError(f"{path}: cannot write an image as {suffix or 'a file without a suffix'!r}; "
                          f"use one of {', '.join(s for s, f in IMAGE_FORMATS.items() if f in Image.SAVE)}")
     return fmt
 
@@ -487,7 +489,7 @@ def run_viewer(model, *, size=(1280, 720), decode: str = "gpu", cull: str = "fru
                 if frame < len(script_keys):
                     name = str(script_keys[frame]).strip().upper()
                     if not hasattr(keys, name):
-                        raise ValueError(f"unknown key {script_keys[frame]!r} in script_keys")
+                        raise InputError(f"unknown key {script_keys[frame]!r} in script_keys")
                     key = getattr(keys, name)
                     if key in (None, "undefined"):  # a headless window has no keyboard
                         app.handle_command(name)

@@ -19,6 +19,8 @@ from typing import Iterator
 import numpy as np
 import psutil
 
+from core.errors import InputError
+
 from .serve import serve_in_background
 
 #: Software WebGL2 backends of Chromium on a machine without a GPU: Mesa's llvmpipe under ANGLE's
@@ -49,7 +51,7 @@ def open_site(site: Path, size=(1280, 720), view=None, query: str = "", gl: str 
     (``&filter=nearest``). The page's ``first_frame_ms`` attribute is the first frame's time
     from navigation start."""
     if gl not in BROWSER_GL:
-        raise ValueError(f"gl must be one of {list(BROWSER_GL)}, got {gl!r}")
+        raise InputError(f"gl must be one of {list(BROWSER_GL)}, got {gl!r}")
     from playwright.sync_api import Error as PlaywrightError
     from playwright.sync_api import sync_playwright
 

@@ -46,6 +46,7 @@ from billboards.decode import decode
 from billboards.geometry import GROUND, GROUND_OVERLAP, kind_frames, surface_dz
 from billboards.model import BillboardModel
 from billboards.model_reader import load
+from core.errors import InputError
 from core.fileio import atomic_path
 
 TEXTURES = ("direction", "mean")
@@ -67,13 +68,13 @@ class GltfConfig:
 
     def __post_init__(self):
         if self.texture not in TEXTURES:
-            raise ValueError(f"texture must be one of {list(TEXTURES)}, got {self.texture!r}")
+            raise InputError(f"texture must be one of {list(TEXTURES)}, got {self.texture!r}")
         for name, lo, hi in (("max_image", 16, 1 << 16), ("chunk", 1, 1 << 24), ("png_level", 0, 9)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-                raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+                raise InputError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
         if not isinstance(self.ground_overlap, bool):
-            raise ValueError(f"ground_overlap must be true or false, got {self.ground_overlap!r}")
+            raise InputError(f"ground_overlap must be true or false, got {self.ground_overlap!r}")
 
 
 def quad_corners(centres: np.ndarray, kind: np.ndarray, base_yaw: np.ndarray, edges: np.ndarray,
@@ -145,7 +146,7 @@ def pack_atlas(tiles: np.ndarray, gutter: int, max_image: int) -> tuple[list[np.
     cell = t + 2 * gutter
     side = max_image // cell
     if side < 1:
-        raise ValueError(f"a tile of {t} texels with its gutter ({cell}) does not fit an image of {max_image}")
+        raise InputError(f"a tile of {t} texels with its gutter ({cell}) does not fit an image of {max_image}")
     per_image = side * side
     images, image, xy = [], np.zeros(n, np.int64), np.zeros((n, 2), np.float64)
     for k, s in enumerate(range(0, n, per_image)):
@@ -283,7 +284,7 @@ def export_gltf(model_dir: os.PathLike | str, out_path: os.PathLike | str, confi
     start = time.perf_counter()
     out = check_output(out_path)
     if out.suffix.lower() != ".glb":
-        raise ValueError(f"{out}: a binary glTF file's name ends in .glb")
+        raise InputError(f"{out}: a binary glTF file's name ends in .glb")
     model = load(model_dir, mmap=True)
     report = write_glb(model, out, config)
     report["seconds"] = time.perf_counter() - start

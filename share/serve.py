@@ -14,13 +14,14 @@ import socket
 import threading
 from pathlib import Path
 
+from core.errors import InputError
 from core.fileio import DataFormatError, read_json
 
 SITE_FILES = ("index.html", "site.json", "shaders.json", "viewer.js")
 SITE_FORMAT = "bbcity-web-site"  # share.web_site.FORMAT (web_site imports render; serving needs none of it)
 
 
-class NotASiteError(ValueError):
+class NotASiteError(InputError):
     """The folder is not a site written by ``bbcity export web``."""
 
 
@@ -66,7 +67,7 @@ def make_server(site: Path, port: int = 8000, host: str = "127.0.0.1") -> http.s
     OSError naming the option."""
     site = check_site(site)
     if not host.strip():
-        raise ValueError("--host is empty: give 127.0.0.1 (this machine), or 0.0.0.0 / :: (every interface)")
+        raise InputError("--host is empty: give 127.0.0.1 (this machine), or 0.0.0.0 / :: (every interface)")
     handler = functools.partial(_Handler, directory=str(site))
     try:
         server = _Server6 if ":" in host else http.server.ThreadingHTTPServer

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from billboards.model_set import load_model_set, quad_bounds
+from core.errors import InputError
 from core.fileio import atomic_dir, write_json
 
 from .gltf import GltfConfig, check_output, write_glb
@@ -62,16 +63,16 @@ class Tiles3dConfig:
 
     def __post_init__(self):
         if not isinstance(self.gltf, GltfConfig):
-            raise ValueError(f"gltf must be a GltfConfig, got {type(self.gltf).__name__}")
+            raise InputError(f"gltf must be a GltfConfig, got {type(self.gltf).__name__}")
         if self.refine not in REFINES:
-            raise ValueError(f"refine must be one of {list(REFINES)}, got {self.refine!r}")
+            raise InputError(f"refine must be one of {list(REFINES)}, got {self.refine!r}")
         if self.lonlat_height is not None:
             v = self.lonlat_height
             if (not isinstance(v, (tuple, list)) or len(v) != 3
                     or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
-                raise ValueError(f"lonlat_height must be three finite numbers (lon °, lat °, height m), got {v!r}")
+                raise InputError(f"lonlat_height must be three finite numbers (lon °, lat °, height m), got {v!r}")
             if not (-180.0 <= v[0] <= 180.0 and -90.0 <= v[1] <= 90.0 and -11_000.0 <= v[2] <= 100_000.0):
-                raise ValueError(f"lonlat_height: longitude must be in [−180, 180], latitude in [−90, 90] and height "
+                raise InputError(f"lonlat_height: longitude must be in [−180, 180], latitude in [−90, 90] and height "
                                  f"in [−11 000, 100 000] m (the ocean's floor to the edge of space), got {v!r}")
 
 

@@ -15,6 +15,8 @@ import math
 
 import numpy as np
 
+from core.errors import InputError
+
 DEFAULT_FOV_DEG = 60.0  # vertical field of view of a link that names none
 
 
@@ -23,15 +25,15 @@ def check_view(view) -> tuple[float, float, float, float, float, float]:
     ValueError naming what is wrong."""
     values = [float(v) for v in view]
     if len(values) not in (5, 6):
-        raise ValueError(f"a view is x,y,z,yaw,pitch[,fov]: 5 or 6 numbers, got {len(values)}")
+        raise InputError(f"a view is x,y,z,yaw,pitch[,fov]: 5 or 6 numbers, got {len(values)}")
     if not all(math.isfinite(v) for v in values):
-        raise ValueError(f"a view's numbers must be finite, got {values}")
+        raise InputError(f"a view's numbers must be finite, got {values}")
     if len(values) == 5:
         values.append(DEFAULT_FOV_DEG)
     if not -90.0 < values[4] < 90.0:
-        raise ValueError(f"pitch must lie strictly between -90 and 90 degrees, got {values[4]:g}")
+        raise InputError(f"pitch must lie strictly between -90 and 90 degrees, got {values[4]:g}")
     if not 1.0 <= values[5] <= 170.0:
-        raise ValueError(f"fov must lie within [1, 170] degrees, got {values[5]:g}")
+        raise InputError(f"fov must lie within [1, 170] degrees, got {values[5]:g}")
     return tuple(values)
 
 

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import write_json
 from billboards.model import BillboardModel
 from billboards.slits import build_slits, pack_columns
@@ -53,7 +54,7 @@ def model_tables(model: BillboardModel) -> tuple[dict[str, np.ndarray], dict]:
     float32. Raises ValueError where the model does not fit WebGL2 textures
     of :data:`MAX_TEXTURE` texels."""
     if model.page_size > MAX_TEXTURE:
-        raise ValueError(f"atlas pages of {model.page_size} texels exceed the web's {MAX_TEXTURE}; "
+        raise InputError(f"atlas pages of {model.page_size} texels exceed the web's {MAX_TEXTURE}; "
                          f"rebuild the model with a page size of at most {MAX_TEXTURE}")
     n = model.num_billboards
     slots = storage_slots(len(model.pitches))
@@ -68,7 +69,7 @@ def model_tables(model: BillboardModel) -> tuple[dict[str, np.ndarray], dict]:
     slots_per_row = 1 << int(np.log2(MAX_TEXTURE // 3))
     table = slot_table(model, slots_per_row)
     if table.shape[0] > MAX_TEXTURE:
-        raise ValueError(f"{model.num_slots} slots need a {table.shape[0]}-row slot table; "
+        raise InputError(f"{model.num_slots} slots need a {table.shape[0]}-row slot table; "
                          f"the web's textures have at most {MAX_TEXTURE} rows (split the model into tiles)")
     arrays = {
         "centres": model.centres[order].astype("<f4"),

@@ -25,6 +25,7 @@ import numpy as np
 from billboards.model import MANIFEST
 from billboards.model_set import TILES_FILE, ModelSet, directory_bytes, load_model_set
 from billboards.sky import read_sky
+from core.errors import InputError
 from core.fileio import atomic_dir, read_json, write_json
 from render.paths import capture_camera_poses, densify_poses, drive_path_for
 from render.program import es_stage_sources
@@ -49,12 +50,12 @@ class WebConfig:
 
     def __post_init__(self):
         if not (np.isfinite(self.gpu_budget_mb) and 0 < self.gpu_budget_mb <= MAX_BUDGET_MB):
-            raise ValueError(f"gpu_budget_mb must be a number of megabytes in (0, {MAX_BUDGET_MB:g}], "
+            raise InputError(f"gpu_budget_mb must be a number of megabytes in (0, {MAX_BUDGET_MB:g}], "
                              f"got {self.gpu_budget_mb}")
         if not (np.isfinite(self.fov_deg) and 1.0 <= self.fov_deg <= 170.0):
-            raise ValueError(f"fov_deg must lie within [1, 170] degrees, got {self.fov_deg}")
+            raise InputError(f"fov_deg must lie within [1, 170] degrees, got {self.fov_deg}")
         if not (np.isfinite(self.path_step) and self.path_step > 0):
-            raise ValueError(f"path_step must be a positive number of metres, got {self.path_step}")
+            raise InputError(f"path_step must be a positive number of metres, got {self.path_step}")
 
 
 def web_programs() -> dict[str, tuple[str, dict]]:
@@ -120,7 +121,7 @@ def check_site_of(site: Path, model_path: Path) -> None:
     """ValueError unless ``site`` (a checked site folder) was exported from the model at ``model_path``."""
     doc = read_json(Path(site) / "site.json")
     if not isinstance(doc, dict) or doc.get("model_digest") != model_digest(load_model_set(model_path)):
-        raise ValueError(f"{site}: this site was not exported from {model_path} (export it again: "
+        raise InputError(f"{site}: this site was not exported from {model_path} (export it again: "
                          f"bbcity export web {model_path} --out NEW_SITE)")
 
 

@@ -40,6 +40,7 @@ from pathlib import Path, PurePosixPath
 import cv2
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, write_bytes
 from core.rigid import nearest_rotation, rigid_inverse
 from data_synth.distortion import Distortion
@@ -89,7 +90,7 @@ class ColmapImportConfig:
 
     def __post_init__(self):
         if not isinstance(self.metric, bool):
-            raise ValueError(f"metric must be True or False, got {self.metric!r}")
+            raise InputError(f"metric must be True or False, got {self.metric!r}")
 
 
 @dataclass

@@ -15,6 +15,7 @@ import numpy as np
 from PIL import Image as PILImage
 from PIL import ImageOps
 
+from core.errors import InputError
 from core.fileio import DataFormatError, write_bytes, write_json, write_png
 from core.rigid import nearest_rotation
 from data_synth.dataset import DATASET_FORMAT, FORMAT_VERSION
@@ -171,7 +172,7 @@ def write_imported_dataset(out_dir: os.PathLike | str, rig: Rig, world_from_rig:
         raise FileExistsError(f"{out} exists; choose a new --out")
     n, c = len(world_from_rig), rig.num_cameras
     if len(images) != n or any(len(row) != c for row in images):
-        raise ValueError(f"need {n} frames × {c} camera images")
+        raise InputError(f"need {n} frames × {c} camera images")
     names = [f"{i:06d}" for i in range(n)] if names is None else list(names)
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
@@ -180,7 +181,7 @@ def write_imported_dataset(out_dir: os.PathLike | str, rig: Rig, world_from_rig:
         try:  # the rig as check and every stage will read it: an import writes no dataset they refuse
             Rig.load(tmp / "rig.json")
         except DataFormatError as e:
-            raise ValueError(f"{source.get('path', source.get('kind', 'the input'))}: the camera it describes is "
+            raise InputError(f"{source.get('path', source.get('kind', 'the input'))}: the camera it describes is "
                              f"refused by the dataset format ({e.problem})") from None
         for f, row in enumerate(images):
             for cam, src in enumerate(row):

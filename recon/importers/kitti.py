@@ -23,6 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError
 from data_synth.rig import Rig
 
@@ -47,11 +48,11 @@ class KittiConfig:
 
     def __post_init__(self):
         if self.cameras not in ("auto", *CAMERA_PAIRS):
-            raise ValueError(f"cameras must be auto, {', '.join(CAMERA_PAIRS)}; got {self.cameras!r}")
+            raise InputError(f"cameras must be auto, {', '.join(CAMERA_PAIRS)}; got {self.cameras!r}")
         if not np.isfinite(self.camera_height) or self.camera_height < 0:
-            raise ValueError(f"camera_height must be a finite non-negative height, got {self.camera_height}")
+            raise InputError(f"camera_height must be a finite non-negative height, got {self.camera_height}")
         if self.first < 0 or self.step < 1 or (self.count is not None and self.count < 1):
-            raise ValueError("first must be ≥ 0, step ≥ 1 and count ≥ 1")
+            raise InputError("first must be ≥ 0, step ≥ 1 and count ≥ 1")
 
 
 #: A stereo pair's baseline, metres (KITTI's: 0.54): shorter or longer ones are no car rig's.
@@ -189,7 +190,7 @@ def import_kitti(sequence_dir: os.PathLike | str, out_dir: os.PathLike | str,
     stop = len(world_from_cam0) if config.count is None else min(len(world_from_cam0), config.first + config.count * config.step)
     keep = list(range(config.first, stop, config.step))
     if not keep:
-        raise ValueError(f"{root}: no frames from {config.first} (the sequence has {len(world_from_cam0)})")
+        raise InputError(f"{root}: no frames from {config.first} (the sequence has {len(world_from_cam0)})")
     first = cv2.imread(str(files[0][keep[0]]), cv2.IMREAD_UNCHANGED)
     if first is None:
         raise DataFormatError(files[0][keep[0]], "image could not be read")

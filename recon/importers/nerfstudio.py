@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import DataFormatError, read_json
 from core.rigid import rigid_inverse
 from data_synth.distortion import Distortion
@@ -74,9 +75,9 @@ class NerfstudioImportConfig:
 
     def __post_init__(self):
         if not isinstance(self.metric, bool):
-            raise ValueError(f"metric must be True or False, got {self.metric!r}")
+            raise InputError(f"metric must be True or False, got {self.metric!r}")
         if self.world not in WORLDS:
-            raise ValueError(f"world must be one of {', '.join(WORLDS)}, got {self.world!r}")
+            raise InputError(f"world must be one of {', '.join(WORLDS)}, got {self.world!r}")
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import InputError
 from core.fileio import atomic_dir, write_json, write_png
 from data_synth.dataset import held_out_frames, load_dataset
 
@@ -43,7 +44,7 @@ class NerfstudioExportConfig:
 
     def __post_init__(self):
         if isinstance(self.holdout, bool) or not isinstance(self.holdout, int):
-            raise ValueError(f"holdout must be an integer, got {self.holdout!r}")
+            raise InputError(f"holdout must be an integer, got {self.holdout!r}")
         held_out_frames(0, self.holdout)  # 0 or ≥ 2: its ValueError names the rule
 
 
@@ -68,7 +69,7 @@ def export_nerfstudio(dataset: os.PathLike | str, out_dir: os.PathLike | str,
     rig = ds.rig
     posed = ds.posed
     if not posed.any():
-        raise ValueError(f"{ds.root}: no frame has a pose (find them first with bbcity recon --poses sfm, then "
+        raise InputError(f"{ds.root}: no frame has a pose (find them first with bbcity recon --poses sfm, then "
                          "export with --poses WORK/poses.json)")
     held = {f for f in held_out_frames(ds.num_frames, config.holdout) if posed[f]}
     cameras = [camera_entry(rig.intrinsics[c], rig.sizes[c]) for c in range(rig.num_cameras)]

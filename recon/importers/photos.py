@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image as PILImage
 
+from core.errors import InputError
 from core.fileio import DataFormatError
 from data_synth.distortion import Distortion
 from data_synth.rig import Rig
@@ -82,9 +83,9 @@ class PhotosConfig:
 
     def __post_init__(self):
         if self.step_length is not None and not (np.isfinite(self.step_length) and self.step_length > 0):
-            raise ValueError(f"step_length must be a positive number of metres, got {self.step_length}")
+            raise InputError(f"step_length must be a positive number of metres, got {self.step_length}")
         if self.sensor_width_mm is not None and not (np.isfinite(self.sensor_width_mm) and self.sensor_width_mm > 0):
-            raise ValueError(f"sensor_width_mm must be a positive width, got {self.sensor_width_mm}")
+            raise InputError(f"sensor_width_mm must be a positive width, got {self.sensor_width_mm}")
 
 
 def read_intrinsics(path: Path) -> tuple[np.ndarray, Distortion | None]:

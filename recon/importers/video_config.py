@@ -7,6 +7,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from core.errors import InputError
+
 #: Frames per second of video kept when neither a rate nor a count is given.
 DEFAULT_FPS = 2.0
 
@@ -34,20 +36,20 @@ class VideoConfig:
 
     def __post_init__(self):
         if self.fps is not None and self.frames is not None:
-            raise ValueError("give --fps or --frames, not both")
+            raise InputError("give --fps or --frames, not both")
         if self.fps is not None and (isinstance(self.fps, bool) or not (math.isfinite(self.fps) and self.fps > 0)):
-            raise ValueError(f"--fps must be a positive number of frames per second, got {self.fps!r}")
+            raise InputError(f"--fps must be a positive number of frames per second, got {self.fps!r}")
         if self.frames is not None and (isinstance(self.frames, bool) or not isinstance(self.frames, int)
                                         or self.frames < 1):
-            raise ValueError(f"--frames must be an integer ≥ 1, got {self.frames!r}")
+            raise InputError(f"--frames must be an integer ≥ 1, got {self.frames!r}")
         if isinstance(self.sharpest_of, bool) or not isinstance(self.sharpest_of, int) or self.sharpest_of < 1:
-            raise ValueError(f"sharpest_of must be an integer ≥ 1, got {self.sharpest_of!r}")
+            raise InputError(f"sharpest_of must be an integer ≥ 1, got {self.sharpest_of!r}")
         if not (0.0 <= self.min_relative_sharpness < 1.0):
-            raise ValueError(f"min_relative_sharpness must lie in [0, 1), got {self.min_relative_sharpness!r}")
+            raise InputError(f"min_relative_sharpness must lie in [0, 1), got {self.min_relative_sharpness!r}")
         if not (math.isfinite(self.min_sharpness) and self.min_sharpness >= 0.0):
-            raise ValueError(f"min_sharpness must be a finite number ≥ 0, got {self.min_sharpness!r}")
+            raise InputError(f"min_sharpness must be a finite number ≥ 0, got {self.min_sharpness!r}")
         if self.step_length is not None and not (math.isfinite(self.step_length) and self.step_length > 0):
-            raise ValueError(f"--step-length must be a positive number of metres, got {self.step_length!r}")
+            raise InputError(f"--step-length must be a positive number of metres, got {self.step_length!r}")
 
     @property
     def rate(self) -> float:
