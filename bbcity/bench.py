@@ -293,13 +293,13 @@ def bench_billboards(cfg: BenchConfig, report: Report, out: Path, work: Path, bu
     from billboards.build import BuildConfig, main as build_main
     from billboards.evaluate import compare_sampling
     from data_synth import load_dataset
-    from recon.pipeline import dataset_of_work
+    from recon.work import Work
 
     from .executor import executor_scope
     from .sweeps import texture_sweep
 
     work = Path(work)
-    dataset = dataset_of_work(work)
+    dataset = Work.open(work).dataset()
     conf = BuildConfig()
     if build:
         with executor_scope(cfg.workers) as ex, measure() as m:
@@ -372,7 +372,7 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
     (:mod:`bbcity.bench_pipeline`), then measure stereo, textures, rendering and novel
     views on the 1× run (the billboard sections on ``cfg.work`` instead when given).
     """
-    from recon.pipeline import dataset_of_work
+    from recon.work import Work
 
     from .bench_pipeline import bench_pipeline
     from .bench_render import bench_decode_and_cull, bench_novel_views, bench_town
@@ -401,7 +401,7 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
         if cfg.work is None:
             _build_rows(report, json.loads((run.model / "build_report.json").read_text()))
         model = out / "model" if cfg.work is not None else run.model
-        dataset = dataset_of_work(work)
+        dataset = Work.open(work).dataset()
         length = json.loads((dataset / "dataset.json").read_text())["synth"]["street"]["length"]
         section("rendering", bench_decode_and_cull, cfg, report, model, float(length), dataset)
         section("novel views", bench_novel_views, cfg, report, run.dataset, run.work, run.model, out, 4)

@@ -11,13 +11,13 @@ first frame, slowest frame while paging and GPU memory against its budget.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
 import numpy as np
 
 from core.errors import InputError
+from recon.work import Work
 
 from .bench import BenchConfig, Report
 from .bench_pipeline import StageTime, stage_in_fresh_process
@@ -55,7 +55,7 @@ def _reconstruction(dataset: Path, work: Path, workers: int) -> dict:
 
     with executor_scope(workers) as ex:
         recon_main(ReconConfig(evaluate=False), dataset, work, executor=ex, progress=False)
-    return json.loads((work / "recon_report.json").read_text())
+    return Work.open(work).report
 
 
 def _build(work: Path, dataset: Path, model: Path, workers: int) -> dict:

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from core.memory import child_pids, rss_bytes
+from recon.work import Work
 
 from .bench import BenchConfig, Report
 
@@ -164,7 +165,7 @@ def run_pipeline(cfg: BenchConfig, length: float, out: Path, holdout: int = 0) -
     row("synthesis", t, items=3 * run.frames, unit="images")
 
     t, _ = stage_in_fresh_process("reconstruction", run.dataset, run.work, cfg.workers)
-    rr = json.loads((run.work / "recon_report.json").read_text())
+    rr = Work.open(run.work).report
     row("reconstruction (total)", t, items=run.frames, unit="frames")
     row("  stereo, per frame", wall=rr["stages"]["frames_s"], items=run.frames, unit="frames",
         note=f"{rr['stereo_seconds_per_frame']:.2f} s stereo per frame in a worker")

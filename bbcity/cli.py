@@ -16,6 +16,8 @@ import time
 from pathlib import Path
 
 from core.errors import InputError
+from recon.work import Work
+
 
 from . import __version__
 from .cli_share import add_export_kinds, add_fps_web_options, add_serve, check_fps_web, print_web_fps
@@ -695,10 +697,10 @@ def _run_build(args) -> int:
     dataset = _work_dataset(args) if args.work is not None and args.texture_source == "images" else args.images
     _refuse_out_over(args.out, [p for p in (dataset, args.poses) if p is not None])
     if args.holdout is None:
-        args.holdout = _work_holdout(args.work) if args.work is not None and args.cloud is None else 0
+        args.holdout = Work.open(args.work).holdout() if args.work is not None and args.cloud is None else 0
     poses = args.poses
     if poses is None and args.work is not None and args.cloud is None and dataset is not None:
-        poses = _work_poses(args.work)  # WORK's cloud lies in the frame of the poses its recon used
+        poses = Work.open(args.work).poses_file()  # WORK's cloud lies in the frame of the poses its recon used
     conf = build_config_from_args(args)
     with executor_scope(args.workers, **_executor_options(args)) as executor:
         result = build_main(conf, cloud, dataset, args.out, executor=executor, poses=poses)
@@ -723,47 +725,7 @@ def _refuse_out_over(out: Path, inputs: list[Path]) -> None:
 def _work_dataset(args) -> Path:
     """The dataset of a command on a recon WORK directory (build, texture-sweep, sampling-eval):
     its ``--images``, else the one WORK was built from (its recon_report.json says)."""
-    from recon.pipeline import dataset_of_work
-
-    return args.images or dataset_of_work(args.work)
-
-
-def _work_poses(work: Path) -> Path | None:
-    """The poses.json a recon WORK directory wrote (its recon_report.json "poses_file": the
-    poses were not the dataset's own), else None (the dataset's poses.json). Recon writes it
-    into WORK, so it is read there, wherever WORK was when recon ran, and only when it is the
-    file recon wrote (its "poses_digest")."""
-    from core.fileio import read_json
-    from recon.pipeline import file_digest
-
-    report_path = work / "recon_report.json"
-    report = read_json(report_path)
-    name = report.get("poses_file") if isinstance(report, dict) else None
-    if not isinstance(name, str):
-        return None
-    path = work / Path(name).name
-    if not path.is_file():
-        raise InputError(f"{report_path}: its poses file {path} is missing (the cloud lies in the frame of those "
-                         "poses; rerun recon or pass --poses)")
-    digest = report.get("poses_digest")
-    if isinstance(digest, str) and file_digest(path) != digest:
-        raise InputError(f"{path}: not the poses file recon wrote (changed or truncated since; the cloud lies in "
-                         "the frame of those poses): rerun recon or pass --poses")
-    return path
-
-
-def _work_holdout(work: Path) -> int:
-    """The ``--holdout`` a recon WORK directory was made with (0 when its report predates it);
-    a value that is no holdout is one error naming the report and the key."""
-    from core.fileio import DataFormatError, read_json
-
-    path = work / "recon_report.json"
-    report = read_json(path)
-    config = report.get("config") if isinstance(report, dict) else None
-    holdout = config.get("holdout", 0) if isinstance(config, dict) else 0
-    if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 0 or holdout == 1:
-        raise DataFormatError(path, f"config.holdout must be 0 (none) or an integer ≥ 2, got {holdout!r}")
-    return holdout
+    return args.images or Work.open(args.work).dataset()
 
 
 def _add_texture_sweep(sub) -> None:

@@ -39,6 +39,7 @@ from .sfm import SfmConfig, poses_sfm
 from .trajectory import align_components, trajectory_rmse
 from .stereo import MEMORY_SHARE, MIN_DEPTH
 from .trinocular import TrinocularConfig, frame_depth
+from .work import REPORT, WORK_POSES, dataset_digest, file_digest
 from .working_size import resize_image, scaled_rig, working_scale
 
 logger = logging.getLogger(__name__)
@@ -286,11 +287,6 @@ def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np
     raise InputError(f"unknown pose source {conf.poses!r}; expected one of {POSE_SOURCES}")
 
 
-#: The poses a recon used when they are not the dataset's own, beside the cloud (``bbcity build
-#: WORK``, ``eval`` and ``render`` read them through the model's ``info["poses"]``).
-WORK_POSES = "poses.json"
-
-
 def write_work_poses(work: Path, ds, world_from_rig: np.ndarray, source: str) -> Path | None:
     """Write ``work/poses.json`` (the dataset's format, frames without a pose ``null``) when
     the poses came from another ``source`` than the dataset's own ("given"); returns its
@@ -307,59 +303,6 @@ def config_json(conf: "ReconConfig") -> dict:
     a config may hold (``max_depth`` inf: no limit) as "Infinity"/"-Infinity"/"NaN" strings
     (strict JSON has no such numbers)."""
     return json.loads(json.dumps(asdict(conf), default=str), parse_constant=str)
-
-
-#: The files that name a dataset's capture: a dataset whose files differ is another capture.
-DATASET_IDENTITY = ("rig.json", "poses.json", "dataset.json")
-
-
-def file_digest(path: os.PathLike | str) -> str:
-    """SHA-256 of a file's bytes (hex)."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def dataset_digest(dataset_dir: os.PathLike | str) -> str:
-    """SHA-256 of the dataset's :data:`DATASET_IDENTITY` files (those present, named and in order):
-    what a WORK records of the dataset it was reconstructed from."""
-    h = hashlib.sha256()
-    for name in DATASET_IDENTITY:
-        path = Path(dataset_dir) / name
-        if path.is_file():
-            h.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
-    return h.hexdigest()
-
-
-def dataset_of_work(work: os.PathLike | str) -> Path:
-    """The dataset a recon WORK directory was built from, the same from any current directory.
-
-    Its recon_report.json names it relative to WORK and by absolute path, with a digest of
-    its files (:func:`dataset_digest`): the relative one wins (WORK and its dataset moved
-    together), then the absolute one (WORK moved alone), and either only when its files are
-    the ones recon read; another dataset found there is refused (pass --images).
-    """
-    work = Path(work)
-    path = work / "recon_report.json"
-    report = read_json(path)
-    named = report.get("dataset") if isinstance(report, dict) else None
-    if not isinstance(named, str):
-        raise DataFormatError(path, "does not name the dataset; pass --images")
-    relative = report.get("dataset_from_work")
-    digest = report.get("dataset_digest")
-    candidates = [work / relative] if isinstance(relative, str) else []
-    if Path(named).is_absolute():
-        candidates.append(Path(named))
-    if not candidates:  # written before reports named it absolutely: relative to an unknown directory
-        raise DataFormatError(path, f"names the dataset {named!r} relative to the directory recon ran in; "
-                                    "pass --images")
-    found = [c for c in candidates if c.is_dir()]
-    for candidate in found:
-        if not isinstance(digest, str) or dataset_digest(candidate) == digest:  # older reports hold no digest
-            return candidate.resolve()
-    if found:
-        raise DataFormatError(path, f"its dataset is not at {found[0]} any more: that folder holds another "
-                                    "capture (its rig.json, poses.json or dataset.json differ); pass --images")
-    raise DataFormatError(path, f"its dataset {named} is gone (nor is it at {relative} from the work directory); "
-                                "pass --images")
 
 
 def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLike | str,
@@ -424,7 +367,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         with PlyStreamWriter(cloud_path, normals=conf.fusion.normals, tiles=spill.grid) as writer:
             num_points = merge_tiles(spill, centres, writer.append_file, executor)
             # the report, written last, marks a finished run: an earlier run's must not describe the new cloud
-            (work / "recon_report.json").unlink(missing_ok=True)
+            (work / REPORT).unlink(missing_ok=True)
         if num_points == 0:
             logger.warning("no points reconstructed (nothing textured in view?); %s holds an empty cloud", cloud_path)
         stages["merge_s"] = time.perf_counter() - t2
@@ -471,6 +414,6 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
             points = np.zeros((0, 3))
             report["accuracy"] = evaluate_cloud(points, ds, load_scene(dataset_dir), max_depth=max_depth)
         stages["evaluate_s"] = time.perf_counter() - t3
-    write_json(work / "recon_report.json", report)
+    write_json(work / REPORT, report)
     logger.info("cloud: %d points → %s", num_points, cloud_path)
     return cloud_path

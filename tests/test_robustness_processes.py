@@ -24,7 +24,7 @@ from core import DataFormatError
 from core.workdir import exclusive_output, lock_path, owned_output, pid_alive, sweep_output
 from bbcity.executor import WorkerError, WorkerPool, executor_scope
 from data_synth import write_dataset
-from recon.pipeline import dataset_of_work
+from recon.work import Work
 from recon.poses import MissingFramesError
 
 from .conftest import tiny_config
@@ -327,7 +327,7 @@ def test_sweep_removes_dead_runs_leftovers_and_restores_a_set_aside_model(tmp_pa
     mine.write_text("{}")
     with owned_output(out):  # the previous model was set aside and the new one never renamed in
         assert (out / "manifest.json").is_file()
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+    assert sorted(p.name for p in tmp_path.iterdir()).dataset() == sorted(
         [".model.lock", "model", other.name, mine.name])
     assert sweep_output(out) == []
 
@@ -342,7 +342,7 @@ def test_work_names_its_dataset_from_any_directory(street, work, tmp_path, monke
     decoy = tmp_path / street.name  # a directory of the same relative name elsewhere
     decoy.mkdir()
     monkeypatch.chdir(tmp_path)
-    assert dataset_of_work(work) == street.resolve()
+    assert Work.open(work).dataset() == street.resolve()
 
     # moved together: found relative to the work directory
     moved = tmp_path / "moved"
@@ -351,7 +351,7 @@ def test_work_names_its_dataset_from_any_directory(street, work, tmp_path, monke
     shutil.copytree(work, moved / "data" / "work")
     doc = dict(report, dataset=str(tmp_path / "nowhere"))
     (moved / "data" / "work" / "recon_report.json").write_text(json.dumps(doc))
-    assert dataset_of_work(moved / "data" / "work") == (moved / "data" / "work" / report["dataset_from_work"]).resolve()
+    assert Work.open(moved / "data" / "work").dataset() == (moved / "data" / "work" / report["dataset_from_work"]).resolve()
 
     # moved together, another capture now at the old absolute path: the one beside WORK, not that one
     other = tmp_path / "other"
@@ -361,25 +361,24 @@ def test_work_names_its_dataset_from_any_directory(street, work, tmp_path, monke
     (other / "poses.json").write_text(json.dumps(poses))
     doc = dict(report, dataset=str(other))
     (moved / "data" / "work" / "recon_report.json").write_text(json.dumps(doc))
-    assert dataset_of_work(moved / "data" / "work") == (moved / "data" / street.name).resolve()
+    assert Work.open(moved / "data" / "work").dataset() == (moved / "data" / street.name).resolve()
     # and with the moved copy gone, that other capture is refused, not used
     shutil.rmtree(moved / "data" / street.name)
     with pytest.raises(DataFormatError, match="holds another capture"):
-        dataset_of_work(moved / "data" / "work")
+        Work.open(moved / "data" / "work").dataset()
 
     # an old report's relative path is not guessed at
     legacy = tmp_path / "legacy"
     legacy.mkdir()
     (legacy / "recon_report.json").write_text(json.dumps({"dataset": street.name}))
     with pytest.raises(DataFormatError, match="relative to the directory recon ran in"):
-        dataset_of_work(legacy)
+        Work.open(legacy).dataset()
 
 
 def test_work_poses_are_read_in_work_and_only_as_recon_wrote_them(work, tmp_path):
     """Issue 35: a WORK whose poses.json was truncated or removed silently used the poses.json
     of the directory it was first reconstructed in (an absolute "poses_file")."""
-    from bbcity.cli import _work_poses
-    from recon.pipeline import file_digest
+    from recon.work import file_digest
 
     moved = tmp_path / "work"
     shutil.copytree(work, moved)
@@ -390,13 +389,13 @@ def test_work_poses_are_read_in_work_and_only_as_recon_wrote_them(work, tmp_path
     (moved / "poses.json").write_text("{}")
     doc = dict(report, poses_file=str(elsewhere / "poses.json"), poses_digest=file_digest(moved / "poses.json"))
     (moved / "recon_report.json").write_text(json.dumps(doc))
-    assert _work_poses(moved) == moved / "poses.json"
+    assert Work.open(moved).poses_file() == moved / "poses.json"
     (moved / "poses.json").write_text("{")  # truncated
     with pytest.raises(ValueError, match="not the poses file recon wrote"):
-        _work_poses(moved)
+        Work.open(moved).poses_file()
     (moved / "poses.json").unlink()
     with pytest.raises(ValueError, match="its poses file .* is missing"):
-        _work_poses(moved)
+        Work.open(moved).poses_file()
 
 
 def test_killed_synth_stops_writing_and_the_next_run_completes_it(tmp_path):
@@ -414,10 +413,10 @@ def test_killed_synth_stops_writing_and_the_next_run_completes_it(tmp_path):
     assert wait_gone(workers), "synth workers outlived their killed parent"
     written = sorted(out.rglob("*"))
     time.sleep(1.0)
-    assert sorted(out.rglob("*")) == written, "something still writes into the dataset"
+    assert sorted(out.rglob("*")).dataset() == written, "something still writes into the dataset"
     second = bbcity(*argv)
     assert second.returncode == 0, second.stderr
-    assert len(list(out.glob("images/cam*/*.png"))) == 20 * 3 and hidden_temporaries(out) == []
+    assert len(list(out.glob("images/cam*/*.png"))).dataset() == 20 * 3 and hidden_temporaries(out) == []
 
 
 def test_killed_build_takes_its_workers_along_and_the_next_build_sweeps_its_state(street, work, tmp_path):
@@ -437,7 +436,7 @@ def test_killed_build_takes_its_workers_along_and_the_next_build_sweeps_its_stat
     second = bbcity(*argv)
     assert second.returncode == 0, second.stderr
     assert (model / "manifest.json").is_file()
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".model.lock", "model"]
+    assert sorted(p.name for p in tmp_path.iterdir()).dataset() == [".model.lock", "model"]
 
 
 @pytest.mark.parametrize("delay", [0.4, 0.8, 1.2, 2.0])
@@ -505,7 +504,6 @@ def test_a_dead_worker_is_told_apart_from_other_errors():
 @pytest.mark.parametrize("holdout", [-3, 1, 2.5, "4", True])
 def test_bad_holdout_in_a_work_report_names_the_file_and_the_key(work, tmp_path, holdout):
     """Issue 35: a bad holdout in recon_report.json named neither the file nor the key."""
-    from bbcity.cli import _work_holdout
 
     moved = tmp_path / "work"
     shutil.copytree(work, moved)
@@ -513,5 +511,5 @@ def test_bad_holdout_in_a_work_report_names_the_file_and_the_key(work, tmp_path,
     report["config"]["holdout"] = holdout
     (moved / "recon_report.json").write_text(json.dumps(report))
     with pytest.raises(DataFormatError, match="config.holdout must be 0") as err:
-        _work_holdout(moved)
+        Work.open(moved).holdout()
     assert err.value.path == moved / "recon_report.json"
