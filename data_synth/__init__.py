@@ -1,13 +1,14 @@
-"""Synthetic street scenes with ground truth: geometry, procedural textures,
-the camera rig (three cameras by default; lenses), a CPU ray-cast renderer and the dataset format.
+"""Synthetic street scenes with ground truth: geometry, procedural textures, the camera rig
+(three cameras by default; lenses), a CPU ray-cast renderer, and the writer of datasets in
+the capture format (:mod:`capture`, which reads them).
 
 Public API:
 
 - datasets: ``write_dataset(SynthConfig, out_dir, executor=None)`` writes a stored dataset, or a
   *lazy* one with ``SynthConfig(lazy=True)`` (no images: each frame is cast when read, the
-  same bytes); ``load_dataset(dir) -> Dataset``; ``Dataset.image(f, c)``, ``gt_depth``,
-  ``gt_ids`` read both kinds; ``read_image(path, size)`` reads a raw image by the path
-  ``Dataset.image_path`` gives (a PNG, or a lazy dataset's frame cast on demand);
+  same bytes; importing this package registers the cast as the image source "lazy" of
+  :mod:`capture.sources`); ``capture.load_dataset(dir)`` reads both kinds, and
+  ``capture.read_image(path, size)`` a raw image by the path ``Dataset.image_path`` gives;
   ``frames_for_spacing(length, spacing, closed=False)`` → frames per pass (``closed``: an
   orbit's loop); ``SynthConfig(path="orbit")`` circles a street's free-standing building
   (``StreetConfig(square=...)``) instead of driving the street.
@@ -20,19 +21,22 @@ Public API:
 - rendering: ``Renderer(scene)``, ``truth_view(scene, K, world_from_cam, size)``.
 """
 
-from .dataset import (Dataset, SynthConfig, build_scene, frames_for_spacing, load_dataset, load_scene,
-                      write_dataset)
-from .lazy import LazyImages, read_image
+from capture.dataset import Dataset, load_dataset, read_image  # TEMPORARY re-export
+from capture.rig import Rig  # TEMPORARY re-export
+
+from .config import SynthConfig, build_scene, frames_for_spacing
+from .dataset import load_scene, write_dataset
+from .lazy import LazyImages
 from .raycast import Renderer, RenderResult, truth_view
-from .rig import Rig, RigConfig, make_rig
+from .rig import RigConfig, make_rig
 from .scene import Kind, Scene
 from .section import scene_digest, scene_section, section_reference
 from .street import StreetConfig, build_street
 from .town import TownConfig, build_town
 
 __all__ = [
-    "Dataset", "Kind", "LazyImages", "Renderer", "RenderResult", "Rig", "RigConfig", "Scene",
-    "StreetConfig", "SynthConfig", "TownConfig", "build_scene", "build_street", "build_town",
-    "frames_for_spacing", "load_dataset", "load_scene", "make_rig", "read_image", "scene_digest",
-    "scene_section", "section_reference", "truth_view", "write_dataset",
+    "Kind", "LazyImages", "Renderer", "RenderResult", "RigConfig", "Scene", "StreetConfig", "SynthConfig",
+    "TownConfig", "build_scene", "build_street", "build_town", "frames_for_spacing", "load_scene", "make_rig",
+    "scene_digest", "scene_section", "section_reference", "truth_view", "write_dataset",
 ]
+__all__ += ["Dataset", "Rig", "load_dataset", "read_image"]  # TEMPORARY re-export

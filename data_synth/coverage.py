@@ -22,10 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from capture.rig import Rig
 from core.errors import InputError
 
 from .raycast import Renderer
-from .rig import Rig
 from .scene import Kind, Scene
 
 #: Kinds that are solid boxes (or prisms): a sample inside one (another object's) is buried.

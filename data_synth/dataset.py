@@ -1,212 +1,51 @@
-"""Dataset writer and reader.
+"""The dataset writer (:func:`write_dataset`) and the reader of a dataset's scene (:func:`load_scene`).
 
-Layout of a dataset directory::
-
-    dataset.json              manifest, written last: its presence marks a complete dataset
-    synth_report.json         timings of the run that wrote it (the only file that varies) and the
-                              street's coverage (shares of road, sidewalk and facades the rig sees)
-    rig.json                  intrinsics, lens distortion ("none", radtan or fisheye) and cam_from_rig per camera
-    poses.json                world_from_rig per frame, float64
-    images/cam{c}/NNNNNN.png  RGB images
-    colmap/                   the same cameras and poses as a COLMAP text model
-    gt/scene.json             the generator's configuration (re-creates the scene) and digest
-    gt/mesh.ply               the scene's triangle mesh
-    gt/objects/*.npy          kind (k,) int16, seed (k,) uint32, bounds (k, 2, 3) float64
-    gt/triangle_object.npy    object id per mesh triangle (m,) int32
-    gt/depth/cam{c}/NNNNNN.npy  z-depth (h, w) float32, NaN = sky
-    gt/ids/cam{c}/NNNNNN.npy    object id (h, w) int32, −1 = sky
+A synthetic dataset is a dataset of the capture format (:mod:`capture.dataset`, its layout)
+with all of it: ``synth_report.json``, ``colmap/`` and the ground truth ``gt/`` beside the
+cameras, poses and images.
 
 Images and ground truth are stored as the raw cameras see them (distorted, when
-rig.json gives a lens); :class:`Dataset` returns them undistorted, lined up with
-``rig.intrinsics``.
-
-A user's own capture needs only ``rig.json``, ``poses.json`` and ``images/``.
+rig.json gives a lens); :class:`capture.dataset.Dataset` returns them undistorted, lined up
+with ``rig.intrinsics``.
 
 A *lazy* dataset (``SynthConfig(lazy=True)``, :mod:`data_synth.lazy`) has no ``images/`` and no
 ``gt/`` files but ``gt/scene.json``: ``dataset.json`` says ``"images": "lazy"`` and
-:meth:`Dataset.image`, :meth:`Dataset.gt_depth`, :meth:`Dataset.gt_ids` and
-:func:`data_synth.read_image` cast each frame when it is read, the bytes the stored dataset of
-the same settings holds. It is written in well under a second whatever the street's length.
+``Dataset.image``, ``Dataset.gt_depth``, ``Dataset.gt_ids`` and :func:`capture.dataset.read_image`
+cast each frame when it is read (the image source "lazy" of :mod:`capture.sources`), the bytes
+the stored dataset of the same settings holds. It is written in well under a second whatever
+the street's length.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import time
 from concurrent.futures import Executor
-from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 
-from core.errors import InputError
-from core.fileio import DataFormatError, atomic_path, load_npy, read_json, read_png, save_npy, write_json, write_png
+from capture.colmap import write_colmap_text
+from capture.dataset import DATASET_FORMAT, FORMAT_VERSION
+from capture.dataset import held_out_frames  # TEMPORARY re-export
+from capture.poses import save_poses
+from capture.rig import Rig
+from core.fileio import DataFormatError, atomic_path, read_json, save_npy, write_json, write_png
 from core.tasks import run_tasks
 from core.workdir import sweep_temporaries, temporary
 
-from .colmap_export import write_colmap_text
+from .config import SynthConfig, build_scene, capture_path, config_json
+from .config import MAX_SPP, ORBIT_CLEARANCE_M, PATHS  # TEMPORARY re-export
 from .coverage import street_coverage
-from .lazy import LAZY_IMAGES, TILE_M, LazyImages, check_frame_names, lazy_source, view_reach
-from .rig import Rig, RigConfig, drive_path, load_poses, make_rig, orbit_path, save_poses
+from .lazy import LAZY_IMAGES, TILE_M, LazyImages, view_reach
+from .rig import make_rig
 from .scene import Scene
-from .section import object_table, scene_digest, scene_settings
-from .street import StreetConfig, build_street, free_building, street_settings
-from .town import TownConfig, build_town, street_centres
+from .section import SCENE_FORMAT, object_table, scene_digest, scene_settings
 
 logger = logging.getLogger(__name__)
-
-DATASET_FORMAT = "bbcity-dataset"
-SCENE_FORMAT = "bbcity-scene"
-FORMAT_VERSION = 1
-SCENES = ("street", "town")
-#: Capture paths: "drive" along the street (and back), or "orbit": one loop round a free-standing building.
-PATHS = ("drive", "orbit")
-#: An orbit keeps this far (metres) from the corners of its building and from anything else.
-ORBIT_CLEARANCE_M = 2.0
-
-
-MAX_SPP = 16  # supersampling per pixel axis at most (256 rays a pixel)
-
-
-@dataclass(frozen=True)
-class SynthConfig:
-    scene: str = "street"  # "street" or "town"
-    street: StreetConfig = field(default_factory=StreetConfig)  # used when scene == "street"
-    town: TownConfig = field(default_factory=TownConfig)  # used when scene == "town"
-    rig: RigConfig = field(default_factory=RigConfig)  # cameras and their mounting
-    frames: int = 100  # frames per pass, evenly spaced along the path
-    return_pass: bool = True  # a drive: back in the other lane so both sides are captured (an orbit is one loop)
-    lane_offset: float = 1.75  # a drive's distance from the street's centre line, metres
-    town_path_length: float = 300.0  # town: length of the drive along its middle street, metres
-    spp: int = 2  # supersampling per pixel axis (spp² colour rays per pixel)
-    ground_truth_depth: bool = True  # write gt/depth and gt/ids for every image
-    lazy: bool = False  # write no images: cast each frame when it is read (data_synth.lazy)
-    path: str = "drive"  # "drive" (along the street) or "orbit" (one loop round the street's free-standing building)
-    orbit_radius: float = 25.0  # orbit: the circle's radius about the building's centre, metres
-
-    def __post_init__(self):
-        if self.scene not in SCENES:
-            raise InputError(f"unknown scene {self.scene!r}; expected one of {SCENES}")
-        if self.path not in PATHS:
-            raise InputError(f"SynthConfig.path must be one of {PATHS}, got {self.path!r}")
-        for name in ("frames", "spp"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise InputError(f"SynthConfig.{name} must be an integer ≥ 1, got {value!r}")
-        if self.spp > MAX_SPP:  # spp² rays a pixel: a lazy dataset's reader would cast for ever
-            raise InputError(f"SynthConfig.spp must be at most {MAX_SPP} (spp² rays a pixel), got {self.spp}")
-        for name in ("lane_offset", "town_path_length", "orbit_radius"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise InputError(f"SynthConfig.{name} must be a finite number, got {value!r}")
-        if self.town_path_length <= 0:
-            raise InputError(f"SynthConfig.town_path_length must be positive, got {self.town_path_length}")
-        if self.orbit_radius <= 0:
-            raise InputError(f"SynthConfig.orbit_radius must be positive metres, got {self.orbit_radius}")
-        if self.path == "orbit":
-            self._check_orbit()
-        for name in ("return_pass", "ground_truth_depth", "lazy"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise InputError(f"SynthConfig.{name} must be true or false, got {getattr(self, name)!r}")
-
-    def _check_orbit(self) -> None:
-        """An orbit circles the street's free-standing building (:func:`street.free_building`)
-        clear of it and of everything else by ORBIT_CLEARANCE_M; ValueError otherwise."""
-        r, gap = self.orbit_radius, ORBIT_CLEARANCE_M
-        if self.scene != "street":
-            raise InputError("path \"orbit\" needs the street scene: the town's houses stand in closed rows, "
-                             "with no free path round one")
-        if self.street.square < r + gap:
-            raise InputError(f"path \"orbit\" of radius {r:g} m needs the street's open square (StreetConfig.square) "
-                             f"to reach at least {r + gap:g} m from the building's centre, got {self.street.square:g}")
-        lo, hi = free_building(self.street)
-        corner = float(np.hypot(*(hi - lo))) / 2
-        if r < corner + gap:
-            raise InputError(f"SynthConfig.orbit_radius (--orbit-radius) {r:g} m passes within {gap:g} m of the "
-                             f"free-standing building's corners (a {hi[0] - lo[0]:.1f} × {hi[1] - lo[1]:.1f} m "
-                             f"footprint): at least {math.ceil((corner + gap) * 10) / 10:g} m")
-
-    @property
-    def passes(self) -> int:
-        """Passes of the capture: an orbit's one loop, a drive's one or two (return_pass)."""
-        return 2 if self.path == "drive" and self.return_pass else 1
-
-    @property
-    def path_length(self) -> float:
-        """Metres the rig moves per pass: the street's length, the town drive's, or the
-        orbit's circumference."""
-        if self.path == "orbit":
-            return 2 * math.pi * self.orbit_radius
-        return float(self.street.length if self.scene == "street" else self.town_path_length)
-
-
-def frames_for_spacing(path_length: float, spacing: float, closed: bool = False) -> int:
-    """Frames per pass that put neighbouring frames at most ``spacing`` metres apart along a
-    pass of ``path_length`` metres: ⌈length / spacing⌉ + 1 with both ends included, or
-    ⌈length / spacing⌉ round a ``closed`` loop (an orbit: the last frame's neighbour is the first)."""
-    if not (math.isfinite(path_length) and path_length > 0 and math.isfinite(spacing) and spacing > 0):
-        raise InputError(f"path length and frame spacing must be positive metres, got {path_length}, {spacing}")
-    return int(math.ceil(path_length / spacing - 1e-9)) + (0 if closed else 1)
-
-
-def _from_dict(cls, data: dict):
-    """Rebuild a flat config dataclass from JSON (lists back to tuples)."""
-    fields = cls.__dataclass_fields__
-    unknown = set(data) - set(fields)
-    if unknown:
-        raise InputError(f"unknown {cls.__name__} fields: {sorted(unknown)}")
-    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
-
-
-def build_scene(name: str, config: dict) -> Scene:
-    """Generate the scene ``name`` ("street" or "town") from its configuration dict."""
-    if name == "street":
-        return build_street(_from_dict(StreetConfig, config))
-    if name == "town":
-        return build_town(_from_dict(TownConfig, config))
-    raise InputError(f"unknown scene {name!r}; expected one of {SCENES}")
-
-
-def capture_path(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The rig's trajectory: world_from_rig (n, 4, 4) float64 and pass index (n,) int32."""
-    if cfg.path == "orbit":  # (a street: SynthConfig checks it)
-        lo, hi = free_building(cfg.street)
-        return orbit_path((lo + hi) / 2, cfg.orbit_radius, cfg.frames)
-    if cfg.scene == "street":
-        return drive_path(0.0, cfg.street.length, 0.0, cfg.frames, cfg.lane_offset, cfg.return_pass)
-    centres = street_centres(cfg.town)
-    y = centres[len(centres) // 2 if cfg.town.path_street < 0 else cfg.town.path_street]
-    half = cfg.town_path_length / 2
-    # narrow streets: drive near the middle, so that the facades are not at arm's length
-    return drive_path(-half, half, y, cfg.frames, cfg.town.street_width / 8, cfg.return_pass)
-
-
-def _config_json(cfg: SynthConfig) -> dict:
-    data = json.loads(json.dumps(asdict(cfg)))
-    data["street"] = json.loads(json.dumps(street_settings(cfg.street)))  # a street without a square keeps its bytes
-    if data["path"] == "drive":  # drives keep the bytes they had before orbits
-        del data["path"]
-        if data["orbit_radius"] == SynthConfig.orbit_radius:
-            del data["orbit_radius"]
-    if data["rig"].get("distortion") == "none":  # pinhole datasets keep the bytes they had before lenses
-        del data["rig"]["distortion"]
-    if not data["lazy"]:  # stored datasets keep the bytes they had before lazy ones
-        del data["lazy"]
-    return data
-
-
-def config_from_json(data: dict) -> SynthConfig:
-    """Inverse of the configuration stored in ``dataset.json``."""
-    data = dict(data)
-    nested = {"street": StreetConfig, "town": TownConfig, "rig": RigConfig}
-    for key, cls in nested.items():
-        if key in data:
-            data[key] = _from_dict(cls, data[key])
-    return _from_dict(SynthConfig, data)
 
 
 # --------------------------------------------------------------------------- writing
@@ -281,7 +120,7 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
     Returns ``out_dir``.
     """
     root = Path(out_dir)
-    cfg_dict = _config_json(cfg)
+    cfg_dict = config_json(cfg)
     existing = root / "gt" / "scene.json"
     if existing.exists():
         data = read_json(existing)
@@ -359,7 +198,7 @@ def _write_lazy(cfg: SynthConfig, root: Path) -> Path:
     """:func:`write_dataset` of a lazy dataset: settings, rig, poses, COLMAP model and
     ``gt/scene.json``; the scene is walked (object table, digest, reach), never held whole."""
     t0 = time.perf_counter()
-    cfg_dict = _config_json(cfg)
+    cfg_dict = config_json(cfg)
     name, config, _ = scene_settings(cfg)
     kinds, _, _, num_triangles = object_table(name, config)
     digest = scene_digest(name, config)
@@ -386,139 +225,7 @@ def _write_lazy(cfg: SynthConfig, root: Path) -> Path:
     return root
 
 
-# --------------------------------------------------------------------------- reading
-
-
-@dataclass(frozen=True)
-class Dataset:
-    """A validated dataset. world_from_rig: (n, 4, 4) float64; frame_names: n stems;
-    lazy: how a lazy dataset's frames are cast (None: stored images)."""
-
-    root: Path
-    rig: Rig
-    world_from_rig: np.ndarray
-    frame_names: tuple[str, ...]
-    lazy: LazyImages | None = None
-
-    def __fspath__(self) -> str:  # a dataset stands for its directory (load_dataset returns it as it is)
-        return str(self.root)
-
-    def __str__(self) -> str:
-        return str(self.root)
-
-    @property
-    def num_frames(self) -> int:
-        return len(self.frame_names)
-
-    @property
-    def posed(self) -> np.ndarray:
-        """(n,) bool: the frames that have a pose (a photo folder's are unknown until SfM)."""
-        return np.isfinite(self.world_from_rig).all(axis=(1, 2))
-
-    @property
-    def has_ground_truth(self) -> bool:
-        return (self.root / "gt" / "scene.json").is_file()
-
-    def image_path(self, frame: int, cam: int) -> Path:
-        """Where the raw image is; a lazy dataset's is not there: :func:`data_synth.read_image`
-        reads both (as :meth:`image` does)."""
-        return self.root / "images" / f"cam{cam}" / f"{self.frame_names[frame]}.png"
-
-    def image(self, frame: int, cam: int) -> np.ndarray:
-        """(h, w, 3) uint8 RGB, undistorted when the camera has a lens (pinhole ``rig.intrinsics``);
-        a missing, truncated or wrongly sized file raises DataFormatError. A lazy dataset casts it."""
-        if self.lazy is not None:
-            raw = self.lazy.image(int(self.frame_names[frame]), cam)
-        else:
-            raw = read_png(self.image_path(frame, cam), self.rig.sizes[cam])
-        return self.rig.undistort(raw, cam)
-
-    def world_from_cam(self, frame: int, cam: int) -> np.ndarray:
-        """(4, 4) float64 camera pose."""
-        return self.rig.world_from_cam(self.world_from_rig[frame], cam)
-
-    def _gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
-        w, h = self.rig.sizes[cam]
-        path = self.root / "gt" / kind / f"cam{cam}" / f"{self.frame_names[frame]}.npy"
-        if self.lazy is not None:
-            raw = self.lazy.ground_truth(kind, int(self.frame_names[frame]), cam)
-        else:
-            raw = load_npy(path, dtype=dtype, shape=(h, w))
-            if kind == "depth":  # NaN where nothing is hit; a hit lies in front of the camera
-                bad = ~(np.isnan(raw) | (np.isfinite(raw) & (raw > 0)))
-                if bad.any():
-                    raise DataFormatError(path, f"holds {int(bad.sum())} depths that are neither NaN (no hit) nor "
-                                                f"a positive distance, e.g. {raw[bad][0]:g}")
-        # nearest raw pixel: no blending across depth edges or between object ids
-        return self.rig.undistort(raw, cam, nearest=True)
-
-    def gt_depth(self, frame: int, cam: int) -> np.ndarray:
-        """(h, w) float32 ground-truth z-depth, NaN where nothing is hit; undistorted like
-        :meth:`image` (nearest raw pixel, so within half a raw pixel of each pixel's ray)."""
-        return self._gt("depth", frame, cam, np.float32)
-
-    def gt_ids(self, frame: int, cam: int) -> np.ndarray:
-        """(h, w) int32 ground-truth object id, −1 where nothing is hit; undistorted like :meth:`gt_depth`."""
-        return self._gt("ids", frame, cam, np.int32)
-
-    def verify(self) -> None:
-        """Decode every image (slow, thorough; a lazy dataset casts every frame); the first bad
-        file raises DataFormatError."""
-        for f in range(self.num_frames):
-            for c in range(self.rig.num_cameras):
-                self.image(f, c)
-
-
-def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None) -> Dataset:
-    """Open a dataset directory: validate ``rig.json``, ``poses.json`` and that
-    every image exists. Errors name the offending file.
-
-    poses: another ``poses.json`` to use instead of the dataset's own (the poses a
-    ``bbcity recon --poses sfm`` found, ``WORK/poses.json``): the same frame names in the
-    same order; frames it gives ``null`` have no pose (NaN). A :class:`Dataset` passed as
-    ``path`` is returned as it is (its poses kept; ``poses`` still replaces them), so that
-    functions taking a dataset directory also take a dataset with poses from elsewhere.
-    """
-    if isinstance(path, Dataset):
-        return path if poses is None else replace(path, world_from_rig=_replacement_poses(path, poses))
-    root = Path(path)
-    if not root.is_dir():
-        raise DataFormatError(root, "dataset directory does not exist")
-    rig = Rig.load(root / "rig.json")
-    world_from_rig, names = load_poses(root / "poses.json")
-    if not names:
-        raise DataFormatError(root / "poses.json", "has no frames")
-    lazy = lazy_source(root)
-    dataset = Dataset(root, rig, world_from_rig, tuple(names), lazy)
-    if lazy is not None:  # no image files: the frames must be the capture's
-        _check_lazy_poses(lazy, names, world_from_rig, root / "poses.json")
-    if poses is not None:
-        dataset = replace(dataset, world_from_rig=_replacement_poses(dataset, poses))
-    for f in range(0 if lazy is not None else dataset.num_frames):
-        for c in range(rig.num_cameras):
-            p = dataset.image_path(f, c)
-            if not p.is_file():
-                raise DataFormatError(p, f"image of frame {names[f]} camera {c} is missing")
-    return dataset
-
-
-def _check_lazy_poses(lazy: LazyImages, names, world_from_rig: np.ndarray, path: Path) -> None:
-    """A lazy dataset's frames and poses are those of the capture its settings make (the
-    images follow the settings); DataFormatError naming ``path`` otherwise."""
-    capture, _ = capture_path(config_from_json(json.loads(lazy.config_json)))
-    check_frame_names(names, path, len(capture))
-    if not np.array_equal(world_from_rig, capture):
-        raise DataFormatError(path, "differs from the capture path of the lazy dataset's settings (its images "
-                                    "are cast from those): restore it, or write the dataset again")
-
-
-def _replacement_poses(dataset: Dataset, path: os.PathLike | str) -> np.ndarray:
-    """world_from_rig (n, 4, 4) float64 of ``path`` (a poses.json) for ``dataset``'s frames."""
-    world_from_rig, names = load_poses(path)
-    if tuple(names) != dataset.frame_names:
-        raise DataFormatError(path, f"its {len(names)} frames are not the {dataset.num_frames} frames of "
-                                    f"{dataset.root / 'poses.json'} (names and order must agree)")
-    return world_from_rig
+# --------------------------------------------------------------------------- the scene
 
 
 def load_scene(dataset_dir: os.PathLike | str) -> Scene:
@@ -536,11 +243,3 @@ def load_scene(dataset_dir: os.PathLike | str) -> Scene:
         raise DataFormatError(path, "the re-created scene differs from the one the dataset was made with "
                                     "(generator changed since)")
     return scene
-
-
-def held_out_frames(num_frames: int, every: int) -> list[int]:
-    """The frames left out for novel-view evaluation: one in every ``every`` (the middle one
-    of each run of ``every``; 0: none). Recon, build and eval all follow this rule."""
-    if every < 0 or every == 1:
-        raise InputError(f"holdout must be 0 (none) or ≥ 2 (every n-th frame left out), got {every}")
-    return [f for f in range(num_frames) if every and f % every == every // 2]

@@ -3,11 +3,12 @@
 A lazy dataset (``bbcity synth --lazy``, ``SynthConfig(lazy=True)``) holds what a stored one
 holds except the pixels: ``dataset.json`` (with ``"images": "lazy"`` and the section
 settings), ``rig.json``, ``poses.json``, ``colmap/`` and ``gt/scene.json`` (settings and
-digest), a few hundred bytes per frame. Reading an image (:meth:`data_synth.Dataset.image`,
-or :func:`read_image` with the path it would have) ray casts the frame from the capture pose
-its settings make, with the renderer and settings that would have stored it; ground-truth
-depth and ids (unless the settings say ``ground_truth_depth=False``) are cast the same way,
-without colour.
+digest), a few hundred bytes per frame. Reading an image (:meth:`capture.dataset.Dataset.image`,
+or :func:`capture.dataset.read_image` with the path it would have; :class:`LazyImages` is the
+image source "lazy" of :mod:`capture.sources`) ray casts the frame from the capture pose its
+settings make, with the renderer and settings that would have stored it; ground-truth depth
+and ids (unless the settings say ``ground_truth_depth=False``) are cast the same way, without
+colour.
 
 **Sections.** A frame, lazy or stored (:func:`data_synth.write_dataset` casts the frames it
 stores the same way, so both hold the same bytes), is cast against :func:`data_synth.scene_section` of the x-window
@@ -48,7 +49,6 @@ import json
 import logging
 import math
 import os
-import re
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -56,12 +56,15 @@ from pathlib import Path
 
 import numpy as np
 
-from core.fileio import DataFormatError, read_json, read_png
+from capture.distortion import undistort
+from capture.rig import Rig
+from capture.sources import register_image_source
+from core.fileio import DataFormatError, read_json
 
-from .distortion import undistort
+from .config import capture_path, config_from_json, config_json
 from .lazy_cache import ImageCache, cache_limit_bytes
 from .raycast import Renderer, RenderResult
-from .rig import Rig, make_rig
+from .rig import make_rig
 from .section import object_table, scene_section, scene_settings, verify_digest
 
 logger = logging.getLogger(__name__)
@@ -74,16 +77,13 @@ MAX_REACH_M = 1000.0
 SECTIONS_KEPT = 3
 RESULTS_KEPT = 6
 
-LAZY_IMAGES = "lazy"  # dataset.json "images" of a lazy dataset
-_FRAME_NAME = re.compile(r"\d{6}")
+LAZY_IMAGES = "lazy"  # dataset.json "images" of a lazy dataset: its image source's kind (capture.sources)
 
 
 def view_reach(cfg) -> float | None:
     """How far along the street (|Δx|, metres, rounded up) from a camera of the capture of
     ``cfg`` (a :class:`data_synth.SynthConfig`) a ray of it can meet an object that is not
     in every section; None for a town or an orbit (cast whole). See the module's docstring."""
-    from .dataset import capture_path  # (dataset imports this module)
-
     if cfg.scene != "street" or cfg.path == "orbit":  # an orbit's cameras look every way along the street
         return None
     _, config, _ = scene_settings(cfg)
@@ -159,9 +159,8 @@ class LazyImages:
     @classmethod
     def from_manifest(cls, root: os.PathLike | str, manifest: dict) -> "LazyImages":
         """From a lazy dataset's parsed ``dataset.json`` (and its ``gt/scene.json``);
-        DataFormatError naming the file that is malformed."""
-        from .dataset import _config_json, config_from_json
-
+        DataFormatError naming the file that is malformed. The opener of the image source
+        ``"lazy"`` (:func:`capture.sources.register_image_source`)."""
         root = Path(root)
         path = root / "dataset.json"
         try:
@@ -179,7 +178,7 @@ class LazyImages:
         scene = read_json(scene_path)
         if not isinstance(scene, dict) or not isinstance(scene.get("digest"), str):
             raise DataFormatError(scene_path, "needs the scene's \"digest\"")
-        return cls(root, json.dumps(_config_json(cfg), sort_keys=True), scene["digest"],
+        return cls(root, json.dumps(config_json(cfg), sort_keys=True), scene["digest"],
                    None if reach is None else float(reach), float(tile))
 
     # ------------------------------------------------------------------ casting
@@ -189,8 +188,6 @@ class LazyImages:
         with _LOCK:
             state = _STATES.get(key)
         if state is None:
-            from .dataset import capture_path, config_from_json
-
             cfg = config_from_json(json.loads(self.config_json))
             name, config, _ = scene_settings(cfg)
             if self.check_digest:
@@ -304,6 +301,16 @@ class LazyImages:
         result = self.render(frame, cam, colour=False)
         return (result.depth if kind == "depth" else result.ids).copy()
 
+    def check_frames(self, names, world_from_rig: np.ndarray, path: Path) -> None:
+        """A lazy dataset's frames and poses (n, 4, 4) float64 are those of the capture its
+        settings make (the images follow the settings); DataFormatError naming ``path`` (its
+        poses.json) otherwise."""
+        capture, _ = capture_path(config_from_json(json.loads(self.config_json)))
+        check_frame_names(names, path, len(capture))
+        if not np.array_equal(world_from_rig, capture):
+            raise DataFormatError(path, "differs from the capture path of the lazy dataset's settings (its images "
+                                        "are cast from those): restore it, or write the dataset again")
+
 
 def _positive(value, zero: bool = False) -> bool:
     return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
@@ -327,47 +334,6 @@ _STATES: OrderedDict = OrderedDict()
 _RENDERERS: OrderedDict = OrderedDict()
 _RESULTS: OrderedDict = OrderedDict()
 _CACHES: dict = {}
-_SOURCES: OrderedDict = OrderedDict()  # dataset directory → LazyImages or None (stored)
-
-
-def lazy_source(root: os.PathLike | str) -> LazyImages | None:
-    """The :class:`LazyImages` of the dataset at ``root`` when it is lazy, else None (read from
-    its ``dataset.json`` once per process while that file is unchanged)."""
-    path = Path(root) / "dataset.json"
-    try:
-        stat = path.stat()
-        key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
-    except OSError:
-        return None  # no manifest: a capture of images
-    with _LOCK:
-        if key in _SOURCES:
-            return _SOURCES[key]
-    source = None
-    manifest = read_json(path)
-    if isinstance(manifest, dict) and manifest.get("images") == LAZY_IMAGES:
-        source = LazyImages.from_manifest(root, manifest)
-    with _LOCK:
-        _SOURCES[key] = source
-        while len(_SOURCES) > 8:
-            _SOURCES.popitem(last=False)
-    return source
-
-
-def read_image(path: os.PathLike | str, size: tuple[int, int] | None = None) -> np.ndarray:
-    """The raw image a dataset holds at ``path`` (``DATASET/images/cam{c}/NNNNNN.png``): the PNG
-    file, or, for a lazy dataset, the frame cast on demand. (h, w, 3) uint8 RGB; ``size``
-    (width, height) is checked. What :func:`core.fileio.read_png` does for files, errors
-    naming the file alike."""
-    p = Path(path)
-    if not p.is_file() and p.parent.parent.name == "images" and _FRAME_NAME.fullmatch(p.stem) \
-            and p.suffix == ".png" and p.parent.name.startswith("cam") and p.parent.name[3:].isdigit():
-        source = lazy_source(p.parent.parent.parent)
-        if source is not None:
-            rgb = source.image(int(p.stem), int(p.parent.name[3:]))
-            if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(int(s) for s in size):
-                raise DataFormatError(p, f"is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]}")
-            return rgb
-    return read_png(p, size)
 
 
 def check_frame_names(names, path: os.PathLike | str, frames: int) -> None:
@@ -376,3 +342,6 @@ def check_frame_names(names, path: os.PathLike | str, frames: int) -> None:
     if len(names) != frames or any(n != f"{i:06d}" for i, n in enumerate(names)):
         raise DataFormatError(path, f"a lazy dataset's frames are the {frames} frames of its capture, named "
                                     f"000000, 000001, … in order")
+
+
+register_image_source(LAZY_IMAGES, LazyImages.from_manifest)  # also the entry point bbcity.image_sources "lazy"

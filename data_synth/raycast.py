@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from capture.distortion import Distortion, undistort
 from core.errors import InputError
 
-from .distortion import Distortion, undistort
 from .scene import Scene
 from .textures import shade, sky
 

@@ -1,4 +1,4 @@
-"""The camera rig (by default three cameras in a row) and the capture trajectory.
+"""The synthetic camera rig (by default three cameras in a row) and the capture trajectory.
 
 Rig frame: x forward (driving direction), y left, z up, origin on the road
 below the rig. The cameras sit in a row on the roof, optical axes parallel,
@@ -12,41 +12,21 @@ from 62° below the horizon (the road from about 1 m beside the path, the kerb,
 the whole sidewalk) to 78° above it (the roofline of a 24 m facade standing
 right at the back of the sidewalk). ``data_synth.coverage`` measures this.
 
-Lens distortion (``data_synth.distortion``): a rig may hold raw, distorted
-cameras. ``Rig.intrinsics`` are always the pinhole matrices of the undistorted
-images that ``Dataset.image`` returns; the raw K and the lens are kept beside
-them so that ``rig.json`` round-trips.
+Lens distortion (:mod:`capture.distortion`): the synthetic rig may hold raw, distorted
+cameras (``RigConfig.distortion``, a named lens); :class:`capture.rig.Rig` keeps the raw K
+and the lens beside the pinhole intrinsics of the undistorted images.
 """
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from capture.distortion import PRESETS as DISTORTION_PRESETS
+from capture.distortion import Distortion
+from capture.rig import Rig, is_int, pinhole
 from core.errors import InputError
-from core.fileio import DataFormatError, as_matrix, check_rigid, read_json, write_json
-
-from .distortion import PRESETS as DISTORTION_PRESETS
-from .distortion import Distortion, UndistortTables, cached_tables, pinhole_for
-
-RIG_FORMAT = "bbcity-rig"
-POSES_FORMAT = "bbcity-poses"
-FORMAT_VERSION = 1
-
-
-#: A focal length lies within this factor of its image edge (pixels), either way.
-FOCAL_RANGE = 1000.0
-#: How much narrower than the raw image a lens's undistorted pinhole image may be (fisheye
-#: k1 = 100 makes it 6×; k1 = 1e6, 126×: a reconstruction then sees nothing).
-MAX_UNDISTORT_ZOOM = 20.0
-
-
-def _is_int(value) -> bool:
-    """An integer (Python or numpy), not a bool."""
-    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
 @dataclass(frozen=True)
@@ -61,7 +41,7 @@ class RigConfig:
 
     def __post_init__(self):
         for name in ("width", "height"):
-            if not _is_int(getattr(self, name)):  # True is an int to Python, never an image size
+            if not is_int(getattr(self, name)):  # True is an int to Python, never an image size
                 raise InputError(f"{name} must be an integer, got {getattr(self, name)!r}")
         if self.distortion != "none" and self.distortion not in DISTORTION_PRESETS:
             raise InputError(f"distortion must be \"none\" or one of {', '.join(DISTORTION_PRESETS)}, "
@@ -81,152 +61,6 @@ class RigConfig:
     def vfov_deg(self) -> float:
         """Vertical field of view, degrees (square pixels, centred principal point)."""
         return float(np.degrees(2 * np.arctan(self.height / self.width * np.tan(np.radians(self.hfov_deg) / 2))))
-
-
-@dataclass(frozen=True)
-class Rig:
-    """Calibrated cameras of a rig.
-
-    intrinsics: (c, 3, 3) float64 OpenCV pinhole matrices (pixel centres at integers) of the
-        images downstream stages see (the undistorted ones where a camera has a lens distortion).
-    sizes: c × (width, height) in pixels (raw and undistorted images alike).
-    cam_from_rig: (c, 4, 4) float64 rigid transforms.
-    raw_intrinsics: (c, 3, 3) float64 K of the raw, distorted images, or None when no camera
-        is distorted (then the raw images are the pinhole images).
-    distortions: c × (Distortion or None), or None when no camera is distorted.
-    Build distorted rigs with :meth:`from_raw`.
-    """
-
-    intrinsics: np.ndarray
-    sizes: tuple[tuple[int, int], ...]
-    cam_from_rig: np.ndarray
-    raw_intrinsics: np.ndarray | None = None
-    distortions: tuple[Distortion | None, ...] | None = None
-
-    def __post_init__(self):
-        if (self.raw_intrinsics is None) != (self.distortions is None):
-            raise InputError("raw_intrinsics and distortions go together (use Rig.from_raw)")
-        if self.distortions is not None and (len(self.distortions) != len(self.sizes)
-                                             or len(self.raw_intrinsics) != len(self.sizes)):
-            raise InputError(f"{len(self.sizes)} cameras but {len(self.distortions)} distortions "
-                             f"and {len(self.raw_intrinsics)} raw intrinsics")
-
-    @classmethod
-    def from_raw(cls, raw_intrinsics: np.ndarray, sizes, cam_from_rig: np.ndarray,
-                 distortions) -> "Rig":
-        """A rig from its raw cameras: K (c, 3, 3) float64 and a Distortion or None each.
-
-        The pinhole ``intrinsics`` of distorted cameras are those of their undistorted images
-        (``data_synth.distortion.pinhole_for``). Without any distortion this is the plain rig.
-        """
-        raw = np.asarray(raw_intrinsics, dtype=np.float64)
-        sizes = tuple((int(w), int(h)) for w, h in sizes)
-        distortions = tuple(distortions)
-        if all(d is None for d in distortions):
-            return cls(raw, sizes, np.asarray(cam_from_rig, dtype=np.float64))
-        Ks = np.array([K if d is None else pinhole_for(K, d, s) for K, d, s in zip(raw, distortions, sizes)])
-        return cls(Ks, sizes, np.asarray(cam_from_rig, dtype=np.float64), raw, distortions)
-
-    @property
-    def num_cameras(self) -> int:
-        return len(self.sizes)
-
-    def distortion(self, cam: int) -> Distortion | None:
-        """Lens distortion of camera ``cam``'s raw images (None: pinhole)."""
-        return None if self.distortions is None else self.distortions[cam]
-
-    def raw_K(self, cam: int) -> np.ndarray:
-        """(3, 3) float64 K of camera ``cam``'s raw images (its pinhole K when undistorted)."""
-        return self.intrinsics[cam] if self.raw_intrinsics is None else self.raw_intrinsics[cam]
-
-    def undistort_tables(self, cam: int) -> UndistortTables | None:
-        """Remap tables of camera ``cam`` (computed once per process and camera); None when pinhole."""
-        d = self.distortion(cam)
-        return None if d is None else cached_tables(self.raw_K(cam), d, self.sizes[cam])
-
-    def undistort(self, raw: np.ndarray, cam: int, nearest: bool = False) -> np.ndarray:
-        """Camera ``cam``'s raw image (h, w, 3) uint8 → the undistorted one (bilinear), or with
-        ``nearest`` any per-pixel array (h, w) (depth, ids) by nearest raw pixel. A pinhole
-        camera's array is returned as it is (no copy)."""
-        tables = self.undistort_tables(cam)
-        if tables is None:
-            return raw
-        return tables.nearest_values(raw) if nearest else tables.image(raw)
-
-    def world_from_cam(self, world_from_rig: np.ndarray, cam: int) -> np.ndarray:
-        """(4, 4) float64 pose of camera ``cam`` for a rig pose (4, 4) float64."""
-        return world_from_rig @ np.linalg.inv(self.cam_from_rig[cam])
-
-    def to_json(self) -> dict:
-        cams = []
-        for i, ((w, h), T) in enumerate(zip(self.sizes, self.cam_from_rig)):
-            K, d = self.raw_K(i), self.distortion(i)  # rig.json holds the raw camera
-            cams.append({
-                "name": f"cam{i}", "model": "pinhole", "width": int(w), "height": int(h),
-                "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
-                "distortion": "none" if d is None else d.to_json(), "cam_from_rig": T.tolist(),
-            })
-        return {"format": RIG_FORMAT, "version": FORMAT_VERSION, "pixel_centre": "integer (OpenCV)",
-                "reference_camera": 0, "cameras": cams}
-
-    def save(self, path: os.PathLike | str) -> Path:
-        return write_json(path, self.to_json())
-
-    @classmethod
-    def load(cls, path: os.PathLike | str) -> "Rig":
-        """Read and validate ``rig.json``; errors name the file and the field."""
-        path = Path(path)
-        data = read_json(path)
-        if not isinstance(data, dict) or data.get("format") != RIG_FORMAT:
-            raise DataFormatError(path, f"not a rig file (expected \"format\": \"{RIG_FORMAT}\")")
-        if not _is_int(data.get("version")) or data["version"] != FORMAT_VERSION:  # true == 1 in Python
-            raise DataFormatError(path, f"unsupported version {data.get('version')!r}")
-        cams = data.get("cameras")
-        if not isinstance(cams, list) or not cams:
-            raise DataFormatError(path, "\"cameras\" must be a non-empty list")
-        Ks, sizes, Ts, distortions = [], [], [], []
-        for i, cam in enumerate(cams):
-            where = f"cameras[{i}]"
-            if not isinstance(cam, dict):
-                raise DataFormatError(path, f"{where} is not an object")
-            missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy", "cam_from_rig") if k not in cam]
-            if missing:
-                raise DataFormatError(path, f"{where} lacks {', '.join(missing)}")
-            distortions.append(Distortion.from_json(cam.get("distortion", "none"), path, f"{where}.distortion"))
-            for name in ("width", "height"):
-                v = cam[name]
-                if not (_is_int(v) and 0 < v <= 65536):  # JSON true would pass as 1
-                    raise DataFormatError(path, f"{where}.{name} must be a positive integer ≤ 65536 "
-                                                f"(image width/height in pixels), got {v!r}")
-            w, h = cam["width"], cam["height"]
-            f = as_matrix([cam["fx"], cam["fy"], cam["cx"], cam["cy"]], (4,), path, f"{where} intrinsics")
-            if f[0] <= 0 or f[1] <= 0:
-                raise DataFormatError(path, f"{where} focal lengths must be positive")
-            for name, value, edge in (("fx", f[0], w), ("fy", f[1], h)):
-                if not edge / FOCAL_RANGE <= value <= edge * FOCAL_RANGE:  # a 0.06° to 179.9° field of view
-                    raise DataFormatError(path, f"{where}.{name} {value:g} px is not a lens's for a {edge}-px "
-                                                f"image (expected {edge / FOCAL_RANGE:g} to {edge * FOCAL_RANGE:g})")
-            Ks.append(np.array([[f[0], 0, f[2]], [0, f[1], f[3]], [0, 0, 1]]))
-            sizes.append((w, h))
-            Ts.append(check_rigid(as_matrix(cam["cam_from_rig"], (4, 4), path, f"{where}.cam_from_rig"),
-                                  path, f"{where}.cam_from_rig"))
-        try:
-            rig = cls.from_raw(np.array(Ks), tuple(sizes), np.array(Ts), distortions)
-        except ValueError as e:  # a lens that leaves no pinhole image inside the raw one
-            raise DataFormatError(path, f"cannot undistort the cameras ({e})") from None
-        for i, K in enumerate(Ks):
-            zoom = rig.intrinsics[i][0, 0] / K[0, 0]
-            if zoom > MAX_UNDISTORT_ZOOM:  # fisheye k1 = 1e6: the stages would see a few raw pixels
-                raise DataFormatError(path, f"cameras[{i}].distortion leaves an undistorted image {zoom:.0f}× "
-                                            f"narrower than the raw one (at most {MAX_UNDISTORT_ZOOM:g}×): "
-                                            "coefficients no lens has")
-        return rig
-
-
-def pinhole(width: int, height: int, hfov_deg: float) -> np.ndarray:
-    """(3, 3) float64 K with square pixels and the principal point at the image centre."""
-    f = 0.5 * width / np.tan(np.radians(hfov_deg) / 2)
-    return np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
 
 
 #: A synthetic fisheye's image corners stay this far off axis at most: a pinhole image (what the
@@ -332,46 +166,3 @@ def orbit_path(centre, radius: float, frames: int) -> tuple[np.ndarray, np.ndarr
     angle = np.pi / 2 - 2 * np.pi * np.arange(frames) / frames  # position angle about the centre
     x, y = cx + radius * np.cos(angle), cy + radius * np.sin(angle)
     return yaw_pose(x, y, angle - np.pi / 2), np.zeros(frames, dtype=np.int32)  # the rig's y (left) points out
-
-
-def save_poses(path: os.PathLike | str, world_from_rig: np.ndarray, passes: np.ndarray,
-               names: list[str] | None = None) -> Path:
-    """Write ``poses.json``: one ``world_from_rig`` (4, 4) float64 per frame, named
-    ``names`` (default: the frame index, six digits). A frame whose matrix has a NaN has
-    no known pose (a photo folder's, before SfM): it is written as ``null``."""
-    names = [f"{i:06d}" for i in range(len(world_from_rig))] if names is None else list(names)
-    frames = [{"index": i, "name": name, "pass": int(p),
-               "world_from_rig": T.tolist() if np.all(np.isfinite(T)) else None}
-              for i, (T, p, name) in enumerate(zip(world_from_rig, passes, names))]
-    return write_json(path, {"format": POSES_FORMAT, "version": FORMAT_VERSION, "frames": frames})
-
-
-def load_poses(path: os.PathLike | str) -> tuple[np.ndarray, list[str]]:
-    """Read and validate ``poses.json`` → world_from_rig (n, 4, 4) float64 and frame names.
-
-    A frame's ``"world_from_rig": null`` means its pose is unknown: its matrix is all NaN
-    (``bbcity recon --poses sfm`` computes it)."""
-    path = Path(path)
-    data = read_json(path)
-    if not isinstance(data, dict) or data.get("format") != POSES_FORMAT:
-        raise DataFormatError(path, f"not a poses file (expected \"format\": \"{POSES_FORMAT}\")")
-    if not _is_int(data.get("version")) or data["version"] != FORMAT_VERSION:
-        raise DataFormatError(path, f"unsupported version {data.get('version')!r}")
-    frames = data.get("frames")
-    if not isinstance(frames, list):
-        raise DataFormatError(path, "\"frames\" must be a list")
-    poses, names = [], []
-    for i, fr in enumerate(frames):
-        if not isinstance(fr, dict) or "world_from_rig" not in fr or not isinstance(fr.get("name"), str):
-            raise DataFormatError(path, f"frames[{i}] needs \"name\" and \"world_from_rig\"")
-        if not fr["name"] or any(c in fr["name"] for c in "/\\\0") or fr["name"] in (".", ".."):
-            raise DataFormatError(path, f"frames[{i}].name {fr['name']!r} is not a plain file stem")
-        if fr["world_from_rig"] is None:
-            poses.append(np.full((4, 4), np.nan))
-        else:
-            T = as_matrix(fr["world_from_rig"], (4, 4), path, f"frames[{i}].world_from_rig")
-            poses.append(check_rigid(T, path, f"frames[{i}].world_from_rig"))
-        names.append(fr["name"])
-    if len(set(names)) != len(names):
-        raise DataFormatError(path, "frame names are not unique")
-    return np.array(poses).reshape(-1, 4, 4), names

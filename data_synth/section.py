@@ -64,7 +64,7 @@ def _config_object(name: str, config: dict):
 
 def scene_settings(source) -> tuple[str, dict, str | None]:
     """(scene name, generator configuration dict, stored digest or None) of ``source``: a
-    dataset directory or :class:`data_synth.Dataset` (its ``gt/scene.json``), a
+    dataset directory or :class:`capture.dataset.Dataset` (its ``gt/scene.json``), a
     :class:`data_synth.SynthConfig`, a :class:`StreetConfig` or :class:`TownConfig`, or a
     ``(name, config dict)`` pair. A dataset without a readable ``gt/scene.json`` raises
     DataFormatError naming it."""

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from capture.dataset import Dataset
 from core import DataFormatError
 from core.fileio import read_json
-from data_synth import Dataset
 
 logger = logging.getLogger(__name__)
 

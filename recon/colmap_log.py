@@ -10,11 +10,7 @@ import threading
 from pathlib import Path
 from typing import Iterator
 
-# data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
-# pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
-import data_synth  # noqa: F401  (loaded for its order only)
-
-import pycolmap  # noqa: E402  (after data_synth, see above)
+from capture.native import pycolmap
 
 logger = logging.getLogger(__name__)
 

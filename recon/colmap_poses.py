@@ -2,7 +2,7 @@
 text or binary; with rigs and frames, COLMAP ≥ 3.12, or one image per camera) or one
 that SfM just built (:func:`poses_from_reconstruction`).
 
-COLMAP conventions bridged here (see ``data_synth/colmap_export.py``): COLMAP
+COLMAP conventions bridged here (see :mod:`capture.colmap`): COLMAP
 cameras use OpenCV's axes but put the top-left pixel centre at (0.5, 0.5), so
 ``cx_colmap = cx + 0.5``; a COLMAP rig frame *is* its reference sensor's
 camera frame, so ``world_from_rig = inv(rig_from_world) @ cam_from_rig[ref]``
@@ -18,21 +18,23 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-# data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
-# pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
+from capture.colmap import from_rigid3d
+from capture.dataset import Dataset
+from capture.native import pycolmap
+from capture.poses import posed, unknown_poses
 from core import DataFormatError
 from core.rigid import rigid_inverse
-from data_synth import Dataset
 
 from .colmap_log import colmap_log_to_logging
 from .poses import MissingFramesError
-from .trajectory import _nan_poses, _valid, rig_baseline_ratio
-
-import pycolmap  # noqa: E402  (after data_synth, see above)
+from .trajectory import rig_baseline_ratio
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DEPTH_QUANTILES", "frame_depths", "poses_from_colmap", "poses_from_reconstruction", "read_reconstruction"]
+__all__ = [
+    "DEPTH_QUANTILES", "frame_depths", "image_index", "poses_from_colmap", "poses_from_reconstruction",
+    "read_reconstruction",
+]
 
 #: Quantiles of the depths of the sparse points each frame sees that :func:`frame_depths` returns:
 #: near, median, far (the 2nd and 98th percentiles leave out stray triangulations).
@@ -41,17 +43,10 @@ DEPTH_QUANTILES = (0.02, 0.5, 0.98)
 MIN_DEPTH_POINTS = 20
 
 
-def _to_4x4(rigid: pycolmap.Rigid3d) -> np.ndarray:
-    """pycolmap.Rigid3d → (4, 4) float64."""
-    T = np.eye(4)
-    T[:3, :4] = rigid.matrix()
-    return T
-
-
 _CAM_DIR = re.compile(r"^cam(\d+)$")
 
 
-def _image_index(name: str, frame_index: dict[str, int], num_cameras: int) -> tuple[int, int] | None:
+def image_index(name: str, frame_index: dict[str, int], num_cameras: int) -> tuple[int, int] | None:
     """(frame, camera) of a COLMAP image name, or None when it is not one of the dataset's images.
 
     Accepted: ``cam{c}/{frame}.{ext}``, the same under extra leading folders
@@ -96,25 +91,25 @@ def poses_from_reconstruction(rec: pycolmap.Reconstruction, dataset: Dataset,
     ignored: list[str] = []
     rigs = rec.rigs
     for image in rec.images.values():
-        where = _image_index(image.name, frame_index, c)
+        where = image_index(image.name, frame_index, c)
         if where is None:
             ignored.append(image.name)
             continue
         if not image.has_pose:
             continue
         f, cam = where
-        world_from_cam[f, cam] = rigid_inverse(_to_4x4(image.cam_from_world()))
+        world_from_cam[f, cam] = rigid_inverse(from_rigid3d(image.cam_from_world()))
         frame = rec.frames[image.frame_id]
         is_ref[f, cam] = rigs[frame.rig_id].ref_sensor_id == image.data_id.sensor_id
     if ignored:
         logger.warning("%s: %d images match no image of the dataset (e.g. %s); ignored",
                        source, len(ignored), ignored[0])
 
-    have = _valid(world_from_cam.reshape(n * c, 4, 4)).reshape(n, c)
+    have = posed(world_from_cam.reshape(n * c, 4, 4)).reshape(n, c)
     # preferred camera per frame: a reference-sensor image first, then the lowest index
     rank = np.where(have, np.where(is_ref, 0, 1 + np.arange(c)), c + 1)
     best = np.argmin(rank, axis=1)
-    world_from_rig = _nan_poses(n)
+    world_from_rig = unknown_poses(n)
     rows = np.flatnonzero(have.any(axis=1))
     world_from_rig[rows] = world_from_cam[rows, best[rows]] @ cam_from_rig[best[rows]]
     return world_from_rig, world_from_cam
@@ -134,7 +129,7 @@ def frame_depths(rec: pycolmap.Reconstruction, dataset: Dataset, min_points: int
     point_ids = point_ids[order]
     xyz = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)[order]
     for image in rec.images.values():
-        where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
+        where = image_index(image.name, frame_index, dataset.rig.num_cameras)
         if where is None or where[1] != 0 or not image.has_pose:
             continue
         ids = np.fromiter((p.point3D_id for p in image.get_observation_points2D()), np.int64)
@@ -143,7 +138,7 @@ def frame_depths(rec: pycolmap.Reconstruction, dataset: Dataset, min_points: int
         if len(rows) < min_points:
             continue
         X = xyz[rows]
-        T = _to_4x4(image.cam_from_world())
+        T = from_rigid3d(image.cam_from_world())
         z = X @ T[2, :3] + T[2, 3]
         z = z[z > 0]
         if len(z) >= min_points:
@@ -196,7 +191,7 @@ def check_image_sizes(rec: pycolmap.Reconstruction, dataset: Dataset, model_dir:
     the dataset's pixels would not belong together)."""
     frame_index = {name: i for i, name in enumerate(dataset.frame_names)}
     for image in rec.images.values():
-        where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
+        where = image_index(image.name, frame_index, dataset.rig.num_cameras)
         if where is None:
             continue
         camera, (w, h) = rec.cameras[image.camera_id], (int(v) for v in dataset.rig.sizes[where[1]])
@@ -235,7 +230,7 @@ def poses_from_colmap(model_dir: os.PathLike | str, dataset: Dataset, allow_miss
     if np.isfinite(ratio) and abs(ratio - 1.0) > metric_tolerance:
         logger.warning("%s: camera spacing is %.4g × the calibrated baseline; the model is not metric "
                        "(poses are returned in the model's units)", model_dir, ratio)
-    missing = [dataset.frame_names[i] for i in np.flatnonzero(~_valid(world_from_rig))]
+    missing = [dataset.frame_names[i] for i in np.flatnonzero(~posed(world_from_rig))]
     if missing and not allow_missing:
         raise MissingFramesError(model_dir, missing, dataset.num_frames,
                                  " (not registered in the model; allow_missing=True gives NaN poses)")

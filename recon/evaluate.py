@@ -1,4 +1,6 @@
-"""Geometric accuracy and completeness against a synthetic dataset's ground truth.
+"""Geometric accuracy and completeness against a synthetic dataset's ground truth (the
+generator's scene: this is recon's one module that reads it, :func:`truth_scene` and
+:func:`truth_scenes`).
 
 Accuracy: distance from each reconstructed point to the ground-truth mesh
 (Open3D ``RaycastingScene.compute_distance``): median and 90th percentile.
@@ -14,7 +16,8 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
-from data_synth import Dataset, Kind, Scene
+from capture.dataset import Dataset
+from data_synth import Kind, Scene, load_scene, scene_section
 
 from .points import depth_to_points
 
@@ -266,3 +269,25 @@ def evaluate_cloud_tiles(tiles, dataset: Dataset, scene_for: Callable[[np.ndarra
         result[f"completeness_{key}"] = hits[tau][0] / surface_total if surface_total else None
         result[f"facade_completeness_{key}"] = hits[tau][1] / facade_total if facade_total else None
     return result
+
+
+def truth_scene(dataset: Dataset) -> Scene:
+    """The whole ground-truth scene of ``dataset`` (regenerated from its ``gt/`` and checked
+    against the stored digest: :func:`data_synth.load_scene`)."""
+    return load_scene(dataset.root)
+
+
+def truth_scenes(dataset: Dataset) -> Callable[[np.ndarray, np.ndarray], Scene]:
+    """The ground truth of ``dataset`` as :func:`evaluate_cloud_tiles` takes it: scene_for(lo, hi)
+    → the scene covering the world box [lo, hi] (3,) float64. A lazy dataset (a long street)
+    gives the scene around each box only (:func:`data_synth.scene_section`); another its whole
+    scene, loaded here once."""
+    if dataset.lazy is not None:
+        def scene_for(lo, hi):
+            return scene_section(dataset, lo[:2], hi[:2])
+    else:
+        scene = truth_scene(dataset)
+
+        def scene_for(lo, hi):
+            return scene
+    return scene_for

@@ -19,17 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.dataset import held_out_frames, load_dataset
+from capture.poses import save_poses
 from core.errors import InputError
 from core.fileio import DataFormatError, read_json, write_json
 from core.memory import available_bytes, peak_memory
 from core.tasks import executor_workers, run_tasks
-from data_synth import load_dataset, load_scene
-from data_synth.dataset import held_out_frames
-from data_synth.rig import save_poses
 
 from .cloud_io import PlyStreamWriter, read_cloud_tiles
 from .colmap_poses import DEPTH_QUANTILES, frame_depths, poses_from_colmap, read_reconstruction
-from .evaluate import evaluate_cloud, evaluate_cloud_tiles
+from .evaluate import evaluate_cloud, evaluate_cloud_tiles, truth_scene, truth_scenes
 from .fusion import FusionConfig, TileSpill, merge_tiles
 from .motion_stereo import MotionStereoConfig, motion_depth, select_partners
 from .points import depth_to_points
@@ -399,20 +398,10 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         max_depth = conf.trinocular.stereo.max_depth
         tiles = read_cloud_tiles(cloud_path) if num_points else None
         if tiles is not None:  # tile by tile: memory flat in the street's length
-            if getattr(ds, "lazy", None) is not None:  # a long street: the scene around each tile only
-                from data_synth.section import scene_section
-
-                def scene_for(lo, hi):
-                    return scene_section(ds, lo[:2], hi[:2])
-            else:
-                scene = load_scene(dataset_dir)
-
-                def scene_for(lo, hi):
-                    return scene
-            report["accuracy"] = evaluate_cloud_tiles(tiles, ds, scene_for, max_depth=max_depth)
+            report["accuracy"] = evaluate_cloud_tiles(tiles, ds, truth_scenes(ds), max_depth=max_depth)
         else:
             points = np.zeros((0, 3))
-            report["accuracy"] = evaluate_cloud(points, ds, load_scene(dataset_dir), max_depth=max_depth)
+            report["accuracy"] = evaluate_cloud(points, ds, truth_scene(ds), max_depth=max_depth)
         stages["evaluate_s"] = time.perf_counter() - t3
     write_json(work / REPORT, report)
     logger.info("cloud: %d points → %s", num_points, cloud_path)

@@ -2,7 +2,7 @@
 
 Three sources, all returning ``world_from_rig`` (n, 4, 4) float64 in the
 order of ``dataset.frame_names`` (rig frame: x forward, y left, z up; see
-``data_synth.rig``), with NaN matrices for frames that have no pose:
+:mod:`capture.rig`), with NaN matrices for frames that have no pose:
 
 * :func:`poses_given` (here) — the dataset's ``poses.json`` (GPS/IMU in a real capture).
 * :func:`recon.colmap_poses.poses_from_colmap` — a COLMAP model the user already has.
@@ -21,11 +21,9 @@ import os
 
 import numpy as np
 
+from capture.dataset import Dataset
 from core import DataFormatError
 from core.fileio import read_json
-from data_synth import Dataset
-
-from .trajectory import _valid
 
 __all__ = ["MissingFramesError", "frame_passes", "poses_given", "poses_unknown"]
 
@@ -41,7 +39,7 @@ class MissingFramesError(DataFormatError):
 
 def poses_unknown(dataset: Dataset) -> bool:
     """Whether no frame of the dataset has a pose (``poses.json`` of a photo folder)."""
-    return not _valid(dataset.world_from_rig).any()
+    return not dataset.posed.any()
 
 
 def poses_given(dataset: Dataset) -> np.ndarray:

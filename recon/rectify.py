@@ -124,7 +124,7 @@ def _relative_pose(cam_from_rig_left: np.ndarray, cam_from_rig_right: np.ndarray
 
 
 def rectify_pair(rig, left: int, right: int) -> RectifiedPair:
-    """Rectify cameras ``left`` and ``right`` of ``rig`` (a ``data_synth.Rig``:
+    """Rectify cameras ``left`` and ``right`` of ``rig`` (a :class:`capture.rig.Rig`:
     intrinsics (c, 3, 3) float64, sizes [(w, h)], cam_from_rig (c, 4, 4) float64).
 
     The right camera must lie to the right of the left one (along the left
@@ -210,7 +210,7 @@ def rectify_rig(rig, pairs: tuple[tuple[int, int], ...] | None = None) -> dict[t
 @dataclass(frozen=True, eq=False)
 class PosedViews:
     """Views of one moving camera (or any cameras) posed in a common frame, shaped like
-    ``data_synth.Rig`` so that :func:`rectify_pair` / :func:`rectify_rig` take it.
+    :class:`capture.rig.Rig` so that :func:`rectify_pair` / :func:`rectify_rig` take it.
 
     intrinsics: (c, 3, 3) float64. sizes: c × (width, height). cam_from_rig: (c, 4, 4)
     float64, the "rig" being any frame shared by the views (motion stereo: the reference view).

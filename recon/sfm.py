@@ -20,22 +20,20 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-# data_synth loads open3d and OpenCV, which must be loaded before pycolmap: with
-# pycolmap first, OpenCV's PNG writer crashes (their bundled libpng builds clash).
+from capture.colmap import colmap_camera_model, to_rigid3d
+from capture.dataset import Dataset
+from capture.native import pycolmap
+from capture.poses import posed, unknown_poses
 from core.errors import InputError
 from core.fileio import atomic_dir
 from core.rigid import rigid_inverse
-from data_synth import Dataset
-from data_synth.colmap_export import colmap_camera_model, to_rigid3d
 
 from .capture_scale import CaptureScale, capture_scale, scale_factor
 from .colmap_log import colmap_log_to_logging
+from .colmap_poses import image_index, poses_from_reconstruction
 from .ground_plane import ground_up
-from .colmap_poses import _image_index, poses_from_reconstruction
 from .poses import frame_passes, poses_unknown
-from .trajectory import _nan_poses, _valid, level_from_world, rig_baseline_ratio, up_direction
-
-import pycolmap  # noqa: E402  (after data_synth, see above)
+from .trajectory import level_from_world, rig_baseline_ratio, up_direction
 
 logger = logging.getLogger(__name__)
 
@@ -178,7 +176,7 @@ def _drop_cross_pass_pairs(db: Path, dataset: Dataset) -> int:
     with pycolmap.Database.open(db) as database:
         image_pass = {}
         for image in database.read_all_images():
-            where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
+            where = image_index(image.name, frame_index, dataset.rig.num_cameras)
             image_pass[image.image_id] = passes[where[0]] if where else -1
         pair_ids, _ = database.read_two_view_geometry_num_inliers()
         for pair_id in pair_ids:
@@ -264,7 +262,7 @@ def _frame_links(db: Path, dataset: Dataset) -> np.ndarray:
     with pycolmap.Database.open(db) as database:
         frame_of = {}
         for image in database.read_all_images():
-            where = _image_index(image.name, frame_index, dataset.rig.num_cameras)
+            where = image_index(image.name, frame_index, dataset.rig.num_cameras)
             frame_of[image.image_id] = where[0] if where else -1
         pair_ids, counts = database.read_two_view_geometry_num_inliers()
     for pair_id, count in zip(pair_ids, counts):
@@ -342,13 +340,13 @@ def _level_and_scale(rec: pycolmap.Reconstruction, world_from_rig: np.ndarray, w
     heading (+x) are its first registered frame's rig, scaled as ``scale`` says (:func:`scale_factor`).
     world_from_rig: (n, 4, 4), world_from_cam: (n, c, 4, 4) float64 of ``rec`` (NaN = not
     registered). Transforms ``rec`` in place; returns the factor applied and the scale's kind."""
-    ok = np.flatnonzero(_valid(world_from_rig))
+    ok = np.flatnonzero(posed(world_from_rig))
     positions = world_from_rig[ok, :3, 3]
     factor, kind = scale_factor(scale, positions, ok)
     cams = world_from_cam.reshape(-1, 4, 4)
     up = up_direction(cams, positions)
     points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
-    ground = ground_up(points, cams[_valid(cams), :3, 3], up)  # a pitched camera tilts the cameras' up
+    ground = ground_up(points, cams[posed(cams), :3, 3], up)  # a pitched camera tilts the cameras' up
     up = up if ground is None else ground
     L = level_from_world(up, world_from_rig[ok[0], :3, 0], positions[0])
     rec.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(np.ascontiguousarray(L[:3, :3])),
@@ -444,7 +442,7 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
 
     # components, largest first; a frame in two models (COLMAP allows small overlaps) goes to the larger
     models = sorted(recs, key=lambda r: r.num_reg_frames(), reverse=True)
-    world_from_rig = _nan_poses(n)
+    world_from_rig = unknown_poses(n)
     component = np.full(n, -1, dtype=np.int32)
     ratios, scales, scale_from, model_dirs = [], [], [], []
     num_points, err_sum, obs_sum = 0, 0.0, 0
@@ -468,7 +466,7 @@ def poses_sfm(dataset: Dataset, work_dir: os.PathLike | str, config: SfmConfig |
         ratios.append(ratio)
         scales.append(scale)
         scale_from.append(source)
-        new = _valid(poses) & (component < 0)
+        new = posed(poses) & (component < 0)
         world_from_rig[new] = poses[new]
         component[new] = k
         num_points += rec.num_points3D()

@@ -1,7 +1,7 @@
 """Trajectory geometry: alignment of one trajectory to another, its errors, and the world's up.
 
 Poses are ``world_from_rig`` (n, 4, 4) float64 (rig frame: x forward, y left, z up; see
-``data_synth.rig``), NaN matrices for frames without a pose.
+:mod:`capture.rig`), NaN matrices for frames without a pose (:mod:`capture.poses`).
 
 * :func:`align_trajectory` (Umeyama, SE(3) or Sim(3)) and :func:`align_components` (each
   SfM component placed on reference poses, e.g. GPS);
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from capture.poses import posed, unknown_poses
 from core.errors import InputError
 from core.rigid import rigid_inverse
 
@@ -25,15 +26,6 @@ __all__ = [
 ]
 
 COLLINEAR_RATIO = 1e-4  # align_trajectory: positions are one line when singular values 2nd/1st fall below this
-
-
-def _nan_poses(n: int) -> np.ndarray:
-    return np.full((n, 4, 4), np.nan)
-
-
-def _valid(T: np.ndarray) -> np.ndarray:
-    """(n,) bool: which poses of T (n, 4, 4) are fully finite."""
-    return np.isfinite(T).all(axis=(1, 2))
 
 
 #: up_direction: the trajectory's main direction counts as level (its component along the
@@ -53,7 +45,7 @@ def up_direction(world_from_cam: np.ndarray, positions: np.ndarray | None = None
     cameras (sideways-looking ones pitch about the travel direction and cannot be corrected).
     """
     T = np.asarray(world_from_cam, dtype=np.float64)
-    T = T[_valid(T)]
+    T = T[posed(T)]
     if len(T) == 0:
         raise InputError("no camera pose to estimate the up direction from")
     up = -T[:, :3, 1].mean(axis=0)
@@ -194,7 +186,7 @@ def align_trajectory(estimated: np.ndarray, reference: np.ndarray,
     ref = np.asarray(reference, dtype=np.float64)
     if est.shape != ref.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
         raise InputError(f"estimated {est.shape} and reference {ref.shape} must both be (n, 4, 4)")
-    ok = _valid(est) & _valid(ref)
+    ok = posed(est) & posed(ref)
     if not ok.any():
         raise InputError("no frame has a pose in both trajectories")
     if with_scale and ok.sum() < 2:
@@ -203,7 +195,7 @@ def align_trajectory(estimated: np.ndarray, reference: np.ndarray,
     transform = np.eye(4)
     transform[:3, :3] = s * R
     transform[:3, 3] = t
-    aligned = _nan_poses(len(est))
+    aligned = unknown_poses(len(est))
     aligned[ok, :3, :3] = R @ est[ok, :3, :3]
     aligned[ok, :3, 3] = s * est[ok, :3, 3] @ R.T + t
     aligned[ok, 3] = [0.0, 0.0, 0.0, 1.0]
@@ -225,10 +217,10 @@ def align_components(world_from_rig: np.ndarray, component: np.ndarray, referenc
     est = np.asarray(world_from_rig, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     comp = np.asarray(component)
-    out = _nan_poses(len(est))
+    out = unknown_poses(len(est))
     for label in np.unique(comp[comp >= 0]):
-        sel = (comp == label) & _valid(est)
-        usable = sel & _valid(ref)
+        sel = (comp == label) & posed(est)
+        usable = sel & posed(ref)
         if not usable.any() or (with_scale and usable.sum() < 2):
             continue
         # fit on frames with both poses, then move every frame of the component
@@ -275,7 +267,7 @@ def trajectory_rmse(estimated: np.ndarray, reference: np.ndarray, with_scale: bo
     g = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups).astype(np.int64)
     if g.shape != (n,):
         raise InputError(f"groups must have shape ({n},), got {g.shape}")
-    ok = _valid(est) & _valid(ref) & (g >= 0)
+    ok = posed(est) & posed(ref) & (g >= 0)
     pos_err = np.full(n, np.nan)
     rot_err = np.full(n, np.nan)
     sim3_err = np.full(n, np.nan)
@@ -300,7 +292,7 @@ def trajectory_rmse(estimated: np.ndarray, reference: np.ndarray, with_scale: bo
     return {
         "frames": n,
         "valid": int(ok.sum()),
-        "missing": int((_valid(ref) & ~ok).sum()),
+        "missing": int((posed(ref) & ~ok).sum()),
         "rmse_m": stat(lambda a: np.sqrt(np.mean(a ** 2)), v),
         "mean_m": stat(np.mean, v),
         "median_m": stat(np.median, v),

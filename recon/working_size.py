@@ -17,7 +17,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from data_synth.rig import Rig
+from capture.rig import Rig
 
 __all__ = ["matcher_bytes", "resize_image", "scaled_intrinsics", "scaled_rig", "working_scale", "working_size"]
 

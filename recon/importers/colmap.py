@@ -16,7 +16,7 @@ Frames: a model rig with more than one sensor (COLMAP ≥ 3.12 ``rigs.txt``/``fr
 gives one dataset frame per registered frame that has an image of every sensor, cameras
 in the order reference sensor, then the others by camera id. Without such a rig, a model
 of one camera gives one frame per registered image (sorted by name); several cameras whose
-images are named ``cam{c}/NAME.ext`` (the layout of ``data_synth.colmap_export`` and of
+images are named ``cam{c}/NAME.ext`` (the layout of :func:`capture.colmap.write_colmap_text` and of
 the dataset itself) are grouped into frames by NAME, the rig taken from the poses (it must
 be rigid). Any other model of several cameras is refused: give it a rig.
 
@@ -40,19 +40,17 @@ from pathlib import Path, PurePosixPath
 import cv2
 import numpy as np
 
+from capture.colmap import COLMAP_PIXEL_OFFSET, from_rigid3d
+from capture.distortion import Distortion
+from capture.native import pycolmap
+from capture.rig import Rig
 from core.errors import InputError
 from core.fileio import DataFormatError, write_bytes
 from core.rigid import nearest_rotation, rigid_inverse
-from data_synth.distortion import Distortion
-from data_synth.colmap_export import COLMAP_PIXEL_OFFSET
-from data_synth.rig import Rig
 
-# recon.colmap_poses loads data_synth (open3d, OpenCV) before pycolmap: see the note there
-from ..colmap_poses import _to_4x4, read_reconstruction
+from ..colmap_poses import read_reconstruction
 from ..trajectory import level_from_world, up_direction
 from .common import check_image, frame_names, write_imported_dataset
-
-import pycolmap  # noqa: E402  (after data_synth, see above)
 
 logger = logging.getLogger(__name__)
 
@@ -232,7 +230,7 @@ def _rig_layout(rec: pycolmap.Reconstruction, rig_id: int, model_dir: Path) -> _
         T = rig.sensor_from_rig(s)
         if T is None:
             raise DataFormatError(model_dir, f"rig {rig_id}: camera {s.id} has no pose in the rig (sensor_from_rig)")
-        cam_from_ref.append(_to_4x4(T))
+        cam_from_ref.append(from_rigid3d(T))
     rows, skipped = [], 0
     for frame in rec.frames.values():
         if frame.rig_id != rig_id:
@@ -246,7 +244,7 @@ def _rig_layout(rec: pycolmap.Reconstruction, rig_id: int, model_dir: Path) -> _
             raise DataFormatError(model_dir, f"frame {frame.frame_id} of rig {rig_id} names image(s) "
                                              f"{', '.join(map(str, missing))}, which the model's images lack")
         names = [rec.images[by_sensor[s.id]].name for s in sensors]
-        rows.append((names[0], _to_4x4(frame.rig_from_world), names))
+        rows.append((names[0], from_rigid3d(frame.rig_from_world), names))
     if skipped:
         logger.warning("%s: %d frames of rig %d are left out (not registered, or without an image of every camera)",
                        model_dir, skipped, rig_id)
@@ -259,7 +257,7 @@ def _single_camera_layout(rec: pycolmap.Reconstruction, camera_id: int) -> _Layo
     images = sorted((im for im in rec.images.values() if im.camera_id == camera_id and im.has_pose),
                     key=lambda im: im.name)
     names = [im.name for im in images]
-    poses = np.array([_to_4x4(im.cam_from_world()) for im in images]).reshape(-1, 4, 4)
+    poses = np.array([from_rigid3d(im.cam_from_world()) for im in images]).reshape(-1, 4, 4)
     return _Layout([camera_id], np.eye(4)[None], poses, [[n] for n in names], frame_names(names), "one camera")
 
 
@@ -306,7 +304,7 @@ def _named_layout(rec: pycolmap.Reconstruction, model_dir: Path) -> _Layout | No
                        len(groups) - len(complete))
     if not complete:
         raise DataFormatError(model_dir, "no frame has a registered image of every camera")
-    cam_from_world = np.array([[_to_4x4(groups[k][c].cam_from_world()) for c in cams] for k in complete])
+    cam_from_world = np.array([[from_rigid3d(groups[k][c].cam_from_world()) for c in cams] for k in complete])
     cam_from_ref = rig_from_poses(cam_from_world, model_dir / "images")
     return _Layout([camera_of[c] for c in cams], cam_from_ref, cam_from_world[:, 0],
                    [[groups[k][c].name for c in cams] for k in complete], complete, "cam{c}/NAME images")

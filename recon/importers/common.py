@@ -15,11 +15,12 @@ import numpy as np
 from PIL import Image as PILImage
 from PIL import ImageOps
 
+from capture.dataset import DATASET_FORMAT, FORMAT_VERSION
+from capture.poses import save_poses
+from capture.rig import Rig
 from core.errors import InputError
 from core.fileio import DataFormatError, write_bytes, write_json, write_png
 from core.rigid import nearest_rotation
-from data_synth.dataset import DATASET_FORMAT, FORMAT_VERSION
-from data_synth.rig import Rig, save_poses
 
 logger = logging.getLogger(__name__)
 

@@ -23,9 +23,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from capture.rig import Rig
 from core.errors import InputError
 from core.fileio import DataFormatError
-from data_synth.rig import Rig
 
 from .common import ZUP_FROM_CAMERA, clean_rigid, read_number_rows, write_imported_dataset
 

@@ -39,11 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.distortion import Distortion
+from capture.rig import Rig
 from core.errors import InputError
 from core.fileio import DataFormatError, read_json
 from core.rigid import rigid_inverse
-from data_synth.distortion import Distortion
-from data_synth.rig import Rig
 
 from ..trajectory import level_from_world, up_direction
 from .common import check_image, clean_rigid, frame_names, write_imported_dataset

@@ -3,7 +3,7 @@ that nerfstudio's methods (nerfacto, splatfacto …) train on the same capture a
 a billboard model on the same held-out frames.
 
 ``OUT/images/cam{c}_{FRAME}.png`` holds every posed frame's image of every camera as the
-dataset serves it (undistorted: :meth:`data_synth.Dataset.image`; a lazy dataset's are cast),
+dataset serves it (undistorted: :meth:`capture.dataset.Dataset.image`; a lazy dataset's are cast),
 flat so that nerfstudio's downscaled copies (``images_2/NAME``) keep the names apart.
 ``OUT/transforms.json`` has one frame entry per image: its camera's pose (``transform_matrix``:
 camera-to-world, OpenGL axes, in the dataset's z-up world and units) and the pinhole
@@ -13,7 +13,7 @@ level when every camera shares them, else in each frame. Frames without a pose (
 folder before SfM) are left out, and said how many.
 
 ``holdout`` N (``bbcity recon/build --holdout N``) leaves the frames
-:func:`data_synth.dataset.held_out_frames` picks out of training, as build leaves them out of
+:func:`capture.dataset.held_out_frames` picks out of training, as build leaves them out of
 its textures: "train_filenames" lists every camera's images of the other frames,
 "test_filenames" and "val_filenames" camera 0's images of the held-out frames (the views
 ``bbcity eval`` compares); nerfstudio then trains and evaluates on exactly those (it reads
@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.dataset import held_out_frames, load_dataset
 from core.errors import InputError
 from core.fileio import atomic_dir, write_json, write_png
-from data_synth.dataset import held_out_frames, load_dataset
 
 from .nerfstudio import GL_FROM_CV, PIXEL_OFFSET
 

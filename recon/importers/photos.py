@@ -46,10 +46,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image as PILImage
 
+from capture.distortion import Distortion
+from capture.rig import Rig
 from core.errors import InputError
 from core.fileio import DataFormatError
-from data_synth.distortion import Distortion
-from data_synth.rig import Rig
 
 from .common import ZUP_FROM_CAMERA, exif_orientation, write_imported_dataset
 from .gps import enu_from_geodetic, exif_gps

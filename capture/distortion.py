@@ -1,7 +1,7 @@
 """Lens distortion: OpenCV's radial-tangential and fisheye models.
 
 A camera's raw image is distorted; everything downstream of
-:meth:`data_synth.Dataset.image` sees an undistorted pinhole image of the same
+:meth:`capture.dataset.Dataset.image` sees an undistorted pinhole image of the same
 size. This module holds the lens models and the undistortion maps.
 
 Normalised coordinates are those of the camera frame divided by z: a pinhole
@@ -44,9 +44,9 @@ COEFFICIENTS = {"radtan": ("k1", "k2", "p1", "p2", "k3"), "fisheye": ("k1", "k2"
 #: Coefficients that rig.json may leave out (taken as 0).
 OPTIONAL = {"radtan": ("k3",), "fisheye": ()}
 
-#: Named lenses for the synthetic rig (RigConfig.distortion). radtan: a mild barrel lens whose
-#: radial function stays monotonic far past the default camera's corners (r ≈ 3.2); fisheye: a
-#: typical Kannala–Brandt calibration of an equidistant lens.
+#: Named lenses (the names the synthetic rig's ``RigConfig.distortion`` takes). radtan: a mild
+#: barrel lens whose radial function stays monotonic far past the default camera's corners
+#: (r ≈ 3.2); fisheye: a typical Kannala–Brandt calibration of an equidistant lens.
 PRESETS = {
     "radtan": {"k1": -0.03, "k2": 0.0015, "p1": 2e-4, "p2": -1e-4, "k3": 0.0},
     "fisheye": {"k1": 0.02, "k2": -0.006, "k3": 0.001, "k4": -1e-4},

@@ -1,10 +1,13 @@
-"""Export a camera rig and its known poses as a COLMAP text model.
+"""COLMAP's conventions, and a camera rig with its known poses as a COLMAP text model.
 
-The synthetic data set knows its ground-truth rig calibration and per-frame
-poses; this module writes them as a COLMAP *rig* model (``cameras.txt``,
-``rigs.txt``, ``frames.txt``, ``images.txt``, ``points3D.txt``) so that COLMAP
-tools — or our own ``recon`` stage through its COLMAP import — can consume
-"known poses" exactly as they would a real reconstruction.
+The conventions below are bridged here once, for every reader and writer of COLMAP
+models (the synthetic generator's ``colmap/``, recon's COLMAP poses and SfM, the COLMAP
+importer): :data:`COLMAP_PIXEL_OFFSET`, :func:`colmap_camera_model`, and
+:func:`to_rigid3d` / :func:`from_rigid3d` between (4, 4) float64 matrices and pycolmap's
+``Rigid3d``. :func:`write_colmap_text` writes a rig's calibration and per-frame poses as a
+COLMAP *rig* model (``cameras.txt``, ``rigs.txt``, ``frames.txt``, ``images.txt``,
+``points3D.txt``) so that COLMAP tools — or our own ``recon`` stage through its COLMAP
+import — can consume "known poses" exactly as they would a real reconstruction.
 
 Conventions bridged here
 ------------------------
@@ -44,16 +47,13 @@ import numpy as np
 from core.errors import InputError
 from core.fileio import atomic_dir
 from core.rigid import nearest_rotation, rigid_inverse
-from core.signals import python_signal_handlers
-
-with python_signal_handlers():  # the first import of pycolmap anywhere: data_synth comes first
-    import pycolmap
 
 from .distortion import Distortion
+from .native import pycolmap
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["write_colmap_text", "colmap_camera_model", "COLMAP_PIXEL_OFFSET"]
+__all__ = ["COLMAP_PIXEL_OFFSET", "colmap_camera_model", "from_rigid3d", "to_rigid3d", "write_colmap_text"]
 
 #: Added to an OpenCV principal point (cx, cy) to get COLMAP's.
 COLMAP_PIXEL_OFFSET = 0.5
@@ -95,13 +95,11 @@ def _as_float64(name: str, a: np.ndarray, shape_tail: tuple[int, ...]) -> np.nda
     return arr
 
 
-def _validate(
-    intrinsics: np.ndarray,
-    sizes: list[tuple[int, int]],
-    cam_from_rig: np.ndarray,
-    world_from_rig: np.ndarray,
-    image_names: list[list[str]],
-) -> tuple[np.ndarray, list[tuple[int, int]], np.ndarray, np.ndarray, list[list[str]]]:
+def _validate(intrinsics: np.ndarray, sizes: list[tuple[int, int]], cam_from_rig: np.ndarray,
+              world_from_rig: np.ndarray, image_names: list[list[str]]
+              ) -> tuple[np.ndarray, list[tuple[int, int]], np.ndarray, np.ndarray, list[list[str]]]:
+    """The arguments of :func:`write_colmap_text` checked (ValueError naming the first bad one)
+    and as float64 arrays, sizes as int pairs."""
     K = _as_float64("intrinsics", intrinsics, (3, 3))
     c = K.shape[0]
     if c < 1:
@@ -175,6 +173,13 @@ def to_rigid3d(T: np.ndarray) -> pycolmap.Rigid3d:
                             np.ascontiguousarray(T[:3, 3]))
 
 
+def from_rigid3d(rigid: pycolmap.Rigid3d) -> np.ndarray:
+    """pycolmap.Rigid3d → (4, 4) float64 (the inverse of :func:`to_rigid3d`)."""
+    T = np.eye(4)
+    T[:3, :4] = rigid.matrix()
+    return T
+
+
 def colmap_camera_model(K: np.ndarray, distortion: Distortion | None) -> tuple[str, list[float]]:
     """COLMAP model name and parameters of an OpenCV camera K (3, 3) float64 with a lens (or None)."""
     params = [K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET, K[1, 2] + COLMAP_PIXEL_OFFSET]
@@ -188,14 +193,10 @@ def colmap_camera_model(K: np.ndarray, distortion: Distortion | None) -> tuple[s
     return "FULL_OPENCV", [float(p) for p in params + [k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]]
 
 
-def _build_reconstruction(
-    K: np.ndarray,
-    sizes: list[tuple[int, int]],
-    cam_from_rig: np.ndarray,
-    world_from_rig: np.ndarray,
-    image_names: list[list[str]],
-    distortions: list[Distortion | None],
-) -> pycolmap.Reconstruction:
+def _build_reconstruction(K: np.ndarray, sizes: list[tuple[int, int]], cam_from_rig: np.ndarray,
+                          world_from_rig: np.ndarray, image_names: list[list[str]],
+                          distortions: list[Distortion | None]) -> pycolmap.Reconstruction:
+    """The pycolmap model :func:`write_colmap_text` writes (its validated arguments)."""
     c = K.shape[0]
     n = world_from_rig.shape[0]
     rec = pycolmap.Reconstruction()

@@ -1,0 +1,202 @@
+"""The dataset format: a capture's cameras, poses and images, and the reader :func:`load_dataset`.
+
+Layout of a dataset directory::
+
+    dataset.json              manifest, written last: its presence marks a complete dataset
+    synth_report.json         timings of the run that wrote it (the only file that varies) and the
+                              street's coverage (shares of road, sidewalk and facades the rig sees)
+    rig.json                  intrinsics, lens distortion ("none", radtan or fisheye) and cam_from_rig per camera
+    poses.json                world_from_rig per frame, float64
+    images/cam{c}/NNNNNN.png  RGB images
+    colmap/                   the same cameras and poses as a COLMAP text model
+    gt/scene.json             the generator's configuration (re-creates the scene) and digest
+    gt/mesh.ply               the scene's triangle mesh
+    gt/objects/*.npy          kind (k,) int16, seed (k,) uint32, bounds (k, 2, 3) float64
+    gt/triangle_object.npy    object id per mesh triangle (m,) int32
+    gt/depth/cam{c}/NNNNNN.npy  z-depth (h, w) float32, NaN = sky
+    gt/ids/cam{c}/NNNNNN.npy    object id (h, w) int32, −1 = sky
+
+Images and ground truth are stored as the raw cameras see them (distorted, when
+rig.json gives a lens); :class:`Dataset` returns them undistorted, lined up with
+``rig.intrinsics``.
+
+A user's own capture needs only ``rig.json``, ``poses.json`` and ``images/`` (the
+importers of :mod:`recon.importers` write ``dataset.json`` too); ``synth_report.json``,
+``colmap/`` and ``gt/`` are the synthetic generator's (:mod:`data_synth`).
+
+A dataset whose ``dataset.json`` says ``"images": KIND`` has no ``images/`` (and no ``gt/``
+files but ``gt/scene.json``): an image source of that kind (:mod:`capture.sources`; the
+generator's *lazy* datasets, ``"images": "lazy"``, :mod:`data_synth.lazy`) makes each frame
+when it is read, by :meth:`Dataset.image`, :meth:`Dataset.gt_depth`, :meth:`Dataset.gt_ids`
+and :func:`read_image` alike.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import InputError
+from core.fileio import DataFormatError, load_npy, read_png
+
+from .poses import load_poses, posed
+from .rig import Rig
+from .sources import ImageSource, image_source
+
+DATASET_FORMAT = "bbcity-dataset"
+#: Version of ``dataset.json``.
+FORMAT_VERSION = 1
+
+_FRAME_NAME = re.compile(r"\d{6}")
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A validated dataset. world_from_rig: (n, 4, 4) float64; frame_names: n stems;
+    lazy: the image source a lazy dataset's frames are made by (:mod:`capture.sources`;
+    None: stored images)."""
+
+    root: Path
+    rig: Rig
+    world_from_rig: np.ndarray
+    frame_names: tuple[str, ...]
+    lazy: ImageSource | None = None
+
+    def __fspath__(self) -> str:  # a dataset stands for its directory (load_dataset returns it as it is)
+        return str(self.root)
+
+    def __str__(self) -> str:
+        return str(self.root)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frame_names)
+
+    @property
+    def posed(self) -> np.ndarray:
+        """(n,) bool: the frames that have a pose (a photo folder's are unknown until SfM)."""
+        return posed(self.world_from_rig)
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return (self.root / "gt" / "scene.json").is_file()
+
+    def image_path(self, frame: int, cam: int) -> Path:
+        """Where the raw image is; a lazy dataset's is not there: :func:`read_image`
+        reads both (as :meth:`image` does)."""
+        return self.root / "images" / f"cam{cam}" / f"{self.frame_names[frame]}.png"
+
+    def image(self, frame: int, cam: int) -> np.ndarray:
+        """(h, w, 3) uint8 RGB, undistorted when the camera has a lens (pinhole ``rig.intrinsics``);
+        a missing, truncated or wrongly sized file raises DataFormatError. A lazy dataset makes it."""
+        if self.lazy is not None:
+            raw = self.lazy.image(int(self.frame_names[frame]), cam)
+        else:
+            raw = read_png(self.image_path(frame, cam), self.rig.sizes[cam])
+        return self.rig.undistort(raw, cam)
+
+    def world_from_cam(self, frame: int, cam: int) -> np.ndarray:
+        """(4, 4) float64 camera pose."""
+        return self.rig.world_from_cam(self.world_from_rig[frame], cam)
+
+    def _gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
+        w, h = self.rig.sizes[cam]
+        path = self.root / "gt" / kind / f"cam{cam}" / f"{self.frame_names[frame]}.npy"
+        if self.lazy is not None:
+            raw = self.lazy.ground_truth(kind, int(self.frame_names[frame]), cam)
+        else:
+            raw = load_npy(path, dtype=dtype, shape=(h, w))
+            if kind == "depth":  # NaN where nothing is hit; a hit lies in front of the camera
+                bad = ~(np.isnan(raw) | (np.isfinite(raw) & (raw > 0)))
+                if bad.any():
+                    raise DataFormatError(path, f"holds {int(bad.sum())} depths that are neither NaN (no hit) nor "
+                                                f"a positive distance, e.g. {raw[bad][0]:g}")
+        # nearest raw pixel: no blending across depth edges or between object ids
+        return self.rig.undistort(raw, cam, nearest=True)
+
+    def gt_depth(self, frame: int, cam: int) -> np.ndarray:
+        """(h, w) float32 ground-truth z-depth, NaN where nothing is hit; undistorted like
+        :meth:`image` (nearest raw pixel, so within half a raw pixel of each pixel's ray)."""
+        return self._gt("depth", frame, cam, np.float32)
+
+    def gt_ids(self, frame: int, cam: int) -> np.ndarray:
+        """(h, w) int32 ground-truth object id, −1 where nothing is hit; undistorted like :meth:`gt_depth`."""
+        return self._gt("ids", frame, cam, np.int32)
+
+    def verify(self) -> None:
+        """Decode every image (slow, thorough; a lazy dataset makes every frame); the first bad
+        file raises DataFormatError."""
+        for f in range(self.num_frames):
+            for c in range(self.rig.num_cameras):
+                self.image(f, c)
+
+
+def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None) -> Dataset:
+    """Open a dataset directory: validate ``rig.json``, ``poses.json`` and that
+    every image exists. Errors name the offending file.
+
+    poses: another ``poses.json`` to use instead of the dataset's own (the poses a
+    ``bbcity recon --poses sfm`` found, ``WORK/poses.json``): the same frame names in the
+    same order; frames it gives ``null`` have no pose (NaN). A :class:`Dataset` passed as
+    ``path`` is returned as it is (its poses kept; ``poses`` still replaces them), so that
+    functions taking a dataset directory also take a dataset with poses from elsewhere.
+    """
+    if isinstance(path, Dataset):
+        return path if poses is None else replace(path, world_from_rig=_replacement_poses(path, poses))
+    root = Path(path)
+    if not root.is_dir():
+        raise DataFormatError(root, "dataset directory does not exist")
+    rig = Rig.load(root / "rig.json")
+    world_from_rig, names = load_poses(root / "poses.json")
+    if not names:
+        raise DataFormatError(root / "poses.json", "has no frames")
+    lazy = image_source(root)
+    dataset = Dataset(root, rig, world_from_rig, tuple(names), lazy)
+    if lazy is not None:  # no image files: the frames must be the ones the source makes
+        lazy.check_frames(names, world_from_rig, root / "poses.json")
+    if poses is not None:
+        dataset = replace(dataset, world_from_rig=_replacement_poses(dataset, poses))
+    for f in range(0 if lazy is not None else dataset.num_frames):
+        for c in range(rig.num_cameras):
+            p = dataset.image_path(f, c)
+            if not p.is_file():
+                raise DataFormatError(p, f"image of frame {names[f]} camera {c} is missing")
+    return dataset
+
+
+def _replacement_poses(dataset: Dataset, path: os.PathLike | str) -> np.ndarray:
+    """world_from_rig (n, 4, 4) float64 of ``path`` (a poses.json) for ``dataset``'s frames."""
+    world_from_rig, names = load_poses(path)
+    if tuple(names) != dataset.frame_names:
+        raise DataFormatError(path, f"its {len(names)} frames are not the {dataset.num_frames} frames of "
+                                    f"{dataset.root / 'poses.json'} (names and order must agree)")
+    return world_from_rig
+
+
+def held_out_frames(num_frames: int, every: int) -> list[int]:
+    """The frames left out for novel-view evaluation: one in every ``every`` (the middle one
+    of each run of ``every``; 0: none). Recon, build and eval all follow this rule."""
+    if every < 0 or every == 1:
+        raise InputError(f"holdout must be 0 (none) or ≥ 2 (every n-th frame left out), got {every}")
+    return [f for f in range(num_frames) if every and f % every == every // 2]
+
+
+def read_image(path: os.PathLike | str, size: tuple[int, int] | None = None) -> np.ndarray:
+    """The raw image a dataset holds at ``path`` (``DATASET/images/cam{c}/NNNNNN.png``): the PNG
+    file, or, for a lazy dataset, the frame made on demand. (h, w, 3) uint8 RGB; ``size``
+    (width, height) is checked. What :func:`core.fileio.read_png` does for files, errors
+    naming the file alike."""
+    p = Path(path)
+    if not p.is_file() and p.parent.parent.name == "images" and _FRAME_NAME.fullmatch(p.stem) \
+            and p.suffix == ".png" and p.parent.name.startswith("cam") and p.parent.name[3:].isdigit():
+        source = image_source(p.parent.parent.parent)
+        if source is not None:
+            rgb = source.image(int(p.stem), int(p.parent.name[3:]))
+            if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(int(s) for s in size):
+                raise DataFormatError(p, f"is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]}")
+            return rgb
+    return read_png(p, size)
