@@ -5,9 +5,10 @@ A facade layer of fixed blocks on the street's facades and ground (EPI facade de
 (:mod:`billboards.octree`), occlusion-aware angular sampling of their textures
 (:mod:`billboards.sampling`), PCA eigen-textures (:mod:`billboards.pca`), quantised and
 packed into atlas pages (:mod:`billboards.quantize`, :mod:`billboards.atlas`), and the
-on-disk model (:mod:`billboards.model` the format, :mod:`billboards.model_reader` and
-:mod:`billboards.model_writer`) with its CPU decode (:mod:`billboards.decode`). The stage's
-entry point is :func:`billboards.build.main`. No GPU code: rendering is :mod:`render`'s.
+on-disk model (:mod:`billboards.model_format` the format, :mod:`billboards.model` in memory,
+:mod:`billboards.model_reader` and :mod:`billboards.model_writer`) with its CPU decode
+(:mod:`billboards.decode`). The stage's entry point is :func:`billboards.build.main`. No GPU
+code: rendering is :mod:`render`'s.
 
 Public API of the model: :class:`BillboardModel`, :func:`load`, :func:`save`,
 :class:`ModelWriter`, :func:`decode`, :func:`decode_directions`, :func:`direction_index`.

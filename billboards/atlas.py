@@ -228,14 +228,19 @@ def pack_rows(rows: np.ndarray, page_size: int) -> list[np.ndarray]:
 
 
 class _PageWriter:
-    """Streams cells into memory-mapped page files (one page open at a time)."""
+    """Streams cells into memory-mapped page files (one page open at a time); each appended
+    item (of ``item_shape``) is one cell."""
 
     _channels: tuple[int, ...] = ()
     _dtypes: tuple[np.dtype, ...] = ()
+    _items = ""   # what the items are called in a shape error ...
+    _what = ""    # ... and in a dtype error
 
     def __init__(self, directory: os.PathLike | str, layout: AtlasLayout, dtype, prefix: str):
         self.directory = Path(directory)
         self.layout = layout
+        self.page_size = layout.page_size
+        self.item_shape: tuple[int, ...] = ()
         self.dtype = np.dtype(dtype)
         if self.dtype not in self._dtypes:
             raise TypeError(f"page dtype must be one of {[str(d) for d in self._dtypes]}, got {self.dtype}")
@@ -258,6 +263,19 @@ class _PageWriter:
         return self.directory / f".{self._final_name(p)}.{what}-{self._token}"
 
     # -- writing -------------------------------------------------------------------------------
+    def append(self, items: np.ndarray) -> np.ndarray:
+        """Append items (m, *item_shape) of the writer's dtype (floats are cast for float pages).
+
+        Returns the slot indices assigned, (m,) int64, consecutive.
+        """
+        items = np.asarray(items)
+        if items.shape[1:] != self.item_shape:
+            shape = ", ".join(str(s) for s in self.item_shape)
+            raise InputError(f"{self._items} must be (m, {shape}), got {items.shape}")
+        items = _cast(items, self.dtype, self._what)
+        lay = self.layout
+        return self._append_cells(items.reshape((len(items), lay.cell_height, lay.cell_width) + self._channels))
+
     def _append_cells(self, cells: np.ndarray) -> np.ndarray:
         if self._result is not None:
             raise RuntimeError("append after close")
@@ -352,7 +370,8 @@ class _PageWriter:
 
 
 class AtlasWriter(_PageWriter):
-    """Streams tiles (m, t, t, 4) into atlas page files ``<prefix>_NNN.npy`` (H, W, 4).
+    """Streams tiles (m, t, t, 4) into atlas page files ``<prefix>_NNN.npy`` (H, W, 4):
+    :meth:`append` takes tiles (m, t, t, 4) (floats are cast for float16 pages).
 
     Only the page being filled is mapped; pages keep temporary names until
     :meth:`close`. As a context manager an exception removes every file it made;
@@ -361,44 +380,27 @@ class AtlasWriter(_PageWriter):
 
     _channels = (4,)
     _dtypes = TILE_DTYPES
+    _items = _what = "tiles"
 
     def __init__(self, directory: os.PathLike | str, tile: int, page_size: int, dtype=np.uint8,
                  prefix: str = "atlas"):
         super().__init__(directory, atlas_layout(0, tile, page_size), dtype, prefix)
         self.tile = self.layout.cell_width
-        self.page_size = page_size
-
-    def append(self, tiles: np.ndarray) -> np.ndarray:
-        """Append tiles (m, t, t, 4) of the writer's dtype (floats are cast for float16 pages).
-
-        Returns the slot indices assigned, (m,) int64, consecutive.
-        """
-        tiles = np.asarray(tiles)
-        t = self.tile
-        if tiles.ndim != 4 or tiles.shape[1:] != (t, t, 4):
-            raise InputError(f"tiles must be (m, {t}, {t}, 4), got {tiles.shape}")
-        return self._append_cells(_cast(tiles, self.dtype, "tiles"))
+        self.item_shape = (self.tile, self.tile, 4)
 
 
 class RowWriter(_PageWriter):
-    """Streams coefficient rows (m, d) into page files ``<prefix>_NNN.npy`` (H, W) like :class:`AtlasWriter`."""
+    """Streams coefficient rows (m, d) into page files ``<prefix>_NNN.npy`` (H, W) like :class:`AtlasWriter`:
+    :meth:`append` takes rows (m, d) (floats are cast for float pages)."""
 
-    _channels = ()
     _dtypes = ROW_DTYPES
+    _items, _what = "rows", "coefficient rows"
 
     def __init__(self, directory: os.PathLike | str, d: int, page_size: int, dtype=np.float32,
                  prefix: str = "coef"):
         super().__init__(directory, row_layout(0, d, page_size), dtype, prefix)
         self.d = self.layout.cell_width
-        self.page_size = page_size
-
-    def append(self, rows: np.ndarray) -> np.ndarray:
-        """Append rows (m, d) of the writer's dtype (floats are cast for float pages); returns their slots."""
-        rows = np.asarray(rows)
-        if rows.ndim != 2 or rows.shape[1] != self.d:
-            raise InputError(f"rows must be (m, {self.d}), got {rows.shape}")
-        rows = _cast(rows, self.dtype, "coefficient rows")
-        return self._append_cells(rows.reshape(len(rows), 1, self.d))
+        self.item_shape = (self.d,)
 
 
 def _cast(array: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:

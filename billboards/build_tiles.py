@@ -40,24 +40,23 @@ from core.errors import InputError
 from core.fileio import DataFormatError, read_json, replace_dir, write_json
 from core.memory import peak_memory
 from core.metrics import psnr_from_mse
-from data_synth import load_dataset
-from data_synth.dataset import held_out_frames
 from recon.cloud_io import CloudTiles, PlyStreamWriter, TileGrid, read_cloud_arrays, read_cloud_tiles
 from recon.epi import EpiPass, epi_points
 
-from .build import (BuildConfig, BuildResult, _config_to_json, _db, _node_table, _psnr_db, _Totals,
-                    compressed_textures, fit_textures, place_billboards, place_hybrid, sample_textures,
-                    save_worker_state, texture_tasks)
+from .build_config import BuildConfig, config_to_json
+from .build_inputs import BuildInputs, model_info, read_inputs, with_gains
+from .build_report import BuildResult, Totals, format_db, psnr_db
 from .geometry import FACADE, GROUND
 from .layer import Layer, build_layer, grow_side_walls, refine_ground
-from .prune import prune_ranges
 from .model_reader import load
 from .model_set import load_model_set, quad_bounds, tile_name, write_model_set
-from .model_writer import ModelWriter, temp_dir
+from .model_writer import temp_dir
 from .octree import build_octree
-from .photometry import estimate_gains
-from .sampling import Views, views_from_dataset
+from .placement import place_billboards, place_hybrid
+from .prune import prune_ranges
 from .sky import estimate_sky, write_sky
+from .texture_tasks import sample_textures, save_worker_state, texture_tasks, write_textures
+from .views import Views, views_from_dataset
 
 logger = logging.getLogger(__name__)
 
@@ -147,7 +146,7 @@ def _cropped(passes: list[EpiPass], lo: np.ndarray, hi: np.ndarray) -> list[EpiP
 
 def inputs_digest(conf: BuildConfig, cloud_path: Path, dataset_dir, poses) -> str:
     """Names the work directory of a tiled build: the settings and what the inputs are."""
-    h = hashlib.sha256(json.dumps(_config_to_json(conf), sort_keys=True).encode())
+    h = hashlib.sha256(json.dumps(config_to_json(conf), sort_keys=True).encode())
     cloud_path = Path(cloud_path)
     stat = cloud_path.stat()
     h.update(f"{cloud_path.resolve()}:{stat.st_size}:{stat.st_mtime_ns}".encode())
@@ -159,12 +158,13 @@ def inputs_digest(conf: BuildConfig, cloud_path: Path, dataset_dir, poses) -> st
 class _TileBuild:
     """What every tile of one build shares: the cloud's tiles, the views and the settings."""
 
-    def __init__(self, conf: BuildConfig, cloud: CloudTiles, dataset, frames: list[int], views: Views | None,
-                 grid: TileGrid, grid_origin: np.ndarray, block_size: float | None, sky=None):
-        self.conf, self.cloud, self.dataset, self.frames, self.views = conf, cloud, dataset, frames, views
+    def __init__(self, conf: BuildConfig, cloud: CloudTiles, inputs: BuildInputs, grid: TileGrid,
+                 grid_origin: np.ndarray, block_size: float | None, sky=None):
+        self.conf, self.cloud = conf, cloud
+        self.dataset, self.frames, self.views = inputs.dataset, inputs.frames, inputs.views
         self.sky = sky   # the set's sky (side walls grow where the images show no sky)
         self.grid, self.grid_origin, self.block_size = grid, grid_origin, block_size
-        self.cameras = dataset.rig.num_cameras if dataset is not None else 0
+        self.cameras = inputs.cameras
 
     def tile_views(self, lo: np.ndarray, hi: np.ndarray, r: float) -> Views | None:
         """The views of the whole frames with a camera within ``r`` metres of the xy box [lo, hi]
@@ -182,7 +182,7 @@ class _TileBuild:
         return sub
 
     def place(self, index: tuple[int, int]):
-        """The tile's billboards (:class:`~billboards.build.Billboards`), the occluders
+        """The tile's billboards (:class:`~billboards.placement.Billboards`), the occluders
         (VoxelPoints of the tile with its context), its views and the layer's counts;
         None when the tile has no voxel."""
         conf = self.conf
@@ -231,7 +231,7 @@ class _TileBuild:
 
 def _tile_totals(stats: list[dict], d: int) -> dict:
     """The chunk statistics of a tile summed: sums, rank histogram, sampling counts (JSON)."""
-    totals = _Totals(d)
+    totals = Totals(d)
     for chunk in stats:
         totals.add(chunk)
     return {"sums": totals.sums, "ranks": totals.ranks.tolist(), "sampling": totals.sampling}
@@ -264,33 +264,11 @@ def build_tile(shared: _TileBuild, index: tuple[int, int], out: Path, state_root
                                         ("quads", "base_yaw", "kind", "split", "corner_dz", "unseen", "cell")},
                              node_range=prune_ranges(placed.node_range, keep))
             tasks = texture_tasks(state, conf, placed.num_billboards)
-        fitting = conf.fit is not None and conf.source == "images" and views is not None and len(views) > 0
-        fit = {"enabled": False}
-        with ModelWriter(out, tile=conf.sampling.tile, page_size=conf.page_size, tile_mode=conf.tile_mode,
-                         coef_mode=conf.coef_mode, num_directions=d) as writer:
-            done = 0
-
-            def append(chunks):
-                nonlocal done
-                for arrays, chunk_stats in chunks:
-                    b = len(arrays["rank"])
-                    writer.append(centres=(placed.quads[done:done + b] - octree.origin).astype(np.float32),
-                                  base_yaw=placed.base_yaw[done:done + b].astype(np.float32),
-                                  kind=placed.kind[done:done + b], split=placed.split[done:done + b],
-                                  corner_dz=placed.corner_dz[done:done + b], **arrays)
-                    done += b
-                    stats.append(chunk_stats)
-
-            if fitting:   # each tile against the views that see it, its context hiding what it hides
-                fit = fit_textures(conf, state, tasks, len(views), append, executor, progress, tile=desc)
-                fit.pop("stages")
-            else:
-                for chunks in compressed_textures(tasks, executor, progress, desc=desc):
-                    append(chunks)
-            writer.finish(origin=octree.origin, voxel_size=octree.voxel_size,
-                          yaw_offsets=conf.sampling.directions.yaw_offsets, pitches=conf.sampling.directions.pitches,
-                          pitched_quads=conf.sampling.directions.pitched_quads, info=info,
-                          block_size=placed.block_size, **_node_table(octree, placed.node_range))
+        # a fit: each tile against the views that see it, its context hiding what it hides
+        fit, _ = write_textures(out, conf, state, tasks, views, octree, placed.block_size, placed.quads, placed.base_yaw,
+                                placed.kind, placed.split, placed.corner_dz, placed.node_range, info, stats.append,
+                                executor, progress, tile=desc)
+        fit.pop("stages", None)
     finally:
         shutil.rmtree(state, ignore_errors=True)
     lo, hi = quad_bounds(load(out))
@@ -315,9 +293,9 @@ def _set_report(tiles: list[dict], conf: BuildConfig) -> dict:
         "voxels": int(sum(t["voxels"] for t in tiles)), "pruned_quads": int(sum(t.get("pruned_quads", 0) for t in tiles)),
         "rank_histogram": {str(r): int(c) for r, c in enumerate(ranks)},
         "mean_rank": float((ranks * np.arange(len(ranks))).sum() / max(1, ranks.sum())),
-        "psnr": {"decoded_rgba_db": _psnr_db(sums.get("sq_err_decoded", 0), int(sums.get("values", 0))),
-                 "decoded_rgb_opaque_db": _psnr_db(sums.get("sq_err_decoded_rgb", 0),
-                                                   int(sums.get("opaque_rgb_values", 0)))},
+        "psnr": {"decoded_rgba_db": psnr_db(sums.get("sq_err_decoded", 0), int(sums.get("values", 0))),
+                 "decoded_rgb_opaque_db": psnr_db(sums.get("sq_err_decoded_rgb", 0),
+                                                  int(sums.get("opaque_rgb_values", 0)))},
         "worker_seconds": {k: sums.get(k, 0.0) for k in ("sampling_s", "pca_s", "quantize_s")},
         "per_tile": [{k: t[k] for k in ("name", "index", "billboards", "views", "layer", "place_s",
                                         "sample_compress_s")} for t in tiles],
@@ -371,43 +349,20 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
             raise InputError(f"tile_metres {conf.tile_metres:g} must be a whole number of voxels ({voxel:g} m)")
         block_size = (conf.layer.block_size or voxel) if conf.layer is not None else None
 
-        dataset, frames, views, held_out, exposure = None, [], None, [], None
-        if dataset_dir is not None:
-            dataset = load_dataset(dataset_dir, poses=poses)
-            posed = dataset.posed
-            if not posed.any():
-                raise InputError(f"{poses or Path(dataset_dir) / 'poses.json'}: no frame has a pose")
-            held_out = [f for f in held_out_frames(dataset.num_frames, conf.holdout) if posed[f]]
-            frames = [f for f in range(dataset.num_frames) if f not in set(held_out) and posed[f]]
-            views = views_from_dataset(dataset, frames)
-        elif conf.source == "images":
-            raise InputError("source 'images' needs the dataset's images and poses (--images DATASET)")
+        inputs = read_inputs(conf, dataset_dir, poses)
 
         t0 = time.perf_counter()
         sample, _ = cloud_sample(cloud, conf.sample_points)
-        photometry_report: dict = {"enabled": False}
-        if (conf.photometry is not None and conf.photometry.enabled and views is not None
-                and conf.source == "images" and len(views)):
-            photometry = estimate_gains(views, sample, conf.photometry, progress=progress)
-            views = replace(views, gains=photometry.gains)
-            photometry_report = photometry.report()
-            exposure = {"views": [[f, c] for f in frames for c in range(dataset.rig.num_cameras)],
-                        "gains": photometry.gains.tolist()}
+        inputs, photometry_report = with_gains(conf, inputs, sample, progress)
         stages["photometry_s"] = time.perf_counter() - t0
+        views = inputs.views
         t0 = time.perf_counter()
         sky = estimate_sky(views, sample) if views is not None and conf.source == "images" else None
         stages["sky_s"] = time.perf_counter() - t0
         del sample
 
-        info = {"source": conf.source, "occlusion_aware": conf.sampling.occlusion,
-                "cloud": str(cloud_path.resolve()),
-                "dataset": None if dataset_dir is None else str(Path(dataset_dir).resolve()),
-                "held_out_frames": held_out}
-        if exposure is not None:
-            info["exposure"] = exposure
-        if poses is not None and dataset_dir is not None:
-            info["poses"] = str(Path(poses).resolve())
-        shared = _TileBuild(conf, cloud, dataset, frames, views, grid, grid_origin, block_size, sky)
+        info = model_info(conf, inputs, cloud_path, dataset_dir, poses)
+        shared = _TileBuild(conf, cloud, inputs, grid, grid_origin, block_size, sky)
         indices = model_tiles(cloud, grid)
         reports, resumed = [], 0
         t0 = time.perf_counter()
@@ -443,7 +398,7 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
                       cloud=str(cloud_path),
                       dataset=None if dataset_dir is None else str(dataset_dir), stages=stages,
                       total_s=time.perf_counter() - t_start, peak_memory=peak_memory(),
-                      config=_config_to_json(conf))
+                      config=config_to_json(conf))
         raw = int(sum(t["sums"].get("raw_values", 0) for t in reports))  # 8-bit samples: a byte each
         report["bytes"] = {"raw_samples": raw, "model": load_model_set(work).bytes}
         report["compression_ratio"] = raw / max(1, report["bytes"]["model"])
@@ -453,5 +408,5 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
         shutil.rmtree(scratch, ignore_errors=True)
     logger.info("model set: %d tiles, %d billboards, %.1f MB, decode PSNR %s dB → %s", report["tiles"],
                 report["billboards"], report["bytes"]["model"] / 1e6,
-                _db(report["psnr"]["decoded_rgb_opaque_db"]), model_dir)
+                format_db(report["psnr"]["decoded_rgb_opaque_db"]), model_dir)
     return BuildResult(model_dir, report)

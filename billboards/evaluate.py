@@ -17,17 +17,20 @@ from dataclasses import replace
 
 import numpy as np
 
-from data_synth import load_dataset, load_scene
+from capture.dataset import load_dataset
+from data_synth import load_scene
 from data_synth.raycast import Renderer
 from data_synth.scene import OCCLUDER_KINDS
 from recon.cloud_io import read_cloud_arrays
 
 from core.errors import InputError
+from core.fileio import json_ready
 
-from .build import place_billboards
 from .geometry import direction_angles, quad_frames, ray_box_interval, texel_points
 from .octree import build_octree
-from .sampling import SamplingConfig, views_from_dataset
+from .placement import place_billboards
+from .sampling import SamplingConfig
+from .views import views_from_dataset
 from .truth import texture_psnr, truth_textures
 
 logger = logging.getLogger(__name__)
@@ -125,19 +128,10 @@ def compare_sampling(dataset_dir: os.PathLike | str, cloud_path: os.PathLike | s
         report[name] = _errors(aware, naive, ids, scene, renderer, sampling, base_yaw, octree.voxel_size, spp)
         r = report[name]
         logger.info("%s: %d samples, occlusion-aware %s dB vs naive %s dB; behind occluders %s vs %s dB",
-                    name, r["samples"], *(_db(_json_safe(r[k]["psnr_rgb"])) for k in (
+                    name, r["samples"], *(_db(json_ready(r[k]["psnr_rgb"])) for k in (
                         "occlusion_aware", "naive", "occlusion_aware_behind_occluders", "naive_behind_occluders")))
     report["seconds"] = time.perf_counter() - t0
-    return _json_safe(report)
-
-
-def _json_safe(value):
-    """NaN (no measurement, e.g. no billboard near an occluder) becomes None for JSON."""
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
+    return json_ready(report)
 
 
 def _db(value) -> str:

@@ -4,10 +4,12 @@ column, against the distance to the first building box."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 
 import numpy as np
 
+from data_synth import load_scene
 from data_synth.scene import Kind
 from recon.epi import EpiPass
 
@@ -31,10 +33,12 @@ def facade_truth(columns: FacadeColumns, scene, height: float = 3.0) -> np.ndarr
     return np.where(np.isfinite(t), t, np.nan)
 
 
-def facade_depth_report(columns: list[FacadeColumns], cloud: np.ndarray, scene, config: LayerConfig) -> dict:
+def facade_depth_report(columns: list[FacadeColumns], cloud: np.ndarray, dataset_dir: os.PathLike | str,
+                        config: LayerConfig) -> dict:
     """Facade depth of the EPI columns and of a plane fitted to the cloud per column (the same
     histogram peak and median, on the cloud's points instead of the EPI points), each against the
-    ground truth: relative error |d − d_true| / d_true over the columns that have a building."""
+    ground truth of the synthetic dataset in ``dataset_dir`` (its scene re-created): relative
+    error |d − d_true| / d_true over the columns that have a building."""
     def stats(errors: np.ndarray) -> dict:
         e = errors[np.isfinite(errors)]
         if e.size == 0:
@@ -42,6 +46,7 @@ def facade_depth_report(columns: list[FacadeColumns], cloud: np.ndarray, scene, 
         return {"columns": int(e.size), "median_pct": float(np.median(e) * 100),
                 "p90_pct": float(np.percentile(e, 90) * 100), "within_2pct": float(np.mean(e <= 0.02))}
 
+    scene = load_scene(dataset_dir)
     epi_err, cloud_err = [], []
     cloud = np.asarray(cloud, np.float64)
     for cols in columns:

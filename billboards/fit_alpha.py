@@ -121,7 +121,7 @@ def sums(key: np.ndarray, y: np.ndarray, behind: np.ndarray, now: np.ndarray, sh
 
 def write_alpha_rows(path: os.PathLike | str, quads: Quads, rgba: np.ndarray, views, view_ids, sky: Sky | None,
                      config: FitConfig, max_distance: float) -> dict:
-    """:func:`alpha_rows` of views ``view_ids`` (of a :class:`~billboards.sampling.Views`, images
+    """:func:`alpha_rows` of views ``view_ids`` (of a :class:`~billboards.views.Views`, images
     divided by their gains) summed per key into ``path`` (atomically). Returns {"views", "rays", "cast_s"}."""
     t0 = time.perf_counter()
     parts = []

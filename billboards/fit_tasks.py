@@ -23,13 +23,13 @@ from .fit import FitConfig, Quads, problem, record_dtype, solve, transient_rows
 from .fit_cast import Hits, cast_view, view_records
 from .fit_subspace import slots, subspace, with_slots
 from .pca import EigenTextures, PcaConfig, eigen_textures
-from .sampling import Views
+from .views import Views
 
 
 def unoccluded(hits: Hits, K: np.ndarray, depth: np.ndarray, scale: int, margin: float, rel: float) -> np.ndarray:
     """(r,) bool: the hits that nothing of a z-buffer lies in front of. depth (zh, zw) float32
     z-depth (m, inf where empty) at 1/``scale`` of the image's resolution
-    (:func:`billboards.sampling.zbuffer`'s conservative ``nearest``); a hit counts as hidden
+    (:func:`billboards.voxels.zbuffer`'s conservative ``nearest``); a hit counts as hidden
     when its z-depth is beyond the buffer's by more than ``margin`` m + ``rel`` of it."""
     u, v = hits.pixel[:, 0].astype(np.float64), hits.pixel[:, 1].astype(np.float64)
     z = hits.distance / np.sqrt(((u - K[0, 2]) / K[0, 0]) ** 2 + ((v - K[1, 2]) / K[1, 1]) ** 2 + 1.0)

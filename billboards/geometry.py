@@ -30,6 +30,7 @@ Every other quad is flat (zeros).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,6 +136,12 @@ def kind_frames(kind: np.ndarray, base_yaw: np.ndarray, yaw: np.ndarray, pitch: 
     return np.where(fixed, f_normal, normal), np.where(fixed, f_right, right), np.where(fixed, f_up, up)
 
 
+def billboard_radius(voxel_size: float) -> float:
+    """Radius (m) of the sphere that holds a view-facing billboard of edge ``voxel_size`` around
+    its centre, whatever direction it turns to: s·√3/2."""
+    return float(voxel_size) * math.sqrt(3.0) / 2.0
+
+
 def quad_edges(kind: np.ndarray, split: np.ndarray | None, voxel_size: float, block_size: float) -> np.ndarray:
     """(n,) float64 edge (m) of each quad: ``voxel_size`` for a billboard, ``block_size`` for a
     layer block, halved ``split`` (n,) uint8 times (None: never). kind (n,) uint8."""
@@ -143,6 +150,20 @@ def quad_edges(kind: np.ndarray, split: np.ndarray | None, voxel_size: float, bl
     if split is None:
         return edge
     return np.ldexp(edge, -np.asarray(split, np.int64))
+
+
+def default_quad_arrays(table, centres: np.ndarray, **flags: bool) -> None:
+    """Give the optional per-quad arrays of the frozen dataclass ``table`` (n quads at ``centres``
+    (n, 3)) that are None their defaults: split (n,) uint8 0 (none split), cell (n, 3) float64 the
+    centres (each quad its own cell), corner_dz (n, 4) float64 0 (flat), and each (n,) bool array
+    named in ``flags`` that value everywhere."""
+    n = len(centres)
+    defaults = {"split": lambda: np.zeros(n, np.uint8), "cell": lambda: np.asarray(centres, np.float64).copy(),
+                "corner_dz": lambda: np.zeros((n, 4)),
+                **{name: (lambda value=value: np.full(n, value, bool)) for name, value in flags.items()}}
+    for name, make in defaults.items():
+        if getattr(table, name) is None:
+            object.__setattr__(table, name, make())
 
 
 def surface_dz(corner_dz: np.ndarray, fx, fy) -> np.ndarray:

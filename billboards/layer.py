@@ -29,7 +29,7 @@ from recon.epi import EpiConfig, EpiPass
 
 from core.errors import InputError
 
-from .geometry import FACADE, GROUND, HALF_DIAGONAL
+from .geometry import FACADE, GROUND, HALF_DIAGONAL, default_quad_arrays
 from .ground import ground_blocks
 from .kerbs import KerbConfig, kerb_blocks
 from .resolution import ResolutionConfig, capture_footprint, child_surfaces, split_blocks, splits_for
@@ -325,20 +325,7 @@ class Layer:
     corner_dz: np.ndarray | None = None
 
     def __post_init__(self):
-        if self.corner_dz is None:
-            object.__setattr__(self, "corner_dz", np.zeros((len(self.centres), 4)))
-        if self.cell is None:
-            object.__setattr__(self, "cell", np.asarray(self.centres, np.float64).copy())
-        if self.split is None:
-            object.__setattr__(self, "split", np.zeros(len(self.centres), np.uint8))
-        if self.continued is None:
-            object.__setattr__(self, "continued", np.zeros(len(self.centres), bool))
-        if self.side_wall is None:
-            object.__setattr__(self, "side_wall", np.zeros(len(self.centres), bool))
-        if self.kerb is None:
-            object.__setattr__(self, "kerb", np.zeros(len(self.centres), bool))
-        if self.seen is None:
-            object.__setattr__(self, "seen", np.ones(len(self.centres), bool))
+        default_quad_arrays(self, self.centres, continued=False, side_wall=False, kerb=False, seen=True)
 
     @property
     def synthesised(self) -> np.ndarray:
@@ -487,7 +474,7 @@ def grow_side_walls(layer: Layer, cloud: np.ndarray, views, sky, size: float, co
                     ) -> tuple[Layer, dict]:
     """``layer`` with its side walls as deep and as high as the images show them, and walls where
     its fronts step down (:mod:`billboards.wall_depth`; views: the capture's
-    :class:`~billboards.sampling.Views`, sky: the model's sky or None), and the report of that."""
+    :class:`~billboards.views.Views`, sky: the model's sky or None), and the report of that."""
     fronts = np.flatnonzero((layer.kind == FACADE) & ~layer.side_wall & ~layer.kerb)
     # the facade rows' grid: a front block's centre is half a block above a grid line
     grid_z0 = float(layer.centres[fronts[0], 2] - size / 2) if len(fronts) else 0.0

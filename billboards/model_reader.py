@@ -15,13 +15,14 @@ import numpy as np
 from core.fileio import DataFormatError, load_npy, read_json, read_npy_header
 
 from .atlas import AtlasLayout, atlas_layout, row_layout
-from .model import (ARRAYS, COEF_MODES, MANIFEST, OPTIONAL_ARRAYS, TILE_MODES, BillboardModel, _Doc,
-                    _array_problem, _parse_manifest, _shape, _table_problem)
+from .model import BillboardModel
+from .model_format import (ARRAYS, COEF_MODES, MANIFEST, OPTIONAL_ARRAYS, TILE_MODES, ManifestDoc, array_problem,
+                           array_shape, parse_manifest, table_problem)
 
 _MAX_MANIFEST_BYTES = 64 << 20
 
 
-def _check_page_entries(r: _Doc, entries: list[tuple[str, int, int]], layout: AtlasLayout, what: str) -> None:
+def _check_page_entries(r: ManifestDoc, entries: list[tuple[str, int, int]], layout: AtlasLayout, what: str) -> None:
     if len(entries) != layout.num_pages:
         raise r.fail(f"{what} lists {len(entries)} pages; {layout.num_tiles} slots need {layout.num_pages}")
     for i, ((_, h, w), shape) in enumerate(zip(entries, layout.page_shapes)):
@@ -43,7 +44,7 @@ def _load_array(path: Path, dtype: np.dtype, shape: tuple, mmap: bool, hint: str
     file_shape, fortran, file_dtype, offset = read_npy_header(path)
     if file_dtype.hasobject:
         raise DataFormatError(path, "holds Python objects (pickles are not loaded)")
-    problem = _array_problem(file_dtype, file_shape, dtype, shape)
+    problem = array_problem(file_dtype, file_shape, dtype, shape)
     if problem:
         raise DataFormatError(path, problem + hint)
     if fortran and len(shape) > 1:
@@ -75,7 +76,7 @@ def read_manifest(path: os.PathLike | str):
     mpath = path / MANIFEST
     if not mpath.is_file():
         raise DataFormatError(mpath, "file is missing" + ("" if path.is_dir() else f" (no model directory {path})"))
-    return _parse_manifest(read_json(mpath, _MAX_MANIFEST_BYTES), mpath)
+    return parse_manifest(read_json(mpath, _MAX_MANIFEST_BYTES), mpath)
 
 
 def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
@@ -89,17 +90,17 @@ def load(path: os.PathLike | str, mmap: bool = True) -> BillboardModel:
     path = Path(path)
     mpath = path / MANIFEST
     meta = read_manifest(path)
-    r = _Doc(mpath)
+    r = ManifestDoc(mpath)
 
     arrays = {}
     for name, (dtype, _) in ARRAYS.items():
         if name in OPTIONAL_ARRAYS and name not in meta.arrays:   # a model written before the array
-            arrays[name] = np.zeros(_shape(name, meta), dtype)
+            arrays[name] = np.zeros(array_shape(name, meta), dtype)
             continue
         counted = {"n": "billboards", "m": "slots", "k": "nodes"}[ARRAYS[name][1][0]]
-        arrays[name] = _load_array(path / meta.arrays[name], dtype, _shape(name, meta), mmap=False,
+        arrays[name] = _load_array(path / meta.arrays[name], dtype, array_shape(name, meta), mmap=False,
                                    hint=f" (counts.{counted} in {mpath})")
-    problem = _table_problem(arrays, meta.d)
+    problem = table_problem(arrays, meta.d)
     if problem:
         raise DataFormatError(path / meta.arrays[problem[0]], problem[1])
 

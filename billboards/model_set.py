@@ -31,11 +31,15 @@ from typing import Any
 import numpy as np
 
 from core.errors import InputError
-from core.fileio import DataFormatError, read_json, write_json
+from core.fileio import DataFormatError, atomic_dir, read_json, write_json
 
-from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP
-from .model import MANIFEST, BillboardModel, _Doc as ManifestDoc
+from .atlas import pack_rows, pack_tiles, read_rows, read_tiles
+from .geometry import BILLBOARD, GROUND, GROUND_OVERLAP, billboard_radius
+from .model import BillboardModel
+from .model_format import MANIFEST, ManifestDoc
 from .model_reader import load, read_manifest
+from .model_writer import save
+from .sky import read_sky, write_sky
 
 SET_FORMAT = "bbcity-model-set"
 SET_VERSION = 1
@@ -144,13 +148,20 @@ def quad_radius(voxel_size: float, block_size: float, kinds: np.ndarray, corner_
     ``voxel_size`` stays in the sphere of radius s·√3/2, a layer block (kinds (n,) uint8 other
     than BILLBOARD) within half its (ground blocks: grown) diagonal, and a ground block's corners
     corner_dz (n, 4) above or below it (twice that: its overlap extrapolates them)."""
-    radius = float(voxel_size) * math.sqrt(3.0) / 2.0
+    radius = billboard_radius(voxel_size)
     kinds = np.asarray(kinds)
     if np.any(kinds != BILLBOARD):
         grown = 1.0 + 2.0 * GROUND_OVERLAP if np.any(kinds == GROUND) else 1.0
         rise = 2.0 * float(np.abs(corner_dz).max()) if corner_dz is not None and np.size(corner_dz) else 0.0
         radius = max(radius, float(block_size) * grown * math.sqrt(2.0) / 2.0 + rise)
     return radius
+
+
+def model_quad_radius(model: BillboardModel) -> float:
+    """How far (m) any quad of ``model`` reaches from its centre (:func:`quad_radius` of its voxel
+    size, block size, kinds and corner heights): a quad's centre lies in its octree leaf, so a
+    leaf's bounds grown by this hold everything drawn for it."""
+    return quad_radius(model.voxel_size, model.block_size, model.kind, model.corner_dz)
 
 
 def quad_bounds(model: BillboardModel) -> tuple[np.ndarray, np.ndarray]:
@@ -160,7 +171,7 @@ def quad_bounds(model: BillboardModel) -> tuple[np.ndarray, np.ndarray]:
     if model.num_billboards == 0:
         return origin.copy(), origin.copy()
     c = np.asarray(model.centres, np.float64)
-    r = quad_radius(model.voxel_size, model.block_size, model.kind, model.corner_dz)
+    r = model_quad_radius(model)
     return origin + c.min(0) - r, origin + c.max(0) + r
 
 
@@ -374,8 +385,6 @@ def sub_model(model: BillboardModel, keep: np.ndarray, origin, info: dict | None
     and node bounds moved onto the new origin (in float64, then float32), the octree's nodes
     that hold any of them with their ranges renumbered (the order of the billboards is kept,
     so every node's billboards stay a contiguous range)."""
-    from .atlas import pack_rows, pack_tiles, read_rows, read_tiles
-
     keep = np.asarray(keep, np.int64)
     origin = np.asarray(origin, np.float64).reshape(3)
     shift = np.asarray(model.origin, np.float64) - origin
@@ -423,8 +432,6 @@ def split_tiles(model: BillboardModel, root: os.PathLike | str, tile_size: float
     corner as origin (at the grid origin's height); returns the entries for
     :func:`write_model_set` (name, index, lo, hi). Layer columns stay whole (their blocks share
     an xy)."""
-    from .model_writer import save
-
     root = Path(root)
     tile_size = float(tile_size)
     if not (math.isfinite(tile_size) and tile_size > 0):
@@ -455,10 +462,6 @@ def split_model(model_dir: os.PathLike | str, out_dir: os.PathLike | str, tile_s
                 grid_origin=None) -> Path:
     """Split the plain model in ``model_dir`` into a tiled model at ``out_dir`` (written beside it
     and renamed into place; its sky, if any, becomes the set's). Returns ``out_dir``."""
-    from core.fileio import atomic_dir
-
-    from .sky import read_sky, write_sky
-
     model = load(model_dir, mmap=True)
     sky = read_sky(model_dir)
     out_dir = Path(out_dir)

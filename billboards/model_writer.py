@@ -20,8 +20,9 @@ from core.errors import InputError
 from core.fileio import replace_dir, save_npy, write_json
 
 from .atlas import AtlasWriter, RowWriter, atlas_layout, row_layout
-from .model import (_BILLBOARD_ARRAYS, _SLOT_ARRAYS, ARRAYS, COEF_MODES, MANIFEST, TILE_MODES, BillboardModel,
-                    _manifest_doc)
+from .model import BillboardModel
+from .model_format import (ARRAYS, BILLBOARD_ARRAYS, COEF_MODES, MANIFEST, SLOT_ARRAYS, TILE_MODES,
+                           manifest_doc)
 
 logger = logging.getLogger(__name__)
 
@@ -80,7 +81,7 @@ def save(model: BillboardModel, path: os.PathLike | str) -> Path:
     """
     path = Path(path)
     model.check()
-    doc = _manifest_doc(model)
+    doc = manifest_doc(model)
     _check_replaceable(path)
     tmp = _temp_dir(path)
     try:
@@ -125,7 +126,7 @@ class ModelWriter:
         self._tiles = AtlasWriter(self._tmp, self.tile, self.page_size, TILE_MODES[tile_mode], prefix="atlas")
         self._coefs = RowWriter(self._tmp, self.num_directions, self.page_size, COEF_MODES[coef_mode],
                                 prefix="coef")
-        self._parts: dict[str, list[np.ndarray]] = {name: [] for name in (*_BILLBOARD_ARRAYS, *_SLOT_ARRAYS)}
+        self._parts: dict[str, list[np.ndarray]] = {name: [] for name in (*BILLBOARD_ARRAYS, *SLOT_ARRAYS)}
         self.num_billboards = 0
         self.num_slots = 0
         self._state = "open"
@@ -214,7 +215,7 @@ class ModelWriter:
                 node_children=np.asarray(node_children), node_range=np.asarray(node_range),
                 info=info, **parts)
             model.check()
-            doc = _manifest_doc(model, pages, coef_pages)
+            doc = manifest_doc(model, pages, coef_pages)
             _write_tables(model, self._tmp)
             del model  # drop the page mappings before renaming
             write_json(self._tmp / MANIFEST, doc)

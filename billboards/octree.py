@@ -3,11 +3,11 @@
 Points are binned into cubic cells of the leaf level with a single streaming
 pass (integer cell → linear key), the occupied cells are counted with
 ``np.bincount`` when the occupied bounding box is small enough and with a sort
-otherwise, and only the unique occupied cells are Morton-encoded and sorted.
-Cells holding at least ``min_points`` points become voxels (billboards), in
-ascending Morton order. The internal nodes follow from the sorted leaf codes
-level by level (``code >> 3``), so there is no per-point and no per-node
-Python loop.
+otherwise, and only the unique occupied cells are Morton-encoded
+(:mod:`billboards.morton`) and sorted. Cells holding at least ``min_points``
+points become voxels (billboards), in ascending Morton order. The internal
+nodes follow from the sorted leaf codes level by level (``code >> 3``), so
+there is no per-point and no per-node Python loop.
 
 The node table (bounds, children, contiguous range of billboards under each
 node) is kept because the renderer culls by it: a node's billboards are
@@ -27,10 +27,12 @@ import numpy as np
 
 from core.errors import InputError
 
+from .morton import MORTON_BITS, morton_axes, morton_decode, morton_encode
+
 logger = logging.getLogger(__name__)
 
 #: Deepest leaf level: 3×21 bits fit a uint64 Morton code (2**21 cells per axis).
-MAX_DEPTH = 21
+MAX_DEPTH = MORTON_BITS
 
 _CHUNK = 1 << 14  # points per streaming chunk (a 384 kB float64 buffer stays in L2)
 _TILE = 1 << 10  # points per row when a chunk is viewed as (rows, 3·_TILE): long inner loops
@@ -130,72 +132,6 @@ class Octree:
             hit = self.leaf_codes[j] == codes
             out[s + np.flatnonzero(inside)[hit]] = j[hit]
         return out
-
-
-# ---------------------------------------------------------------------------------------------
-# Morton codes
-
-_SPREAD = (  # part1by2 for 21-bit values: (shift, mask) steps
-    (32, 0x001F00000000FFFF),
-    (16, 0x001F0000FF0000FF),
-    (8, 0x100F00F00F00F00F),
-    (4, 0x10C30C30C30C30C3),
-    (2, 0x1249249249249249),
-)
-
-
-def _spread(v: np.ndarray) -> np.ndarray:
-    """(n,) integer values in [0, 2**21) → new (n,) uint64 with bit b moved to bit 3b."""
-    v = v.astype(np.uint64)
-    v &= np.uint64((1 << MAX_DEPTH) - 1)
-    tmp = np.empty_like(v)
-    for shift, mask in _SPREAD:  # in place: no temporaries per step
-        np.left_shift(v, np.uint64(shift), out=tmp)
-        v |= tmp
-        v &= np.uint64(mask)
-    return v
-
-
-def _morton_axes(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Morton codes of grid indices given per axis, three (n,) integer arrays in [0, 2**21) → (n,) uint64."""
-    code = _spread(i)
-    for a, axis in ((1, j), (2, k)):
-        s = _spread(axis)
-        s <<= np.uint64(a)
-        code |= s
-    return code
-
-
-def _compact(v: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`_spread`: (n,) uint64 → (n,) uint64 of bits 0, 3, 6, … packed."""
-    v = v & np.uint64(_SPREAD[-1][1])
-    masks = [mask for _, mask in reversed(_SPREAD[:-1])] + [(1 << MAX_DEPTH) - 1]
-    for (shift, _), mask in zip(reversed(_SPREAD), masks):
-        v = (v | (v >> np.uint64(shift))) & np.uint64(mask)
-    return v
-
-
-def morton_encode(ijk: np.ndarray) -> np.ndarray:
-    """Interleave grid indices into Morton codes.
-
-    ijk: (n, 3) integer array, each in [0, 2**21). Returns (n,) uint64 with code
-    bit 3b+0 = x bit b, 3b+1 = y bit b, 3b+2 = z bit b.
-    """
-    ijk = np.asarray(ijk)
-    if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
-        raise InputError(f"morton_encode: expected an (n, 3) integer array, got {ijk.dtype} {ijk.shape}")
-    if len(ijk) and (ijk.min() < 0 or ijk.max() >= 1 << MAX_DEPTH):
-        raise InputError(f"morton_encode: indices must lie in [0, 2**{MAX_DEPTH})")
-    return _morton_axes(ijk[:, 0], ijk[:, 1], ijk[:, 2])
-
-
-def morton_decode(codes: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`morton_encode`: (n,) uint64 → (n, 3) int64."""
-    codes = np.asarray(codes, dtype=np.uint64)
-    out = np.empty((len(codes), 3), dtype=np.int64)
-    for a in range(3):
-        out[:, a] = _compact(codes >> np.uint64(a))
-    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -416,7 +352,7 @@ def build_octree(points: np.ndarray, config: OctreeConfig = OctreeConfig(),
         return _empty_octree(origin, voxel, depth)
     i, rest = np.divmod(cells, dims[1] * dims[2])
     j, k = np.divmod(rest, dims[2])
-    codes = _morton_axes(i, j, k)
+    codes = morton_axes(i, j, k)
     order = np.argsort(codes)  # codes are unique: no need for a stable sort
     leaf_codes, leaf_counts = codes[order], counts[order]
     node_level, node_code, node_children, node_range = _node_table(leaf_codes, depth)

@@ -5,7 +5,7 @@ directions are sampled from different images, so an uncorrected exposure change
 becomes view dependence that the eigen-textures spend rank on. This module
 estimates one multiplicative gain per image and colour channel, g_ic, and the
 build divides each image by its gains before sampling textures
-(:attr:`billboards.sampling.Views.gains`).
+(:attr:`billboards.views.Views.gains`).
 
 Model, in log space, per channel c::
 
@@ -13,7 +13,7 @@ Model, in log space, per channel c::
 
 Tie points are a seeded subsample of the fused cloud. Each is projected into every
 image whose frustum holds it and that sees it unoccluded (its depth against the
-cloud splatted into that image, :func:`billboards.sampling.zbuffer`); its colour is
+cloud splatted into that image, :func:`billboards.voxels.zbuffer`); its colour is
 read bilinearly from the slightly blurred image (sub-pixel misregistration between
 views matters less). Samples near saturation or black, in any channel, are left out,
 so are tie points seen in fewer than ``min_observations`` images and images with
@@ -42,8 +42,11 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from core.errors import InputError
+
+from .voxels import transform_points, voxel_points, zbuffer
 
 logger = logging.getLogger(__name__)
 
@@ -184,9 +187,7 @@ def apply_gains(image: np.ndarray, gain: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- observations
 
 def _cloud_cells(points: np.ndarray, cell: float):
-    """The cloud grouped in a coarse grid (:class:`sampling.VoxelPoints`), for frustum culling."""
-    from .sampling import voxel_points
-
+    """The cloud grouped in a coarse grid (:class:`~billboards.voxels.VoxelPoints`), for frustum culling."""
     origin = points.min(axis=0)
     key = np.floor((points - origin) / cell).astype(np.int64)
     cells, leaf = np.unique(key, axis=0, return_inverse=True)
@@ -211,16 +212,12 @@ def collect_observations(views, points: np.ndarray, config: PhotometryConfig = P
                          progress: bool | None = None) -> Observations:
     """Sample tie points of the cloud in every view that sees them.
 
-    views: :class:`sampling.Views` (read as captured, whatever their gains); points (N, 3)
+    views: :class:`~billboards.views.Views` (read as captured, whatever their gains); points (N, 3)
     float64 world. The tie points are ``config.samples`` points drawn without replacement
     (seeded). A sample is kept when the point lies in front of the camera, within
     ``max_distance``, inside the image (one pixel from its border), is not hidden behind
     the splatted cloud, and no channel of the pixels around it is dark or saturated.
     """
-    from tqdm import tqdm
-
-    from .sampling import _transform, zbuffer
-
     points = np.asarray(points, dtype=np.float64)
     if len(points) == 0 or len(views) == 0:
         return Observations(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), len(views), 0)
@@ -236,7 +233,7 @@ def collect_observations(views, points: np.ndarray, config: PhotometryConfig = P
         K, pose, size = views.K[i], views.world_from_cam[i], views.sizes[i]
         w, h = (int(s) for s in size)
         R, C = pose[:3, :3], pose[:3, 3]
-        cam = _transform(ties - C, R.T)
+        cam = transform_points(ties - C, R.T)
         z = cam[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = K[0, 0] * cam[:, 0] / z + K[0, 2]

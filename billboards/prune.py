@@ -19,7 +19,7 @@ import numpy as np
 
 from .atlas import reserved_memmap
 
-#: the per-quad arrays of a build's state (:func:`billboards.build.save_worker_state`)
+#: the per-quad arrays of a build's state (:func:`billboards.texture_tasks.save_worker_state`)
 STATE_ARRAYS = ("quads", "base_yaw", "kind", "split", "cell", "corner_dz", "centres", "synthesised")
 
 

@@ -18,34 +18,30 @@ What the texel shows is decided by two depth sources:
 from a virtual viewer in the exact direction (parallax-correct, but measured no
 better against ground truth on the street and costlier to compress).
 
-The z-buffer is the fused cloud splatted at reduced resolution: a min-reduction
-per pixel, small holes inside surfaces closed from their neighbours, and a 3×3
-minimum (one z-buffer pixel of safety margin) for the occlusion test.
+The z-buffers are :func:`billboards.voxels.zbuffer`; the images are
+:class:`billboards.views.Views`; texel statuses and the completion of a texture are
+:mod:`billboards.texels`.
 """
 
 from __future__ import annotations
 
 import logging
-import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
-from scipy import ndimage
 import numpy as np
 
-
 from core.errors import InputError
-from core.fileio import read_png
 
 from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, DirectionConfig, direction_angles, kind_frames,
                        quad_edges, surface_dz, texel_offsets, unit_vectors)
+from .texels import (OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, close_holes, fill_directions, reject_transients,
+                     stack_filter)
+from .views import Views
+from .voxels import VoxelPoints, zbuffer
 
 logger = logging.getLogger(__name__)
-
-# Texel status while sampling.
-VISIBLE, TRANSPARENT, OCCLUDED, UNSEEN = 0, 1, 2, 3
 
 
 @dataclass(frozen=True)
@@ -81,189 +77,6 @@ class SamplingConfig:
             raise InputError("max_angle_deg must be in (0, 180] and max_distance > 0")
         if self.transient_threshold < 0 or self.transient_mads < 0 or self.transient_min_views < 3:
             raise InputError("transient_threshold and transient_mads must be ≥ 0, transient_min_views ≥ 3")
-
-
-@dataclass(frozen=True, eq=False)
-class Views:
-    """The captured images. K (v, 3, 3) float64; world_from_cam (v, 4, 4) float64;
-    sizes (v, 2) int (width, height); paths: PNG file per view; gains (v, 3) float64
-    per-view RGB exposure × white-balance gains that :meth:`image` divides out
-    (:mod:`billboards.photometry`; None: images as captured). rig and cams (v,) int64: the
-    :class:`data_synth.rig.Rig` and camera of each view, whose lens :meth:`image` removes
-    (the PNG files hold the raw images; K is the undistorted pinhole); None: the files are
-    pinhole images already. Picklable (a rig is arrays and small dataclasses)."""
-
-    K: np.ndarray
-    world_from_cam: np.ndarray
-    sizes: np.ndarray
-    paths: tuple[Path, ...]
-    gains: np.ndarray | None = None
-    rig: object | None = None
-    cams: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return len(self.paths)
-
-    @property
-    def centres(self) -> np.ndarray:
-        """(v, 3) float64 camera centres."""
-        return self.world_from_cam[:, :3, 3]
-
-    def image(self, i: int) -> np.ndarray:
-        """(h, w, 3) uint8 RGB, divided by the view's gains; a bad file raises DataFormatError naming it.
-        The path of a lazy synthetic dataset's image names a frame it casts on demand."""
-        size = tuple(int(s) for s in self.sizes[i])
-        if Path(self.paths[i]).is_file():
-            image = read_png(self.paths[i], size)
-        else:  # a lazy dataset's frame, or the missing file's DataFormatError
-            from data_synth import read_image
-            image = read_image(self.paths[i], size)
-        if self.rig is not None:  # a distorted camera's raw image → the pinhole image K describes
-            image = self.rig.undistort(image, int(self.cams[i]))
-        if self.gains is None:
-            return image
-        from .photometry import apply_gains  # (photometry imports this module)
-        return apply_gains(image, self.gains[i])
-
-
-def views_from_dataset(dataset, frames=None) -> Views:
-    """The (frame, camera) images of a :class:`data_synth.Dataset`: every frame, or ``frames``;
-    frames without a pose (NaN ``world_from_rig``: not registered by SfM) are left out.
-    ``Views.image`` returns what ``dataset.image`` does (undistorted where a camera has a lens)."""
-    K, poses, sizes, paths, cams = [], [], [], [], []
-    posed = dataset.posed
-    for f in (range(dataset.num_frames) if frames is None else frames):
-        if not posed[f]:
-            continue
-        for c in range(dataset.rig.num_cameras):
-            K.append(dataset.rig.intrinsics[c])
-            poses.append(dataset.world_from_cam(f, c))
-            sizes.append(dataset.rig.sizes[c])
-            paths.append(dataset.image_path(f, c))
-            cams.append(c)
-    distorted = dataset.rig.distortions is not None  # pinhole rigs: the files are read as they are
-    return Views(np.asarray(K, dtype=np.float64).reshape(-1, 3, 3),
-                 np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4),
-                 np.asarray(sizes, dtype=np.int64).reshape(-1, 2), tuple(paths),
-                 rig=dataset.rig if distorted else None, cams=np.asarray(cams, dtype=np.int64) if distorted else None)
-
-
-@dataclass(frozen=True, eq=False)
-class VoxelPoints:
-    """The cloud grouped by voxel, for z-buffers: points (N, 3) float32 relative to
-    ``origin`` sorted by voxel; begin (n + 1,) int64 offsets of each voxel's run;
-    centres (n, 3) float64 world voxel centres; size = voxel edge (m); reach: how far (m)
-    a voxel's points may lie from its centre, when more than the voxel's half diagonal (the
-    larger blocks of a facade layer)."""
-
-    origin: np.ndarray
-    points: np.ndarray
-    begin: np.ndarray
-    centres: np.ndarray
-    size: float
-    reach: float | None = None
-
-    def in_view(self, K: np.ndarray, world_from_cam: np.ndarray, image_size, max_distance: float) -> np.ndarray:
-        """(m, 3) float32 points (relative to origin) of the voxels that may appear in the view."""
-        w, h = image_size
-        R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
-        cam = _transform(self.centres - C, R.T)
-        radius = max(self.size * 0.8660254, self.reach or 0.0)
-        z = cam[:, 2]
-        # Conservative frustum test of the voxel's bounding sphere.
-        ok = (z > -radius) & (np.linalg.norm(cam, axis=1) < max_distance + radius)
-        zc = np.maximum(z, 1e-6)
-        for axis, focal, centre, extent in ((0, K[0, 0], K[0, 2], w), (1, K[1, 1], K[1, 2], h)):
-            margin = radius * focal / zc + 1
-            pix = focal * cam[:, axis] / zc + centre
-            ok &= (z < radius) | ((pix > -margin - 0.5) & (pix < extent - 0.5 + margin))
-        voxels = np.flatnonzero(ok)
-        starts, ends = self.begin[voxels], self.begin[voxels + 1]
-        lengths = ends - starts
-        index = np.arange(int(lengths.sum())) + np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
-        return self.points[index]
-
-
-def voxel_points(points: np.ndarray, leaf: np.ndarray, centres: np.ndarray, origin: np.ndarray,
-                 size: float) -> VoxelPoints:
-    """Group cloud points (N, 3) float64 by their voxel ``leaf`` (N,) int64 (−1 = none)."""
-    keep = leaf >= 0
-    order = np.argsort(leaf[keep], kind="stable")
-    rel = (points[keep][order] - origin).astype(np.float32)
-    counts = np.bincount(leaf[keep], minlength=len(centres))
-    begin = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    return VoxelPoints(np.asarray(origin, dtype=np.float64), rel, begin, np.asarray(centres, np.float64), float(size))
-
-
-def quad_centres(voxels: VoxelPoints, base_yaw: np.ndarray) -> np.ndarray:
-    """Quad centres on the surface: each voxel centre moved along its base direction
-    (horizontal, toward the capture path) to the depth of its points' centroid.
-
-    A facade that crosses a voxel off-centre then lies in the quad's plane, so
-    neighbouring quads meet on it instead of leaving parallax gaps; the quads keep the
-    voxel grid's spacing across the view. voxels.centres (n, 3), base_yaw (n,) → (n, 3) float64.
-    """
-    counts = np.diff(voxels.begin)
-    sums = np.zeros((len(counts), 3))
-    if len(voxels.points):
-        first = np.minimum(voxels.begin[:-1], len(voxels.points) - 1)
-        sums = np.add.reduceat(voxels.points, first, axis=0, dtype=np.float64)
-        sums[counts == 0] = 0
-    centroid = voxels.origin + sums / np.maximum(counts, 1)[:, None]
-    centroid[counts == 0] = voxels.centres[counts == 0]
-    toward = np.stack([np.cos(base_yaw), np.sin(base_yaw), np.zeros_like(base_yaw)], axis=1)
-    shift = np.einsum("nk,nk->n", centroid - voxels.centres, toward)
-    shift = np.clip(shift, -voxels.size / 2, voxels.size / 2)
-    return voxels.centres + shift[:, None] * toward
-
-
-def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
-            image_size, scale: int) -> tuple[np.ndarray, np.ndarray]:
-    """Splat points into a reduced-resolution depth buffer.
-
-    points (m, 3) float32 relative to ``origin`` (3,) float64 → (filled, nearest), each
-    (ceil(h/scale), ceil(w/scale)) float32 z-depth with inf where empty. ``filled``
-    closes one-pixel holes inside surfaces (pixels with at least 5 of 8 neighbours
-    set); ``nearest`` is the 3×3 minimum of ``filled``, a conservative occluder depth.
-    """
-    w, h = (int(s) for s in image_size)
-    zw, zh = -(-w // scale), -(-h // scale)
-    R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
-    cam = _transform(points, R.T, R.T @ (origin - C))
-    z = cam[:, 2]
-    front = z > 1e-3
-    cam, z = cam[front], z[front]
-    u = (K[0, 0] * cam[:, 0] / z + K[0, 2] + 0.5) / scale
-    v = (K[1, 1] * cam[:, 1] / z + K[1, 2] + 0.5) / scale
-    inside = (u >= 0) & (u < zw) & (v >= 0) & (v < zh)
-    pix = v[inside].astype(np.int64) * zw + u[inside].astype(np.int64)
-    depth = np.full(zw * zh, np.inf, dtype=np.float32)
-    np.minimum.at(depth, pix, z[inside])
-    depth = depth.reshape(zh, zw)
-    valid = np.isfinite(depth).astype(np.float32)
-    neighbours = cv2.boxFilter(valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT) - valid
-    kernel = np.ones((3, 3), np.uint8)
-    local_min = cv2.erode(depth, kernel, borderType=cv2.BORDER_REPLICATE)
-    filled = np.where(np.isfinite(depth) | (neighbours < 5), depth, local_min)
-    nearest = cv2.erode(filled, kernel, borderType=cv2.BORDER_REPLICATE)
-    return filled, nearest
-
-
-def _transform(points: np.ndarray, M: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
-    """``points @ M.T + offset`` for (N, 3) points, in the points' float dtype.
-
-    numpy's matmul of a tall (N, 3) array by a 3×3 matrix takes a slow generic
-    path (≈ 50× slower); OpenCV's per-point transform does not.
-    """
-    affine = np.zeros((3, 4), dtype=np.float64)
-    affine[:, :3] = M
-    if offset is not None:
-        affine[:, 3] = offset
-    points = np.ascontiguousarray(points)
-    dtype = points.dtype if points.dtype in (np.float32, np.float64) else np.float64
-    if len(points) == 0:  # OpenCV returns None for no points (a view that sees none of a tile's)
-        return np.zeros((0, 3), dtype)
-    return cv2.transform(points.astype(dtype, copy=False).reshape(1, -1, 3), affine.astype(dtype))[0]
 
 
 class _ViewCache:
@@ -603,9 +416,9 @@ class ImageSampler:
         hit = np.isfinite(depth)
         mask = hit.view(np.uint8)
         # Outside the quad counts as set for the erosion, so closing keeps the quad's border.
-        closed = _stack_filter(_stack_filter(mask, cv2.dilate, 5, 0), cv2.erode, 5, 1).astype(bool)
+        closed = stack_filter(stack_filter(mask, cv2.dilate, 5, 0), cv2.erode, 5, 1).astype(bool)
         if (closed & ~hit).any():
-            near = _stack_filter(depth, cv2.erode, 5, np.inf)   # erosion of depth = 5×5 minimum
+            near = stack_filter(depth, cv2.erode, 5, np.inf)   # erosion of depth = 5×5 minimum
             depth = np.where(hit | ~closed, depth, near)
         return depth
 
@@ -666,167 +479,3 @@ class ImageSampler:
         if layer.any():
             rgba[layer] = close_holes(rgba[layer])
         return SampledTextures(rgba, view_used, distance, elevation, stats)
-
-
-def _stack_filter(images: np.ndarray, op, size: int, border_value) -> np.ndarray:
-    """Apply an OpenCV morphology ``op`` with a size×size square to each (t, t) image of
-    (m, t, t), as one call on the images stacked with a border between them."""
-    m, t0, t1 = images.shape
-    r = size // 2
-    padded = np.full((m, t0 + 2 * r, t1 + 2 * r), border_value, dtype=images.dtype)
-    padded[:, r:r + t0, r:r + t1] = images
-    flat = padded.reshape(m * (t0 + 2 * r), t1 + 2 * r)
-    out = op(flat, np.ones((size, size), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=border_value)
-    return out.reshape(padded.shape)[:, r:r + t0, r:r + t1]
-
-
-def close_holes(rgba: np.ndarray) -> np.ndarray:
-    """Make surface tiles opaque: a texel that no camera saw in any direction (behind a beam
-    from every capture viewpoint, or off the edge of every image that saw the rest) takes the
-    colour of the nearest texel of its tile that was seen (a line on the ground runs on; the
-    tile's mean colour would paint the few texels seen over the whole tile). rgba (..., t, t, 4)
-    uint8 → the same shape; a tile without an opaque texel stays transparent."""
-    out = np.array(rgba, copy=True)
-    t0, t1 = out.shape[-3:-1]
-    tiles = out.reshape(-1, t0, t1, 4)
-    hole = tiles[..., 3] == 0
-    partial = np.flatnonzero(hole.any(axis=(1, 2)) & ~hole.all(axis=(1, 2)))
-    if len(partial):
-        masks, which = np.unique(hole[partial].reshape(len(partial), -1), axis=0, return_inverse=True)
-        which = which.reshape(-1)
-        for u, mask in enumerate(masks):   # tiles with the same holes (a block's directions) share one
-            _, (rows, cols) = ndimage.distance_transform_edt(mask.reshape(t0, t1), return_indices=True)
-            sel = partial[which == u]
-            tiles[sel] = tiles[sel][:, rows, cols]
-    seen = (rgba[..., 3] > 0).any(axis=(-2, -1), keepdims=True)
-    out[..., 3] = np.where(seen, np.uint8(255), out[..., 3])
-    return out
-
-
-def close_holes_reference(rgba: np.ndarray) -> np.ndarray:
-    """Slow, obvious :func:`close_holes`: each hole texel from an opaque texel at the least
-    distance (ties may pick another of equal distance)."""
-    out = np.array(rgba, copy=True)
-    t0, t1 = out.shape[-3:-1]
-    tiles = out.reshape(-1, t0, t1, 4)
-    for tile in tiles:
-        seen = np.argwhere(tile[..., 3] > 0)
-        if len(seen) == 0:
-            continue
-        source = tile.copy()
-        for r in range(t0):
-            for c in range(t1):
-                if source[r, c, 3] == 0:
-                    d = ((seen - (r, c)) ** 2).sum(axis=1)
-                    rr, cc = seen[np.argmin(d)]
-                    tile[r, c, :3] = source[rr, cc, :3]
-                tile[r, c, 3] = 255
-    return out
-
-
-def reject_transients(colour: np.ndarray, status: np.ndarray, views: np.ndarray | None = None,
-                      threshold: float = 40.0, mads: float = 4.0, min_views: int = 3) -> np.ndarray:
-    """Mark as hidden the samples of a surface's texels that disagree with what the other
-    cameras saw there: what a few cameras saw in front of the surface and the rest did not
-    (a passing car, a pedestrian) must not become part of its texture.
-
-    colour (B, d, t, t, 3) uint8, status (B, d, t, t) uint8, views (B, d) int64 the camera
-    that sampled each direction (−1: none; None: every direction its own camera) → a new
-    status. A texel's reference is the per-channel median of its VISIBLE samples, one per
-    camera (a camera that sampled several directions counts once, or it would outvote the
-    others), and its spread their median absolute deviation; a VISIBLE sample off the
-    reference by more than ``threshold`` grey levels and ``mads`` spreads (in some channel)
-    becomes OCCLUDED, when at least ``min_views`` cameras measured the texel. Smooth view
-    dependence (glass reflecting the sky) widens the spread and stays.
-    """
-    B, d = status.shape[:2]
-    views = np.broadcast_to(np.arange(d), (B, d)) if views is None else np.asarray(views)
-    # first direction of each camera per block: later directions of the same camera repeat it
-    order = np.argsort(views, axis=1, kind="stable")
-    ranked = np.take_along_axis(views, order, axis=1)
-    first_of_view = np.zeros((B, d), bool)
-    np.put_along_axis(first_of_view, order, np.c_[np.ones((B, 1), bool), ranked[:, 1:] != ranked[:, :-1]], axis=1)
-    visible = status == VISIBLE                                               # (B, d, t, t)
-    voter = visible & (first_of_view & (views >= 0))[:, :, None, None]
-    count = voter.sum(axis=1)                                                 # (B, t, t)
-    out = status.copy()
-    if not (count >= min_views).any():
-        return out
-    c = np.where(voter[..., None], colour.astype(np.float32), np.nan)        # (B, d, t, t, 3)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)                       # texels no camera measured
-        median = np.nanmedian(c, axis=1, keepdims=True)
-        mad = np.nanmedian(np.abs(c - median), axis=1, keepdims=True)
-    off = (np.abs(colour.astype(np.float32) - median) > np.maximum(threshold, mads * mad)).any(axis=-1)
-    out[off & visible & (count >= min_views)[:, None]] = OCCLUDED
-    return out
-
-
-def reject_transients_reference(colour, status, views=None, threshold=40.0, mads=4.0, min_views=3):
-    """The slow, obvious twin of :func:`reject_transients`: one texel at a time."""
-    out = status.copy()
-    B, d, t = status.shape[:3]
-    views = np.broadcast_to(np.arange(d), (B, d)) if views is None else views
-    for b in range(B):
-        for r in range(t):
-            for q in range(t):
-                dirs = [j for j in range(d) if status[b, j, r, q] == VISIBLE]
-                voters, seen = [], set()
-                for j in range(d):
-                    if views[b, j] >= 0 and views[b, j] not in seen:
-                        seen.add(views[b, j])
-                        if status[b, j, r, q] == VISIBLE:
-                            voters.append(j)
-                if len(voters) < min_views:
-                    continue
-                samples = colour[b, voters, r, q].astype(np.float64)
-                median = np.median(samples, axis=0)
-                mad = np.median(np.abs(samples - median), axis=0)
-                for j in dirs:
-                    if np.any(np.abs(colour[b, j, r, q] - median) > np.maximum(threshold, mads * mad)):
-                        out[b, j, r, q] = OCCLUDED
-    return out
-
-
-def fill_directions(colour: np.ndarray, status: np.ndarray, yaw_count: int) -> np.ndarray:
-    """Turn per-texel samples into complete RGBA stacks.
-
-    colour (B, d, t, t, 3) uint8, status (B, d, t, t) uint8 → (B, d, t, t, 4) uint8.
-    Texels that no camera saw (hidden or unseen) take the value of the nearest
-    direction along yaw that measured them (per pitch row; nearest rather than a
-    blend, so a filled direction repeats a measured one and adds no rank to the
-    PCA); texels measured nowhere become transparent. Transparent texels take the
-    billboard's mean opaque colour, so they add no variance either.
-    """
-    B, d, t = colour.shape[:3]
-    rows = d // yaw_count
-    shape = (B, rows, yaw_count, t * t)
-    rgba = np.empty((B, d, t, t, 4), dtype=np.uint8)  # C-contiguous: viewable as one uint32 per texel
-    rgba[..., :3] = colour
-    rgba[..., 3] = np.where(status == VISIBLE, np.uint8(255), np.uint8(0))
-    measured = ((status == VISIBLE) | (status == TRANSPARENT)).reshape(shape)
-    if not measured.all():
-        idx = np.arange(yaw_count, dtype=np.int16)[None, None, :, None]
-        big = np.int16(4 * yaw_count)
-        prev = np.maximum.accumulate(np.where(measured, idx, -big), axis=2)
-        nxt = np.flip(np.minimum.accumulate(np.flip(np.where(measured, idx, big), axis=2), axis=2), axis=2)
-        source = np.where(idx - prev <= nxt - idx, prev, nxt)   # ties go to the lower index
-        nowhere = np.abs(source - idx) >= yaw_count
-        np.clip(source, 0, yaw_count - 1, out=source)
-        # One uint32 per RGBA texel: a single gather moves all four channels.
-        packed = rgba.view(np.uint32).reshape(shape)
-        filled = np.take_along_axis(packed, source.astype(np.intp), axis=2)
-        filled[nowhere] = 0
-        rgba = filled.view(np.uint8).reshape(B, d, t, t, 4)
-    # Mean opaque colour per billboard for transparent texels.
-    flat = rgba.reshape(B, -1, 4)
-    opaque = flat[..., 3] > 0
-    count = opaque.sum(axis=1)
-    total = np.stack([np.where(opaque, flat[..., c], 0).sum(axis=1, dtype=np.int64) for c in range(3)], axis=1)
-    mean = np.where(count[:, None] > 0, total / np.maximum(count, 1)[:, None], 128.0)
-    mean_rgba = np.zeros((B, 4), dtype=np.uint8)
-    mean_rgba[:, :3] = np.rint(mean)
-    mean_packed = mean_rgba.view(np.uint32)                          # (B, 1), alpha 0
-    packed = rgba.view(np.uint32).reshape(B, -1)
-    packed[...] = np.where(opaque, packed, mean_packed)
-    return rgba

@@ -8,7 +8,7 @@ image counts as sky when it lies
 
 - in the upper part of the image (``SkyConfig.upper``),
 - above the cloud's horizon: in a column where some cloud point splats (a z-buffer of
-  the cloud at reduced resolution, :func:`billboards.sampling.zbuffer`, grown by
+  the cloud at reduced resolution, :func:`billboards.voxels.zbuffer`, grown by
   ``margin`` cells), above the first such pixel; so glass and flat paint that stereo
   left without points (below a roof line), and columns the cloud does not reach at
   all, are never taken for sky,
@@ -43,6 +43,8 @@ import numpy as np
 
 from core.errors import InputError
 from core.fileio import DataFormatError, load_npy, read_json, save_npy, write_json
+
+from .voxels import zbuffer
 
 logger = logging.getLogger(__name__)
 
@@ -169,8 +171,6 @@ def sky_candidates(image: np.ndarray, covered: np.ndarray, config: SkyConfig = S
 def _covered(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, size,
              config: SkyConfig) -> np.ndarray:
     """(h, w) bool: pixels a cloud point (or a z-buffer cell within ``margin``) splats onto."""
-    from .sampling import zbuffer
-
     w, h = (int(s) for s in size)
     if len(points) == 0:
         return np.zeros((h, w), dtype=bool)
@@ -186,7 +186,7 @@ def _covered(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_c
 def estimate_sky(views, points: np.ndarray, origin=None, config: SkyConfig = SkyConfig()) -> Sky | None:
     """The sky of a capture: mean colour per elevation bin over the pixels taken for sky.
 
-    views: :class:`billboards.sampling.Views` (K (v, 3, 3), world_from_cam (v, 4, 4),
+    views: :class:`billboards.views.Views` (K (v, 3, 3), world_from_cam (v, 4, 4),
     sizes (v, 2), ``image(i)`` (h, w, 3) uint8) — the images the model's textures come
     from; points (N, 3): the cloud, float64 world coordinates, or float32 relative to
     ``origin`` (3,) float64 when given. Returns a :class:`Sky` (NaN-free: empty bins are

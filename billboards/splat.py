@@ -12,7 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 from .geometry import direction_angles, quad_frames
-from .sampling import TRANSPARENT, VISIBLE, SampledTextures, SamplingConfig, VoxelPoints, fill_directions
+from .sampling import SampledTextures, SamplingConfig
+from .texels import TRANSPARENT, VISIBLE, fill_directions
+from .voxels import VoxelPoints
 
 
 class PointSampler:
@@ -23,7 +25,7 @@ class PointSampler:
                  config: SamplingConfig = SamplingConfig(), depth_slack: float | None = None,
                  centres: np.ndarray | None = None):
         self.voxels, self.colours, self.config = voxels, colours, config
-        # Quad centres (default the voxel centres; see sampling.quad_centres).
+        # Quad centres (default the voxel centres; see voxels.quad_centres).
         self.centres = voxels.centres if centres is None else np.asarray(centres, dtype=np.float64)
         self.base_yaw = np.asarray(base_yaw, dtype=np.float64)
         # Points within this depth of a texel's nearest point belong to the same surface.

@@ -48,7 +48,7 @@ import numpy as np
 
 from core.errors import InputError
 
-from .sampling import zbuffer
+from .voxels import zbuffer
 from .sky import Sky, ray_elevation
 
 logger = logging.getLogger(__name__)
@@ -259,7 +259,7 @@ def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarr
     """The blocks that side walls grow by where the images show them: centres (b, 3) float64,
     base_yaw (b,) float64, and a JSON-ready report. centres (s, 3), base_yaw (s,): the side
     walls' blocks; cloud (N, 3) float64 world points (occlusion); views:
-    :class:`billboards.sampling.Views` of the capture; sky: the model's sky (None: nothing
+    :class:`billboards.views.Views` of the capture; sky: the model's sky (None: nothing
     grows); size: the blocks' edge (m); steps: walls at the fronts' steps (:func:`front_steps`),
     each taken unless a side wall already stands on its plane facing its way."""
     report = {"walls": 0, "walls_grown": 0, "blocks": 0, "views_read": 0, "steps": 0}

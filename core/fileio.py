@@ -145,6 +145,21 @@ def write_json(path: os.PathLike | str, obj: Any) -> Path:
     return write_bytes(path, (text + "\n").encode())
 
 
+def json_ready(value: Any) -> Any:
+    """``value`` with non-finite floats as None (JSON null = no measurement) and numpy scalars as
+    Python's, through dicts (keys as strings), lists and tuples (as lists): what :func:`write_json`
+    takes, which refuses NaN."""
+    if isinstance(value, dict):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def read_json(path: os.PathLike | str, max_bytes: int | None = None) -> Any:
     """Read a JSON file; a missing or malformed file, or one over ``max_bytes``, raises
     :class:`DataFormatError`."""
