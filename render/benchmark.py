@@ -30,11 +30,16 @@ import numpy as np
 from billboards.model import BillboardModel
 
 from core.errors import InputError
+from core.metrics import psnr
 
 from .camera import default_intrinsics
 from .lod import LodConfig
+from .overdraw import measure_overdraw
+from .paging import MB, PagingConfig
 from .paths import walk
 from .renderer import BillboardRenderer
+from .scene_mesh import SceneMeshRenderer
+from .tiled_renderer import TiledRenderer
 
 #: Decode set-ups by name: (decode mode, level of detail; None = exact, every eigen image).
 DECODE_SETUPS = {"gpu": ("gpu", LodConfig()), "gpu exact": ("gpu", None), "cpu": ("cpu", None)}
@@ -107,8 +112,6 @@ def decode_fps(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(1
     per view) and view, ``cull`` culling for all. Rows {decode, lod, cull, view,
     **frame_time_stats, **mean_counts}; with ``overdraw``, GPU rows also hold the view's
     fragments per pixel {layers, written, covered} (:func:`render.overdraw.measure_overdraw`)."""
-    from .overdraw import measure_overdraw
-
     frames = frames or {"gpu": 10, "cpu": 3}
     K = default_intrinsics(*size) if K is None else K
     rows = []
@@ -164,9 +167,6 @@ def paging_walk(ctx, source, poses, size=(1280, 720), paging=None, decode: str =
     slowest of them), other_ms_max (the slowest later frame that did not page: a turn of the
     eye decodes what comes into view), frames_over_100ms (later frames, and of them paging),
     tiles (in the set), drawn, resident (means)}."""
-    from .paging import MB, PagingConfig
-    from .tiled_renderer import TiledRenderer
-
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     if len(poses) < 2:
         raise InputError("paging_walk needs at least two poses")
@@ -220,8 +220,6 @@ def lod_psnr(ctx, model: BillboardModel, views: dict[str, np.ndarray], size=(128
              ) -> dict[str, float]:
     """PSNR (dB, 8-bit RGB over the whole image) per view of the GPU decode with level of detail
     ``lod`` against the exact GPU decode from the same pose: the image cost of fewer eigen images."""
-    from core.metrics import psnr
-
     K = default_intrinsics(*size) if K is None else K
     images = {}
     for key, config in (("lod", lod), ("exact", None)):
@@ -262,8 +260,6 @@ def town_cull_fps(ctx, scene, views: list[np.ndarray], size=(1280, 720), K=None,
     queries, depth_reads, triangles} (counts averaged over the frames).
     Every mode is run once per entry of ``group_cells`` (the grid that orders the vertex
     buffer, so frustum culling draws the same runs of objects as occlusion culling)."""
-    from .scene_mesh import SceneMeshRenderer
-
     K = default_intrinsics(*size) if K is None else K
     rows = []
     for mode in modes:

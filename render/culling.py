@@ -16,7 +16,8 @@ miss the frustum (the usual plane-by-plane test): that costs a few extra
 billboards, never a missing one.
 
 Billboard bounds. A billboard quad turned toward the viewer stays inside the
-sphere of radius ``voxel_size·√3/2`` around its centre (:func:`billboard_radius`).
+sphere of radius ``voxel_size·√3/2`` around its centre
+(:func:`billboards.geometry.billboard_radius`).
 Node bounds are the octree cells, whose billboard centres lie at least half a
 voxel inside; a billboard quad can still reach out of its cell (pitched quads,
 by up to (√2 − 1)/2 of a voxel), so node boxes are grown by ``pad`` before they
@@ -30,12 +31,9 @@ the slow, obvious per-billboard version the tests compare with.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from billboards.model_set import quad_radius
 
 from core.errors import InputError
 
@@ -54,16 +52,11 @@ PLANE_NAMES = ("left", "right", "bottom", "top", "near", "far")
 CULL_MODES = ("none", "frustum", "occlusion", "hzb", "auto")
 
 
-def billboard_radius(voxel_size: float) -> float:
-    """Radius of the sphere that holds a view-facing billboard of edge ``voxel_size``: s·√3/2."""
-    return float(voxel_size) * math.sqrt(3.0) / 2.0
-
-
-def model_quad_radius(model) -> float:
-    """How far any quad of ``model`` reaches beyond its octree leaf: the billboard radius, or
-    half a layer block's diagonal (a block's centre lies in its leaf) and its corners' rise
-    (:func:`billboards.model_set.quad_radius`) if that is larger."""
-    return quad_radius(model.voxel_size, model.block_size, model.kind, model.corner_dz)
+def check_cull(cull: str) -> str:
+    """``cull`` if it is one of :data:`CULL_MODES`; else :class:`~core.errors.InputError`."""
+    if cull not in CULL_MODES:
+        raise InputError(f"cull must be one of {CULL_MODES}, got {cull!r}")
+    return cull
 
 
 # ---------------------------------------------------------------------------------------------
@@ -283,7 +276,7 @@ def frustum_cull_nodes(planes, node_bounds, node_children, node_range, *, pad: f
     (model coordinates, float32 or float64); node_children: (k, 8) int, −1 = none;
     node_range: (k, 2) int [begin, end) billboards; node 0 is the root.
     pad: metres added on every side of every node box (see the module notes;
-    ``billboard_radius(voxel_size)`` is always safe).
+    :func:`billboards.geometry.billboard_radius` of the voxel size is always safe).
 
     Level by level, the whole frontier at once: a node entirely inside adds its
     range without testing its children; one entirely outside drops its subtree;

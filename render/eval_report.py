@@ -4,28 +4,27 @@ report."""
 
 from __future__ import annotations
 
+import io
 import math
 import os
 from pathlib import Path
 
 import numpy as np
 
-from .evaluate import WHERE
+from core.fileio import write_bytes, write_json
+
+from .eval_config import WHERE
 
 
 def work_precision_plot(report: dict, path: os.PathLike | str, title: str = "Novel views: bytes against quality") -> Path:
     """Write the work-precision diagram of ``report["work_precision"]``: bytes (log) against
     seen-pixel PSNR, on path and off path side by side, one series per family (Poisson
     depths joined by a line, each point labelled)."""
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-
-    from core.fileio import write_bytes
 
     points = [p for p in report.get("work_precision", []) if p.get("bytes")]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
@@ -67,6 +66,21 @@ def _f(value, spec: str) -> str:
     return "n/a" if value is None or (isinstance(value, float) and not math.isfinite(value)) else format(value, spec)
 
 
+def _rows(summary: dict, columns: tuple[tuple[str, str], ...], held_out: bool = False,
+          nbytes: dict | None = None) -> list[str]:
+    """A Markdown table row per "method, viewpoints" of ``summary``: the name (", on path" as
+    ", held out" when ``held_out``), each of ``columns`` (metric, format spec; n/a when missing or
+    not finite) and, with ``nbytes`` (method → bytes), the method's bytes."""
+    lines = []
+    for name, m in summary.items():
+        cells = [name.replace(", on path", ", held out") if held_out else name]
+        cells += [_f(m.get(key), spec) for key, spec in columns]
+        if nbytes is not None:
+            cells.append(_f(nbytes.get(name.rsplit(", ", 1)[0]), ","))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def markdown_real(report: dict) -> str:
     """The report of a real capture as Markdown: scores over covered pixels, coverage of the
     pixels below the horizon, whole-image scores."""
@@ -85,19 +99,12 @@ def markdown_real(report: dict) -> str:
              "| method, frames | PSNR covered (dB) | exposure matched (dB) | SSIM covered | coverage below horizon | "
              "PSNR below horizon (dB) | PSNR image (dB) | SSIM image | bytes |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for name, m in report["summary"].items():
-        method = name.rsplit(", ", 1)[0]
-        b = report["bytes"].get(method)
-        name = name.replace(", on path", ", held out")
-        lines.append(f"| {name} | {_f(m['psnr_covered'], '.2f')} | {_f(m.get('psnr_covered_exposure'), '.2f')} | "
-                     f"{_f(m['ssim_covered'], '.3f')} | "
-                     f"{_f(m.get('coverage_seen'), '.1%')} | {_f(m['psnr_seen'], '.2f')} | {_f(m['psnr'], '.2f')} | "
-                     f"{_f(m['ssim'], '.3f')} | {_f(b, ',')} |")
+    lines += _rows(report["summary"], (("psnr_covered", ".2f"), ("psnr_covered_exposure", ".2f"),
+                                       ("ssim_covered", ".3f"), ("coverage_seen", ".1%"), ("psnr_seen", ".2f"),
+                                       ("psnr", ".2f"), ("ssim", ".3f")), held_out=True, nbytes=report["bytes"])
     lines += ["", "## Above and below the horizon (PSNR over covered pixels, dB)", "",
               "| method, frames | above the horizon | below the horizon |", "|---|---|---|"]
-    for name, m in report["summary"].items():
-        lines.append(f"| {name.replace(', on path', ', held out')} | {_f(m.get('psnr_covered_above'), '.2f')} | "
-                     f"{_f(m.get('psnr_covered_below'), '.2f')} |")
+    lines += _rows(report["summary"], (("psnr_covered_above", ".2f"), ("psnr_covered_below", ".2f")), held_out=True)
     if report.get("images"):
         panels = " | ".join(report.get("image_panels", ["real", "model", "Poisson mesh"]))
         lines += ["", f"Images ({panels}): " + ", ".join(report["images"])]
@@ -122,12 +129,9 @@ def markdown(report: dict) -> str:
              "| method, viewpoints | PSNR seen (dB) | SSIM seen | PSNR (dB) | SSIM | PSNR geometry (dB) | "
              "SSIM geometry | seen pixels | seen pixels drawn | bytes |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    for name, m in report["summary"].items():
-        method = name.rsplit(", ", 1)[0]
-        b = report["bytes"].get(method)
-        lines.append(f"| {name} | {_f(m['psnr_seen'], '.2f')} | {_f(m['ssim_seen'], '.3f')} | {_f(m['psnr'], '.2f')} | "
-                     f"{_f(m['ssim'], '.3f')} | {_f(m['psnr_geometry'], '.2f')} | {_f(m['ssim_geometry'], '.3f')} | "
-                     f"{_f(m['seen_fraction'], '.0%')} | {_f(m.get('coverage_seen'), '.1%')} | {_f(b, ',')} |")
+    lines += _rows(report["summary"], (("psnr_seen", ".2f"), ("ssim_seen", ".3f"), ("psnr", ".2f"), ("ssim", ".3f"),
+                                       ("psnr_geometry", ".2f"), ("ssim_geometry", ".3f"), ("seen_fraction", ".0%"),
+                                       ("coverage_seen", ".1%")), nbytes=report["bytes"])
     split = {name: m for name, m in report["summary"].items()
              if any(m.get(f"psnr_seen_{k}") is not None for k in ("facade", "ground", "billboard"))}
     if split:
@@ -136,10 +140,8 @@ def markdown(report: dict) -> str:
                   "PSNR over the pixels with geometry it draws, and their share.", "",
                   "| method, viewpoints | facade blocks | ground blocks | billboards | synthesised ground | "
                   "its share |", "|---|---|---|---|---|---|"]
-        for name, m in split.items():
-            lines.append(f"| {name} | {_f(m.get('psnr_seen_facade'), '.2f')} | {_f(m.get('psnr_seen_ground'), '.2f')} | "
-                         f"{_f(m.get('psnr_seen_billboard'), '.2f')} | {_f(m.get('psnr_geometry_synthesised'), '.2f')} | "
-                         f"{_f(m.get('synthesised_fraction'), '.1%')} |")
+        lines += _rows(split, (("psnr_seen_facade", ".2f"), ("psnr_seen_ground", ".2f"), ("psnr_seen_billboard", ".2f"),
+                               ("psnr_geometry_synthesised", ".2f"), ("synthesised_fraction", ".1%")))
     near = {name: m["psnr_seen_near"] for name, m in report["summary"].items()
             if isinstance(m.get("psnr_seen_near"), float) and math.isfinite(m["psnr_seen_near"])}
     if near:
@@ -163,8 +165,6 @@ def markdown(report: dict) -> str:
 
 def write_report(report: dict, out_dir: os.PathLike | str) -> Path:
     """Write ``eval.json``, ``eval.md`` and ``workprecision.png`` into ``out_dir``; returns eval.md's path."""
-    from core.fileio import write_bytes, write_json
-
     out = Path(out_dir)
     write_json(out / "eval.json", report)
     if report.get("work_precision"):

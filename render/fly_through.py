@@ -21,6 +21,7 @@ from core.fileio import atomic_path, disk_full, write_png
 
 from .camera import default_intrinsics
 from .context import create_context
+from .paging import PagingConfig
 from .renderer import BillboardRenderer
 from .sky import SkyPass, render_over_sky
 from .tiled_renderer import TiledRenderer
@@ -50,8 +51,6 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
     tiled = paging is not None or not hasattr(model, "centres")
     try:
         if tiled:
-            from .paging import PagingConfig
-
             renderer = TiledRenderer(ctx, model, decode, cull=cull, background=(0.55, 0.7, 0.9), sky=sky,
                                      paging=paging or PagingConfig())
         else:

@@ -11,8 +11,7 @@ import cv2
 import moderngl
 import numpy as np
 
-from .program import load_program
-from .resources import GpuOwner
+from .screen_pass import ScreenPass
 
 LINE_PX = 20  # text line height in pixels
 FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -31,26 +30,17 @@ def text_image(lines: list[str], width: int | None = None) -> np.ndarray:
     return image
 
 
-class HudOverlay(GpuOwner):
+class HudOverlay(ScreenPass):
     """Draws text lines over the bound framebuffer; :meth:`release` is idempotent."""
 
     def __init__(self, ctx: moderngl.Context):
-        self.ctx = ctx
-        self._objects = []
         self._lines: list[str] | None = None
-        self.texture: moderngl.Texture | None = None
-        self.program = self._keep(load_program(ctx, "hud.glsl"))
-        self.vao = self._keep(ctx.vertex_array(self.program, []))
+        super().__init__(ctx, "hud.glsl")
 
     def _upload(self, lines: list[str]) -> None:
         image = text_image(lines)  # row 0 at the top: the quad maps v = 0 to its top edge
         h, w = image.shape[:2]
-        if self.texture is None or self.texture.size != (w, h):
-            if self.texture is not None:
-                self.texture.release()
-            self.texture = self.ctx.texture((w, h), 4)
-            self.texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.texture.write(image.tobytes())
+        self.texture_of_size((w, h), 4).write(image.tobytes())
         self._lines = list(lines)
 
     def draw(self, lines: list[str], viewport_size) -> None:
@@ -72,11 +62,3 @@ class HudOverlay(GpuOwner):
             self.vao.render(moderngl.TRIANGLE_STRIP, vertices=4)
         finally:
             self.ctx.disable(moderngl.BLEND)
-
-    def release(self) -> None:
-        if self.released:
-            return
-        if self.texture is not None:
-            self.texture.release()
-            self.texture = None
-        super().release()

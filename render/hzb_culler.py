@@ -38,7 +38,7 @@ it is given (frustum culling alone, no read-back) for ``auto_backoff`` frames,
 doubling after each further losing trial, then tries again; after ``auto_window``
 winning frames it stays on.
 
-What the caller provides: as for :class:`~render.occlusion.OcclusionCuller` (the
+What the caller provides: as for :class:`~render.culler_base.CullerBase` (the
 target framebuffer bound with the culler's viewport, depth cleared or holding only
 what stays in the final image, depth test LESS or LEQUAL, a callback that draws
 ranges with depth writes on); the framebuffer must be single-sampled so that its
@@ -56,7 +56,7 @@ import numpy as np
 from core.errors import InputError
 
 from .hzb import DEPTH_EPS, DepthPyramid, hzb_occluded, ndc_to_window
-from .occlusion import CullStats, OcclusionCuller, _batch_bounds
+from .culler_base import CullerBase, CullStats, batch_bounds
 from .quadtree import project_boxes
 
 logger = logging.getLogger(__name__)
@@ -88,12 +88,12 @@ class HzbConfig:
             raise InputError(f"invalid HzbConfig: {self}")
 
 
-class HzbCuller(OcclusionCuller):
+class HzbCuller(CullerBase):
     """Two-phase HZB occlusion culling of frustum-culled objects (see the module notes).
 
     ctx: the moderngl context; width, height: the viewport the frame is drawn in;
     mode: "frustum" (draw everything given), "hzb" or "auto". The interface is
-    :class:`~render.occlusion.OcclusionCuller`'s (:meth:`cull`, :meth:`cull_nodes`,
+    :class:`~render.culler_base.CullerBase`'s (:meth:`cull`, :meth:`cull_nodes`,
     ``stats``, ``visible``, ``last_decision``, :meth:`release`); :meth:`cull` also
     takes ``groups``. Holds no GPU object but timer queries.
     """
@@ -108,15 +108,12 @@ class HzbCuller(OcclusionCuller):
         self._read_failed = False
         super().__init__(ctx, width, height, mode, config)
 
-    def _load_gpu(self) -> None:
-        pass  # no program: the tests run on the CPU
-
     def resize(self, width: int, height: int) -> None:
         super().resize(width, height)
         self._pyramid = None
 
     def cull(self, view_proj, box_min, box_max, ranges, draw_callback, keys=None, groups=None) -> CullStats:
-        """:meth:`OcclusionCuller.cull <render.occlusion.OcclusionCuller.cull>`, and groups: None or
+        """:meth:`CullerBase.cull <render.culler_base.CullerBase.cull>`, and groups: None or
         (m,) int non-decreasing group of each object (e.g. a ground grid cell); a group's box is
         tested before its objects and, if hidden, culls them all."""
         if groups is not None:
@@ -194,7 +191,7 @@ class HzbCuller(OcclusionCuller):
             first[np.argsort(depth, kind="stable")[:max(1, m // cfg.occluder_share)]] = True
             rest = np.flatnonzero(~first)
             rest = rest[np.argsort(depth[rest], kind="stable")]
-            batches = [np.sort(b) for b in np.array_split(rest, _batch_bounds(len(rest), cfg.cut_reads, 4))]
+            batches = [np.sort(b) for b in np.array_split(rest, batch_bounds(len(rest), cfg.cut_reads, 4))]
         self._draw(np.flatnonzero(first))  # phase 1
         shown = []
         for batch in batches:

@@ -42,15 +42,16 @@ import moderngl
 import numpy as np
 
 from billboards.model import BillboardModel
+from billboards.model_set import model_quad_radius
 
 from core.errors import InputError
 
 from .camera import GLCamera, gl_bytes
 from .context import max_texture_size
-from .culling import model_quad_radius, ranges_to_indices
+from .culling import ranges_to_indices
 from .lod import ImpostorConfig
 from .program import ProgramCache
-from .resources import GpuOwner, InstanceStream, set_uniform, vertex_binding
+from .resources import GpuOwner, set_uniform
 
 #: Per-impostor record of the draw (impostor.glsl): the quad's corners (model coordinates; bottom
 #: left, bottom right, top left, top right), rows 0, 1 and 3 of the matrix from model coordinates to
@@ -165,10 +166,8 @@ class Impostors(GpuOwner):
             self.own_studio = studio is None
             self.studio = self._keep(ImpostorStudio(ctx, t, programs)) if studio is None else studio
             self.program = programs.get("impostor.glsl")
-            self.stream = self._keep(InstanceStream(ctx, IMPOSTOR_DTYPE.itemsize))
-            self.vao = self._keep(ctx.vertex_array(
-                self.program, [vertex_binding(self.program, self.stream.buffer, IMPOSTOR_FORMAT,
-                                              IMPOSTOR_ATTRIBUTES)]))
+            self.stream, self.vao = self._keep_instanced(self.program, IMPOSTOR_DTYPE.itemsize, IMPOSTOR_FORMAT,
+                                                         IMPOSTOR_ATTRIBUTES)
         except BaseException:
             self.release()
             raise
@@ -386,13 +385,9 @@ class ImpostorStudio(GpuOwner):
                 programs = self._keep(ProgramCache(ctx))
             self.clear_program = programs.get("impostor_clear.glsl")
             self.copy_program = programs.get("impostor_copy.glsl")
-            self.clear_stream = self._keep(InstanceStream(ctx, 16))
-            self.clear_vao = self._keep(ctx.vertex_array(self.clear_program,
-                                                         [(self.clear_stream.buffer, "4f/i", "in_rect")]))
-            self.copy_stream = self._keep(InstanceStream(ctx, COPY_DTYPE.itemsize))
-            self.copy_vao = self._keep(ctx.vertex_array(
-                self.copy_program, [vertex_binding(self.copy_program, self.copy_stream.buffer, COPY_FORMAT,
-                                                   COPY_ATTRIBUTES)]))
+            self.clear_stream, self.clear_vao = self._keep_instanced(self.clear_program, 16, "4f/i", ("in_rect",))
+            self.copy_stream, self.copy_vao = self._keep_instanced(self.copy_program, COPY_DTYPE.itemsize,
+                                                                   COPY_FORMAT, COPY_ATTRIBUTES)
         except BaseException:
             self.release()
             raise

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.dataset import load_dataset
+from capture.poses import load_poses
 from core.errors import InputError
 from core.fileio import DataFormatError, as_matrix, check_rigid, read_json, write_bytes
 
@@ -90,8 +92,6 @@ def drive_path_for(model, height: float = 2.0) -> DrivePath:
     dataset = info.get("dataset")
     if dataset:
         try:
-            from data_synth.rig import load_poses
-
             poses = info.get("poses") or Path(dataset) / "poses.json"
             world_from_rig, _ = load_poses(poses)
             pts = world_from_rig[:, :3, 3] + [0.0, 0.0, height]
@@ -143,8 +143,6 @@ def file_poses(path: os.PathLike | str) -> np.ndarray:
     ``world_from_cam`` matrices, at most :data:`MAX_PATH_POSES`; errors name the file."""
     path = Path(path)
     if path.is_dir():
-        from data_synth import load_dataset
-
         ds = load_dataset(path)
         posed = np.flatnonzero(ds.posed).tolist()
         if len(posed) > MAX_PATH_POSES:
@@ -212,8 +210,6 @@ def capture_camera_poses(model, dataset: os.PathLike | str | None = None) -> np.
     then with the poses it was built with (``info["poses"]``, e.g. from SfM). None when no
     dataset is given and the model's is not recorded or no longer readable; a given
     dataset that cannot be read raises (DataFormatError naming the file)."""
-    from data_synth import load_dataset
-
     info = model.info if isinstance(model.info, dict) else {}
     recorded = info.get("dataset")
     if dataset is None:

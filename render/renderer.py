@@ -17,11 +17,12 @@ import moderngl
 import numpy as np
 
 from billboards.model import BillboardModel
+from billboards.model_set import model_quad_radius
 
 from core.errors import InputError
 
 from .camera import ClipPlanes, GLCamera, gl_camera
-from .culling import CULL_MODES, frustum_cull_nodes, frustum_planes, model_quad_radius, ranges_to_indices
+from .culling import check_cull, frustum_cull_nodes, frustum_planes, ranges_to_indices
 from .hzb_culler import HzbCuller
 from .occlusion import OcclusionCuller
 from .cpu_decode import CpuDecoder
@@ -29,12 +30,19 @@ from .gpu_decode import GpuDecoder, empty_stats
 from .impostors import Impostors, ImpostorStudio
 from .lod import LodConfig
 from .program import ProgramCache
-from .resources import ModelResources
+from .resources import ModelResources, Releasable
 from .target import OffscreenTargets, background_rgb
 
 logger = logging.getLogger(__name__)
 
 DECODE_MODES = ("gpu", "cpu")
+
+
+def check_decode(decode: str) -> str:
+    """``decode`` if it is one of :data:`DECODE_MODES`; else :class:`~core.errors.InputError`."""
+    if decode not in DECODE_MODES:
+        raise InputError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
+    return decode
 
 
 def add_stats(totals: dict, part: dict) -> None:
@@ -51,7 +59,22 @@ def add_stats(totals: dict, part: dict) -> None:
             totals[key] = totals.get(key, 0) + value
 
 
-class BillboardRenderer:
+def _decoder_setting(name: str, doc: str) -> property:
+    """A bool setting of the renderer's decoder, settable between frames; a change forgets the
+    impostor images, made the other way."""
+
+    def get(self) -> bool:
+        return getattr(self.decoder, name)
+
+    def set(self, value: bool) -> None:
+        setattr(self.decoder, name, bool(value))
+        if self.impostors is not None:
+            self.impostors.forget()
+
+    return property(get, set, doc=doc)
+
+
+class BillboardRenderer(Releasable):
     """Renders ``model`` from OpenCV cameras into (h, w, 3) uint8 images.
 
     decode: "gpu" (eigen-textures decoded on the GPU once per sampled direction and kept,
@@ -86,11 +109,8 @@ class BillboardRenderer:
                  background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "none",
                  lod: LodConfig | None = None, programs: ProgramCache | None = None,
                  studio: ImpostorStudio | None = None):
-        if decode not in DECODE_MODES:
-            raise InputError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
-        if cull not in CULL_MODES:
-            raise InputError(f"cull must be one of {CULL_MODES}, got {cull!r}")
-        self.cull = cull
+        check_decode(decode)
+        self.cull = check_cull(cull)
         self._cullers: dict[tuple[int, int], OcclusionCuller | HzbCuller] = {}
         self.ctx = ctx
         self.model = model
@@ -117,27 +137,9 @@ class BillboardRenderer:
             self.release()
             raise
 
-    @property
-    def interpolate(self) -> bool:
-        """Whether textures blend the sampled directions around the view (else the nearest)."""
-        return self.decoder.interpolate
-
-    @interpolate.setter
-    def interpolate(self, value: bool) -> None:
-        self.decoder.interpolate = bool(value)
-        if self.impostors is not None:
-            self.impostors.forget()  # images made the other way
-
-    @property
-    def linear(self) -> bool:
-        """Texels bilinear within each tile (else the nearest texel)."""
-        return self.decoder.linear
-
-    @linear.setter
-    def linear(self, value: bool) -> None:
-        self.decoder.linear = bool(value)
-        if self.impostors is not None:
-            self.impostors.forget()
+    interpolate = _decoder_setting("interpolate",
+                                   "Whether textures blend the sampled directions around the view (else the nearest).")
+    linear = _decoder_setting("linear", "Texels bilinear within each tile (else the nearest texel).")
 
     def camera(self, K, world_from_cam, size) -> GLCamera:
         """The :class:`GLCamera` of an OpenCV camera for this model's origin."""
@@ -300,9 +302,3 @@ class BillboardRenderer:
             self.decoder.release()
         if self.resources is not None:
             self.resources.release()
-
-    def __enter__(self) -> BillboardRenderer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()

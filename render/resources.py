@@ -26,6 +26,7 @@ belongs to the decoder (:mod:`render.gpu_decode`).
 from __future__ import annotations
 
 import logging
+from typing import Self
 
 import moderngl
 import numpy as np
@@ -40,8 +41,11 @@ logger = logging.getLogger(__name__)
 
 _FORMAT_BYTES = {"f": 4, "i": 4, "u": 4}
 
-_TILE_DTYPE = {"u8": "f1", "f16": "f2"}  # moderngl texture dtypes: normalised unsigned byte, half float
-_COEF_DTYPE = {"u8": "f1", "f16": "f2", "f32": "f4"}
+#: The moderngl texture dtype of each atlas page format (a model's ``tile_mode``): normalised
+#: unsigned byte, half float.
+TILE_DTYPE = {"u8": "f1", "f16": "f2"}
+#: The moderngl texture dtype of each coefficient page format (a model's ``coef_mode``).
+COEF_DTYPE = {"u8": "f1", "f16": "f2", "f32": "f4"}
 _UPLOAD_BYTES = 64 << 20  # rows per upload band: about this many bytes
 
 
@@ -112,14 +116,24 @@ def _page_array(ctx: moderngl.Context, pages, width: int, components: int, dtype
     return tex
 
 
-
 def release_all(objects) -> None:
     """Release GPU objects in reverse order of creation (None: nothing to do)."""
     for obj in reversed(objects or ()):
         obj.release()
 
 
-class GpuOwner:
+class Releasable:
+    """A context manager over ``release()``: ``with Thing(...) as thing:`` releases ``thing``
+    on leaving the block."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+class GpuOwner(Releasable):
     """Owns the GPU objects it creates through :meth:`_keep` (``self._objects = []`` in the
     constructor); :meth:`release` frees them in reverse order of creation (idempotent)."""
 
@@ -128,6 +142,13 @@ class GpuOwner:
     def _keep(self, obj):
         self._objects.append(obj)
         return obj
+
+    def _keep_instanced(self, program: moderngl.Program, record_size: int, fmt: str,
+                        names) -> tuple[InstanceStream, moderngl.VertexArray]:
+        """A kept :class:`InstanceStream` of ``record_size``-byte records and a kept vertex array
+        of ``program`` (on ``self.ctx``) reading them (:func:`vertex_binding` of ``fmt``, ``names``)."""
+        stream = self._keep(InstanceStream(self.ctx, record_size))
+        return stream, self._keep(self.ctx.vertex_array(program, [vertex_binding(program, stream.buffer, fmt, names)]))
 
     @property
     def released(self) -> bool:
@@ -160,10 +181,10 @@ class ModelResources(GpuOwner):
         tiles = model.tile_layout()
         rows = model.coef_layout()
         self.tiles = self._keep(_page_array(ctx, model.pages, tiles.tiles_per_row * model.tile, 4,
-                                            _TILE_DTYPE[model.tile_mode], "atlas"))
+                                            TILE_DTYPE[model.tile_mode], "atlas"))
         self.tiles.filter = (moderngl.LINEAR, moderngl.LINEAR)  # sampled bilinear only within a tile
         self.coefs = self._keep(_page_array(ctx, model.coef_pages, rows.tiles_per_row * rows.cell_width, 1,
-                                            _COEF_DTYPE[model.coef_mode], "coefficient"))
+                                            COEF_DTYPE[model.coef_mode], "coefficient"))
         limit = max_texture_size(ctx)
         self.slots_per_row = 1 << int(np.log2(limit // 3))
         if max(model.num_slots, model.num_billboards) >= 1 << 24:

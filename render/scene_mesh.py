@@ -1,9 +1,11 @@
 """A synthetic scene drawn as its ground-truth meshes, object by object (the ``town`` culling case).
 
 The Edo townscape paper measures occlusion culling on tens of thousands of separate
-objects; :class:`SceneMeshRenderer` draws a :class:`data_synth.scene.Scene` that way.
-Triangles are sorted by object into one static, non-indexed vertex buffer (positions
-relative to an origin in float32, flat normals, one colour per object), so any run
+objects; :class:`SceneMeshRenderer` draws a :class:`data_synth.scene.Scene` that way (it
+reads the scene's arrays; the colours of its kinds of object come from the ground truth's
+one module in render, :func:`render.evaluate.object_colours`). Triangles are sorted by
+object into one static, non-indexed vertex buffer (positions relative to an origin in
+float32, flat normals, one colour per object), so any run
 of consecutive objects is one contiguous vertex span. Each batch of objects is one
 multi-draw-indirect call (one command per run of consecutive objects).
 
@@ -22,12 +24,10 @@ import time
 import moderngl
 import numpy as np
 
-from data_synth.scene import Kind, Scene
-
-from core.errors import InputError
-
 from .camera import ClipPlanes, GLCamera, gl_bytes, gl_camera
-from .culling import CULL_MODES, boxes_outside, classify_boxes, frustum_planes, indices_to_ranges, merge_ranges, ranges_to_indices
+from .culling import (boxes_outside, check_cull, classify_boxes, frustum_planes, indices_to_ranges, merge_ranges,
+                      ranges_to_indices)
+from .evaluate import object_colours
 from .hzb_culler import HzbConfig, HzbCuller
 from .occlusion import OcclusionConfig, OcclusionCuller
 from .program import load_program
@@ -35,21 +35,9 @@ from .resources import GpuOwner, release_all
 from .target import OffscreenTargets, background_rgb
 
 
-#: Base colour (RGB 0–255) per object kind; each object varies it by ±15 % from its seed.
-KIND_COLOURS = {Kind.GROUND: (110, 120, 95), Kind.ROAD: (70, 70, 75), Kind.SIDEWALK: (150, 145, 140),
-                Kind.BUILDING: (190, 160, 130), Kind.PILLAR: (170, 170, 165), Kind.POLE: (60, 60, 60),
-                Kind.BEAM: (120, 90, 60), Kind.HOUSE: (200, 175, 150)}
-
 COMMAND_BYTES = 20  # one indirect draw command as moderngl reads it
 
 VERTEX_DTYPE = np.dtype([("position", "<f4", 3), ("normal", "<f4", 3), ("colour", "u1", 4)])
-
-
-def object_colours(scene: Scene) -> np.ndarray:
-    """(k, 3) uint8 colour of each object: its kind's colour scaled by 0.85–1.15 from its seed."""
-    base = np.array([KIND_COLOURS.get(Kind(int(k)), (128, 128, 128)) for k in range(max(Kind) + 1)], np.float64)
-    scale = 0.85 + 0.3 * (scene.object_seed.astype(np.float64) % 1009) / 1008
-    return np.clip(base[scene.object_kind] * scale[:, None], 0, 255).astype(np.uint8)
 
 
 def group_order(box_min: np.ndarray, box_max: np.ndarray, cell: float | None) -> tuple[np.ndarray, np.ndarray]:
@@ -70,8 +58,18 @@ def group_order(box_min: np.ndarray, box_max: np.ndarray, cell: float | None) ->
     return order, group.astype(np.int64)
 
 
-def mesh_vertices(scene: Scene, origin, object_order=None) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices of ``scene`` sorted by object (in ``object_order``, default id order):
+def group_boxes(group: np.ndarray, box_min: np.ndarray,
+                box_max: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The runs of equal ``group`` (k,) int64 (non-decreasing) and the union of their boxes
+    ``box_min``, ``box_max`` (k, 3): (g,) int64 first position of each run, (g, 3) min, (g, 3) max."""
+    start = np.flatnonzero(np.r_[True, group[1:] != group[:-1]]) if len(group) else np.zeros(0, np.int64)
+    if not len(start):
+        return start, np.zeros((0, 3)), np.zeros((0, 3))
+    return start, np.minimum.reduceat(box_min, start), np.maximum.reduceat(box_max, start)
+
+
+def mesh_vertices(scene, origin, object_order=None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices of ``scene`` (a :class:`data_synth.scene.Scene`) sorted by object (in ``object_order``, default id order):
     ((3m,) :data:`VERTEX_DTYPE`, (k + 1,) int64 first vertex of the object at each position,
     the last entry = total). Positions relative to ``origin``."""
     k = scene.num_objects
@@ -96,7 +94,8 @@ class SceneMeshRenderer(GpuOwner):
     """Renders a scene's meshes from OpenCV cameras into (h, w, 3) uint8 images.
 
     origin: model origin (3,) float64 (default: the centre of the scene's bounds);
-    cull: one of :data:`CULL_MODES`; occlusion, hzb: the two occlusion cullers' settings;
+    scene: a :class:`data_synth.scene.Scene`;
+    cull: one of :data:`~render.culling.CULL_MODES`; occlusion, hzb: the two occlusion cullers' settings;
     group_cell: occlusion queries test groups of objects, one per ground grid cell of
     this edge (metres; None: every object alone). Each query costs a draw call, which
     on llvmpipe is ~15 µs, so a query per house costs more than drawing the houses.
@@ -105,18 +104,13 @@ class SceneMeshRenderer(GpuOwner):
     objects_drawn, triangles_drawn, draw_calls, queries, depth_reads and timings (seconds).
     """
 
-    def __init__(self, ctx: moderngl.Context, scene: Scene, cull: str = "frustum", origin=None,
+    def __init__(self, ctx: moderngl.Context, scene, cull: str = "frustum", origin=None,
                  clip: ClipPlanes = ClipPlanes(near=0.1, far=5000.0), background=(0.55, 0.7, 0.9),
                  occlusion: OcclusionConfig = OcclusionConfig(), group_cell: float | None = 60.0,
                  hzb: HzbConfig = HzbConfig()):
-        if cull not in CULL_MODES:
-            raise InputError(f"cull must be one of {CULL_MODES}, got {cull!r}")
-        self.ctx = ctx
-        self.scene = scene
-        self.cull = cull
-        self.occlusion = occlusion
-        self.hzb = hzb
-        self.clip = clip
+        self.cull = check_cull(cull)
+        self.occlusion, self.hzb = occlusion, hzb  # the two occlusion cullers' settings
+        self.ctx, self.scene, self.clip = ctx, scene, clip
         self.background = background_rgb(background)
         bounds = scene.object_bounds
         self.origin = (0.5 * (bounds[:, 0].min(0) + bounds[:, 1].max(0)) if origin is None
@@ -126,11 +120,8 @@ class SceneMeshRenderer(GpuOwner):
         self.box_min = bounds[self.object_at, 0] - self.origin
         self.box_max = bounds[self.object_at, 1] - self.origin
         vertices, self.first_vertex = mesh_vertices(scene, self.origin, self.object_at)
-        start = np.flatnonzero(np.r_[True, self.group_at[1:] != self.group_at[:-1]]) if len(self.group_at) \
-            else np.zeros(0, np.int64)
+        start, self.group_min, self.group_max = group_boxes(self.group_at, self.box_min, self.box_max)
         self.group_range = np.stack([start, np.r_[start[1:], len(self.group_at)]], axis=1).astype(np.int64)
-        self.group_min = np.minimum.reduceat(self.box_min, start) if len(start) else np.zeros((0, 3))
-        self.group_max = np.maximum.reduceat(self.box_max, start) if len(start) else np.zeros((0, 3))
         self.stats: dict = {}
         self._objects: list = []
         self._cullers: dict[tuple[int, int], OcclusionCuller | HzbCuller] = {}
@@ -226,9 +217,7 @@ class SceneMeshRenderer(GpuOwner):
                         self.ctx, *camera.size, mode=self.cull, config=self.occlusion)
                 # The culler's objects are the groups of the objects left: runs of `inside`.
                 group = self.group_at[inside]
-                start = np.flatnonzero(np.r_[True, group[1:] != group[:-1]]) if len(inside) else np.zeros(0, np.int64)
-                lo = np.minimum.reduceat(self.box_min[inside], start) if len(start) else np.zeros((0, 3))
-                hi = np.maximum.reduceat(self.box_max[inside], start) if len(start) else np.zeros((0, 3))
+                start, lo, hi = group_boxes(group, self.box_min[inside], self.box_max[inside])
                 runs = np.stack([start, np.r_[start[1:], len(inside)]], axis=1)
 
                 def draw_runs(ranges) -> None:  # runs of `inside` → object positions
@@ -254,9 +243,3 @@ class SceneMeshRenderer(GpuOwner):
         release_all(list(self._cullers.values()))
         self._cullers = {}
         super().release()
-
-    def __enter__(self) -> SceneMeshRenderer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()

@@ -112,7 +112,7 @@ def nearby_cameras(centre: np.ndarray, centres: np.ndarray, max_distance: float)
 def seen_in_dataset(depth: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, dataset, frames,
                     config: SeenConfig = SeenConfig()) -> np.ndarray:
     """(h, w) bool: pixels of a view (ground-truth depth (h, w), K, world_from_cam) whose
-    surface some capture camera of ``dataset`` (a :class:`data_synth.Dataset` with gt/)
+    surface some capture camera of ``dataset`` (a :class:`capture.dataset.Dataset` with gt/)
     saw, among every camera of ``frames`` whose centre lies within ``config.max_distance``
     of the view's. NaN depth (sky) is never seen."""
     cams = [(int(f), c) for f in frames for c in range(dataset.rig.num_cameras)]

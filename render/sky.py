@@ -17,21 +17,16 @@ import numpy as np
 from billboards.sky import Sky
 
 from .camera import check_intrinsics, check_pose
-from .program import load_program
-from .resources import GpuOwner
+from .screen_pass import ScreenPass
 
 
-class SkyPass(GpuOwner):
+class SkyPass(ScreenPass):
     """Draws ``sky`` into the bound framebuffer; :meth:`release` is idempotent."""
 
     def __init__(self, ctx: moderngl.Context, sky: Sky):
-        self.ctx = ctx
         self.sky: Sky | None = None
-        self.texture: moderngl.Texture | None = None
-        self._objects: list | None = []
+        super().__init__(ctx, "sky.glsl")
         try:
-            self.program = self._keep(load_program(ctx, "sky.glsl"))
-            self.vao = self._keep(ctx.vertex_array(self.program, []))
             self.set_sky(sky)
         except BaseException:
             self.release()
@@ -45,13 +40,7 @@ class SkyPass(GpuOwner):
             return
         rgba = np.ones((sky.bins, 4), np.float32)
         rgba[:, :3] = sky.colours
-        if self.texture is None or self.texture.size != (sky.bins, 1):
-            if self.texture is not None:
-                self.texture.release()
-                self.texture = None
-            self.texture = self.ctx.texture((sky.bins, 1), 4, dtype="f4")
-            self.texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.texture.write(rgba.tobytes())
+        self.texture_of_size((sky.bins, 1), 4, dtype="f4").write(rgba.tobytes())
         self.sky = sky
 
     def draw(self, K, world_from_cam, size) -> None:
@@ -72,21 +61,6 @@ class SkyPass(GpuOwner):
         self.texture.use(0)
         self.ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND | moderngl.CULL_FACE)
         self.vao.render(moderngl.TRIANGLES, vertices=3)
-
-    def release(self) -> None:
-        """Free the program, vertex array and texture (idempotent)."""
-        if self.released:
-            return
-        if self.texture is not None:
-            self.texture.release()
-            self.texture = None
-        super().release()
-
-    def __enter__(self) -> SkyPass:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()
 
 
 def render_over_sky(renderer, sky_pass: SkyPass | None, K, world_from_cam, size, visible=None) -> np.ndarray:

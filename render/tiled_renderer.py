@@ -36,17 +36,20 @@ import moderngl
 import numpy as np
 
 from billboards.model import BillboardModel
+from billboards.model_reader import read_manifest
 from billboards.model_set import ModelSet, ModelTile, quad_bounds
 
 from core.errors import InputError
 
 from .camera import ClipPlanes, camera_at_origin, gl_camera
 from .context import max_texture_size
-from .culling import CULL_MODES, boxes_outside, frustum_planes
+from .culling import boxes_outside, check_cull, frustum_planes
+from .gpu_bytes import renderer_gpu_bytes, tile_gpu_bound
 from .impostors import ImpostorStudio
-from .paging import FrameBudget, Motion, PagingConfig, TileLoader, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
+from .paging import FrameBudget, Motion, PagingConfig, TileLoader, tile_priorities
 from .program import ProgramCache
-from .renderer import DECODE_MODES, BillboardRenderer
+from .renderer import BillboardRenderer, check_decode
+from .resources import Releasable
 from .sky import SkyPass
 from .target import OffscreenTargets, background_rgb
 
@@ -85,8 +88,6 @@ class _SetExtent:
         info = dict(model_set.info)
         if "dataset" not in info and model_set.tiles:  # the build's record of its capture, from a tile
             try:
-                from billboards.model_reader import read_manifest
-
                 tile_info = read_manifest(model_set.tiles[0].path).info
                 info.update({k: tile_info[k] for k in ("dataset", "poses") if k in tile_info})
             except (OSError, ValueError):
@@ -129,7 +130,23 @@ class _Resident:
         self.bytes = 0
 
 
-class TiledRenderer:
+def _tile_setting(name: str) -> property:
+    """A bool setting of every resident tile's renderer, settable between frames (and given to
+    the tiles uploaded later)."""
+    own = "_" + name
+
+    def get(self) -> bool:
+        return getattr(self, own)
+
+    def set(self, value: bool) -> None:
+        setattr(self, own, bool(value))
+        for r in self.resident.values():
+            setattr(r.renderer, name, getattr(self, own))
+
+    return property(get, set)
+
+
+class TiledRenderer(Releasable):
     """Draws a :class:`~billboards.model_set.ModelSet` (or a plain model) from OpenCV cameras,
     paging its tiles under ``paging.gpu_budget``.
 
@@ -154,17 +171,11 @@ class TiledRenderer:
     def __init__(self, ctx: moderngl.Context, source, decode: str = "gpu", *, paging: PagingConfig = PagingConfig(),
                  sky=None, spherical: bool | None = None, interpolate: bool = True, linear: bool = True,
                  background=(0.0, 0.0, 0.0), clip: ClipPlanes = ClipPlanes(), cull: str = "frustum", lod=None):
-        if decode not in DECODE_MODES:
-            raise InputError(f"decode must be one of {DECODE_MODES}, got {decode!r}")
-        if cull not in CULL_MODES:
-            raise InputError(f"cull must be one of {CULL_MODES}, got {cull!r}")
+        self.decode = check_decode(decode)
+        self.cull = check_cull(cull)
         self.ctx = ctx
         self.model_set, preloaded = as_model_set(source)
-        self.decode = decode
-        self.paging = paging
-        self.clip = clip
-        self.cull = cull
-        self.lod = lod
+        self.paging, self.clip, self.lod = paging, clip, lod
         self.background = background_rgb(background)
         self._interpolate, self._linear = bool(interpolate), bool(linear)
         self._options = dict(spherical=spherical, background=self.background, clip=clip, cull=cull, lod=lod)
@@ -204,25 +215,8 @@ class TiledRenderer:
             raise
 
     # -- settings shared by every tile
-    @property
-    def interpolate(self) -> bool:
-        return self._interpolate
-
-    @interpolate.setter
-    def interpolate(self, value: bool) -> None:
-        self._interpolate = bool(value)
-        for r in self.resident.values():
-            r.renderer.interpolate = self._interpolate
-
-    @property
-    def linear(self) -> bool:
-        return self._linear
-
-    @linear.setter
-    def linear(self, value: bool) -> None:
-        self._linear = bool(value)
-        for r in self.resident.values():
-            r.renderer.linear = self._linear
+    interpolate = _tile_setting("interpolate")
+    linear = _tile_setting("linear")
 
     @property
     def num_billboards(self) -> int:
@@ -234,7 +228,7 @@ class TiledRenderer:
         return sum(r.bytes for r in self.resident.values())
 
     def gpu_reserved(self) -> int:
-        """Sum of the resident tiles' bounds (:func:`render.paging.tile_gpu_bound`)."""
+        """Sum of the resident tiles' bounds (:func:`render.gpu_bytes.tile_gpu_bound`)."""
         return sum(r.bound for r in self.resident.values())
 
     def _measure(self, i: int) -> int:
@@ -484,11 +478,3 @@ class TiledRenderer:
         self.programs.release()
         self.targets.release()
         self.loader.close()
-
-    def __enter__(self) -> TiledRenderer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()
-
-

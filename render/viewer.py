@@ -18,6 +18,7 @@ keys through the window's key-event handler, one per frame, on the way.
 
 from __future__ import annotations
 
+import io
 import logging
 import time
 from dataclasses import dataclass, field
@@ -26,13 +27,15 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import InputError
+from core.fileio import write_bytes
 
 from .camera import default_intrinsics, look_at
 from .hud import HudOverlay
 from .paths import drive_path_for
 from .culling import CULL_MODES
 from .lod import LodConfig
-from .paging import MB, PagingConfig, renderer_gpu_bytes
+from .gpu_bytes import renderer_gpu_bytes
+from .paging import MB, PagingConfig
 from .renderer import DECODE_MODES, BillboardRenderer
 from .sky import SkyPass
 from .target import OffscreenTargets
@@ -447,11 +450,7 @@ def image_format(path: Path | str) -> str:
 
 def save_image(path: Path | str, rgb: np.ndarray) -> Path:
     """Atomically write (h, w, 3) uint8 RGB in the format of ``path``'s suffix (PNG, JPEG, …)."""
-    import io
-
     from PIL import Image
-
-    from core.fileio import write_bytes
 
     fmt = image_format(path)
     buf = io.BytesIO()

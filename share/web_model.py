@@ -33,8 +33,8 @@ import numpy as np
 from core.errors import InputError
 from core.fileio import write_json
 from billboards.model import BillboardModel
+from billboards.model_set import model_quad_radius
 from billboards.slits import build_slits, pack_columns
-from render.culling import model_quad_radius
 from render.gpu_decode import BAND_ROWS, atlas_layout
 from render.resources import slot_table
 from render.view_brackets import storage_slots
