@@ -34,7 +34,7 @@ $(SYSDEPS_STAMP):
 
 $(INSTALL_STAMP): $(SYSDEPS_STAMP) pyproject.toml
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -e '.[dev,cluster]'
 	@touch $@
 
 demo: $(INSTALL_STAMP)

@@ -19,8 +19,10 @@ import numpy as np
 from core.errors import InputError
 from recon.work import Work
 
-from .bench import BenchConfig, Report
+from .bench_config import FRAME_SPACING, BenchConfig
 from .bench_pipeline import StageTime, stage_in_fresh_process
+from .bench_report import Report
+from .executor import executor_scope
 
 logger = logging.getLogger(__name__)
 
@@ -30,28 +32,17 @@ WALK_STEP = 0.5
 
 
 def city_street(cfg: BenchConfig, length: float, lazy: bool):
-    """The benchmark street of ``length`` m: 3 m between frames per pass, both lanes, the
-    default rig (half size when quick), cast on demand when ``lazy``."""
+    """The benchmark street of ``length`` m: :data:`~bbcity.bench_config.FRAME_SPACING` m between
+    frames per pass, both lanes, the default rig (half size when quick), cast on demand when ``lazy``."""
     from data_synth import StreetConfig, SynthConfig, frames_for_spacing
 
     return SynthConfig(street=StreetConfig(length=float(length)), rig=cfg.rig(),
-                       frames=frames_for_spacing(float(length), 3.0), spp=1 if cfg.quick else 2,
-                       ground_truth_depth=not lazy, lazy=lazy)
-
-
-def _synthesis(synth, dataset: Path, workers: int) -> None:
-    from data_synth import write_dataset
-
-    from .executor import executor_scope
-
-    with executor_scope(workers) as ex:
-        write_dataset(synth, dataset, executor=ex, progress=False)
+                       frames=frames_for_spacing(float(length), FRAME_SPACING),
+                       spp=1 if cfg.quick else SynthConfig.spp, ground_truth_depth=not lazy, lazy=lazy)
 
 
 def _reconstruction(dataset: Path, work: Path, workers: int) -> dict:
     from recon.pipeline import ReconConfig, main as recon_main
-
-    from .executor import executor_scope
 
     with executor_scope(workers) as ex:
         recon_main(ReconConfig(evaluate=False), dataset, work, executor=ex, progress=False)
@@ -60,8 +51,6 @@ def _reconstruction(dataset: Path, work: Path, workers: int) -> dict:
 
 def _build(work: Path, dataset: Path, model: Path, workers: int) -> dict:
     from billboards.build import BuildConfig, main as build_main
-
-    from .executor import executor_scope
 
     with executor_scope(workers) as ex:
         result = build_main(BuildConfig(tile_metres=TILE_METRES), work / "cloud.ply", dataset, model, executor=ex,
@@ -96,7 +85,7 @@ def run_city(cfg: BenchConfig, length: float, out: Path) -> dict:
     every stage's time and peak memory, and the viewer's walk."""
     dataset, work, model = out / "street", out / "work", out / "model"
     synth = city_street(cfg, length, cfg.city_lazy)
-    t_synth, _ = stage_in_fresh_process(_synthesis, synth, dataset, cfg.workers)
+    t_synth, _ = stage_in_fresh_process("synthesis", synth, dataset, cfg.workers)
     t_recon, recon = stage_in_fresh_process(_reconstruction, dataset, work, cfg.workers)
     t_build, build = stage_in_fresh_process(_build, work, dataset, model, cfg.workers)
     size = (640, 360) if cfg.quick else (1280, 720)
@@ -128,9 +117,11 @@ def added_metre_seconds(lengths, seconds) -> np.ndarray:
     return (sec[1:] - sec[0]) / added
 
 
-def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, ...] = (1, 4, 16)) -> list[dict]:
-    """The city-scale section: :func:`run_city` at each scale of ``cfg.street_length``, a row per
-    scale and a row of the spread (max / min over the scales) of each memory figure."""
+def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, ...] | None = None) -> list[dict]:
+    """The city-scale section: :func:`run_city` at each scale (default ``cfg.city_scales``) of
+    ``cfg.street_length``, a row per scale and a row of the spread (max / min over the scales) of
+    each memory figure."""
+    scales = cfg.city_scales if scales is None else scales
     runs = []
     for scale in scales:
         run = run_city(cfg, cfg.street_length * scale, out / f"city_{scale}x")
@@ -165,8 +156,8 @@ def bench_city(cfg: BenchConfig, report: Report, out: Path, scales: tuple[int, .
     images = ("cast on demand (lazy datasets; cast images kept in their bounded cache, data_synth.lazy_cache)"
               if cfg.city_lazy else "images stored")
     report.notes["City scale"] = (
-        f"Streets of {', '.join(f'{s}×' for s in scales)} {cfg.street_length:g} m, 3 m between frames, both lanes, "
-        f"{images}; recon (no evaluation) writes the cloud "
+        f"Streets of {', '.join(f'{s}×' for s in scales)} {cfg.street_length:g} m, {FRAME_SPACING:g} m between "
+        f"frames, both lanes, {images}; recon (no evaluation) writes the cloud "
         f"tile by tile, the build makes {TILE_METRES:g} m tiles one at a time, the viewer walks the drive path "
         f"{WALK_STEP:g} m a frame under a {cfg.city_gpu_budget_mb} MB GPU budget. Each stage in a fresh process, "
         f"{cfg.workers} workers; peak MB of the stage's process and of its largest worker; time per metre from "

@@ -14,7 +14,10 @@ import statistics
 import time
 from pathlib import Path
 
-from .bench import BenchConfig, Report
+from .bench_config import BenchConfig
+from .bench_pipeline import street_config
+from .bench_report import Report
+from .executor import executor_scope
 
 logger = logging.getLogger(__name__)
 
@@ -29,8 +32,6 @@ def _run(kind: str, workers: int, dataset: Path, root: Path) -> tuple[float, flo
     of each, its executor's start and stop included."""
     from billboards.build import BuildConfig, main as build_main
     from recon.pipeline import ReconConfig, main as recon_main
-
-    from .executor import executor_scope
 
     t0 = time.perf_counter()
     with executor_scope(workers, kind=kind) as ex:
@@ -53,9 +54,6 @@ def bench_executor(cfg: BenchConfig, report: Report, out: Path) -> None:
     :data:`KINDS` (``cfg.workers`` workers, median of ``cfg.repeats``), the ratio of their
     speeds, and whether their outputs are byte-identical."""
     from data_synth import write_dataset
-
-    from .bench_pipeline import street_config
-    from .executor import executor_scope
 
     root = Path(out) / "executor"
     dataset = root / "street"

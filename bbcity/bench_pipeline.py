@@ -24,9 +24,14 @@ import numpy as np
 from core.memory import child_pids, rss_bytes
 from recon.work import Work
 
-from .bench import BenchConfig, Report
+from .bench_config import FRAME_SPACING, BenchConfig
+from .bench_report import Report
+from .executor import executor_scope
 
 logger = logging.getLogger(__name__)
+
+#: The 1× build holds every HOLDOUT-th frame out of its textures, for the novel-view section.
+HOLDOUT = 4
 
 
 @dataclass
@@ -79,8 +84,6 @@ def _run_stage(stage, args: tuple) -> dict:
 def _synthesis(synth, dataset: Path, workers: int):
     from data_synth import write_dataset
 
-    from .executor import executor_scope
-
     with executor_scope(workers) as ex:
         write_dataset(synth, dataset, executor=ex, progress=False)
 
@@ -88,16 +91,12 @@ def _synthesis(synth, dataset: Path, workers: int):
 def _reconstruction(dataset: Path, work: Path, workers: int):
     from recon.pipeline import ReconConfig, main as recon_main
 
-    from .executor import executor_scope
-
     with executor_scope(workers) as ex:
         recon_main(ReconConfig(), dataset, work, executor=ex, progress=False)
 
 
 def _build(work: Path, dataset: Path, model: Path, workers: int, holdout: int):
     from billboards.build import BuildConfig, main as build_main
-
-    from .executor import executor_scope
 
     with executor_scope(workers) as ex:
         build_main(BuildConfig(holdout=holdout), work / "cloud.ply", dataset, model, executor=ex)
@@ -134,13 +133,13 @@ class PipelineRun:
 
 
 def street_config(cfg: BenchConfig, length: float):
-    """The benchmark street: ``length`` m at the default frame spacing (3 m per frame and pass),
-    seen by :meth:`BenchConfig.rig` (the default rig; half its resolution when quick)."""
+    """The benchmark street: ``length`` m, :data:`~bbcity.bench_config.FRAME_SPACING` m per frame and
+    pass, seen by :meth:`BenchConfig.rig` (the default rig; half its resolution when quick)."""
     from data_synth import StreetConfig, SynthConfig
 
-    frames = max(3, int(round(length / 3.0)))
+    frames = max(3, int(round(length / FRAME_SPACING)))
     return SynthConfig(street=StreetConfig(length=float(length)), rig=cfg.rig(), frames=frames,
-                       spp=1 if cfg.quick else 2)
+                       spp=1 if cfg.quick else SynthConfig.spp)
 
 
 def run_pipeline(cfg: BenchConfig, length: float, out: Path, holdout: int = 0) -> PipelineRun:
@@ -227,12 +226,12 @@ def model_load(model_dir: Path) -> tuple[float, float]:
 
 def bench_pipeline(cfg: BenchConfig, report: Report, out: Path) -> PipelineRun:
     """Stage table at 1× (kept for the later sections) and the scaling runs at 2× and 4×.
-    Returns the 1× run (built with every 4th frame held out for the novel-view section)."""
+    Returns the 1× run (built with every :data:`HOLDOUT`-th frame held out for the novel-view section)."""
     base = cfg.street_length
     runs = []
     for scale in cfg.scales:
         root = out / f"pipeline_{scale}x"
-        run = run_pipeline(cfg, base * scale, root, holdout=4 if scale == cfg.scales[0] else 0)
+        run = run_pipeline(cfg, base * scale, root, holdout=HOLDOUT if scale == cfg.scales[0] else 0)
         runs.append((scale, run))
         if scale == cfg.scales[0]:
             for r in run.rows:
@@ -241,10 +240,10 @@ def bench_pipeline(cfg: BenchConfig, report: Report, out: Path) -> PipelineRun:
     report.notes["Pipeline stages"] = (
         f"A {base:g} m street seen by the default rig at {rig.width}×{rig.height} ({rig.hfov_deg:g}° horizontal "
         f"field of view, pitched up {rig.pitch_deg:g}°), "
-        f"3 m between frames, both lanes, {cfg.workers} worker processes. Each stage runs in a fresh process "
-        "(its start-up, 2–3 s of imports, is in the wall time); CPU s and peak MB are that process's and its "
+        f"{FRAME_SPACING:g} m between frames, both lanes, {cfg.workers} worker processes. Each stage runs in a "
+        "fresh process (its start-up, 2–3 s of imports, is in the wall time); CPU s and peak MB are that process's and its "
         "workers'. Indented stages come from the stage reports (worker CPU where noted). The build holds every "
-        "4th frame out of the textures for the novel-view section.")
+        f"{HOLDOUT}th frame out of the textures for the novel-view section.")
     first = runs[0][1]
     for scale, run in runs:
         totals = {r["stage"]: r for r in run.rows}

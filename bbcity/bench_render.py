@@ -19,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench import BenchConfig, Report
+from .bench_config import BenchConfig
+from .bench_report import Report
+from .executor import executor_scope
 
 logger = logging.getLogger(__name__)
 
@@ -206,8 +208,6 @@ def bench_novel_views(cfg: BenchConfig, report: Report, dataset: Path, work: Pat
     from billboards.sky import read_sky
     from render.eval_report import work_precision_plot
     from render.evaluate import EvalConfig, evaluate_views
-
-    from .executor import executor_scope
 
     model = load(model_dir)
     full_dir = out / "model_uncompressed"

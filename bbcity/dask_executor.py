@@ -41,7 +41,8 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from core.errors import InputError
 
-from .executor import _call_in_worker, tune_allocator
+from .executor_config import DEFAULT_RETRIES
+from .worker import call_in_worker, tune_allocator
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +78,7 @@ class _Raised:
 def _run_task(fn, args, kwargs):
     """A task on a worker: ``fn(*args, **kwargs)``, with bad input returned as a :class:`_Raised`."""
     try:
-        return _call_in_worker(fn, args, kwargs)
+        return call_in_worker(fn, args, kwargs)
     except NOT_RETRIED as e:
         return _Raised(e, traceback.format_exc())
 
@@ -183,7 +184,7 @@ class DaskExecutor(Executor):
     read by ``core.tasks.executor_workers`` to keep that many tasks in flight.
     """
 
-    def __init__(self, client: distributed.Client, cluster=None, retries: int = 2):
+    def __init__(self, client: distributed.Client, cluster=None, retries: int = DEFAULT_RETRIES):
         if retries < 0:
             raise InputError(f"retries must be at least 0, got {retries}")
         self.client = client
@@ -200,7 +201,7 @@ class DaskExecutor(Executor):
     # --- construction ---------------------------------------------------------------------
 
     @classmethod
-    def embedded(cls, workers: int, retries: int = 2) -> "DaskExecutor":
+    def embedded(cls, workers: int, retries: int = DEFAULT_RETRIES) -> "DaskExecutor":
         """A ``LocalCluster`` of ``workers`` processes with one thread each on this machine,
         no dashboard, logging warnings only. The workers start with Ctrl-C blocked (a signal
         mask survives exec; the command stops them) and exit when this process dies."""
@@ -235,7 +236,7 @@ class DaskExecutor(Executor):
         return executor
 
     @classmethod
-    def connect(cls, address: str, retries: int = 2) -> "DaskExecutor":
+    def connect(cls, address: str, retries: int = DEFAULT_RETRIES) -> "DaskExecutor":
         """A client of the running scheduler at ``address`` (``tcp://host:8786``). ConnectionError
         when none answers; a warning when it has no workers yet (tasks wait for them)."""
         quiet_logs()

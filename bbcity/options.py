@@ -227,7 +227,7 @@ def size_action(bytes_per_pixel: int):
             w, h = values
             try:
                 check_memory(w * h * bytes_per_pixel, f"{w}x{h}")
-            except ValueError as e:
+            except InputError as e:
                 raise argparse.ArgumentError(self, str(e)) from None
             setattr(namespace, self.dest, tuple(values))
     return SizeAction
@@ -252,9 +252,15 @@ def build_bytes(tile: int, directions: int, chunk: int, workers: int, fit_quads:
 
 class CommandParser(argparse.ArgumentParser):
     """A subcommand's parser that also runs its ``check_options`` default on the parsed options:
-    a function of the namespace raising ValueError for a combination of values (a tile
-    larger than the atlas page, a size the memory cannot hold), reported like any other
-    bad option (a usage line, exit 2) before the command starts."""
+    a function of the namespace raising :class:`~core.errors.InputError` for a combination of
+    values (a tile larger than the atlas page, a size the memory cannot hold), reported like any
+    other bad option (a usage line, exit 2) before the command starts.
+
+    A description is one paragraph, written as prose across lines of the source: its runs of
+    whitespace are single spaces, as the help prints it."""
+
+    def __init__(self, *args, description: str | None = None, **kwargs):
+        super().__init__(*args, description=None if description is None else " ".join(description.split()), **kwargs)
 
     def parse_known_args(self, args=None, namespace=None):
         namespace, extras = super().parse_known_args(args, namespace)
@@ -262,6 +268,6 @@ class CommandParser(argparse.ArgumentParser):
         if check is not None:
             try:
                 check(namespace)
-            except ValueError as e:
+            except InputError as e:
                 self.error(str(e))
         return namespace, extras

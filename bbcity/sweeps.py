@@ -15,14 +15,17 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.dataset import load_dataset
 from core.errors import InputError
 from core.fileio import atomic_path, write_bytes, write_json
-from data_synth import load_dataset
 
 logger = logging.getLogger(__name__)
 
 
 PIPELINE_SETTING = "accurate (preset, recon's default)"
+
+#: Frames the stereo sweep evaluates, spread along the path.
+STEREO_FRAMES = 4
 
 
 def stereo_settings() -> dict:
@@ -43,7 +46,7 @@ def stereo_settings() -> dict:
     }
 
 
-def stereo_sweep(dataset_dir: Path, out_dir: Path, num_frames: int = 4) -> dict:
+def stereo_sweep(dataset_dir: Path, out_dir: Path, num_frames: int = STEREO_FRAMES) -> dict:
     """Run the sweep; write ``stereo_sweep.json``, ``stereo_sweep.md`` and ``stereo_sweep.png``."""
     from recon.rectify import rectify_rig
     from recon.trinocular import TrinocularConfig, evaluate_depth, frame_depth, fuse_depths
@@ -131,6 +134,11 @@ def _plot(rows: list[dict], path: Path) -> None:
 
 # --------------------------------------------------------------------------- textures
 
+#: Billboards the texture sweep samples, and the texel sizes it compares (the build's is always among them).
+TEXTURE_COUNT = 1024
+TEXTURE_TILES = (8, 16, 32)
+
+
 def texture_settings() -> dict:
     """Named PcaConfig variants: fixed ranks, contribution ratios and error bounds."""
     from billboards.pca import PcaConfig
@@ -152,8 +160,8 @@ def _chunk_bytes(arrays: dict) -> int:
                                               "coef_offset")) + per_billboard * len(arrays["rank"]))
 
 
-def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, count: int = 1024,
-                  tiles: tuple[int, ...] = (8, 16, 32), source: str = "images") -> dict:
+def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, count: int = TEXTURE_COUNT,
+                  tiles: tuple[int, ...] = TEXTURE_TILES, source: str = "images") -> dict:
     """Bytes, decode PSNR and build time over PCA rank rules, texel sizes and quantisation.
 
     Samples ``count`` neighbouring billboards from the middle of the street once per
@@ -162,9 +170,11 @@ def texture_sweep(cloud_path: Path, dataset_dir: Path | None, out_dir: Path, cou
     defaults at the other sizes). Writes ``texture_sweep.json``, ``texture_sweep.md``
     and ``texture_sweep.png``.
     """
-    from billboards.build import BuildConfig, compress_chunk, place_billboards
+    from billboards.build_config import BuildConfig
+    from billboards.compress import compress_chunk
     from billboards.octree import build_octree
-    from billboards.sampling import views_from_dataset
+    from billboards.placement import place_billboards
+    from billboards.views import views_from_dataset
     from recon.cloud_io import read_cloud_arrays
 
     base = BuildConfig(error_stride=1)

@@ -21,8 +21,6 @@ Public API:
 - rendering: ``Renderer(scene)``, ``truth_view(scene, K, world_from_cam, size)``.
 """
 
-from capture.dataset import Dataset, load_dataset, read_image  # TEMPORARY re-export
-from capture.rig import Rig  # TEMPORARY re-export
 
 from .config import SynthConfig, build_scene, frames_for_spacing
 from .dataset import load_scene, write_dataset
@@ -39,4 +37,3 @@ __all__ = [
     "TownConfig", "build_scene", "build_street", "build_town", "frames_for_spacing", "load_scene", "make_rig",
     "scene_digest", "scene_section", "section_reference", "truth_view", "write_dataset",
 ]
-__all__ += ["Dataset", "Rig", "load_dataset", "read_image"]  # TEMPORARY re-export

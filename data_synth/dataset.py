@@ -30,7 +30,6 @@ import open3d as o3d
 
 from capture.colmap import write_colmap_text
 from capture.dataset import DATASET_FORMAT, FORMAT_VERSION
-from capture.dataset import held_out_frames  # TEMPORARY re-export
 from capture.poses import save_poses
 from capture.rig import Rig
 from core.fileio import DataFormatError, atomic_path, read_json, save_npy, write_json, write_png
@@ -38,7 +37,6 @@ from core.tasks import run_tasks
 from core.workdir import sweep_temporaries, temporary
 
 from .config import SynthConfig, build_scene, capture_path, config_json
-from .config import MAX_SPP, ORBIT_CLEARANCE_M, PATHS  # TEMPORARY re-export
 from .coverage import street_coverage
 from .lazy import LAZY_IMAGES, TILE_M, LazyImages, view_reach
 from .rig import make_rig

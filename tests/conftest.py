@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from data_synth import RigConfig, StreetConfig, SynthConfig, load_dataset, write_dataset
+from capture import load_dataset
+from data_synth import RigConfig, StreetConfig, SynthConfig, write_dataset
 
 
 #: A small landscape rig (the geometry of the pre-portrait default: 75° hfov, pitched up 10°)

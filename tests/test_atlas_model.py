@@ -19,7 +19,7 @@ from core.fileio import DataFormatError
 
 from . import fuzzing
 
-from billboards import model as bm
+from billboards import model_format as bm
 from billboards import model_reader, model_writer
 from billboards.atlas import (AtlasWriter, RowWriter, atlas_layout, pack_rows, pack_tiles, read_rows, read_tiles,
                               row_layout, row_location, tile_location)

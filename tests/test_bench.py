@@ -8,8 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from bbcity.bench import BenchConfig, Report, run_bench
+from bbcity.bench import run_bench
 from bbcity.bench_city import added_metre_seconds
+from bbcity.bench_config import BenchConfig
+from bbcity.bench_report import Report
 
 
 def test_report_writes_nan_as_null_and_markdown_as_na(tmp_path):

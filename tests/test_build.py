@@ -15,7 +15,7 @@ from billboards.geometry import DirectionConfig
 from billboards.octree import OctreeConfig
 from billboards.pca import PcaConfig
 from billboards.sampling import SamplingConfig
-from data_synth import load_dataset
+from capture import load_dataset
 from recon.cloud_io import PlyStreamWriter
 
 from .conftest import write_ground_truth_cloud
@@ -76,10 +76,10 @@ def test_model_loads_and_the_report_adds_up(tiny_model):
 def test_decoded_model_matches_a_fresh_sampling(tiny_dataset, tiny_cloud, tiny_model):
     """Decode every direction of some billboards from the saved model and compare with the
     raw samples the builder compressed (re-sampled here with the same settings)."""
-    from billboards.build import place_billboards
+    from billboards.placement import place_billboards
     from billboards.octree import build_octree
     from billboards.prune import drawn_quads
-    from billboards.sampling import views_from_dataset
+    from billboards.views import views_from_dataset
     from recon.cloud_io import read_cloud_arrays
 
     conf = small_config()
@@ -234,7 +234,7 @@ def test_city_coordinates_give_the_same_model(tiny_dataset, tiny_cloud, tiny_mod
 
 def test_metrics_on_known_images():
     from core.metrics import psnr, ssim
-    from render.evaluate import off_path
+    from render.eval_views import off_path
 
     a = np.full((20, 30, 3), 100, np.uint8)
     b = a.copy()

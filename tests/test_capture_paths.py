@@ -13,8 +13,9 @@ from scipy.spatial import cKDTree
 
 import billboards as billboard_model
 from billboards.build import main as build_main
-from billboards.sampling import views_from_dataset
-from data_synth import RigConfig, load_dataset, write_dataset
+from billboards.views import views_from_dataset
+from capture import load_dataset
+from data_synth import RigConfig, write_dataset
 from recon.cloud_io import read_cloud_arrays
 
 from .conftest import SMALL_RIG, tiny_config, write_ground_truth_cloud
@@ -66,7 +67,7 @@ def test_a_model_of_a_fisheye_street_has_the_pinhole_streets_textures(fisheye_da
     """Same street, same cloud, same poses: the billboards of the fisheye capture are those of the
     pinhole capture (the undistorted images are the pinhole images up to resampling), and far
     closer to them than textures sampled from the raw fisheye images with the pinhole K."""
-    from billboards.build import place_billboards
+    from billboards.placement import place_billboards
     from billboards.octree import build_octree
 
     conf = small_config()
@@ -110,7 +111,7 @@ def test_a_model_of_a_fisheye_street_has_the_pinhole_streets_textures(fisheye_da
 def test_sfm_features_of_a_distorted_rig_use_the_raw_lens(fisheye_dataset, tiny_dataset, tmp_path):
     """SIFT runs on the raw image files: the cameras COLMAP gets are the raw ones (K and lens),
     not the undistorted pinholes; a pinhole rig keeps PINHOLE with its K."""
-    import pycolmap
+    from capture.native import pycolmap
 
     from recon.sfm import SfmConfig, _extract
 
@@ -166,7 +167,7 @@ def _copy_capture(src, dst, world_from_rig=None):
     (n, 4, 4) replaces its poses (NaN: unknown)."""
     import shutil
 
-    from data_synth.rig import save_poses
+    from capture import save_poses
     from recon.poses import frame_passes
 
     dst.mkdir()
@@ -183,7 +184,7 @@ def _work(root, dataset, cloud, poses=None):
     when given, the poses recon used (``WORK/poses.json``)."""
     import shutil
 
-    from data_synth.rig import save_poses
+    from capture import save_poses
 
     root.mkdir()
     shutil.copy(cloud, root / "cloud.ply")
@@ -260,7 +261,7 @@ def test_eval_of_a_photo_dataset_uses_the_models_poses(photo_models, tmp_path):
 
 def test_replacement_poses_must_name_the_datasets_frames(photo_models, tmp_path):
     from core import DataFormatError
-    from data_synth.rig import save_poses
+    from capture import save_poses
 
     datasets, works, _ = photo_models
     ds = load_dataset(datasets["photos"], poses=works["photos"] / "poses.json")
@@ -291,7 +292,7 @@ def test_unknown_poses_and_poses_given_fail_with_one_clear_error(photo_models, t
 def test_recon_writes_the_poses_it_used(tiny_dataset, tmp_path):
     """Poses not the dataset's own (here: its COLMAP model) are written to WORK/poses.json and
     named in the report; given poses write none (and remove an earlier run's)."""
-    from data_synth.rig import load_poses
+    from capture import load_poses
     from recon.fusion import FusionConfig
     from recon.pipeline import ReconConfig, main as recon_main
 

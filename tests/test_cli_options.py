@@ -207,7 +207,7 @@ def test_configs_refuse_what_the_options_refuse():
     from billboards.sampling import SamplingConfig
     from data_synth import RigConfig, StreetConfig, TownConfig
     from recon.fusion import FusionConfig
-    from render.evaluate import EvalConfig
+    from render.eval_config import EvalConfig
 
     for make in (lambda: RigConfig(width=True), lambda: RigConfig(height=False), lambda: SamplingConfig(tile=True),
                  lambda: EvalConfig(size=(True, 8)), lambda: EvalConfig(views=True),

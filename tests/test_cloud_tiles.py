@@ -132,7 +132,8 @@ def test_the_merge_leaves_no_tile_files(tiny_dataset, tmp_path):
 
 
 def test_evaluation_tile_by_tile_matches_the_whole_cloud(tiled_work, tiny_dataset, monkeypatch):
-    from data_synth import load_dataset, load_scene
+    from capture import load_dataset
+    from data_synth import load_scene
     from recon.evaluate import ACCURACY_BIN, evaluate_cloud, evaluate_cloud_tiles
 
     ds, scene = load_dataset(tiny_dataset), load_scene(tiny_dataset)

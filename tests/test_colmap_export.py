@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 import pytest
 
-from data_synth.colmap_export import write_colmap_text
+from capture.colmap import write_colmap_text
+from capture.native import pycolmap
 
 C = 3
 W, H = 640, 480

@@ -12,7 +12,8 @@ import pytest
 
 from core import DataFormatError
 from core.fileio import atomic_path, load_npy, read_png, save_npy, write_png
-from data_synth import load_dataset, write_dataset
+from capture import load_dataset
+from data_synth import write_dataset
 
 from .conftest import tiny_config
 

@@ -12,9 +12,10 @@ import pytest
 
 from core import DataFormatError
 from core.fileio import read_png
-from data_synth import Rig, RigConfig, load_dataset, load_scene, make_rig, write_dataset
-from data_synth.distortion import (PRESETS, Distortion, cached_tables, distort, distort_reference, pinhole_for,
-                                   undistort, undistort_maps, undistort_maps_reference)
+from capture import Rig, load_dataset
+from capture.distortion import (PRESETS, Distortion, cached_tables, distort, distort_reference, pinhole_for,
+                                undistort, undistort_maps, undistort_maps_reference)
+from data_synth import RigConfig, load_scene, make_rig, write_dataset
 from data_synth.raycast import Renderer
 
 from .conftest import SMALL_RIG, tiny_config
@@ -253,7 +254,7 @@ def test_a_strong_radtan_lens_renders_and_undistorts_in_line(distorted_datasets)
 
 
 def test_colmap_export_writes_the_raw_cameras_lens(distorted_datasets):
-    import pycolmap
+    from capture.native import pycolmap
 
     for model, colmap_model in (("radtan", "OPENCV"), ("fisheye", "OPENCV_FISHEYE")):
         ds = load_dataset(distorted_datasets[model])
@@ -281,7 +282,7 @@ def test_cli_synth_takes_a_lens(tmp_path):
 
 def test_pinhole_dataset_config_has_no_lens_key(tmp_path):
     # pinhole datasets keep the bytes (and resumability) they had before lenses existed
-    from data_synth.dataset import _config_json
+    from data_synth.config import config_json as _config_json
 
     assert "distortion" not in _config_json(tiny_config())["rig"]
     assert _config_json(tiny_config(rig=RigConfig(**SMALL_RIG, distortion="radtan")))["rig"]["distortion"] == "radtan"

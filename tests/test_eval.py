@@ -103,7 +103,7 @@ def test_poisson_mesh_of_a_wall_shows_its_colours():
 
 def test_work_precision_plot_and_markdown(tmp_path):
     from render.eval_report import markdown, work_precision_plot
-    from render.evaluate import work_precision_points
+    from render.eval_scores import work_precision_points
 
     summary = {f"{m}, {w}": {"psnr": 20.0, "psnr_geometry": 21.0, "psnr_seen": p + (w == "off path") * -2,
                              "ssim": 0.5, "ssim_geometry": 0.5, "ssim_seen": 0.6, "seen_fraction": 0.8}
@@ -137,8 +137,9 @@ def street(tmp_path_factory):
 
 
 def test_seen_pixels_of_held_out_views(street):
-    from data_synth import load_dataset, load_scene, truth_view
-    from render.evaluate import off_path
+    from capture import load_dataset
+    from data_synth import load_scene, truth_view
+    from render.eval_views import off_path
     from render.seen import SeenConfig, seen_in_dataset
 
     dataset, _, _ = street

@@ -54,3 +54,15 @@ def test_executor_workers_counts_what_runs_at_once():
     assert executor_workers(SerialExecutor()) == 1
     with make_executor(3) as pool, ThreadPoolExecutor(2) as threads:
         assert (executor_workers(pool), executor_workers(threads)) == (3, 2)
+
+
+def test_dask_executor_without_dask_is_one_line_naming_the_extra(monkeypatch):
+    """Dask is an optional extra: without it, --executor dask is bad input naming how to install it."""
+    import sys
+
+    from core.errors import InputError
+
+    monkeypatch.delitem(sys.modules, "bbcity.dask_executor", raising=False)
+    monkeypatch.setitem(sys.modules, "distributed", None)  # an import of it fails
+    with pytest.raises(InputError, match=r"distributed is not installed.*bbcity\[cluster\]"):
+        make_executor(2, kind="dask")

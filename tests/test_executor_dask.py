@@ -17,7 +17,8 @@ pytest.importorskip("distributed")
 from core import DataFormatError
 from core.tasks import executor_workers, ordered_results, run_tasks, settled
 from bbcity.cli import main as run_cli
-from bbcity.executor import ExecutorConfig, executor_scope, make_executor
+from bbcity.executor import executor_scope, make_executor
+from bbcity.executor_config import ExecutorConfig
 
 from .test_robustness_processes import Run, bbcity, damaged_copy, one_error_line, wait_gone
 

@@ -7,13 +7,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from billboards.build import BuildConfig, main as build_main, place_hybrid
+from billboards.build import BuildConfig, main as build_main
 from billboards.geometry import BILLBOARD, FACADE, GROUND, DirectionConfig, kind_frames
 from billboards.layer import LayerConfig, build_layer, facade_columns, plane_max, plane_max_reference
 from billboards.octree import OctreeConfig
 from billboards.pca import PcaConfig
-from billboards.sampling import SamplingConfig, close_holes, close_holes_reference
-from data_synth import StreetConfig, load_dataset, load_scene, write_dataset
+from billboards.placement import place_hybrid
+from billboards.sampling import SamplingConfig
+from billboards.texels import close_holes, close_holes_reference
+from capture import load_dataset
+from data_synth import StreetConfig, load_scene, write_dataset
 from recon.epi import EpiConfig, EpiPass, epi_points, hough_votes, hough_votes_reference, split_passes
 
 from .conftest import tiny_config, write_ground_truth_cloud
@@ -422,7 +425,7 @@ def test_the_shader_draws_ground_blocks_with_the_overlap_culling_assumes():
 def test_side_walls_on_a_street_stand_on_the_ground_truth_walls_facing_out(layer_street, layer_cloud):
     """The street's building ends that its passes see obliquely become side-wall slits: each
     block on a building's side face, with open air in front of it and the building behind."""
-    from billboards.sampling import views_from_dataset
+    from billboards.views import views_from_dataset
     from data_synth.scene import Kind
     from recon.cloud_io import read_cloud_arrays
 

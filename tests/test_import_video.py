@@ -14,7 +14,7 @@ import pytest
 
 from bbcity.cli import main
 from core import DataFormatError
-from data_synth import load_dataset
+from capture import load_dataset
 from recon.importers.video import VideoConfig, import_video, sharp_enough, slot_window
 
 W, H, FPS = 96, 64, 12

@@ -14,15 +14,14 @@ from PIL.TiffImagePlugin import IFDRational
 
 
 from core import DataFormatError
-from data_synth import RigConfig, StreetConfig, load_dataset, write_dataset
-from data_synth.colmap_export import write_colmap_text
-from data_synth.rig import load_poses, save_poses
+from capture import load_dataset, load_poses, save_poses
+from capture.colmap import write_colmap_text
+from capture.native import pycolmap
+from data_synth import RigConfig, StreetConfig, write_dataset
 from recon.importers.colmap import camera_from_colmap, import_colmap, colmap_pinhole_maps
 from recon.importers.kitti import KittiConfig, import_kitti
 from recon.importers.photos import PhotosConfig, exif_focal_px, import_photos, read_intrinsics
 from recon.trajectory import align_trajectory, level_from_world, up_direction
-
-import pycolmap  # noqa: E402  (after data_synth: OpenCV before pycolmap, see recon.sfm)
 
 from .conftest import SMALL_RIG, tiny_config
 

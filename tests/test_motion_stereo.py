@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from data_synth import RigConfig, write_dataset
-from data_synth.rig import drive_path, make_rig, pinhole
+from capture.rig import pinhole
+from data_synth.rig import drive_path, make_rig
 from recon.fusion import FusionConfig
 from recon.motion_stereo import (MotionStereoConfig, motion_depth, pair_geometry, relative_pose, select_partners,
                                  view_overlap)
@@ -298,7 +299,7 @@ def test_one_camera_street_end_to_end(tmp_path):
 
 def test_synth_cameras_option(tmp_path):
     from bbcity.cli import main as cli_main
-    from data_synth import load_dataset
+    from capture import load_dataset
 
     for n in (1, 2):
         out = tmp_path / f"s{n}"

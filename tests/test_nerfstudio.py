@@ -12,8 +12,8 @@ import pytest
 from PIL import Image as PILImage
 
 from bbcity.cli import main
-from data_synth import RigConfig, load_dataset, write_dataset
-from data_synth.rig import load_poses, save_poses
+from capture import load_dataset, load_poses, save_poses
+from data_synth import RigConfig, write_dataset
 from recon.importers.nerfstudio import NerfstudioImportConfig, import_nerfstudio
 from recon.importers.nerfstudio_export import NerfstudioExportConfig, export_nerfstudio
 

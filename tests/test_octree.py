@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import billboards.octree as octree_mod
-from billboards.octree import (MAX_DEPTH, Octree, OctreeConfig, build_octree, build_octree_reference, morton_decode,
-                               morton_encode, open3d_octree)
+from billboards.morton import morton_decode, morton_encode
+from billboards.octree import MAX_DEPTH, Octree, OctreeConfig, build_octree, build_octree_reference, open3d_octree
 
 _ARRAYS = ("origin", "leaf_codes", "leaf_counts", "node_level", "node_code", "node_children", "node_range")
 

@@ -13,8 +13,9 @@ import billboards as billboard_model
 from billboards.build import main as build_main
 from billboards.photometry import (PhotometryConfig, apply_gains, collect_observations, components, estimate_gains,
                                    prune, solve_fast, solve_gains, solve_reference)
-from billboards.sampling import Views, views_from_dataset
-from data_synth import load_dataset, write_dataset
+from billboards.views import Views, views_from_dataset
+from capture import load_dataset
+from data_synth import write_dataset
 from recon.cloud_io import read_cloud_arrays
 
 from .conftest import tiny_config, write_ground_truth_cloud
@@ -248,7 +249,8 @@ def test_build_with_photometry_spends_less_rank_on_exposure(street, perturbed, t
 
 
 def test_cli_photometry_option():
-    from bbcity.cli import build_config_from_args, build_parser
+    from bbcity.cli import build_parser
+    from bbcity.commands.build import build_config_from_args
 
     parser = build_parser()
     base = ["build", "--cloud", "c.ply", "--out", "m", "--holdout", "0"]

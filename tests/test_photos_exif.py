@@ -11,7 +11,7 @@ from PIL import Image as PILImage
 from PIL.TiffImagePlugin import IFDRational
 
 from core import DataFormatError
-from data_synth import load_dataset
+from capture import load_dataset
 from recon.importers.gps import WGS84_A, WGS84_E2, enu_from_geodetic, exif_gps
 from recon.importers.photos import PhotosConfig, import_photos, photo_size
 

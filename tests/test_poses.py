@@ -10,17 +10,16 @@ import numpy as np
 import pytest
 
 from core import DataFormatError
-import data_synth  # before pycolmap (see recon/sfm.py)
-from data_synth import RigConfig, StreetConfig, load_dataset, write_dataset
-from data_synth.colmap_export import write_colmap_text
+from capture import load_dataset
+from capture.colmap import write_colmap_text
+from capture.native import pycolmap
+from data_synth import RigConfig, StreetConfig, write_dataset
 from recon.colmap_log import colmap_log_to_logging
 from recon.colmap_poses import poses_from_colmap
 from recon.poses import MissingFramesError, poses_given
 from recon.sfm import SfmConfig, poses_sfm
 from recon.trajectory import align_components, align_trajectory, rig_baseline_ratio, trajectory_rmse
 from tests.conftest import tiny_config
-
-import pycolmap  # noqa: E402  (after data_synth)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -227,7 +226,7 @@ def test_colmap_import_warns_when_the_model_is_not_metric(tiny_dataset, tmp_path
 
 
 def test_image_names_match_frames_and_cameras():
-    from recon.colmap_poses import _image_index
+    from recon.colmap_poses import image_index as _image_index
     frames = {"000000": 0, "000007": 1}
     assert _image_index("cam2/000007.png", frames, 3) == (1, 2)
     assert _image_index("images/cam1/000000.jpg", frames, 3) == (0, 1)

@@ -16,8 +16,9 @@ from core.fileio import load_npy, read_npy_header, read_png, write_png
 from . import fuzzing
 
 
-from data_synth import Rig, RigConfig, make_rig
-from data_synth.rig import load_poses, save_poses, yaw_pose
+from capture import Rig, load_poses, save_poses
+from data_synth import RigConfig, make_rig
+from data_synth.rig import yaw_pose
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 

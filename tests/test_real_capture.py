@@ -10,11 +10,11 @@ import shutil
 import numpy as np
 import pytest
 
-from data_synth import RigConfig, load_dataset, write_dataset
-from data_synth.dataset import held_out_frames
+from capture import held_out_frames, load_dataset
+from data_synth import RigConfig, write_dataset
 from recon.rectify import RIG_PAIRS, rig_pairs
 from render.camera import look_at
-from render.evaluate import below_horizon
+from render.eval_views import below_horizon
 
 from .conftest import SMALL_RIG, tiny_config, write_ground_truth_cloud
 from .test_build import small_config
@@ -41,7 +41,7 @@ def test_held_out_frames_rule():
 
 def test_exposure_matching_undoes_a_gain():
     from core.metrics import psnr
-    from render.evaluate import exposure_matched
+    from render.eval_scores import exposure_matched
 
     rng = np.random.default_rng(3)
     truth = rng.integers(20, 200, (30, 40, 3)).astype(np.uint8)
@@ -55,7 +55,7 @@ def test_exposure_matching_undoes_a_gain():
 
 
 def test_neighbour_gains_interpolate_the_texture_frames_exposure():
-    from render.evaluate import neighbour_gains
+    from render.eval_methods import neighbour_gains
 
     exposure = {"views": [[0, 0], [0, 1], [2, 0], [2, 1], [6, 0]],
                 "gains": [[1.0, 1.0, 1.0], [9.0, 9.0, 9.0], [4.0, 2.0, 1.0], [9.0, 9.0, 9.0], [1.0, 1.0, 4.0]]}
@@ -121,7 +121,8 @@ def real_street(tmp_path_factory):
 
 def test_eval_of_a_real_capture_scores_the_held_out_images(real_street, tmp_path):
     from billboards import model_reader as billboard_model
-    from render.evaluate import EvalConfig, evaluate_views
+    from render.eval_config import EvalConfig
+    from render.evaluate import evaluate_views
 
     real, cloud, model_dir = real_street
     ds = load_dataset(real)

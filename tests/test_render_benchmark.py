@@ -95,7 +95,7 @@ def test_capture_walk_is_a_stretch_around_a_quarter_of_the_way():
 def test_capture_camera_poses_of_a_dataset(tiny_dataset, tmp_path):
     from dataclasses import replace
 
-    from data_synth import load_dataset
+    from capture import load_dataset
 
     ds = load_dataset(tiny_dataset)
     model = make_model([[0.0, 0.0, 1.0]], rank=0)

@@ -14,8 +14,9 @@ import moderngl
 import numpy as np
 import pytest
 
+from billboards.geometry import billboard_radius
 from billboards.octree import OctreeConfig, build_octree
-from render.culling import (billboard_radius, boxes_outside, classify_boxes, frustum_cull_nodes,
+from render.culling import (boxes_outside, classify_boxes, frustum_cull_nodes,
                             frustum_cull_reference, frustum_planes, indices_to_ranges, merge_ranges,
                             ranges_to_indices, ranges_to_mask)
 from render.quadtree import (ScreenQuadtree, cell_coords, covering_cell_reference, level_offset,
@@ -492,7 +493,8 @@ def auto_trials(ctx, fbo, make_culler, frames: int) -> tuple[list[bool], object]
 
 
 def test_auto_mode_switches_off_when_nothing_is_culled_and_retries(gl):
-    from render.occlusion import OcclusionConfig, OcclusionCuller, auto_pays
+    from render.culler_base import auto_pays
+    from render.occlusion import OcclusionConfig, OcclusionCuller
 
     ctx, fbo = gl
     cfg = OcclusionConfig(auto_window=3, auto_backoff=4, auto_backoff_max=8)

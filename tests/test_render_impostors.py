@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from render.camera import look_at
+from render.gpu_bytes import renderer_gpu_bytes, studio_bytes
 from render.impostors import ImpostorStudio, impostor_nodes
 from render.lod import ImpostorConfig, LodConfig
-from render.paging import renderer_gpu_bytes, studio_bytes
 from render.renderer import BillboardRenderer
 
 from .test_render_cull_draw import octree_model

@@ -17,8 +17,9 @@ from billboards.model_writer import save
 from billboards.sky import Sky
 from render.camera import ClipPlanes, look_at
 from render.context import max_texture_size
+from render.gpu_bytes import renderer_gpu_bytes, tile_gpu_bound
 from render.lod import LodConfig
-from render.paging import FrameBudget, PagingConfig, renderer_gpu_bytes, tile_gpu_bound, tile_priorities
+from render.paging import FrameBudget, PagingConfig, tile_priorities
 from render.renderer import BillboardRenderer
 from render.sky import SkyPass, render_over_sky
 from render.target import OffscreenTargets

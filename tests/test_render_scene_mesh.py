@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from data_synth import TownConfig, build_town
-from data_synth.dataset import SynthConfig, capture_path
+from data_synth.config import SynthConfig, capture_path
 from render.camera import default_intrinsics, look_at
 from render.paths import town_views
 from render.scene_mesh import SceneMeshRenderer, group_order, mesh_vertices

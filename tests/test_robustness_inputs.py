@@ -91,7 +91,7 @@ def test_pcd_header_claiming_fewer_points_than_the_file_holds(tmp_path, ascii, c
 
 @pytest.mark.parametrize("field", ["width", "height"])
 def test_rig_json_boolean_image_size_is_refused(tiny_dataset, tmp_path, field):
-    from data_synth.rig import Rig
+    from capture import Rig
 
     data = json.loads((Path(tiny_dataset) / "rig.json").read_text())
     data["cameras"][1][field] = True
@@ -281,7 +281,8 @@ def test_recon_of_a_rig_with_a_huge_focal_length_fails_clearly_and_cheaply(tiny_
 def test_failed_synth_resumes_and_other_settings_are_refused_clearly(tiny_dataset, tmp_path, monkeypatch,
                                                                       writer, nth):
     import data_synth.dataset as ds_mod
-    from data_synth import load_dataset, write_dataset
+    from capture import load_dataset
+    from data_synth import RigConfig, write_dataset
 
     from .conftest import tiny_config
     from .test_dataset_io import digest_tree
@@ -307,7 +308,7 @@ def test_failed_synth_resumes_and_other_settings_are_refused_clearly(tiny_datase
     assert digest_tree(out) == digest_tree(tiny_dataset)
     assert load_dataset(out).num_frames == 6
     with pytest.raises(FileExistsError, match=r"holds a dataset made with other settings \(rig\.width\); choose"):
-        write_dataset(tiny_config(rig=ds_mod.RigConfig(width=200, height=120, hfov_deg=75.0, pitch_deg=10.0)),
+        write_dataset(tiny_config(rig=RigConfig(width=200, height=120, hfov_deg=75.0, pitch_deg=10.0)),
                       out, progress=False)
 
 
@@ -340,7 +341,7 @@ def test_colmap_model_whose_frame_names_a_missing_image(tiny_dataset, tmp_path):
 def test_rig_json_lens_values_that_are_no_lens(tiny_dataset, tmp_path, field, value, message):
     import shutil
 
-    from data_synth import load_dataset
+    from capture import load_dataset
 
     dataset = tmp_path / "street"
     shutil.copytree(tiny_dataset, dataset)

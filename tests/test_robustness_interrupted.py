@@ -24,13 +24,15 @@ import pytest
 from core import DataFormatError
 from core.fileio import load_npy, read_json, read_png
 from billboards import build as build_mod
+from billboards import texture_tasks as texture_tasks_mod
 from billboards.build import BuildConfig, main as build_main
 from billboards.geometry import DirectionConfig
 from billboards.model_reader import load
 from billboards.octree import OctreeConfig
 from billboards.pca import PcaConfig
 from billboards.sampling import SamplingConfig
-from data_synth import load_dataset, write_dataset
+from capture import load_dataset
+from data_synth import write_dataset
 from recon import pipeline as recon_pipeline
 from recon.cloud_io import PlyStreamWriter, read_cloud_arrays
 from recon.fusion import FusionConfig
@@ -206,7 +208,7 @@ def test_build_interrupted_keeps_the_old_model_and_the_next_run_starts_clean(wal
 
     # killed in the middle of the billboards (several chunks already in the atlas pages)
     calls = [0]
-    real_compress = build_mod.compress_chunk
+    real_compress = texture_tasks_mod.compress_chunk
 
     def dying_compress(rgba, conf, eig=None):
         calls[0] += 1
@@ -214,7 +216,7 @@ def test_build_interrupted_keeps_the_old_model_and_the_next_run_starts_clean(wal
             raise KeyboardInterrupt("killed mid-build")
         return real_compress(rgba, conf, eig)
 
-    monkeypatch.setattr(build_mod, "compress_chunk", dying_compress)
+    monkeypatch.setattr(texture_tasks_mod, "compress_chunk", dying_compress)
     with pytest.raises(KeyboardInterrupt):
         build_main(small_build(tile_mode="f16"), wall_cloud, None, out)
     monkeypatch.undo()

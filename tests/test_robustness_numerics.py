@@ -20,13 +20,17 @@ import pytest
 
 from core import DataFormatError
 from core.fileio import read_png, write_png
-from billboards.build import BuildConfig, _psnr_db, compress_chunk, main as build_main, place_billboards
+from billboards.build import BuildConfig, main as build_main
+from billboards.build_report import psnr_db
+from billboards.compress import compress_chunk
+from billboards.placement import place_billboards
 from billboards.decode import decode, decode_directions, direction_index
 from billboards.model_reader import load
 from billboards.model_writer import ModelWriter, save
 from billboards.octree import OctreeConfig, build_octree
 from billboards.pca import PcaConfig, eigen_textures
-from data_synth import RigConfig, load_dataset, make_rig
+from capture import load_dataset
+from data_synth import RigConfig, make_rig
 from recon.cloud_io import read_cloud_arrays
 from recon.fusion import FusionConfig
 from recon.pipeline import ReconConfig, main as recon_main
@@ -113,7 +117,7 @@ def test_stiff_texture_stacks_compress_and_decode(tmp_path, tile_mode, coef_mode
     for key in ("sq_err_decoded", "sq_err_decoded_rgb", "sq_err_pca", "sq_err_pca_rgb"):
         assert np.isfinite(stats[key]) and stats[key] >= 0
     for sq, count in ((stats["sq_err_decoded"], stats["values"]), (0.0, stats["values"]), (1.0, 0)):
-        value = _psnr_db(sq, count)
+        value = psnr_db(sq, count)
         assert value is None or (np.isfinite(value) and 0 < value <= 100.0)
 
 

@@ -22,7 +22,8 @@ import pytest
 
 from core import DataFormatError
 from core.workdir import exclusive_output, lock_path, owned_output, pid_alive, sweep_output
-from bbcity.executor import WorkerError, WorkerPool, executor_scope
+from bbcity.executor import WorkerPool, executor_scope
+from bbcity.worker import WorkerError
 from data_synth import write_dataset
 from recon.work import Work
 from recon.poses import MissingFramesError
@@ -327,7 +328,7 @@ def test_sweep_removes_dead_runs_leftovers_and_restores_a_set_aside_model(tmp_pa
     mine.write_text("{}")
     with owned_output(out):  # the previous model was set aside and the new one never renamed in
         assert (out / "manifest.json").is_file()
-    assert sorted(p.name for p in tmp_path.iterdir()).dataset() == sorted(
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         [".model.lock", "model", other.name, mine.name])
     assert sweep_output(out) == []
 
@@ -413,10 +414,10 @@ def test_killed_synth_stops_writing_and_the_next_run_completes_it(tmp_path):
     assert wait_gone(workers), "synth workers outlived their killed parent"
     written = sorted(out.rglob("*"))
     time.sleep(1.0)
-    assert sorted(out.rglob("*")).dataset() == written, "something still writes into the dataset"
+    assert sorted(out.rglob("*")) == written, "something still writes into the dataset"
     second = bbcity(*argv)
     assert second.returncode == 0, second.stderr
-    assert len(list(out.glob("images/cam*/*.png"))).dataset() == 20 * 3 and hidden_temporaries(out) == []
+    assert len(list(out.glob("images/cam*/*.png"))) == 20 * 3 and hidden_temporaries(out) == []
 
 
 def test_killed_build_takes_its_workers_along_and_the_next_build_sweeps_its_state(street, work, tmp_path):
@@ -436,7 +437,7 @@ def test_killed_build_takes_its_workers_along_and_the_next_build_sweeps_its_stat
     second = bbcity(*argv)
     assert second.returncode == 0, second.stderr
     assert (model / "manifest.json").is_file()
-    assert sorted(p.name for p in tmp_path.iterdir()).dataset() == [".model.lock", "model"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".model.lock", "model"]
 
 
 @pytest.mark.parametrize("delay", [0.4, 0.8, 1.2, 2.0])
@@ -492,7 +493,7 @@ def test_a_background_job_ignores_ctrl_c_as_it_was_started_to(street, tmp_path):
 def test_a_dead_worker_is_told_apart_from_other_errors():
     from concurrent.futures.process import BrokenProcessPool
 
-    from bbcity.cli import worker_died
+    from bbcity.lifecycle import worker_died
 
     class KilledWorker(Exception):  # Dask's, by name
         pass

@@ -7,12 +7,14 @@ import pytest
 
 from core.fileio import write_png
 from billboards.geometry import DirectionConfig, base_yaw_toward
-from billboards.sampling import (OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, ImageSampler, SamplingConfig, Views,
-                                 fill_directions, voxel_points, zbuffer)
+from billboards.sampling import ImageSampler, SamplingConfig
+from billboards.texels import OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, fill_directions
+from billboards.views import Views
+from billboards.voxels import voxel_points, zbuffer
 from billboards.splat import PointSampler
 from billboards.truth import texture_psnr, truth_textures
 from data_synth.raycast import Renderer
-from data_synth.rig import pinhole
+from capture.rig import pinhole
 from data_synth.scene import Kind, MeshBuilder
 
 SIZE = 0.5
@@ -213,7 +215,7 @@ def test_zbuffer_of_a_plane_and_its_margins():
 
 def test_a_view_that_sees_no_point_has_an_empty_zbuffer():
     """A tile's view may see none of the tile's points: its z-buffer is empty, not an error."""
-    from billboards.sampling import zbuffer
+    from billboards.voxels import zbuffer
 
     K = np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]])
     filled, nearest = zbuffer(np.zeros((0, 3), np.float32), np.zeros(3), K, np.eye(4), (100, 80), 2)

@@ -164,7 +164,8 @@ def test_side_wall_config_is_validated():
     ("--wall-rise", "0", lambda layer: layer.wall_depth.rise, WallDepthConfig().rise, 0.0),
 ])
 def test_build_options_of_the_walls_reach_the_layer_config(option, value, read, default, given):
-    from bbcity.cli import build_config_from_args, build_parser
+    from bbcity.cli import build_parser
+    from bbcity.commands.build import build_config_from_args
 
     parser = build_parser()
     base = ["build", "work", "--out", "model", "--holdout", "0"]

@@ -9,7 +9,7 @@ import pytest
 
 from core import DataFormatError
 from core.fileio import write_png
-from billboards.sampling import Views
+from billboards.views import Views
 from billboards.sky import (Sky, SkyConfig, estimate_sky, pixel_elevations, read_sky, write_sky)
 from render.camera import look_at
 

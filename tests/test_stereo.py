@@ -8,7 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from data_synth import Rig, RigConfig, load_dataset, load_scene, make_rig, truth_view
+from capture import Rig, load_dataset
+from data_synth import RigConfig, load_scene, make_rig, truth_view
 from recon.rectify import rectify_pair, rectify_rig
 from recon.stereo import (PRESETS, StereoConfig, depth_from_disparity, disparity, disparity_range,
                           disparity_reference)

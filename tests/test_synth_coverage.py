@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from data_synth import Kind, Rig, RigConfig, StreetConfig, SynthConfig, build_street, load_dataset, load_scene, make_rig
+from capture import Rig, load_dataset
+from data_synth import Kind, RigConfig, StreetConfig, SynthConfig, build_street, load_scene, make_rig
 from data_synth.coverage import sample_surface, seen_by, street_coverage
-from data_synth.dataset import capture_path
+from data_synth.config import capture_path
 from data_synth.raycast import Renderer
 
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from data_synth import Kind, RigConfig, StreetConfig, build_street, load_dataset, make_rig
+from capture import load_dataset
+from data_synth import Kind, RigConfig, StreetConfig, build_street, make_rig
 from data_synth.raycast import Renderer
 from data_synth.scene import OCCLUDER_KINDS
 

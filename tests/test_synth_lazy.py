@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from core import DataFormatError
+from capture import load_dataset, read_image
+from capture import sources as sources_module
 from data_synth import (RigConfig, StreetConfig, SynthConfig, TownConfig, build_street, build_town,
-                        frames_for_spacing, load_dataset, load_scene, read_image, scene_digest, scene_section,
-                        section_reference, write_dataset)
+                        frames_for_spacing, load_scene, scene_digest, scene_section, section_reference, write_dataset)
 from data_synth import lazy as lazy_module
-from data_synth.dataset import capture_path
+from data_synth.config import capture_path
 from data_synth.raycast import Renderer
 
 from .conftest import tiny_config
@@ -29,7 +30,7 @@ def _same_scene(a, b) -> bool:
 
 def _forget_casts():
     """Empty this process's lazy caches (as a fresh process starts)."""
-    for cache in (lazy_module._STATES, lazy_module._RENDERERS, lazy_module._RESULTS, lazy_module._SOURCES,
+    for cache in (lazy_module._STATES, lazy_module._RENDERERS, lazy_module._RESULTS, sources_module._SOURCES,
                   lazy_module._CACHES):
         cache.clear()
 
@@ -159,7 +160,7 @@ def test_lazy_frames_equal_the_stored_ones(stored_and_lazy):
 
 
 def test_billboard_views_read_lazy_images(stored_and_lazy):
-    from billboards.sampling import views_from_dataset
+    from billboards.views import views_from_dataset
 
     stored, lazy = stored_and_lazy
     a, b = views_from_dataset(stored), views_from_dataset(lazy)
@@ -292,7 +293,7 @@ def test_lazy_dataset_errors_name_the_file(stored_and_lazy, tmp_path):
     manifest = json.loads((copy / "dataset.json").read_text())
     manifest["lazy"]["tile_m"] = -1
     (copy / "dataset.json").write_text(json.dumps(manifest))
-    lazy_module._SOURCES.clear()
+    sources_module._SOURCES.clear()
     with pytest.raises(DataFormatError, match="dataset.json"):
         load_dataset(copy)
     with pytest.raises(DataFormatError, match="dataset.json"):

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from bbcity.cli import main
+from capture import load_dataset
 from data_synth import (Kind, RigConfig, StreetConfig, SynthConfig, TownConfig, build_street, frames_for_spacing,
-                        load_dataset, make_rig, write_dataset)
-from data_synth.dataset import ORBIT_CLEARANCE_M, capture_path, config_from_json
+                        make_rig, write_dataset)
+from data_synth.config import ORBIT_CLEARANCE_M, capture_path, config_from_json
 from data_synth.street import free_building, street_settings
 
 #: One level camera, small landscape images.

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from bbcity.cli import main
-from data_synth import Kind, RigConfig, SynthConfig, TownConfig, build_town, load_dataset, write_dataset
+from capture import load_dataset
+from data_synth import Kind, RigConfig, SynthConfig, TownConfig, build_town, write_dataset
 
 
 def test_town_has_thirty_thousand_separate_objects():

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from billboards.sampling import OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, reject_transients, reject_transients_reference
+from billboards.texels import OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, reject_transients, reject_transients_reference
 
 
 def _stack(B=3, d=12, t=4, seed=0):
@@ -67,7 +67,8 @@ def test_a_passing_car_stays_out_of_the_ground_texture(tmp_path):
     from billboards.layer import LayerConfig
     from billboards.decode import decode_directions
     from billboards.model_reader import load
-    from data_synth import load_dataset, write_dataset
+    from capture import load_dataset
+    from data_synth import write_dataset
     from core.fileio import write_png
 
     from .conftest import tiny_config, write_ground_truth_cloud

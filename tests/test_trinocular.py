@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from data_synth import load_dataset
+from capture import load_dataset
 from recon.rectify import rectify_rig, splat_depth, splat_depth_reference
 from recon.trinocular import (FrameDepth, TrinocularConfig, evaluate_depth, frame_depth, fuse_depths,
                               fuse_depths_reference)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from billboards.sampling import zbuffer
+from billboards.voxels import zbuffer
 from billboards.sky import Sky
 from billboards.wall_depth import (WallDepthConfig, column_blocks, deepen_side_walls, front_steps, grown_columns,
                                    side_wall_faces, upward_blocks, wall_votes, wall_votes_reference)

@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from billboards.geometry import billboard_radius
 from billboards.octree import OctreeConfig, build_octree
 from render.camera import gl_camera
-from render.culling import billboard_radius, frustum_cull_nodes, frustum_planes, ranges_to_mask
+from render.culling import frustum_cull_nodes, frustum_planes, ranges_to_mask
 from render.view_brackets import storage_slots, view_brackets
 from share.web_camera import view_camera
 

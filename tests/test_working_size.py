@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from data_synth import Rig
+from capture import Rig
 from recon.pipeline import ReconConfig
 from recon.stereo import StereoConfig, StereoMemoryError, disparity
 from recon.working_size import (matcher_bytes, resize_image, scaled_intrinsics, scaled_rig, working_scale,

@@ -1,0 +1,28 @@
+"""``bbcity check``: validate a dataset (rig, poses, every image)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def add(sub) -> None:
+    """The ``check`` command on the subcommands ``sub``."""
+    p = sub.add_parser("check", help="validate a dataset (rig, poses, every image)",
+                       description="""Validate rig.json, poses.json and that every image exists; with --deep also
+                                      decode every image and ground-truth array.""")
+    p.add_argument("dataset", type=Path, help="dataset directory")
+    p.add_argument("--deep", action="store_true", help="decode every image (slow)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Read the dataset (and with --deep every array); print its size."""
+    from capture.dataset import load_dataset
+
+    ds = load_dataset(args.dataset)
+    if args.deep:
+        ds.verify()
+    w, h = ds.rig.sizes[0]
+    print(f"{ds.root}: {ds.num_frames} frames × {ds.rig.num_cameras} cameras, {w}x{h}, "
+          f"ground truth: {'yes' if ds.has_ground_truth else 'no'}")
+    return 0
