@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.dataset import held_out_frames, load_dataset
+from capture.dataset import Dataset, held_out_frames, load_dataset
 from capture.poses import save_poses
 from core.errors import InputError
 from core.fileio import DataFormatError, read_json, write_json
@@ -236,11 +236,12 @@ def _model_depths(model_dirs: list[Path], ds) -> np.ndarray:
     return depths
 
 
-def estimate_poses(conf: ReconConfig, dataset_dir: Path, work: Path) -> tuple[np.ndarray, dict, np.ndarray]:
+def estimate_poses(conf: ReconConfig, dataset: Dataset | os.PathLike | str,
+                   work: Path) -> tuple[np.ndarray, dict, np.ndarray]:
     """world_from_rig (n, 4, 4) float64 from the configured source, a report, and the depths
     of the sparse points each frame sees ((n, 3) float64 near/median/far, :func:`frame_depths`;
-    NaN where the source has none: given poses)."""
-    ds = load_dataset(dataset_dir)
+    NaN where the source has none: given poses). ``dataset``: the loaded dataset or its directory."""
+    ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     no_depths = np.full((ds.num_frames, len(DEPTH_QUANTILES)), np.nan)
     if conf.poses == "given":
         return poses_given(ds), {"source": "given"}, no_depths
@@ -317,7 +318,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     stages: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    world_from_rig, pose_report, depths = estimate_poses(conf, dataset_dir, work)
+    world_from_rig, pose_report, depths = estimate_poses(conf, ds, work)  # the dataset read once
     stages["poses_s"] = time.perf_counter() - t0
     poses_file = write_work_poses(work, ds, world_from_rig, conf.poses)
 
