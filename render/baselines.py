@@ -94,6 +94,10 @@ class PoissonMesh:
         self._o3d = o3d
         self.depth = int(depth)
         points = np.asarray(points, np.float64)
+        extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+        if not extent > 0:  # Open3D's Poisson crashes (SIGSEGV) on a cloud of one point repeated
+            raise InputError(f"a Poisson mesh needs points spread in space: the cloud's {len(points)} points "
+                             f"span {extent:g} m")
         self.origin = points.mean(axis=0) if len(points) else np.zeros(3)
         local = points - self.origin
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(local))

@@ -53,7 +53,7 @@ from typing import Callable
 import numpy as np
 
 from core.errors import InputError
-from core.fileio import json_ready
+from core.fileio import DataFormatError, json_ready
 from capture.dataset import load_dataset
 from data_synth import load_scene, truth_view
 from data_synth.scene import Kind
@@ -179,6 +179,9 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         viewpoints = np.stack([ds.world_from_cam(f, c)[:3, 3] for f in texture_frames
                                for c in range(ds.rig.num_cameras)]) if texture_frames else None
         cloud = read_cloud_for_baselines(cloud_path, viewpoints)
+        if not len(cloud["points"]) or not np.ptp(cloud["points"], axis=0).max() > 0:
+            raise DataFormatError(cloud_path, f"its {len(cloud['points'])} points span no space: the Poisson "
+                                              "mesh and the point projection need a cloud spread in space")
         methods[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile)
         for d in config.workprecision_depths:
             if int(d) != config.poisson_depth:

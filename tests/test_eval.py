@@ -157,6 +157,30 @@ def test_seen_pixels_of_held_out_views(street):
     assert seen_in_dataset(depth_off, K, moved, ds, [3, 4, 5]).mean() < np.isfinite(depth_off).mean()
 
 
+@pytest.mark.parametrize("points", [np.ones((50, 3)), np.ones((1, 3)), np.zeros((0, 3))],
+                         ids=["one point repeated", "one point", "empty"])
+def test_poisson_mesh_refuses_a_cloud_that_spans_no_space(points):
+    """Open3D's Poisson crashes the process (SIGSEGV) on one point repeated: refused first."""
+    from core.errors import InputError
+    from render.baselines import PoissonMesh
+
+    with pytest.raises(InputError, match=r"points spread in space: the cloud's \d+ points span 0 m"):
+        PoissonMesh(points, np.full((len(points), 3), 128, np.uint8), depth=7)
+
+
+def test_eval_refuses_a_cloud_of_one_point_repeated_naming_it(street, tmp_path, caplog):
+    from bbcity.cli import main as cli_main
+    from recon.cloud_io import PlyStreamWriter
+
+    tiny_dataset, _, model = street
+    cloud = tmp_path / "same.ply"
+    with PlyStreamWriter(cloud, normals=False) as writer:
+        writer.append(np.full((50, 3), 3.0), np.full((50, 3), 128, np.uint8))
+    assert cli_main(["-q", "eval", str(model), str(tiny_dataset), "--cloud", str(cloud), "--views", "1",
+                     "--training-views", "0", "--out", str(tmp_path / "eval")]) == 2
+    assert f"{cloud}: its 50 points span no space" in caplog.text
+
+
 @pytest.mark.slow
 def test_eval_cli_on_the_tiny_street(street, tmp_path):
     from bbcity.cli import main as cli_main
