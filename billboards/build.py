@@ -29,6 +29,7 @@ from pathlib import Path
 from core.errors import InputError
 from core.fileio import write_json
 from core.memory import peak_memory
+from core.workdir import hidden_name
 from recon.cloud_io import read_cloud_arrays
 from recon.epi import epi_points
 
@@ -126,7 +127,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     conf = replace(conf, sampling=sampling)
 
     t2 = time.perf_counter()
-    state = temp_dir(model_dir.parent, f".{model_dir.name}.build-")
+    state = temp_dir(model_dir.parent, f".{hidden_name(model_dir.name)}.build-")
     try:
         if placed is None:
             placed = place_billboards(points, octree, views.centres if views is not None else None)

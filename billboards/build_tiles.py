@@ -40,6 +40,7 @@ from core.errors import InputError
 from core.fileio import DataFormatError, read_json, replace_dir, write_json
 from core.memory import peak_memory
 from core.metrics import psnr_from_mse
+from core.workdir import hidden_name
 from recon.cloud_io import CloudTiles, PlyStreamWriter, TileGrid, read_cloud_arrays, read_cloud_tiles
 from recon.epi import EpiPass, epi_points
 
@@ -334,12 +335,13 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
     cloud_path, model_dir = Path(cloud_path), Path(model_dir)
     t_start = time.perf_counter()
     stages: dict[str, float] = {}
-    work = model_dir.parent / f".{model_dir.name}.tiles-{inputs_digest(conf, cloud_path, dataset_dir, poses)}"
-    for other in model_dir.parent.glob(f".{model_dir.name}.tiles-*"):  # other settings or inputs: not resumable
+    hidden = hidden_name(model_dir.name)
+    work = model_dir.parent / f".{hidden}.tiles-{inputs_digest(conf, cloud_path, dataset_dir, poses)}"
+    for other in model_dir.parent.glob(f".{hidden}.tiles-*"):  # other settings or inputs: not resumable
         if other != work:
             shutil.rmtree(other, ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
-    scratch = temp_dir(model_dir.parent, f".{model_dir.name}.build-")  # a killed run's is swept
+    scratch = temp_dir(model_dir.parent, f".{hidden_name(model_dir.name)}.build-")  # a killed run's is swept
     try:
         cloud = ensure_tiled(cloud_path, conf.tile_metres, scratch)
         grid_origin = cloud.bounds()[0]

@@ -18,6 +18,7 @@ import numpy as np
 
 from core.errors import InputError
 from core.fileio import replace_dir, save_npy, write_json
+from core.workdir import hidden_name
 
 from .atlas import AtlasWriter, RowWriter, atlas_layout, row_layout
 from .model import BillboardModel
@@ -56,7 +57,7 @@ def temp_dir(parent: Path, prefix: str) -> Path:
 
 
 def _temp_dir(path: Path) -> Path:
-    return temp_dir(path.parent, f".{path.name}.tmp-")
+    return temp_dir(path.parent, f".{hidden_name(path.name)}.tmp-")
 
 
 def _install(tmp: Path, path: Path) -> None:

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError
+from .workdir import hidden_name
 
 logger = logging.getLogger(__name__)
 
@@ -62,7 +63,7 @@ def atomic_path(path: os.PathLike | str) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}{path.suffix}")
+    tmp = path.with_name(f".{hidden_name(path.name)}.tmp-{os.getpid()}{path.suffix}")
     if tmp.is_symlink() or tmp.is_file():  # a dead run's, or planted: writing through a link would change its target
         tmp.unlink()
     try:
@@ -105,7 +106,7 @@ def replace_dir(tmp: Path, path: Path) -> None:
     if not path.exists():
         os.rename(tmp, path)
         return
-    old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex}")
+    old = path.with_name(f".{hidden_name(path.name)}.old-{uuid.uuid4().hex}")
     os.rename(path, old)
     try:
         os.rename(tmp, path)
@@ -121,7 +122,7 @@ def atomic_dir(path: os.PathLike | str) -> Iterator[Path]:
     (:func:`replace_dir`), on an exception it is removed and ``path`` is untouched."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex}")
+    tmp = path.with_name(f".{hidden_name(path.name)}.tmp-{uuid.uuid4().hex}")
     tmp.mkdir()
     try:
         yield tmp

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import hashlib
 import logging
 import os
 import re
@@ -25,6 +26,25 @@ from pathlib import Path
 from typing import Iterator
 
 logger = logging.getLogger(__name__)
+
+#: The longest output name (UTF-8 bytes) kept whole in the hidden files beside it
+#: (``.NAME.lock``, ``.NAME.tmp-…``): with the longest tag and suffix they stay within the
+#: 255 bytes a file name may have.
+MAX_HIDDEN_NAME = 200
+
+_SHORTENED = re.compile(r".*~[0-9a-f]{16}")
+
+
+def hidden_name(name: str) -> str:
+    """The NAME of the hidden files beside an output called ``name`` (its lock, its
+    temporaries): ``name`` itself, or, when it is over :data:`MAX_HIDDEN_NAME` bytes, its first
+    bytes, ``~`` and 16 hex digits of its SHA-256 (the same in every run: one lock per output)."""
+    raw = name.encode("utf-8", "surrogateescape")
+    if len(raw) <= MAX_HIDDEN_NAME:
+        return name
+    head = raw[: MAX_HIDDEN_NAME - 17].decode("utf-8", "ignore")
+    return f"{head}~{hashlib.sha256(raw).hexdigest()[:16]}"
+
 
 _TEMPORARY = re.compile(r"\.(?P<name>.+)\.(?P<kind>tmp|body|build|old)-(?P<tag>[0-9a-z_]+)(?P<suffix>\.\w+)?")
 _MKDTEMP_TAG = re.compile(r"[0-9a-z_]{8}")  # tempfile.mkdtemp's random part
@@ -54,7 +74,7 @@ def lock_path(output: os.PathLike | str) -> Path:
     resolved first (links followed), so that two runs reaching one output through a link and
     through its real path take the same lock."""
     output = Path(output).resolve()
-    return output.with_name(f".{output.name}.lock")
+    return output.with_name(f".{hidden_name(output.name)}.lock")
 
 
 @contextlib.contextmanager
@@ -138,16 +158,24 @@ def sweep_output(output: os.PathLike | str) -> list[Path]:
     if output.parent.is_dir():
         for path in sorted(output.parent.iterdir()):
             found = temporary(path.name)
-            if found is not None and found[0] == output.name:
-                removed += _remove_if_dead(path, *found, locked=True)
+            if found is not None and found[0] == hidden_name(output.name):
+                removed += _remove_if_dead(path, *found, locked=True, output=output)
     return removed + sweep_temporaries(output, locked=True)
 
 
-def _remove_if_dead(path: Path, name: str, kind: str, pid: int | None, locked: bool) -> list[Path]:
+def _remove_if_dead(path: Path, name: str, kind: str, pid: int | None, locked: bool,
+                    output: Path | None = None) -> list[Path]:
+    """Remove ``path``, the temporary ``kind`` of the output ``name`` (its :func:`hidden_name`),
+    when a dead run left it; a set-aside output goes back to ``output`` (default: ``name``
+    beside it) instead, and one whose name was shortened is left alone when ``output`` is
+    not given (where it goes back is not known)."""
     if not _left_by_dead_run(pid, locked):
         return []
-    if kind == "old" and _restore_set_aside(path, path.with_name(name)):
-        return []
+    if kind == "old":
+        if output is None and _SHORTENED.fullmatch(name):
+            return []
+        if _restore_set_aside(path, output if output is not None else path.with_name(name)):
+            return []
     logger.info("removing %s, left by an interrupted run", path)
     if path.is_dir() and not path.is_symlink():
         shutil.rmtree(path, ignore_errors=True)

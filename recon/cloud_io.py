@@ -20,6 +20,7 @@ import open3d as o3d
 
 from core.errors import InputError
 from core.fileio import DataFormatError, atomic_path, read_json, write_json
+from core.workdir import hidden_name
 
 CLOUD_SUFFIXES = (".ply", ".pcd")
 TILE_INDEX_FORMAT = "bbcity-cloud-tiles"
@@ -138,7 +139,7 @@ class PlyStreamWriter:
 
     def __enter__(self) -> "PlyStreamWriter":
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._body_path = self.path.with_name(f".{self.path.name}.body-{os.getpid()}")
+        self._body_path = self.path.with_name(f".{hidden_name(self.path.name)}.body-{os.getpid()}")
         self._body = open(self._body_path, "wb")
         return self
 

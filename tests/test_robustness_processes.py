@@ -333,6 +333,41 @@ def test_sweep_removes_dead_runs_leftovers_and_restores_a_set_aside_model(tmp_pa
     assert sweep_output(out) == []
 
 
+def test_an_output_name_of_250_bytes_has_a_lock_and_temporaries_within_255(tmp_path):
+    """A legal name of 250 bytes: its hidden files shorten it (the same in every run) to stay
+    within the 255 bytes of a file name; the sweep still restores a set-aside output of it."""
+    from core.fileio import atomic_dir, atomic_path
+    from core.workdir import MAX_HIDDEN_NAME, hidden_name, sweep_temporaries
+
+    long = "é" + "m" * 248  # 250 bytes in UTF-8
+    assert hidden_name("model") == "model" and hidden_name(long) == hidden_name(long) != long
+    assert len(hidden_name(long).encode()) <= MAX_HIDDEN_NAME and hidden_name(long).startswith("é")
+    cut = hidden_name("m" * 182 + "é" * 40)  # a character across the cut is left out whole
+    assert len(cut.encode()) <= MAX_HIDDEN_NAME and cut.startswith("m" * 182 + "~")
+    out = tmp_path / long
+    with owned_output(out):
+        for _ in range(2):  # the second replaces the first: the first is set aside, then removed
+            with atomic_dir(out) as tmp:
+                assert len(tmp.name.encode()) <= 255
+                with atomic_path(tmp / long) as part:
+                    assert len(part.name.encode()) <= 255
+                    part.write_text("{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([f".{hidden_name(long)}.lock", long])
+    assert (out / long).read_text() == "{}"
+    aside = tmp_path / f".{hidden_name(long)}.old-{'5e' * 16}"  # a replacement killed between its renames
+    out.rename(aside)
+    assert sweep_temporaries(tmp_path, locked=True) == [] and aside.is_dir()  # whose it is: not known here
+    with owned_output(out):
+        assert (out / long).is_file() and not aside.exists()
+
+
+def test_build_into_an_output_name_of_250_bytes(work, tmp_path):
+    out = tmp_path / ("m" * 250)
+    result = bbcity("build", work, "--out", out, "--workers", "1", "--layer", "none", "--photometry", "off")
+    assert result.returncode == 0, result.stderr
+    assert (out / "manifest.json").is_file() and hidden_temporaries(tmp_path) == []
+
+
 # ----------------------------------------------------------------------------------------------
 # a work directory means the same thing from anywhere
 

@@ -21,6 +21,7 @@ from capture.rig import Rig
 from core.errors import InputError
 from core.fileio import DataFormatError, write_bytes, write_json, write_png
 from core.rigid import nearest_rotation
+from core.workdir import hidden_name
 
 logger = logging.getLogger(__name__)
 
@@ -175,7 +176,7 @@ def write_imported_dataset(out_dir: os.PathLike | str, rig: Rig, world_from_rig:
     if len(images) != n or any(len(row) != c for row in images):
         raise InputError(f"need {n} frames × {c} camera images")
     names = [f"{i:06d}" for i in range(n)] if names is None else list(names)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp = out.parent / f".{hidden_name(out.name)}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
     try:
         rig.save(tmp / "rig.json")
