@@ -13,6 +13,7 @@ import contextlib
 import errno
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -114,10 +115,18 @@ def worker_died(error: BaseException) -> bool:
     return isinstance(error, BrokenProcessPool) or type(error).__name__ == "KilledWorker"
 
 
+#: numpy's message for a write to a file that stopped short (``ndarray.tofile``), without an errno.
+SHORT_WRITE = re.compile(r"(\d+) requested and (\d+) written")
+
+
 def os_error_line(error: OSError, out: Path | None = None) -> str:
     """One line naming the path(s) and the problem of a file-system error; one that names no
     file (a write through a file object) names the command's output ``out``."""
     if error.strerror is None:
+        short = SHORT_WRITE.fullmatch(str(error))
+        if short and out is not None:  # numpy's tofile: no errno, the device is full (or over a quota)
+            return (f"{out}: No space left on device (or over a quota): a write of {short[1]} items "
+                    f"stopped at {short[2]}")
         return str(error)
     paths = [str(p) for p in (error.filename, error.filename2) if p is not None]
     if paths:

@@ -238,3 +238,20 @@ def test_build_into_what_it_reads_is_refused(inputs, tmp_path, caplog):
                             str(dataset), "--workers", "1", "--layer", "none", "--photometry", "off"], caplog)
     assert code == 2 and len(errors) == 1 and f"holds {dataset}" in errors[0], errors
     assert {p.name: p.read_bytes() for p in work.iterdir()} == before and (dataset / "rig.json").is_file()
+
+
+def test_a_short_write_without_an_errno_is_a_full_disk_naming_the_output(tmp_path):
+    """numpy's tofile reports a full disk as "N requested and M written", with no errno and no path."""
+    import numpy as np
+
+    from bbcity.lifecycle import os_error_line
+
+    out = tmp_path / "model"
+    line = os_error_line(OSError("1312056 requested and 386016 written"), out)
+    assert line == (f"{out}: No space left on device (or over a quota): a write of 1312056 items stopped at "
+                    "386016")
+    assert os_error_line(OSError("something else"), out) == "something else"
+    if Path("/dev/full").exists():  # numpy's own words on a full device, as it says them today
+        with pytest.raises(OSError) as error:
+            np.zeros(1000).tofile("/dev/full")
+        assert os_error_line(error.value, out).startswith(f"{out}: No space left on device")
