@@ -24,6 +24,7 @@ This module imports ``distributed``; ``bbcity.executor`` imports it only for
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import os
 import shutil
@@ -96,6 +97,28 @@ class _QuietFailures(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not str(record.msg).startswith("Compute Failed")
+
+
+def probe_scheduler(address: str, timeout: float) -> None:
+    """Ask ``address`` who it is, all within ``timeout`` seconds: ConnectionError unless a Dask
+    scheduler answers. A client alone waits without end on a port that accepts and never
+    answers (its timeout covers the connection, not the handshake after it)."""
+
+    async def identity():
+        comm = await distributed.comm.connect(address, timeout=timeout)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            await comm.close()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(identity(), timeout))
+    except (OSError, asyncio.TimeoutError) as e:
+        raise ConnectionError(f"{address}: no Dask scheduler answers within {timeout:g} s "
+                              f"({type(e).__name__}{': ' if str(e) else ''}{e})") from None
+    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        raise ConnectionError(f"{address}: answers, but not as a Dask scheduler")
 
 
 class WorkerSetup(WorkerPlugin):
@@ -240,6 +263,7 @@ class DaskExecutor(Executor):
         """A client of the running scheduler at ``address`` (``tcp://host:8786``). ConnectionError
         when none answers; a warning when it has no workers yet (tasks wait for them)."""
         quiet_logs()
+        probe_scheduler(address, CONNECT_TIMEOUT_S)
         try:
             client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
         except OSError as e:

@@ -209,3 +209,25 @@ def test_executor_options_contradicting_each_other_are_one_line(caplog, monkeypa
     assert run_cli(["recon", missing, "--out", out, "--scheduler", "tcp://127.0.0.1:1"]) == 2
     errors = [r for r in caplog.records if r.levelname == "ERROR"]
     assert len(errors) == 1 and "tcp://127.0.0.1:1" in errors[0].getMessage(), caplog.text
+
+
+def test_a_port_that_accepts_and_never_answers_is_one_line_within_the_timeout(caplog, monkeypatch, tmp_path):
+    """A client alone would wait without end on such a port (its timeout covers connecting only)."""
+    import socket
+    import threading
+
+    import bbcity.dask_executor as dask_executor
+
+    server = socket.create_server(("127.0.0.1", 0))
+    accepted = []
+    threading.Thread(target=lambda: accepted.append(server.accept()), daemon=True).start()
+    address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    monkeypatch.setattr(dask_executor, "CONNECT_TIMEOUT_S", 1.0)
+    try:
+        assert run_cli(["recon", str(tmp_path / "missing"), "--out", str(tmp_path / "out"),
+                        "--scheduler", address]) == 2
+    finally:
+        server.close()
+    assert accepted, "the client never connected"
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert errors == [f"{address}: no Dask scheduler answers within 1 s (TimeoutError)"], caplog.text
