@@ -38,14 +38,7 @@ $(INSTALL_STAMP): $(SYSDEPS_STAMP) pyproject.toml
 	@touch $@
 
 demo: $(INSTALL_STAMP)
-	$(BIN)/bbcity synth street --out $(DEMO_DIR)/street
-	$(BIN)/bbcity recon $(DEMO_DIR)/street --out $(DEMO_DIR)/work
-	$(BIN)/bbcity build $(DEMO_DIR)/work --out $(DEMO_DIR)/model --holdout 10
-	$(BIN)/bbcity build $(DEMO_DIR)/work --out $(DEMO_DIR)/model-billboards --holdout 10 --layer none
-	$(BIN)/bbcity render $(DEMO_DIR)/model --path capture --frames 300 --out $(DEMO_DIR)/flythrough.mp4
-	rm -rf $(DEMO_DIR)/site && $(BIN)/bbcity export web $(DEMO_DIR)/model --out $(DEMO_DIR)/site
-	$(BIN)/bbcity eval $(DEMO_DIR)/model $(DEMO_DIR)/street --cloud $(DEMO_DIR)/work/cloud.ply \
-		--billboards-only $(DEMO_DIR)/model-billboards --out $(DEMO_DIR)/eval
+	$(BIN)/bbcity demo --out $(DEMO_DIR)
 
 # A KITTI odometry sequence (calib.txt, poses.txt, a stereo pair of image folders) end to end:
 # every 4th frame held out of the cloud and the textures, and scored against its real image.

@@ -4,7 +4,8 @@ Shared machines are noisy, so every figure is the median of several runs and
 every speed is reported as a ratio against a baseline timed in this process.
 This module composes the sections of :attr:`BenchConfig.scene <bbcity.bench_config.BenchConfig>`
 (:mod:`bbcity.bench_synthesis`, :mod:`bbcity.bench_pipeline`, :mod:`bbcity.bench_stages`,
-:mod:`bbcity.bench_render`, :mod:`bbcity.bench_city`, :mod:`bbcity.bench_executor`) into one
+:mod:`bbcity.bench_render`, :mod:`bbcity.bench_city`, :mod:`bbcity.bench_executor`,
+:mod:`bbcity.bench_demo`) into one
 :class:`~bbcity.bench_report.Report`.
 """
 
@@ -20,6 +21,7 @@ from recon.work import Work
 
 from .bench_city import bench_city
 from .bench_config import BenchConfig
+from .bench_demo import bench_demo
 from .bench_executor import bench_executor
 from .bench_pipeline import HOLDOUT, bench_pipeline
 from .bench_render import bench_decode_and_cull, bench_novel_views, bench_town
@@ -69,6 +71,8 @@ def run_bench(cfg: BenchConfig, out: Path) -> Path:
         section("town", bench_town, cfg, report)
     if cfg.scene == "city":  # not in "all": an hour on this machine
         section("city", bench_city, cfg, report, out, cfg.city_scales)
+    if cfg.scene == "demo":  # not in "all": make demo's steps and the comparison build, profiled (15 minutes)
+        section("demo", bench_demo, report, out)
     if cfg.scene == "executor" or (cfg.scene == "all" and not cfg.quick):
         # (a quick run of everything leaves it out: two more recons and builds, whose outputs'
         # byte identity the executor's own tests check; --scene executor --quick runs it)

@@ -11,7 +11,7 @@ if TYPE_CHECKING:
     from data_synth import RigConfig
 
 
-SCENES = ("all", "street", "town", "executor", "city")
+SCENES = ("all", "street", "town", "executor", "city", "demo")
 
 #: Metres between neighbouring frames of a pass along the benchmark streets.
 FRAME_SPACING = 3.0
@@ -22,7 +22,8 @@ class BenchConfig:
     """What one ``bbcity bench`` run measures, and on what."""
 
     quick: bool = False  # small inputs for a smoke run (under 3 minutes; "all" leaves the executors out)
-    scene: str = "all"  # "street" (the pipeline and everything on its model), "town" (culling), "executor" or "all"
+    scene: str = "all"  # "street" (the pipeline and everything on its model), "town" (culling), "executor", "all",
+    # or (not in "all") "city" or "demo" (make demo's steps and the layer's comparison, profiled)
     repeats: int = 3  # each timing is the median of this many runs
     workers: int = 2  # process pool size
     work: str | None = None  # a recon work directory (e.g. the default street's): the billboard sections use it

@@ -17,6 +17,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -24,6 +25,7 @@ from core.errors import InputError
 from core.workdir import owned_output
 
 from .commands.common import absolute_paths, check_own_output, executor_options, logger
+from .profiling import ProcessCost, profiled
 from .worker import tune_allocator
 
 
@@ -33,6 +35,7 @@ def run(build_parser: Callable, argv: list[str] | None = None) -> int:
     # Ctrl-C may land while a library is being imported (parsing already imports the viewer's),
     # where it can surface as another error (an ImportError): one line and 130 all the same
     interrupted = threading.Event()
+    start = time.perf_counter()
 
     def on_interrupt(signum, frame):
         interrupted.set()
@@ -45,7 +48,7 @@ def run(build_parser: Callable, argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")  # before parsing, so that even an early error is a log line
     try:
-        return _main(build_parser, argv)
+        return _main(build_parser, argv, start)
     except BaseException:
         if not interrupted.is_set():
             raise
@@ -56,7 +59,7 @@ def run(build_parser: Callable, argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGINT, previous)
 
 
-def _main(build_parser: Callable, argv: list[str] | None) -> int:
+def _main(build_parser: Callable, argv: list[str] | None, start: float) -> int:
     args = build_parser().parse_args(argv)
     logging.getLogger().setLevel(logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO)
     tune_allocator()
@@ -73,7 +76,11 @@ def _main(build_parser: Callable, argv: list[str] | None) -> int:
             if own is not None:
                 check_own_output(out, own)
         with owned_output(out) if out is not None else contextlib.nullcontext():
-            return args.func(args)
+            with profiled(args.profile) if args.profile is not None else contextlib.nullcontext():
+                code = args.func(args)
+        if not code:
+            logger.info("%s: %s", args.command, ProcessCost.since(start).line())
+        return code
     # one line for the user; -v adds the traceback
     except InputError as e:  # DataFormatError and UsageError included
         logger.error("%s", e, exc_info=args.verbose)

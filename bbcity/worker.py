@@ -13,6 +13,8 @@ import os
 import pickle
 import signal
 
+from .profiling import profile_task
+
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 _PR_SET_PDEATHSIG = 1
@@ -70,10 +72,11 @@ class WorkerError(RuntimeError):
 
 
 def call_in_worker(fn, args, kwargs):
-    """Run one task; an exception that would not survive pickling comes back as a WorkerError
-    with its type and message (an unpicklable one would break the whole pool)."""
+    """Run one task (profiled under ``bbcity --profile``: :mod:`bbcity.profiling`); an exception
+    that would not survive pickling comes back as a WorkerError with its type and message (an
+    unpicklable one would break the whole pool)."""
     try:
-        return fn(*args, **kwargs)
+        return profile_task(fn, args, kwargs)
     except Exception as e:
         try:
             pickle.loads(pickle.dumps(e))

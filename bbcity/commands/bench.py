@@ -21,7 +21,9 @@ def add(sub) -> None:
     p.add_argument("--scene", choices=SCENES, default=full.scene,
                    help="street: the pipeline and everything measured on its model; town: culling on the town; "
                         "executor: recon and build through the local pool and through Dask; city (not in all): "
-                        "streets of --city-scales × --street-length built tile by tile and paged by the viewer")
+                        "streets of --city-scales × --street-length built tile by tile and paged by the viewer; demo "
+                        "(not in all): make demo's steps and the facade layer's comparison build, each profiled: "
+                        "its wall and CPU seconds, peak memory and the functions where the seconds went")
     p.add_argument("--city-scales", type=int_range(1, MAX_CITY_SCALE), nargs="+", default=None,
                    help="street lengths of the city runs in multiples of --street-length (default "
                         f"{' '.join(map(str, full.city_scales))})")

@@ -1,0 +1,134 @@
+"""The demo: the default street from synthesis to evaluation, each step a ``bbcity`` command
+in its own process, with what each cost.
+
+:func:`demo_steps` is the one list of the demo's commands (``make demo`` runs them through
+``bbcity demo``; ``bbcity bench --scene demo`` runs them profiled, with the comparison build
+:func:`comparison_steps`). :func:`run_steps` prints each command before it runs and its cost
+after (wall and CPU seconds of the command and its workers, the peak memory of its largest
+process, from the kernel's accounting of the ended process tree), and writes them to
+``OUT/demo_report.json``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from core.fileio import write_json
+
+logger = logging.getLogger("bbcity")
+
+#: Every HOLDOUT-th frame of the demo street is held out of the model and scored by eval.
+HOLDOUT = 10
+#: Frames of the demo's fly-through.
+FLYTHROUGH_FRAMES = 300
+
+
+@dataclass(frozen=True)
+class Step:
+    """One command of the demo: its name (a file name: its profile's directory) and its ``bbcity`` arguments; ``fresh``: a
+    directory the step writes whole, removed before it runs (the web site: export refuses an
+    existing one)."""
+
+    name: str
+    argv: tuple[str, ...]
+    fresh: Path | None = None
+
+
+@dataclass(frozen=True)
+class StepCost:
+    """What a step cost: wall and CPU seconds of its process tree, the peak resident memory of
+    its largest process (bytes) and its exit code."""
+
+    name: str
+    command: str
+    wall_s: float
+    cpu_s: float
+    peak_bytes: int
+    exit_code: int
+
+
+def demo_steps(out: Path) -> list[Step]:
+    """The demo's commands, writing under ``out``: synth, recon, build, fly-through, web site, eval."""
+    street, work, model = out / "street", out / "work", out / "model"
+    return [
+        Step("synth", ("synth", "street", "--out", str(street))),
+        Step("recon", ("recon", str(street), "--out", str(work))),
+        Step("build", ("build", str(work), "--out", str(model), "--holdout", str(HOLDOUT))),
+        Step("render", ("render", str(model), "--path", "capture", "--frames", str(FLYTHROUGH_FRAMES),
+                        "--out", str(out / "flythrough.mp4"))),
+        Step("export", ("export", "web", str(model), "--out", str(out / "site")), fresh=out / "site"),
+        # the model against Poisson depth 10 (the comparison's eval adds depths 8, 9 and 11)
+        Step("eval", ("eval", str(model), str(street), "--cloud", str(work / "cloud.ply"), "--workprecision-depths",
+                      "--out", str(out / "eval"))),
+    ]
+
+
+def comparison_steps(out: Path) -> list[Step]:
+    """The facade layer's comparison on the demo's reconstruction (after :func:`demo_steps`): a
+    model without the layer (``--layer none``) and eval scoring both."""
+    street, work = out / "street", out / "work"
+    billboards = out / "model-billboards"
+    return [
+        Step("build-billboards", ("build", str(work), "--out", str(billboards), "--holdout", str(HOLDOUT),
+                                  "--layer", "none")),
+        Step("eval-layer", ("eval", str(out / "model"), str(street), "--cloud",
+                                   str(work / "cloud.ply"), "--billboards-only", str(billboards),
+                                   "--out", str(out / "eval-layer"))),
+    ]
+
+
+def run_steps(steps: list[Step], out: Path, profile: Path | None = None) -> list[StepCost]:
+    """Run ``steps`` in order, each as ``python -m bbcity.cli`` in its own process (profiled into
+    ``profile/<step>`` when given); stop at the first that fails. Each step's cost is logged
+    and all are written to ``out/demo_report.json``. Ctrl-C reaches the running step too (one
+    process group): it is waited for, then KeyboardInterrupt propagates."""
+    costs: list[StepCost] = []
+    for step in steps:
+        if step.fresh is not None and step.fresh.exists():
+            shutil.rmtree(step.fresh)
+        argv = [sys.executable, "-m", "bbcity.cli"]
+        if profile is not None:
+            argv += ["--profile", str(profile / step.name)]
+        argv += list(step.argv)
+        shown = "bbcity " + shlex.join(step.argv)
+        logger.info("==> %s", shown)
+        cost = _run(step.name, shown, argv)
+        costs.append(cost)
+        write_json(out / "demo_report.json", {"steps": [asdict(c) for c in costs]})
+        if cost.exit_code != 0:
+            break
+        logger.info("<== %s: %.1f s wall, %.1f s CPU, peak memory %.2f GB", step.name, cost.wall_s, cost.cpu_s,
+                    cost.peak_bytes / 1e9)
+    return costs
+
+
+def _run(name: str, shown: str, argv: list[str]) -> StepCost:
+    """Run one command; its cost from ``wait4`` (CPU and peak memory of the process and its
+    ended descendants)."""
+    t0 = time.perf_counter()
+    child = subprocess.Popen(argv)
+    try:
+        _, status, usage = os.wait4(child.pid, 0)
+    except KeyboardInterrupt:
+        child.wait()  # it got the same Ctrl-C: let it clean up
+        raise
+    child.returncode = os.waitstatus_to_exitcode(status)
+    return StepCost(name, shown, time.perf_counter() - t0, usage.ru_utime + usage.ru_stime,
+                    usage.ru_maxrss * 1024, child.returncode)
+
+
+def cost_table(costs: list[StepCost]) -> str:
+    """The steps' costs as a Markdown table, with a total row."""
+    lines = ["| step | wall s | CPU s | peak memory GB |", "|---|---|---|---|"]
+    lines += [f"| {c.name} | {c.wall_s:.1f} | {c.cpu_s:.1f} | {c.peak_bytes / 1e9:.2f} |" for c in costs]
+    lines.append(f"| **total** | {sum(c.wall_s for c in costs):.1f} | {sum(c.cpu_s for c in costs):.1f} | "
+                 f"{max((c.peak_bytes for c in costs), default=0) / 1e9:.2f} |")
+    return "\n".join(lines) + "\n"
