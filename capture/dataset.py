@@ -33,6 +33,7 @@ and :func:`read_image` alike.
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from dataclasses import dataclass, replace
@@ -41,10 +42,10 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import InputError
-from core.fileio import DataFormatError, load_npy, read_png
+from core.fileio import DataFormatError, load_npy, read_json, read_png
 
 from .poses import load_poses, posed
-from .rig import Rig
+from .rig import Rig, is_int
 from .sources import ImageSource, image_source
 
 DATASET_FORMAT = "bbcity-dataset"
@@ -52,6 +53,9 @@ DATASET_FORMAT = "bbcity-dataset"
 FORMAT_VERSION = 1
 
 _FRAME_NAME = re.compile(r"\d{6}")
+
+logger = logging.getLogger(__name__)
+_WARNED: set[str] = set()  # dataset.json files warned about in this process
 
 
 @dataclass(frozen=True)
@@ -103,20 +107,29 @@ class Dataset:
         """(4, 4) float64 camera pose."""
         return self.rig.world_from_cam(self.world_from_rig[frame], cam)
 
-    def _gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
-        w, h = self.rig.sizes[cam]
-        path = self.root / "gt" / kind / f"cam{cam}" / f"{self.frame_names[frame]}.npy"
+    def _gt_path(self, kind: str, frame: int, cam: int) -> Path:
+        """Where a stored dataset keeps the raw ground truth ``kind`` ("depth", "ids")."""
+        return self.root / "gt" / kind / f"cam{cam}" / f"{self.frame_names[frame]}.npy"
+
+    def _raw_gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
+        """The raw (distorted) ground truth ``kind``, validated: (h, w) of ``dtype``; depths NaN
+        or positive. A lazy dataset makes it."""
         if self.lazy is not None:
-            raw = self.lazy.ground_truth(kind, int(self.frame_names[frame]), cam)
-        else:
-            raw = load_npy(path, dtype=dtype, shape=(h, w))
-            if kind == "depth":  # NaN where nothing is hit; a hit lies in front of the camera
-                bad = ~(np.isnan(raw) | (np.isfinite(raw) & (raw > 0)))
-                if bad.any():
-                    raise DataFormatError(path, f"holds {int(bad.sum())} depths that are neither NaN (no hit) nor "
-                                                f"a positive distance, e.g. {raw[bad][0]:g}")
+            return self.lazy.ground_truth(kind, int(self.frame_names[frame]), cam)
+        w, h = self.rig.sizes[cam]
+        path = self._gt_path(kind, frame, cam)
+        raw = load_npy(path, dtype=dtype, shape=(h, w))
+        if kind == "depth":  # NaN where nothing is hit; a hit lies in front of the camera
+            bad = ~(np.isnan(raw) | (np.isfinite(raw) & (raw > 0)))
+            if bad.any():
+                raise DataFormatError(path, f"holds {int(bad.sum())} depths that are neither NaN (no hit) nor "
+                                            f"a positive distance, e.g. {raw[bad][0]:g}")
+        return raw
+
+    def _gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
+        """The ground truth ``kind`` undistorted like the images."""
         # nearest raw pixel: no blending across depth edges or between object ids
-        return self.rig.undistort(raw, cam, nearest=True)
+        return self.rig.undistort(self._raw_gt(kind, frame, cam, dtype), cam, nearest=True)
 
     def gt_depth(self, frame: int, cam: int) -> np.ndarray:
         """(h, w) float32 ground-truth z-depth, NaN where nothing is hit; undistorted like
@@ -128,22 +141,43 @@ class Dataset:
         return self._gt("ids", frame, cam, np.int32)
 
     def verify(self) -> None:
-        """Decode every image (slow, thorough; a lazy dataset makes every frame); the first bad
-        file raises DataFormatError."""
+        """Decode every image and every stored ground-truth array (slow, thorough; a lazy dataset
+        makes every image): each must be its camera's size, and no depth array may be all NaN (a
+        camera that sees nothing). The first bad file raises DataFormatError."""
         for f in range(self.num_frames):
             for c in range(self.rig.num_cameras):
                 self.image(f, c)
+        if self.lazy is not None or not self.has_ground_truth:
+            return  # a lazy dataset's ground truth is cast with its images
+        for kind, dtype in (("depth", np.float32), ("ids", np.int32)):
+            if not (self.root / "gt" / kind).is_dir():
+                continue  # written without per-image ground truth (synth --no-gt-depth)
+            for f in range(self.num_frames):
+                for c in range(self.rig.num_cameras):
+                    path = self._gt_path(kind, f, c)
+                    if not path.is_file():
+                        raise DataFormatError(path, f"ground-truth {kind} of frame {self.frame_names[f]} camera {c} "
+                                                    "is missing")
+                    raw = self._raw_gt(kind, f, c, dtype)
+                    if kind == "depth" and np.isnan(raw).all():
+                        raise DataFormatError(path, "ground-truth depth is NaN everywhere: the camera would see "
+                                                    "nothing of the scene")
 
 
-def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None) -> Dataset:
-    """Open a dataset directory: validate ``rig.json``, ``poses.json`` and that
-    every image exists. Errors name the offending file.
+def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None, strict: bool = False) -> Dataset:
+    """Open a dataset directory: validate ``rig.json``, ``poses.json``, that ``dataset.json``
+    (when there is one) agrees with them, and that every image exists (cheap checks only:
+    :meth:`Dataset.verify` decodes the files). Errors name the offending file.
 
     poses: another ``poses.json`` to use instead of the dataset's own (the poses a
     ``bbcity recon --poses sfm`` found, ``WORK/poses.json``): the same frame names in the
     same order; frames it gives ``null`` have no pose (NaN). A :class:`Dataset` passed as
     ``path`` is returned as it is (its poses kept; ``poses`` still replaces them), so that
     functions taking a dataset directory also take a dataset with poses from elsewhere.
+
+    strict: also refuse what the stages only warn about: a ``dataset.json`` that says
+    ``"ground_truth": true`` of a dataset without ``gt/`` (a synthetic dataset copied without
+    it reads as a capture without ground truth); ``bbcity check`` reads datasets so.
     """
     if isinstance(path, Dataset):
         return path if poses is None else replace(path, world_from_rig=_replacement_poses(path, poses))
@@ -154,6 +188,7 @@ def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None
     world_from_rig, names = load_poses(root / "poses.json")
     if not names:
         raise DataFormatError(root / "poses.json", "has no frames")
+    _check_manifest(root, rig, len(names), strict)
     lazy = image_source(root)
     dataset = Dataset(root, rig, world_from_rig, tuple(names), lazy)
     if lazy is not None:  # no image files: the frames must be the ones the source makes
@@ -166,6 +201,44 @@ def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None
             if not p.is_file():
                 raise DataFormatError(p, f"image of frame {names[f]} camera {c} is missing")
     return dataset
+
+
+def _check_manifest(root: Path, rig: Rig, num_frames: int, strict: bool) -> None:
+    """DataFormatError naming ``dataset.json`` (when there is one: a capture of one's own may
+    have none) where it disagrees with the rest of the dataset: its ``"frames"`` with
+    ``poses.json``, ``"cameras"`` and ``"image_size"`` with ``rig.json`` (the writers give
+    camera 0's size), ``"ground_truth": true`` without ``gt/scene.json`` (with ``strict``;
+    else a warning). A key left out is not checked."""
+    path = root / "dataset.json"
+    if not path.is_file():
+        return
+    data = read_json(path)
+    if not isinstance(data, dict):
+        raise DataFormatError(path, "not a dataset manifest (expected a JSON object)")
+    if "format" in data and data["format"] != DATASET_FORMAT:
+        raise DataFormatError(path, f"\"format\" is {data['format']!r}, expected \"{DATASET_FORMAT}\"")
+    for key, value, what in (("frames", num_frames, f"{root / 'poses.json'} has {num_frames} frames"),
+                             ("cameras", rig.num_cameras, f"{root / 'rig.json'} has {rig.num_cameras} cameras")):
+        if key in data and not (is_int(data[key]) and data[key] == value):
+            raise DataFormatError(path, f"\"{key}\" is {data[key]!r} but {what}")
+    if "image_size" in data:
+        w, h = rig.sizes[0]
+        size = data["image_size"]
+        if not (isinstance(size, list) and len(size) == 2 and all(is_int(v) for v in size) and size == [w, h]):
+            raise DataFormatError(path, f"\"image_size\" is {size!r} but camera 0 of {root / 'rig.json'} is "
+                                        f"{w}x{h} ([width, height] expected)")
+    if "ground_truth" in data:
+        gt = data["ground_truth"]
+        if not isinstance(gt, bool):
+            raise DataFormatError(path, f"\"ground_truth\" must be true or false, got {gt!r}")
+        if gt and not (root / "gt" / "scene.json").is_file():
+            problem = DataFormatError(path, f"\"ground_truth\" is true but {root / 'gt' / 'scene.json'} is missing "
+                                            "(copy the dataset's gt/ along, or set it false)")
+            if strict:
+                raise problem
+            if str(path) not in _WARNED:
+                _WARNED.add(str(path))
+                logger.warning("%s; read as a capture without ground truth", problem)
 
 
 def _replacement_poses(dataset: Dataset, path: os.PathLike | str) -> np.ndarray:

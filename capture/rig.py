@@ -33,6 +33,10 @@ FOCAL_RANGE = 1000.0
 #: How much narrower than the raw image a lens's undistorted pinhole image may be (fisheye
 #: k1 = 100 makes it 6×; k1 = 1e6, 126×: a reconstruction then sees nothing).
 MAX_UNDISTORT_ZOOM = 20.0
+#: The camera models rig.json knows: the pinhole model (a lens goes in "distortion").
+CAMERA_MODELS = ("pinhole",)
+#: How far outside its image a principal point may lie, in image widths (cx) or heights (cy).
+PRINCIPAL_POINT_RANGE = 1.0
 
 
 def is_int(value) -> bool:
@@ -141,6 +145,7 @@ class Rig:
         cams = data.get("cameras")
         if not isinstance(cams, list) or not cams:
             raise DataFormatError(path, "\"cameras\" must be a non-empty list")
+        _check_reference_camera(path, data.get("reference_camera", 0), len(cams))
         Ks, sizes, Ts, distortions = [], [], [], []
         for i, cam in enumerate(cams):
             where = f"cameras[{i}]"
@@ -149,6 +154,10 @@ class Rig:
             missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy", "cam_from_rig") if k not in cam]
             if missing:
                 raise DataFormatError(path, f"{where} lacks {', '.join(missing)}")
+            model = cam.get("model", "pinhole")  # hand-written files may leave it out
+            if not isinstance(model, str) or model not in CAMERA_MODELS:
+                raise DataFormatError(path, f"{where}.model {model!r} is not a camera model rig.json knows "
+                                            f"({', '.join(CAMERA_MODELS)}; a lens goes in {where}.distortion)")
             distortions.append(Distortion.from_json(cam.get("distortion", "none"), path, f"{where}.distortion"))
             for name in ("width", "height"):
                 v = cam[name]
@@ -163,6 +172,7 @@ class Rig:
                 if not edge / FOCAL_RANGE <= value <= edge * FOCAL_RANGE:  # a 0.06° to 179.9° field of view
                     raise DataFormatError(path, f"{where}.{name} {value:g} px is not a lens's for a {edge}-px "
                                                 f"image (expected {edge / FOCAL_RANGE:g} to {edge * FOCAL_RANGE:g})")
+            _check_principal_point(path, where, f[2], f[3], w, h)
             Ks.append(np.array([[f[0], 0, f[2]], [0, f[1], f[3]], [0, 0, 1]]))
             sizes.append((w, h))
             Ts.append(check_rigid(as_matrix(cam["cam_from_rig"], (4, 4), path, f"{where}.cam_from_rig"),
@@ -178,6 +188,25 @@ class Rig:
                                             f"narrower than the raw one (at most {MAX_UNDISTORT_ZOOM:g}×): "
                                             "coefficients no lens has")
         return rig
+
+
+def _check_reference_camera(path: Path, ref, num_cameras: int) -> None:
+    """DataFormatError naming ``path`` unless ``reference_camera`` ``ref`` is the index of
+    one of the rig's ``num_cameras`` cameras (an integer, not a bool or a string)."""
+    if not (is_int(ref) and 0 <= ref < num_cameras):
+        raise DataFormatError(path, f"reference_camera must be an integer camera index 0 to {num_cameras - 1}, "
+                                    f"got {ref!r}")
+
+
+def _check_principal_point(path: Path, where: str, cx: float, cy: float, w: int, h: int) -> None:
+    """DataFormatError naming ``path`` and ``where`` (``cameras[i]``) when the principal point
+    (cx, cy) lies more than :data:`PRINCIPAL_POINT_RANGE` image widths (heights) outside the
+    ``w`` × ``h`` image (pixel centres 0 to w − 1): no lens's, a K in other units or swapped."""
+    for name, value, edge in (("cx", cx, w), ("cy", cy, h)):
+        lo, hi = -0.5 - PRINCIPAL_POINT_RANGE * edge, edge - 0.5 + PRINCIPAL_POINT_RANGE * edge
+        if not lo <= value <= hi:
+            raise DataFormatError(path, f"{where}.{name} {value:g} px lies far outside the {w}x{h} image "
+                                        f"(expected {lo:g} to {hi:g})")
 
 
 def pinhole(width: int, height: int, hfov_deg: float) -> np.ndarray:

@@ -16,10 +16,13 @@ def add(sub) -> None:
 
 
 def run(args) -> int:
-    """Read the dataset (and with --deep every array); print its size."""
+    """Read the dataset (and with --deep every array); print its size. An inconsistent dataset
+    raises DataFormatError naming the file and key (exit 2): the checks are those of
+    :func:`capture.dataset.load_dataset` (strict: the stages only warn of ground truth that
+    dataset.json declares and gt/ lacks) and :meth:`capture.dataset.Dataset.verify`."""
     from capture.dataset import load_dataset
 
-    ds = load_dataset(args.dataset)
+    ds = load_dataset(args.dataset, strict=True)
     if args.deep:
         ds.verify()
     w, h = ds.rig.sizes[0]
