@@ -9,7 +9,6 @@ direction (:func:`fill_directions`); a surface's holes take the nearest seen tex
 
 from __future__ import annotations
 
-import warnings
 
 import cv2
 import numpy as np
@@ -76,6 +75,17 @@ def close_holes_reference(rgba: np.ndarray) -> np.ndarray:
     return out
 
 
+def nanmedian_along(x: np.ndarray, axis: int) -> np.ndarray:
+    """``np.nanmedian(x, axis, keepdims=True)`` of a float array (NaN where a line holds no
+    number), by one sort: NaN sorts last, so a line's median is the mean of the middle two of
+    its first n. numpy's own goes through masked arrays for short lines, about 20 times slower."""
+    s = np.sort(x, axis=axis)
+    n = np.count_nonzero(~np.isnan(x), axis=axis, keepdims=True)
+    lo = np.take_along_axis(s, np.maximum(n - 1, 0) // 2, axis=axis)
+    hi = np.take_along_axis(s, n // 2, axis=axis)
+    return (lo + hi) / 2
+
+
 def reject_transients(colour: np.ndarray, status: np.ndarray, views: np.ndarray | None = None,
                       threshold: float = 40.0, mads: float = 4.0, min_views: int = 3) -> np.ndarray:
     """Mark as hidden the samples of a surface's texels that disagree with what the other
@@ -105,10 +115,8 @@ def reject_transients(colour: np.ndarray, status: np.ndarray, views: np.ndarray 
     if not (count >= min_views).any():
         return out
     c = np.where(voter[..., None], colour.astype(np.float32), np.nan)        # (B, d, t, t, 3)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)                       # texels no camera measured
-        median = np.nanmedian(c, axis=1, keepdims=True)
-        mad = np.nanmedian(np.abs(c - median), axis=1, keepdims=True)
+    median = nanmedian_along(c, axis=1)
+    mad = nanmedian_along(np.abs(c - median), axis=1)
     off = (np.abs(colour.astype(np.float32) - median) > np.maximum(threshold, mads * mad)).any(axis=-1)
     out[off & visible & (count >= min_views)[:, None]] = OCCLUDED
     return out

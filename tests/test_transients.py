@@ -3,10 +3,13 @@ its texture; smooth view dependence stays in."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
-from billboards.texels import OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, reject_transients, reject_transients_reference
+from billboards.texels import OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, nanmedian_along, reject_transients, \
+    reject_transients_reference
 
 
 def _stack(B=3, d=12, t=4, seed=0):
@@ -107,3 +110,19 @@ def test_a_passing_car_stays_out_of_the_ground_texture(tmp_path):
     car_texels = (redness(smeared) > 0.2).sum()
     assert car_texels > 200                                            # the car is in the textures …
     assert (redness(kept) > 0.2).sum() < 0.05 * car_texels             # … unless rejected
+
+
+@pytest.mark.parametrize("shape, axis", [((40, 7, 4, 4, 3), 1), ((9, 1, 3), 1), ((6, 12, 2), 1), ((5, 8), 0)])
+def test_nanmedian_along_is_numpys(shape, axis):
+    """Odd and even counts, a line of one, lines with no number (NaN), halves (.5)."""
+    rng = np.random.default_rng(len(shape))
+    x = rng.integers(0, 256, shape).astype(np.float32)
+    x[rng.random(shape) < 0.4] = np.nan
+    x[0] = np.nan
+    x[(slice(None),) * axis + (slice(0, 1),)] = np.nan
+    x.reshape(-1)[:1] = 7.0  # a line of one number
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # numpy warns of the lines of no number
+        expected = np.nanmedian(x, axis=axis, keepdims=True)
+    got = nanmedian_along(x, axis)
+    assert got.dtype == expected.dtype and np.array_equal(got, expected, equal_nan=True)
