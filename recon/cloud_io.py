@@ -478,17 +478,30 @@ def read_cloud_arrays(path: os.PathLike | str, require_colours: bool = True
     times faster than Open3D; PCD goes through :func:`read_cloud`. Validation and
     errors are those of :func:`read_cloud` (PLY colours must be uchar).
     """
+    points, colours, _ = read_oriented_cloud(path, require_colours)
+    return points, colours
+
+
+def read_oriented_cloud(path: os.PathLike | str, require_colours: bool = True
+                        ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """:func:`read_cloud_arrays` with the normals: (n, 3) float64, or None where the file has none."""
     path = Path(path)
     if not (path.is_file() and path.suffix.lower() == ".ply"):
         pcd = read_cloud(path, require_colours)
         colours = (np.clip(np.rint(np.asarray(pcd.colors) * 255), 0, 255).astype(np.uint8)
                    if pcd.has_colors() else None)
-        return np.asarray(pcd.points), colours
+        normals = np.asarray(pcd.normals).copy() if pcd.has_normals() else None
+        return np.asarray(pcd.points), colours, normals
     layout = _ply_layout(path)
     columns = _ply_columns(path, layout)
     points, colours = _points_and_colours(path, columns, layout, require_colours)
+    normals = None
+    if {"nx", "ny", "nz"} <= set(columns):
+        normals = np.empty((layout.count, 3), dtype=np.float64)
+        for i, axis in enumerate(("nx", "ny", "nz")):
+            normals[:, i] = columns[axis]
     del columns
-    return points, colours
+    return points, colours, normals
 
 
 @dataclass(frozen=True, eq=False)

@@ -109,13 +109,9 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
 def read_cloud_for_baselines(cloud_path: os.PathLike | str, viewpoints: np.ndarray | None = None) -> dict:
     """The cloud as arrays: points (N, 3) float64, colours (N, 3) uint8, normals (N, 3)
     float64 or None, and ``viewpoints`` (v, 3) to orient estimated normals toward."""
-    from recon.cloud_io import read_cloud
+    from recon.cloud_io import read_oriented_cloud
 
-    pcd = read_cloud(cloud_path, require_colours=True)
-    points = np.asarray(pcd.points).copy()
-    colours = np.clip(np.rint(np.asarray(pcd.colors) * 255), 0, 255).astype(np.uint8)
-    normals = np.asarray(pcd.normals).copy() if pcd.has_normals() else None
-    del pcd
+    points, colours, normals = read_oriented_cloud(cloud_path, require_colours=True)
     return {"points": points, "colours": colours, "normals": normals, "viewpoints": viewpoints}
 
 
