@@ -269,6 +269,7 @@ def _commands(tmp):
         ("sampling-eval", nx, "--out", out): {"--count": 1, "--voxel-size": 1},
         ("stereo-sweep", nx, "--out", out): {"--frames": 1},
         ("check", nx): {},
+        ("demo", "--out", str(bench_out)): {},
         ("bench", "--out", str(bench_out)): {"--repeats": 1, "--street-length": 1, "--city-scales": "+",
                                              "--gpu-budget": 1},
         ("view", nx): {"--size": 2, "--script-frames": 1, "--gpu-budget": 1},

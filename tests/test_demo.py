@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from bbcity.bench_demo import bench_demo
 from bbcity.bench_report import Report
 from bbcity.cli import build_parser
@@ -106,3 +108,16 @@ def test_bench_demo_reports_each_step_and_its_profile(tmp_path):
     assert 0 < len(functions) <= 12 and all(f["own s"] >= 0 for f in functions)
     report.write(tmp_path / "report")
     assert "## demo profile: synth" in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_a_step_alongside_runs_with_the_one_before(tmp_path):
+    steps = [Step("first", (*TINY, "--out", str(tmp_path / "a"))),
+             Step("second", ("synth", "street", "--out", str(tmp_path / "b"), "--length", "-1"), alongside=True),
+             Step("never", ("synth", "street", "--out", str(tmp_path / "never")))]
+    costs = run_steps(steps, tmp_path)
+    first, second = costs
+    assert (first.exit_code, second.exit_code) == (0, 2) and not (tmp_path / "never").exists()
+    assert second.start_s < first.start_s + first.wall_s  # started before the first ended
+    total = cost_table(costs).splitlines()[-1].split("|")
+    assert float(total[3]) == pytest.approx(max(c.start_s + c.wall_s for c in costs), abs=0.1)
+    assert [s.alongside for s in demo_steps(tmp_path)] == [False, False, False, False, True, True]

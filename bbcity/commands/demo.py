@@ -28,9 +28,10 @@ def _run(args) -> int:
     if costs and costs[-1].exit_code != 0:
         return costs[-1].exit_code
     print("\n" + cost_table(costs))
-    print(f"""Where to look:
-  {out / 'flythrough.mp4'}          the fly-through along the capture path
-  {out / 'eval' / 'eval.md'}           held-out views against ground truth, with side-by-side images
-  bbcity view {out / 'model'}          walk the model (a window; --window offscreen without a display)
-  bbcity serve {out / 'site'}          the web viewer at http://127.0.0.1:8000/""")
+    looks = [(str(out / "flythrough.mp4"), "the fly-through along the capture path"),
+             (str(out / "eval" / "eval.md"), "held-out views against ground truth, with side-by-side images"),
+             (f"bbcity view {out / 'model'}", "walk the model (a window; --window offscreen without a display)"),
+             (f"bbcity serve {out / 'site'}", "the web viewer at http://127.0.0.1:8000/")]
+    width = max(len(a) for a, _ in looks)
+    print("Where to look:\n" + "\n".join(f"  {a:<{width}}  {b}" for a, b in looks))
     return 0
