@@ -73,7 +73,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     inputs = read_inputs(conf, dataset_dir, poses)
     check_views_see(conf, inputs, points, cloud_path, dataset_dir)
     t1 = time.perf_counter()
-    inputs, photometry_report = with_gains(conf, inputs, points, progress)
+    inputs, photometry_report = with_gains(conf, inputs, points, progress, executor)
     if inputs.exposure is not None:
         stages["photometry_s"] = time.perf_counter() - t1
     views, cameras = inputs.views, inputs.cameras

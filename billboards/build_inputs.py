@@ -6,6 +6,7 @@ them. One copy for a model (:func:`billboards.build.main`) and a model set
 from __future__ import annotations
 
 import os
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -77,18 +78,18 @@ def check_views_see(conf: BuildConfig, inputs: BuildInputs, points: np.ndarray, 
 
 
 def with_gains(conf: BuildConfig, inputs: BuildInputs, points: np.ndarray,
-               progress: bool | None) -> tuple[BuildInputs, dict]:
+               progress: bool | None, executor: Executor | None = None) -> tuple[BuildInputs, dict]:
     """``inputs`` with per-image exposure and white balance estimated from the cloud ``points``
     (N, 3) float64 (or a sample of it, :func:`~billboards.photometry.estimate_gains`) and divided
     out of every view before anything reads its colours (the layer's EPIs, the sky, the
     textures), so the eigen-textures spend no rank on them; and the build report's
-    "photometry". Unchanged (``{"enabled": False}``) when photometry is off, the source is not
+    "photometry" (the views read in parallel by ``executor``). Unchanged (``{"enabled": False}``) when photometry is off, the source is not
     images, or there are no views or no points."""
     views = inputs.views
     if not (conf.photometry is not None and conf.photometry.enabled and views is not None
             and conf.source == "images" and len(views) and len(points)):
         return inputs, {"enabled": False}
-    photometry = estimate_gains(views, points, conf.photometry, progress=progress)
+    photometry = estimate_gains(views, points, conf.photometry, progress=progress, executor=executor)
     # which (frame, camera) each gain belongs to, in the order of views_from_dataset
     exposure = {"views": [[f, c] for f in inputs.frames for c in range(inputs.cameras)],
                 "gains": photometry.gains.tolist()}

@@ -355,7 +355,7 @@ def build_tiled(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: o
 
         t0 = time.perf_counter()
         sample, _ = cloud_sample(cloud, conf.sample_points)
-        inputs, photometry_report = with_gains(conf, inputs, sample, progress)
+        inputs, photometry_report = with_gains(conf, inputs, sample, progress, executor)
         stages["photometry_s"] = time.perf_counter() - t0
         views = inputs.views
         t0 = time.perf_counter()

@@ -38,13 +38,14 @@ from __future__ import annotations
 import logging
 import math
 import time
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from core.errors import InputError
+from core.tasks import executor_workers, ordered_results
 
 from .voxels import transform_points, voxel_points, zbuffer
 
@@ -190,7 +191,10 @@ def _cloud_cells(points: np.ndarray, cell: float):
     """The cloud grouped in a coarse grid (:class:`~billboards.voxels.VoxelPoints`), for frustum culling."""
     origin = points.min(axis=0)
     key = np.floor((points - origin) / cell).astype(np.int64)
-    cells, leaf = np.unique(key, axis=0, return_inverse=True)
+    # one int64 per cell, x most significant: the rows' lexicographic order, without unique's slow row path
+    span = key.max(axis=0) + 1 if len(key) else np.ones(3, np.int64)
+    flat, leaf = np.unique((key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2], return_inverse=True)
+    cells = np.stack([flat // (span[1] * span[2]), flat // span[2] % span[1], flat % span[2]], axis=1)
     centres = origin + (cells + 0.5) * cell
     return voxel_points(points, leaf.ravel(), centres, origin, cell)
 
@@ -209,7 +213,7 @@ def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def collect_observations(views, points: np.ndarray, config: PhotometryConfig = PhotometryConfig(),
-                         progress: bool | None = None) -> Observations:
+                         progress: bool | None = None, executor: Executor | None = None) -> Observations:
     """Sample tie points of the cloud in every view that sees them.
 
     views: :class:`~billboards.views.Views` (read as captured, whatever their gains); points (N, 3)
@@ -217,6 +221,8 @@ def collect_observations(views, points: np.ndarray, config: PhotometryConfig = P
     (seeded). A sample is kept when the point lies in front of the camera, within
     ``max_distance``, inside the image (one pixel from its border), is not hidden behind
     the splatted cloud, and no channel of the pixels around it is dark or saturated.
+    executor: the views are read in runs of consecutive views, in parallel (None: here); the
+    observations are the same either way.
     """
     points = np.asarray(points, dtype=np.float64)
     if len(points) == 0 or len(views) == 0:
@@ -225,11 +231,27 @@ def collect_observations(views, points: np.ndarray, config: PhotometryConfig = P
     ties = points[np.sort(rng.choice(len(points), min(config.samples, len(points)), replace=False))]
     stride = -(-len(points) // config.zbuffer_points)
     cells = _cloud_cells(points[::stride], config.cell)
-    images, ids, colours = [], [], []
     if getattr(views, "gains", None) is not None:
         views = replace(views, gains=None)  # the gains are estimated on the images as captured
-    for i in tqdm(range(len(views)), desc="photometry", unit="image",
-                  disable=None if progress is None else not progress):
+    # a run per worker: each task carries the cloud's cells (tens of MB) to its worker
+    runs = np.array_split(np.arange(len(views)), max(1, min(len(views), executor_workers(executor))))
+    tasks = [(views, run, ties, cells, config) for run in runs if len(run)]
+    found = [o for part in ordered_results(_observe_views, tasks, executor, desc="photometry", progress=progress)
+             for o in part]
+    if not found:
+        return Observations(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), len(views), len(ties))
+    return Observations(np.concatenate([np.full(len(i), v, np.int64) for v, i, _ in found]),
+                        np.concatenate([i for _, i, _ in found]), np.concatenate([c for _, _, c in found]),
+                        len(views), len(ties))
+
+
+def _observe_views(task) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """:func:`collect_observations` of a run of views: (view, tie point ids (k,) int64, colours
+    (k, 3) float64) of each view that keeps any."""
+    views, run, ties, cells, config = task
+    out = []
+    for i in run:
+        i = int(i)
         K, pose, size = views.K[i], views.world_from_cam[i], views.sizes[i]
         w, h = (int(s) for s in size)
         R, C = pose[:3, :3], pose[:3, 3]
@@ -267,12 +289,8 @@ def collect_observations(views, points: np.ndarray, config: PhotometryConfig = P
         img = image.astype(np.float32)
         if config.blur_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), config.blur_sigma, borderType=cv2.BORDER_REPLICATE)
-        images.append(np.full(len(sel), i, np.int64))
-        ids.append(sel.astype(np.int64))
-        colours.append(_bilinear(img, u[sel], v[sel]))
-    if not images:
-        return Observations(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), len(views), len(ties))
-    return Observations(np.concatenate(images), np.concatenate(ids), np.concatenate(colours), len(views), len(ties))
+        out.append((i, sel.astype(np.int64), _bilinear(img, u[sel], v[sel])))
+    return out
 
 
 # --------------------------------------------------------------------------- solving
@@ -463,16 +481,17 @@ def solve_gains(obs: Observations, config: PhotometryConfig = PhotometryConfig()
 
 
 def estimate_gains(views, points: np.ndarray, config: PhotometryConfig = PhotometryConfig(),
-                   progress: bool | None = None) -> PhotometryResult:
+                   progress: bool | None = None, executor: Executor | None = None) -> PhotometryResult:
     """Per-view RGB gains (V, 3) float64 of ``views`` from the cloud ``points`` (N, 3) float64.
 
     With ``config.enabled`` False every gain is 1. Views that no usable tie point links to
-    another view keep gain 1 (``report()["not_estimated"]``).
+    another view keep gain 1 (``report()["not_estimated"]``). executor: reads the views in
+    parallel (None: here).
     """
     t0 = time.perf_counter()
     if not config.enabled:
         return PhotometryResult(np.ones((len(views), 3)), None, 0, 0, 0.0)
-    obs = collect_observations(views, points, config, progress)
+    obs = collect_observations(views, points, config, progress, executor)
     sol = solve_gains(obs, config)
     result = PhotometryResult(sol.gains, sol, int((sol.weights > 0).sum()), int(obs.num_points),
                               time.perf_counter() - t0)

@@ -148,6 +148,20 @@ def test_known_gains_are_recovered_and_the_solvers_agree(street, perturbed):
     np.testing.assert_array_equal(fast.estimated, ref.estimated)
 
 
+def test_observations_read_in_parallel_are_the_same(street, perturbed):
+    from bbcity.executor import WorkerPool
+
+    _, _, points = street
+    views = views_from_dataset(load_dataset(perturbed[0]))
+    here = collect_observations(views, points)
+    with WorkerPool(2) as pool:
+        there = collect_observations(views, points, executor=pool)
+    assert len(here.image) > 1000 and len(np.unique(here.image)) > 1
+    for name in ("image", "point", "rgb"):
+        np.testing.assert_array_equal(getattr(here, name), getattr(there, name))
+    assert (here.num_images, here.num_points) == (there.num_images, there.num_points)
+
+
 def test_constant_exposure_gives_unit_gains(street):
     dataset, _, points = street
     result = estimate_gains(views_from_dataset(load_dataset(dataset)), points)
