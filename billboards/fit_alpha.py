@@ -43,6 +43,7 @@ import time
 
 import numpy as np
 
+from core.arrays import unique_rows
 from core.fileio import atomic_path
 
 from .fit import FitConfig, Quads, blended
@@ -109,7 +110,7 @@ def sums(key: np.ndarray, y: np.ndarray, behind: np.ndarray, now: np.ndarray, sh
     out = np.zeros(len(keys), ALPHA_DTYPE)
     out["key"] = keys
     out["count"] = np.bincount(inverse, minlength=len(keys))
-    out["views"] = np.bincount(np.unique(np.stack([inverse, view], 1), axis=0)[:, 0], minlength=len(keys))
+    out["views"] = np.bincount(unique_rows(np.stack([inverse, view], 1))[:, 0], minlength=len(keys))
     for ch in range(3):
         out["sum_y"][:, ch] = np.bincount(inverse, y[:, ch], minlength=len(keys))
     out["sum_yy"] = np.bincount(inverse, np.square(y).sum(axis=1), minlength=len(keys))

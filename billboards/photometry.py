@@ -44,6 +44,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from core.arrays import unique_rows
 from core.errors import InputError
 from core.tasks import executor_workers, ordered_results
 
@@ -191,10 +192,7 @@ def _cloud_cells(points: np.ndarray, cell: float):
     """The cloud grouped in a coarse grid (:class:`~billboards.voxels.VoxelPoints`), for frustum culling."""
     origin = points.min(axis=0)
     key = np.floor((points - origin) / cell).astype(np.int64)
-    # one int64 per cell, x most significant: the rows' lexicographic order, without unique's slow row path
-    span = key.max(axis=0) + 1 if len(key) else np.ones(3, np.int64)
-    flat, leaf = np.unique((key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2], return_inverse=True)
-    cells = np.stack([flat // (span[1] * span[2]), flat // span[2] % span[1], flat % span[2]], axis=1)
+    cells, leaf = unique_rows(key, return_inverse=True)
     centres = origin + (cells + 0.5) * cell
     return voxel_points(points, leaf.ravel(), centres, origin, cell)
 

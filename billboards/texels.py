@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from core.arrays import unique_rows
+
 #: Texel status while sampling.
 VISIBLE, TRANSPARENT, OCCLUDED, UNSEEN = 0, 1, 2, 3
 
@@ -43,7 +45,7 @@ def close_holes(rgba: np.ndarray) -> np.ndarray:
     hole = tiles[..., 3] == 0
     partial = np.flatnonzero(hole.any(axis=(1, 2)) & ~hole.all(axis=(1, 2)))
     if len(partial):
-        masks, which = np.unique(hole[partial].reshape(len(partial), -1), axis=0, return_inverse=True)
+        masks, which = unique_rows(hole[partial].reshape(len(partial), -1), return_inverse=True)
         which = which.reshape(-1)
         for u, mask in enumerate(masks):   # tiles with the same holes (a block's directions) share one
             _, (rows, cols) = ndimage.distance_transform_edt(mask.reshape(t0, t1), return_indices=True)

@@ -17,6 +17,7 @@ import numpy as np
 import open3d as o3d
 
 from capture.dataset import Dataset
+from core.arrays import unique_rows
 from data_synth import Kind, Scene, load_scene, scene_section
 
 from .points import depth_to_points
@@ -76,7 +77,7 @@ def seen_surface(dataset: Dataset, scene: Scene | np.ndarray, voxel: float = 0.0
         return points, kind
     origin = points.min(axis=0) if grid_origin is None else np.asarray(grid_origin, np.float64)
     cell = np.floor((points - origin) / voxel).astype(np.int64)
-    _, first = np.unique(cell, axis=0, return_index=True)
+    _, first = unique_rows(cell, return_index=True)
     return points[first], kind[first]
 
 
@@ -177,7 +178,7 @@ def _seen_surface_by_square(dataset: Dataset, kinds: np.ndarray, grid, max_depth
         parts = held.pop(square)
         points = np.concatenate([p for p, _ in parts])
         kind = np.concatenate([k for _, k in parts])
-        _, first = np.unique(np.floor((points - origin) / voxel).astype(np.int64), axis=0, return_index=True)
+        _, first = unique_rows(np.floor((points - origin) / voxel).astype(np.int64), return_index=True)
         return points[first], kind[first], square
 
     for v in np.argsort(centres[:, 0], kind="stable"):

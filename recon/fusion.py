@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
+from core.arrays import unique_rows
 from core.errors import InputError
 from core.fileio import load_npy, save_npy
 from core.tasks import executor_workers, ordered_results, run_tasks
@@ -131,7 +132,7 @@ class TileSpill:
         """Aggregate one frame's points and write them to their tiles. Returns voxels written."""
         keys, sums = voxel_sums(points, colours, weights, self.origin, self.cfg.voxel_size)
         tiles = self.tile_of(keys)
-        for tx, ty in np.unique(tiles, axis=0):
+        for tx, ty in unique_rows(tiles):
             m = (tiles[:, 0] == tx) & (tiles[:, 1] == ty)
             d = self.root / f"tile_{tx}_{ty}"
             save_npy(d / f"{name}.keys.npy", keys[m])

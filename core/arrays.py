@@ -1,0 +1,62 @@
+"""Array helpers the stages share.
+
+:func:`unique_rows` is ``np.unique(rows, axis=0, ...)`` for integer and boolean rows, about
+ten times faster: numpy sorts rows through a structured view, one field compare at a time;
+here each row becomes one 64-bit key whose order is the rows' lexicographic order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Rows whose value ranges multiply to at most this become one int64 key.
+_MAX_KEYS = 1 << 62
+
+
+def unique_rows(rows: np.ndarray, *, return_index: bool = False, return_inverse: bool = False,
+                return_counts: bool = False):
+    """``np.unique(rows, axis=0, return_index=…, return_inverse=…, return_counts=…)`` of a 2-D
+    integer or bool array (n, k): the same arrays in the same order (the inverse (n,) int64).
+
+    Integer rows are numbered in mixed radix over each column's range, the first column most
+    significant; bool rows of at most 64 columns are read as the bits of one unsigned key.
+    Other rows (floats, wider ranges) go to ``np.unique`` itself.
+    """
+    rows = np.asarray(rows)
+    coded = _row_keys(rows) if rows.ndim == 2 and len(rows) else None
+    if coded is None:
+        return np.unique(rows, axis=0, return_index=return_index, return_inverse=return_inverse,
+                         return_counts=return_counts)
+    key, decode = coded
+    if not (return_index or return_inverse or return_counts):  # numpy's plain path hashes: slower than a sort
+        key = np.sort(key)
+        return decode(key[np.r_[True, key[1:] != key[:-1]]])
+    found = np.unique(key, return_index=return_index, return_inverse=return_inverse, return_counts=return_counts)
+    if return_inverse:
+        at = 1 + return_index
+        found = found[:at] + (found[at].reshape(-1),) + found[at + 1:]
+    return (decode(found[0]),) + found[1:]
+
+
+def _row_keys(rows: np.ndarray):
+    """(keys (n,) int64 or uint64 ordered as the rows (n, k), the function from keys back to
+    rows), or None where no such key fits."""
+    k = rows.shape[1]
+    if rows.dtype == bool:
+        if k > 64:
+            return None
+        packed = np.zeros((len(rows), 8), np.uint8)
+        packed[:, :-(-k // 8)] = np.packbits(rows, axis=1)  # first column: the top bit
+        keys = packed.view(">u8").reshape(-1).astype(np.uint64)
+        return keys, lambda u: np.unpackbits(u.astype(">u8").view(np.uint8).reshape(-1, 8), axis=1)[:, :k] \
+            .astype(bool)
+    if not np.issubdtype(rows.dtype, np.integer) or (rows.dtype == np.uint64 and rows.max() >= 1 << 63):
+        return None
+    lo, hi = rows.min(axis=0).tolist(), rows.max(axis=0).tolist()  # Python integers: no overflow
+    span = [b - a + 1 for a, b in zip(lo, hi)]
+    if int(np.prod(np.array(span, dtype=object))) > _MAX_KEYS:
+        return None
+    span, lo = np.array(span, np.int64), np.array(lo, np.int64)
+    weight = np.cumprod(np.r_[span[1:], 1][::-1])[::-1].astype(np.int64)  # the last column weighs 1
+    keys = ((rows.astype(np.int64) - lo) * weight).sum(axis=1)
+    return keys, lambda u: ((u[:, None] // weight) % span + lo).astype(rows.dtype)
