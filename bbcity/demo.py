@@ -94,7 +94,7 @@ def run_steps(steps: list[Step], out: Path, profile: Path | None = None) -> list
     """Run ``steps`` in order, each as ``python -m bbcity.cli`` in its own process (profiled into
     ``profile/<step>`` when given), a step marked ``alongside`` at the same time as the one
     before it; stop after the first group of steps in which one failed. Each step's cost is
-    logged and all are written to ``out/demo_report.json``. Ctrl-C reaches the running steps
+    logged and all are written to ``out/demo_report.json``, in the order they ended. Ctrl-C reaches the running steps
     too (one process group): they are waited for, then KeyboardInterrupt propagates."""
     groups: list[list[Step]] = []
     for step in steps:
@@ -116,8 +116,12 @@ def run_steps(steps: list[Step], out: Path, profile: Path | None = None) -> list
                 shown = "bbcity " + shlex.join(step.argv)
                 logger.info("==> %s%s", shown, " (alongside the step before)" if step.alongside else "")
                 running.append((step, shown, time.perf_counter(), subprocess.Popen(argv + list(step.argv))))
-            for step, shown, started, child in running:
-                _, status, usage = os.wait4(child.pid, 0)
+            waiting = {child.pid: (step, shown, started, child) for step, shown, started, child in running}
+            while waiting:  # in the order they end: each one's wall time is its own
+                pid, status, usage = os.wait4(-1, 0)
+                if pid not in waiting:
+                    continue
+                step, shown, started, child = waiting.pop(pid)
                 child.returncode = os.waitstatus_to_exitcode(status)
                 cost = StepCost(step.name, shown, started - t0, time.perf_counter() - started,
                                 usage.ru_utime + usage.ru_stime, usage.ru_maxrss * 1024, child.returncode)

@@ -6,6 +6,7 @@ size. A billboard model (:class:`ModelMethod`) and a Poisson mesh built on first
 
 from __future__ import annotations
 
+import threading
 from typing import Callable
 
 import numpy as np
@@ -112,21 +113,44 @@ def neighbour_gains(exposure: dict | None, frames, camera: int = 0) -> dict[int,
 
 
 class LazyPoisson:
-    """A :class:`PoissonMesh` method built on first use (meshing takes seconds to minutes),
-    freed by :meth:`release` once its views are scored."""
+    """A :class:`PoissonMesh` method built on first use (meshing takes seconds to minutes), or
+    in the background from :meth:`start`, freed by :meth:`release` once its views are scored."""
 
     def __init__(self, cloud: dict, depth: int, trim_quantile: float):
         self.cloud, self.depth, self.trim_quantile = cloud, int(depth), float(trim_quantile)
         self.mesh: PoissonMesh | None = None
         self.nbytes: int | None = None
         self.seconds: float | None = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def start(self) -> "LazyPoisson":
+        """Mesh in a background thread while the caller goes on (Open3D's Poisson step lets go
+        of the GIL: the other core meshes while this one draws); the first call waits for it."""
+        def build() -> None:
+            try:
+                self._build()
+            except BaseException as e:  # raised again by the first call, in the caller's thread
+                self._error = e
+
+        self._thread = threading.Thread(target=build, name=f"Poisson depth {self.depth}", daemon=True)
+        self._thread.start()
+        return self
+
+    def _build(self) -> None:
+        self.mesh = PoissonMesh(self.cloud["points"], self.cloud["colours"], self.cloud["normals"],
+                                depth=self.depth, trim_quantile=self.trim_quantile,
+                                viewpoints=self.cloud["viewpoints"])
+        self.nbytes, self.seconds = self.mesh.nbytes, self.mesh.seconds
 
     def __call__(self, K, world_from_cam, size) -> np.ndarray:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+            if self._error is not None:
+                raise self._error
         if self.mesh is None:
-            self.mesh = PoissonMesh(self.cloud["points"], self.cloud["colours"], self.cloud["normals"],
-                                    depth=self.depth, trim_quantile=self.trim_quantile,
-                                    viewpoints=self.cloud["viewpoints"])
-            self.nbytes, self.seconds = self.mesh.nbytes, self.mesh.seconds
+            self._build()
         return self.mesh.render(K, world_from_cam, size)
 
     def release(self) -> None:

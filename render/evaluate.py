@@ -147,6 +147,20 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     frames, texture_frames, held_out = choose_frames(info, ds.num_frames,
                                                      config.views if config.views or real else 8, posed)
     training = training_frames(texture_frames, config.training_views) if held_out else np.zeros(0, np.int64)
+    poisson_name, baselines = "Poisson mesh", {}
+    if cloud_path is not None:
+        viewpoints = np.stack([ds.world_from_cam(f, c)[:3, 3] for f in texture_frames
+                               for c in range(ds.rig.num_cameras)]) if texture_frames else None
+        cloud = read_cloud_for_baselines(cloud_path, viewpoints)
+        if not len(cloud["points"]) or not np.ptp(cloud["points"], axis=0).max() > 0:
+            raise DataFormatError(cloud_path, f"its {len(cloud['points'])} points span no space: the Poisson "
+                                              "mesh and the point projection need a cloud spread in space")
+        # the first mesh is made while the views are prepared and the models scored
+        baselines[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile).start()
+        for d in config.workprecision_depths:
+            if int(d) != config.poisson_depth:
+                baselines[f"Poisson depth {int(d)}"] = LazyPoisson(cloud, int(d), config.trim_quantile)
+        baselines["point projection"] = PointProjector(cloud["points"], cloud["colours"])
     if real:
         if not held_out:
             logger.warning("%s is a real capture and the model was built from every frame: the scores are of "
@@ -170,19 +184,7 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         m, s = entry if isinstance(entry, tuple) else (entry, None)
         methods[f"model: {label}"] = ModelMethod(m, s)
     methods.update(extra_methods or {})
-    poisson_name = "Poisson mesh"
-    if cloud_path is not None:
-        viewpoints = np.stack([ds.world_from_cam(f, c)[:3, 3] for f in texture_frames
-                               for c in range(ds.rig.num_cameras)]) if texture_frames else None
-        cloud = read_cloud_for_baselines(cloud_path, viewpoints)
-        if not len(cloud["points"]) or not np.ptp(cloud["points"], axis=0).max() > 0:
-            raise DataFormatError(cloud_path, f"its {len(cloud['points'])} points span no space: the Poisson "
-                                              "mesh and the point projection need a cloud spread in space")
-        methods[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile)
-        for d in config.workprecision_depths:
-            if int(d) != config.poisson_depth:
-                methods[f"Poisson depth {int(d)}"] = LazyPoisson(cloud, int(d), config.trim_quantile)
-        methods["point projection"] = PointProjector(cloud["points"], cloud["colours"])
+    methods.update(baselines)
 
     images: dict = {}
     drawn = ("model", *(f"model: {label}" for label in extra_models or {}), poisson_name)  # the side-by-side panels

@@ -115,9 +115,11 @@ def test_a_step_alongside_runs_with_the_one_before(tmp_path):
              Step("second", ("synth", "street", "--out", str(tmp_path / "b"), "--length", "-1"), alongside=True),
              Step("never", ("synth", "street", "--out", str(tmp_path / "never")))]
     costs = run_steps(steps, tmp_path)
-    first, second = costs
+    assert [c.name for c in costs] == ["second", "first"]  # in the order they ended
+    second, first = costs
     assert (first.exit_code, second.exit_code) == (0, 2) and not (tmp_path / "never").exists()
     assert second.start_s < first.start_s + first.wall_s  # started before the first ended
+    assert second.wall_s < first.wall_s  # its own time, not the time until the first ended
     total = cost_table(costs).splitlines()[-1].split("|")
     assert float(total[3]) == pytest.approx(max(c.start_s + c.wall_s for c in costs), abs=0.1)
     assert [s.alongside for s in demo_steps(tmp_path)] == [False, False, False, False, True, True]

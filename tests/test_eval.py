@@ -234,3 +234,21 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     report = json.loads((plain / "eval.json").read_text())
     assert not report["sky"] and set(report["summary"]) >= {"model, on path", "model, off path"}
     assert "images" not in report and not list(plain.glob("view_*.png"))
+
+
+def test_poisson_meshed_in_the_background_is_drawn_and_its_error_raised_by_the_call():
+    from core.errors import InputError
+    from render.eval_methods import LazyPoisson
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-2, 2, (20_000, 2))
+    cloud = {"points": np.c_[xy, np.full(len(xy), 5.0)], "colours": np.full((len(xy), 3), 200, np.uint8),
+             "normals": np.tile([0.0, 0.0, -1.0], (len(xy), 1)), "viewpoints": None}
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    started = LazyPoisson(cloud, 6, 0.05).start()
+    image = started(K, np.eye(4), (64, 48))
+    assert started.seconds > 0 and started.nbytes > 0
+    assert image.shape == (48, 64, 3) and (image[20:28, 28:36] > 150).all()  # the plane, in front
+    bad = LazyPoisson(cloud, 17, 0.05).start()  # refused in the thread: raised by the first call
+    with pytest.raises(InputError, match="depth"):
+        bad(K, np.eye(4), (64, 48))
