@@ -133,11 +133,14 @@ class Renderer:
             ids[r0:r1] = obj.reshape(r1 - r0, w)
             if not colour:
                 continue
+            # the spp² subsamples cast and shaded in one call (the shading's per-call work is paid once),
+            # then summed in the order one call per subsample would have added them
+            sub = [np.stack([uu.ravel() + du, vv.ravel() + dv, np.ones(uu.size)], -1) @ ray_matrix.T
+                   for dv in offsets for du in offsets]
+            colours = self._colour(origin, np.concatenate(sub)).reshape(len(sub), uu.size, 3)
             acc = np.zeros((uu.size, 3))
-            for dv in offsets:
-                for du in offsets:
-                    pix = np.stack([uu.ravel() + du, vv.ravel() + dv, np.ones(uu.size)], -1)
-                    acc += self._colour(origin, pix @ ray_matrix.T)
+            for c in colours:
+                acc += c
             acc *= 255.0 / (spp * spp)
             rgb[r0:r1] = np.clip(np.rint(acc), 0, 255).astype(np.uint8).reshape(r1 - r0, w, 3)
         return RenderResult(rgb, depth, ids)
