@@ -10,8 +10,8 @@ from pathlib import Path
 from recon.work import Work
 
 from ..executor import default_workers
-from ..options import GL_MAX_SIZE, MAX_TILE, UsageError, build_bytes, check_memory, dimension, float_range, \
-    holdout, int_range, length, nonnegative_float, nonnegative_int, positive_int
+from ..options import GL_MAX_SIZE, MAX_LENGTH, MAX_TILE, MIN_LENGTH, UsageError, build_bytes, check_memory, \
+    dimension, float_range, holdout, int_range, length, nonnegative_float, nonnegative_int, positive_int
 from .common import command_executor, logger, refuse_out_over, work_dataset, workers_parent
 
 
@@ -83,7 +83,9 @@ def add(sub) -> None:
                    default="+".join(k for k in ("facades", "ground") if getattr(layer, k)) or "none",
                    help="the facade layer under the billboards: slits on the facades found in the EPIs and/or "
                         "blocks on flat ground (default both; none: billboards only)")
-    p.add_argument("--block-size", type=length, default=None,
+    # bounded like a street's length: a larger block overflows the octree's grid, an error that
+    # blamed the voxel size (issue 35)
+    p.add_argument("--block-size", type=float_range(MIN_LENGTH, MAX_LENGTH, lo_open=False), default=None,
                    help="edge of the layer's blocks in metres (default: the voxel size)")
     p.add_argument("--ground-reach", type=nonnegative_float, default=layer.ground_reach,
                    help="continue the ground across gaps up to this wide (m) between ground cells where nothing "
