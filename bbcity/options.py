@@ -123,8 +123,9 @@ positive_int = int_range(1)
 nonnegative_int = int_range(0)
 #: A finite number > 0.
 positive_float = float_range(0.0)
-#: A length in metres the stages can resolve: at least :data:`MIN_LENGTH`, finite.
-length = float_range(MIN_LENGTH, lo_open=False)
+#: A length in metres the stages can resolve: from :data:`MIN_LENGTH` to :data:`MAX_LENGTH` (a
+#: longer one overflows the float32 bounds of a model's octree).
+length = float_range(MIN_LENGTH, MAX_LENGTH, lo_open=False)
 #: A finite number ≥ 0.
 nonnegative_float = float_range(0.0, lo_open=False)
 #: A finite number.

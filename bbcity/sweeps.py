@@ -52,8 +52,9 @@ def stereo_sweep(dataset_dir: Path, out_dir: Path, num_frames: int = STEREO_FRAM
     from recon.trinocular import TrinocularConfig, evaluate_depth, frame_depth, fuse_depths
 
     ds = load_dataset(dataset_dir)
-    if not ds.has_ground_truth:
-        raise InputError(f"{dataset_dir}: the stereo sweep needs a dataset with ground truth (gt/)")
+    if not ds.has_gt_depth:
+        raise InputError(f"{dataset_dir}: the stereo sweep needs a dataset with per-image ground-truth depth "
+                         "(gt/depth and gt/ids)")
     pairs = rectify_rig(ds.rig)
     wide = max(pairs.values(), key=lambda p: p.baseline)
     f, B = ds.rig.intrinsics[0][0, 0], wide.baseline

@@ -175,4 +175,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     logger.info("model: %d billboards, %d slots, %.1f MB, compression %.1f×, decode PSNR %s dB → %s",
                 model.num_billboards, model.num_slots, report["bytes"]["model"] / 1e6,
                 report["compression_ratio"], format_db(report["psnr"]["decoded_rgb_opaque_db"]), model_dir)
+    if model.num_billboards == 0:
+        logger.warning("the model draws nothing: no quad of %g m voxels matched the images (a finer --voxel-size, "
+                       "or a denser cloud, gives billboards)", octree.voxel_size)
     return BuildResult(model_dir, report)

@@ -33,6 +33,7 @@ and :func:`read_image` alike.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import re
@@ -89,6 +90,17 @@ class Dataset:
     def has_ground_truth(self) -> bool:
         return (self.root / "gt" / "scene.json").is_file()
 
+    @property
+    def has_gt_depth(self) -> bool:
+        """Whether :meth:`gt_depth` and :meth:`gt_ids` can be read: ground truth with per-image
+        depth and ids (``gt/depth`` and ``gt/ids``, or a lazy dataset that casts them; a dataset
+        written with ``synth --no-gt-depth`` has the scene alone)."""
+        if not self.has_ground_truth:
+            return False
+        if self.lazy is not None:
+            return bool(self.lazy.has_gt_depth)
+        return all((self.root / "gt" / kind).is_dir() for kind in ("depth", "ids"))
+
     def image_path(self, frame: int, cam: int) -> Path:
         """Where the raw image is; a lazy dataset's is not there: :func:`read_image`
         reads both (as :meth:`image` does)."""
@@ -124,7 +136,22 @@ class Dataset:
             if bad.any():
                 raise DataFormatError(path, f"holds {int(bad.sum())} depths that are neither NaN (no hit) nor "
                                             f"a positive distance, e.g. {raw[bad][0]:g}")
+        else:  # −1 where nothing is hit, else an object of the scene
+            objects = self.num_objects
+            bad = (raw < -1) | (raw >= objects)
+            if bad.any():
+                raise DataFormatError(path, f"holds {int(bad.sum())} object ids outside −1 (no hit) to {objects - 1} "
+                                            f"(the {objects} objects of {self._objects_path}), e.g. {raw[bad][0]}")
         return raw
+
+    @property
+    def _objects_path(self) -> Path:
+        return self.root / "gt" / "objects" / "kind.npy"
+
+    @functools.cached_property
+    def num_objects(self) -> int:
+        """How many objects the ground-truth scene has (``gt/objects/kind.npy``; its ids are 0 … n − 1)."""
+        return len(load_npy(self._objects_path, dtype=np.int16, shape=(None,)))
 
     def _gt(self, kind: str, frame: int, cam: int, dtype) -> np.ndarray:
         """The ground truth ``kind`` undistorted like the images."""
@@ -142,15 +169,31 @@ class Dataset:
 
     def verify(self) -> None:
         """Decode every image and every stored ground-truth array (slow, thorough; a lazy dataset
-        makes every image): each must be its camera's size, and no depth array may be all NaN (a
-        camera that sees nothing). The first bad file raises DataFormatError."""
+        makes every image): each must be its camera's size, no camera's images may all be one
+        flat colour (stereo would have nothing to match), and no depth array may be all NaN (a
+        camera that sees nothing). Per-image depth and ids come together or not at all. The first
+        bad file raises DataFormatError."""
+        first: list[np.ndarray | None] = [None] * self.rig.num_cameras  # camera → its flat colour so far
+        flat = [True] * self.rig.num_cameras
         for f in range(self.num_frames):
             for c in range(self.rig.num_cameras):
-                self.image(f, c)
+                rgb = self.image(f, c)
+                if flat[c]:
+                    first[c] = rgb[0, 0].copy() if first[c] is None else first[c]
+                    flat[c] = bool((rgb == first[c]).all())
+        for c in np.flatnonzero(flat):
+            raise DataFormatError(self.image_path(0, c).parent,
+                                  f"every image of camera {c} is the one flat colour {tuple(first[c].tolist())}: "
+                                  "nothing to reconstruct or texture")
         if self.lazy is not None or not self.has_ground_truth:
             return  # a lazy dataset's ground truth is cast with its images
+        stored = [kind for kind in ("depth", "ids") if (self.root / "gt" / kind).is_dir()]
+        if len(stored) == 1:
+            missing = {"depth", "ids"}.difference(stored).pop()
+            raise DataFormatError(self.root / "gt" / missing, f"is missing while gt/{stored[0]} is there: per-image "
+                                                               "ground truth needs both (or neither)")
         for kind, dtype in (("depth", np.float32), ("ids", np.int32)):
-            if not (self.root / "gt" / kind).is_dir():
+            if kind not in stored:
                 continue  # written without per-image ground truth (synth --no-gt-depth)
             for f in range(self.num_frames):
                 for c in range(self.rig.num_cameras):
@@ -191,7 +234,8 @@ def load_dataset(path: os.PathLike | str, poses: os.PathLike | str | None = None
     _check_manifest(root, rig, len(names), strict)
     lazy = image_source(root)
     dataset = Dataset(root, rig, world_from_rig, tuple(names), lazy)
-    if lazy is not None:  # no image files: the frames must be the ones the source makes
+    if lazy is not None:  # no image files: the rig and frames must be the ones the source makes
+        lazy.check_rig(rig, root / "rig.json")
         lazy.check_frames(names, world_from_rig, root / "poses.json")
     if poses is not None:
         dataset = replace(dataset, world_from_rig=_replacement_poses(dataset, poses))

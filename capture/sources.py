@@ -39,6 +39,14 @@ class ImageSource(Protocol):
     def ground_truth(self, kind: str, frame: int, cam: int) -> np.ndarray:
         """Raw ``kind`` ("depth": (h, w) float32, NaN = sky; "ids": (h, w) int32, −1 = sky)."""
 
+    @property
+    def has_gt_depth(self) -> bool:
+        """Whether :meth:`ground_truth` gives depth and ids (a source may make images alone)."""
+
+    def check_rig(self, rig, path: Path) -> None:
+        """DataFormatError naming ``path`` (the rig.json) unless ``rig`` (a :class:`capture.rig.Rig`)
+        is the rig the source makes images with."""
+
     def check_frames(self, names, world_from_rig: np.ndarray, path: Path) -> None:
         """DataFormatError naming ``path`` (the poses.json) unless the frames ``names`` and their
         poses (n, 4, 4) float64 are those the source makes images of."""

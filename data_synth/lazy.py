@@ -69,6 +69,9 @@ from .section import object_table, scene_section, scene_settings, verify_digest
 
 logger = logging.getLogger(__name__)
 
+#: Tolerance (relative for K, metres for poses) of rig.json's numbers against the rig a lazy dataset's settings make (both
+#: are written and read as JSON, so they agree exactly unless rig.json was edited).
+RIG_TOL = 1e-9
 #: The sections' grid along the street, metres: frames whose rig lies in one tile share a section.
 TILE_M = 50.0
 #: The longest reach a section is given, metres (lenses that see along the street).
@@ -292,6 +295,11 @@ class LazyImages:
                 cache = _CACHES.setdefault(key, ImageCache(self.root.resolve() / "cache" / casts, limit))
         return cache
 
+    @property
+    def has_gt_depth(self) -> bool:
+        """Whether :meth:`ground_truth` casts depth and ids (the settings' ``ground_truth_depth``)."""
+        return bool(self._state().cfg.ground_truth_depth)
+
     def ground_truth(self, kind: str, frame: int, cam: int) -> np.ndarray:
         """Raw ``kind`` ("depth": (h, w) float32 NaN = sky; "ids": (h, w) int32, −1 = sky) of a frame;
         DataFormatError naming the file a stored dataset would hold when the settings leave it out."""
@@ -300,6 +308,32 @@ class LazyImages:
                                   "this lazy dataset was made without ground-truth depth (--no-gt-depth)")
         result = self.render(frame, cam, colour=False)
         return (result.depth if kind == "depth" else result.ids).copy()
+
+    def check_rig(self, rig: Rig, path: Path) -> None:
+        """DataFormatError naming ``path`` (the dataset's rig.json) unless ``rig`` is the rig the
+        settings cast the images with: the same sizes, raw intrinsics, lenses and poses."""
+        made = self._state().rig
+        problem = None
+        if rig.num_cameras != made.num_cameras:
+            problem = f"has {rig.num_cameras} cameras"
+        else:
+            for c in range(rig.num_cameras):
+                lens, made_lens = rig.distortion(c), made.distortion(c)
+                if tuple(rig.sizes[c]) != tuple(made.sizes[c]):
+                    problem = f"gives camera {c} a size of {rig.sizes[c][0]}x{rig.sizes[c][1]}"
+                elif not np.allclose(rig.raw_K(c), made.raw_K(c), rtol=RIG_TOL, atol=0):
+                    problem = f"gives camera {c} other intrinsics"
+                elif not np.allclose(rig.cam_from_rig[c], made.cam_from_rig[c], rtol=0, atol=RIG_TOL):
+                    problem = f"gives camera {c} another place on the rig"
+                elif (None if lens is None else lens.to_json()) != (None if made_lens is None else made_lens.to_json()):
+                    problem = f"gives camera {c} another lens"
+                if problem:
+                    break
+        if problem:
+            w, h = made.sizes[0]
+            raise DataFormatError(path, f"{problem}, unlike the rig the lazy dataset's settings cast its images with "
+                                        f"({made.num_cameras} cameras, camera 0 {w}x{h}): restore it, or write the "
+                                        "dataset again")
 
     def check_frames(self, names, world_from_rig: np.ndarray, path: Path) -> None:
         """A lazy dataset's frames and poses (n, 4, 4) float64 are those of the capture its

@@ -32,6 +32,7 @@ from .evaluate import evaluate_cloud, evaluate_cloud_tiles, truth_scene, truth_s
 from .fusion import FusionConfig, TileSpill, merge_tiles
 from .motion_stereo import MotionStereoConfig, motion_depth, select_partners
 from .points import depth_to_points
+from .preflight import check_rig_pairs
 from .poses import frame_passes, poses_given, poses_unknown
 from .rectify import rectify_rig
 from .sfm import SfmConfig, poses_sfm
@@ -323,6 +324,7 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
     poses_file = write_work_poses(work, ds, world_from_rig, conf.poses)
 
     held_out = held_out_frames(ds.num_frames, conf.holdout)
+    check_rig_pairs(ds, conf.max_image_size)  # here, not in the workers: one line naming rig.json
     frames = [f for f in range(0, ds.num_frames, conf.frame_stride) if f not in set(held_out)]
     frames = [f for f in frames if np.all(np.isfinite(world_from_rig[f]))]
     if not frames:
@@ -394,7 +396,9 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         "stereo_seconds_per_frame": float(np.median([s["stereo_s"] for s in frame_stats])) if frame_stats else None,
         "peak_memory": peak_memory(),
     }
-    if conf.evaluate and ds.has_ground_truth:
+    if conf.evaluate and ds.has_ground_truth and not ds.has_gt_depth:
+        logger.info("%s has no per-image ground-truth depth (gt/depth, gt/ids): the cloud is not scored", ds.root)
+    if conf.evaluate and ds.has_gt_depth:
         t3 = time.perf_counter()
         max_depth = conf.trinocular.stereo.max_depth
         tiles = read_cloud_tiles(cloud_path) if num_points else None

@@ -44,6 +44,7 @@ scene as meshes in :mod:`render.scene_mesh`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import os
 import time
@@ -68,6 +69,8 @@ from .seen import seen_in_dataset
 
 logger = logging.getLogger(__name__)
 
+#: Capture cameras whose depth :func:`cast_depths` keeps cast.
+CAST_DEPTHS_KEPT = 64
 #: Base colour (RGB 0–255) per object kind; each object varies it by ±15 % from its seed.
 KIND_COLOURS = {Kind.GROUND: (110, 120, 95), Kind.ROAD: (70, 70, 75), Kind.SIDEWALK: (150, 145, 140),
                 Kind.BUILDING: (190, 160, 130), Kind.PILLAR: (170, 170, 165), Kind.POLE: (60, 60, 60),
@@ -82,6 +85,17 @@ def object_colours(scene) -> np.ndarray:
     return np.clip(base[scene.object_kind] * scale[:, None], 0, 255).astype(np.uint8)
 
 
+def cast_depths(ds, scene) -> Callable[[int, int], np.ndarray]:
+    """depth_of(frame, camera) → (h, w) float32 ground-truth depth of a capture camera cast from
+    ``scene``, for a dataset stored without per-image depth (``synth --no-gt-depth``); the
+    last :data:`CAST_DEPTHS_KEPT` are kept (views near each other share cameras)."""
+    @functools.lru_cache(maxsize=CAST_DEPTHS_KEPT)
+    def depth_of(frame: int, cam: int) -> np.ndarray:
+        return truth_view(scene, ds.rig.intrinsics[cam], ds.world_from_cam(frame, cam), tuple(ds.rig.sizes[cam]),
+                          spp=1)[1]
+    return depth_of
+
+
 def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config: EvalConfig = EvalConfig(),
                   progress: Callable[[str], None] | None = None, training=()) -> list[EvalView]:
     """Ground truth, geometry and seen masks of each frame's camera-0 viewpoint, on and off path;
@@ -90,6 +104,7 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
     if not ds.has_ground_truth:
         raise InputError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
     scene = load_scene(dataset_dir)
+    depth_of = None if ds.has_gt_depth else cast_depths(ds, scene)
     K, size, _ = view_camera(ds.rig, config.size)
     views = []
     poses = [(f, where, pose) for f in frames
@@ -98,7 +113,7 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
     poses += [(f, TRAINING, ds.world_from_cam(int(f), 0)) for f in training]
     for f, where, pose in poses:
         truth, depth = truth_view(scene, K, pose, size)
-        seen = seen_in_dataset(depth, K, pose, ds, texture_frames, config.seen)
+        seen = seen_in_dataset(depth, K, pose, ds, texture_frames, config.seen, depth_of)
         near = seen & (np.nan_to_num(depth, nan=np.inf) < config.near)
         views.append(EvalView(int(f), where, K, pose, size, truth, np.isfinite(depth), seen, near=near))
         if progress is not None:

@@ -17,7 +17,7 @@ more than the tolerance from one pixel to the next, still counts as seen).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -110,11 +110,13 @@ def nearby_cameras(centre: np.ndarray, centres: np.ndarray, max_distance: float)
 
 
 def seen_in_dataset(depth: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, dataset, frames,
-                    config: SeenConfig = SeenConfig()) -> np.ndarray:
+                    config: SeenConfig = SeenConfig(),
+                    depth_of: Callable[[int, int], np.ndarray] | None = None) -> np.ndarray:
     """(h, w) bool: pixels of a view (ground-truth depth (h, w), K, world_from_cam) whose
     surface some capture camera of ``dataset`` (a :class:`capture.dataset.Dataset` with gt/)
     saw, among every camera of ``frames`` whose centre lies within ``config.max_distance``
-    of the view's. NaN depth (sky) is never seen."""
+    of the view's. NaN depth (sky) is never seen. depth_of(frame, camera): a capture camera's
+    (h, w) ground-truth depth (default ``dataset.gt_depth``)."""
     cams = [(int(f), c) for f in frames for c in range(dataset.rig.num_cameras)]
     if not cams:
         return np.zeros(depth.shape, dtype=bool)
@@ -123,19 +125,18 @@ def seen_in_dataset(depth: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray
     points = back_project(depth, K, world_from_cam)
     chosen = [cams[i] for i in near]
     intrinsics = np.stack([dataset.rig.intrinsics[c] for _, c in chosen]) if chosen else np.zeros((0, 3, 3))
-    seen = seen_mask(points, intrinsics, poses[near], _LazyDepths(dataset, chosen), config.abs_tol, config.rel_tol)
+    seen = seen_mask(points, intrinsics, poses[near], _LazyDepths(depth_of or dataset.gt_depth, chosen), config.abs_tol, config.rel_tol)
     return seen.reshape(depth.shape)
 
 
 class _LazyDepths:
     """The ground-truth depth maps of (frame, camera) pairs, read one at a time as iterated."""
 
-    def __init__(self, dataset, cams: list[tuple[int, int]]):
-        self.dataset, self.cams = dataset, cams
+    def __init__(self, depth_of: Callable[[int, int], np.ndarray], cams: list[tuple[int, int]]):
+        self.depth_of, self.cams = depth_of, cams
 
     def __len__(self) -> int:
         return len(self.cams)
 
     def __getitem__(self, i: int) -> np.ndarray:
-        f, c = self.cams[i]
-        return self.dataset.gt_depth(f, c)
+        return self.depth_of(*self.cams[i])

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 
@@ -51,6 +52,21 @@ def _error_line(caplog) -> str:
     return errors[0]
 
 
+def _same_centre(rig) -> None:
+    rig["cameras"][1]["cam_from_rig"] = rig["cameras"][0]["cam_from_rig"]
+
+
+def _one_camera_far_apart(root) -> None:
+    """Camera 0 alone, its frames 100 m apart: no neighbour is a stereo partner."""
+    _edit(root / "rig.json", lambda d: d.update(cameras=d["cameras"][:1]))
+    _edit(root / "dataset.json", lambda d: d.update(cameras=1))
+
+    def spread(poses):
+        for i, frame in enumerate(poses["frames"]):
+            frame["world_from_rig"][0][3] = 100.0 * i
+    _edit(root / "poses.json", spread)
+
+
 #: name → (damage(root), file the message names, words it holds)
 CHEAP = {
     "reference camera out of range": (lambda r: _edit(r / "rig.json", lambda d: d.update(reference_camera=3)),
@@ -72,6 +88,9 @@ CHEAP = {
                                        "rig.json", "cameras[0].cx"),
     "principal point cy far outside": (lambda r: _edit(r / "rig.json", lambda d: d["cameras"][2].update(cy=-200.0)),
                                        "rig.json", "cameras[2].cy"),
+    "stereo pair without a baseline": (lambda r: _edit(r / "rig.json", _same_centre), "rig.json",
+                                       "share their optical centre"),
+    "one camera without stereo partners": (_one_camera_far_apart, "poses.json", "no frame of this one-camera capture"),
 }
 
 
@@ -90,10 +109,23 @@ def _depth(root):
 
 
 def _resize_image(root):
-    import cv2
-
     path = root / "images" / "cam2" / "000001.png"
     cv2.imwrite(str(path), np.zeros((48, 64, 3), np.uint8))  # landscape where the rig says 48x64 portrait
+
+
+def _flat_camera(root) -> None:
+    for path in (root / "images" / "cam1").glob("*.png"):
+        cv2.imwrite(str(path), np.zeros((64, 48, 3), np.uint8))
+
+
+def _ids(root):
+    return root / "gt" / "ids" / "cam0" / "000001.npy"
+
+
+def _set_ids(root, value: int) -> None:
+    ids = np.load(_ids(root))
+    ids[:4] = value
+    np.save(_ids(root), ids)
 
 
 #: name → (damage(root), file the message names, words it holds): what only --deep finds
@@ -104,6 +136,11 @@ DEEP = {
                                               _depth, "shape (48, 64), expected (64, 48)"),
     "ground-truth depth missing": (lambda r: _depth(r).unlink(), _depth, "missing"),
     "image of the wrong size": (_resize_image, lambda r: r / "images" / "cam2" / "000001.png", "expected 48x64"),
+    "a camera's images all one flat colour": (_flat_camera, lambda r: r / "images" / "cam1", "one flat colour"),
+    "object ids beyond the scene's": (lambda r: _set_ids(r, 10 ** 6), _ids, "object ids outside −1"),
+    "object ids below −1": (lambda r: _set_ids(r, -7), _ids, "object ids outside −1"),
+    "depth without ids": (lambda r: shutil.rmtree(r / "gt" / "ids"), lambda r: r / "gt" / "ids",
+                          "while gt/depth is there"),
 }
 
 

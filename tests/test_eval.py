@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -252,3 +253,20 @@ def test_poisson_meshed_in_the_background_is_drawn_and_its_error_raised_by_the_c
     bad = LazyPoisson(cloud, 17, 0.05).start()  # refused in the thread: raised by the first call
     with pytest.raises(InputError, match="depth"):
         bad(K, np.eye(4), (64, 48))
+
+
+def test_seen_masks_without_per_image_depth_are_cast_from_the_scene(tiny_dataset, tmp_path):
+    """A dataset written without gt/depth and gt/ids (synth --no-gt-depth): eval casts the
+    capture cameras' depth from the scene, and the seen masks are those of the stored depth."""
+    from capture import load_dataset
+    from render.eval_config import EvalConfig
+    from render.evaluate import prepare_views
+
+    copy = tmp_path / "street"
+    shutil.copytree(tiny_dataset, copy, ignore=shutil.ignore_patterns("depth", "ids"))
+    assert load_dataset(copy).has_ground_truth and not load_dataset(copy).has_gt_depth
+    config = EvalConfig(size=(96, 72))
+    stored = prepare_views(tiny_dataset, [1], [0, 1, 2], config)
+    cast = prepare_views(copy, [1], [0, 1, 2], config)
+    for a, b in zip(stored, cast, strict=True):
+        assert a.seen.any() and np.mean(a.seen != b.seen) <= 0.005

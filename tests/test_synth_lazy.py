@@ -300,10 +300,34 @@ def test_lazy_dataset_errors_name_the_file(stored_and_lazy, tmp_path):
         read_image(copy / "images" / "cam0" / "000000.png")
 
 
+@pytest.mark.parametrize("cam, change, words", [
+    (1, lambda c: c.update(width=80, height=60, cx=39.5, cy=29.5), "gives camera 1 a size of 80x60"),
+    (0, lambda c: c.update(fx=40.0, fy=40.0), "gives camera 0 other intrinsics"),
+    (0, lambda c: c["cam_from_rig"][0].__setitem__(3, 0.3), "gives camera 0 another place on the rig"),
+    (0, lambda c: c.update(distortion={"model": "radtan", "k1": 0.01, "k2": 0.0, "p1": 0.0, "p2": 0.0}),
+     "gives camera 0 another lens"),
+])
+def test_lazy_rig_must_be_the_rig_its_images_are_cast_with(stored_and_lazy, tmp_path, cam, change, words):
+    """The images follow the settings' rig: a rig.json edited after the dataset was written
+    would describe other cameras than the frames', and is refused naming it."""
+    import shutil
+
+    _, lazy = stored_and_lazy
+    copy = tmp_path / "copy"
+    shutil.copytree(lazy.root, copy, ignore=shutil.ignore_patterns("cache"))
+    rig = json.loads((copy / "rig.json").read_text())
+    change(rig["cameras"][cam])
+    (copy / "rig.json").write_text(json.dumps(rig))
+    with pytest.raises(DataFormatError, match=words) as info:
+        load_dataset(copy)
+    assert info.value.path == copy / "rig.json"
+
+
 def test_lazy_without_ground_truth_depth_says_so(tmp_path):
     ds = load_dataset(write_dataset(tiny_config(frames=2, ground_truth_depth=False, lazy=True), tmp_path / "d",
                                     progress=False))
     assert ds.image(0, 0).shape == (120, 160, 3)
+    assert ds.has_ground_truth and not ds.has_gt_depth
     with pytest.raises(DataFormatError, match="gt/depth/cam0/000000.npy"):
         ds.gt_depth(0, 0)
 

@@ -19,10 +19,16 @@ def run(args) -> int:
     """Read the dataset (and with --deep every array); print its size. An inconsistent dataset
     raises DataFormatError naming the file and key (exit 2): the checks are those of
     :func:`capture.dataset.load_dataset` (strict: the stages only warn of ground truth that
-    dataset.json declares and gt/ lacks) and :meth:`capture.dataset.Dataset.verify`."""
+    dataset.json declares and gt/ lacks), those of :mod:`recon.preflight` (stereo pairs that
+    rectify; a one-camera capture's stereo partners) and :meth:`capture.dataset.Dataset.verify`."""
     from capture.dataset import load_dataset
+    from recon.pipeline import ReconConfig
+    from recon.preflight import check_motion_partners, check_rig_pairs
 
     ds = load_dataset(args.dataset, strict=True)
+    recon = ReconConfig()  # what recon refuses with its defaults, from the rig and poses alone
+    check_rig_pairs(ds, recon.max_image_size)
+    check_motion_partners(ds, recon.motion)
     if args.deep:
         ds.verify()
     w, h = ds.rig.sizes[0]
