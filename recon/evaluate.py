@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from capture.dataset import Dataset
 from core.arrays import unique_rows
@@ -81,8 +82,22 @@ def seen_surface(dataset: Dataset, scene: Scene | np.ndarray, voxel: float = 0.0
     return points[first], kind[first]
 
 
+def distances_within(queries: np.ndarray, cloud: np.ndarray, origin: np.ndarray, bound: float) -> np.ndarray:
+    """:func:`nearest_distances` up to ``bound`` (m): (m,) float64 distance from each query
+    (m, 3) to its nearest cloud point (n, 3), inf where that is farther than ``bound`` (a
+    k-d tree search pruned at the bound, on every core)."""
+    if not len(cloud) or not len(queries):
+        return np.full(len(queries), np.inf)
+    tree = cKDTree(np.asarray(cloud, np.float64) - origin, balanced_tree=False, compact_nodes=False)
+    dist, _ = tree.query(np.asarray(queries, np.float64) - origin, k=1, workers=-1,
+                         distance_upper_bound=np.nextafter(bound, np.inf))
+    dist[dist > bound] = np.inf
+    return dist
+
+
 def nearest_distances(queries: np.ndarray, cloud: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    """Distance (m,) float64 from each query (m, 3) to its nearest cloud point (n, 3); inf if the cloud is empty."""
+    """Distance (m,) float64 from each query (m, 3) to its nearest cloud point (n, 3); inf if the
+    cloud is empty (Open3D's exhaustive search: the reference of :func:`distances_within`)."""
     if not len(cloud):
         return np.full(len(queries), np.inf)
     a = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(queries - origin))
@@ -99,7 +114,7 @@ def evaluate_cloud(points: np.ndarray, dataset: Dataset, scene: Scene, threshold
     origin = points.mean(axis=0) if len(points) else np.zeros(3)
     acc = distances_to_mesh(points, scene, origin) if len(points) else np.zeros(0)
     surface, kind = seen_surface(dataset, scene, stride=stride, max_depth=max_depth)
-    dist = nearest_distances(surface, points, origin)
+    dist = distances_within(surface, points, origin, max(thresholds))
     facade = kind == Kind.BUILDING
 
     def share(mask, tau):
@@ -249,7 +264,7 @@ def evaluate_cloud_tiles(tiles, dataset: Dataset, scene_for: Callable[[np.ndarra
         box_lo, box_hi = tiles.grid.box(square)
         reach = max(thresholds)
         cloud, _ = tiles.read(tiles.overlapping(box_lo - reach, box_hi + reach), require_colours=False)
-        dist = nearest_distances(surface, cloud, np.r_[box_lo, 0.0])
+        dist = distances_within(surface, cloud, np.r_[box_lo, 0.0], reach)
         facade = kind == Kind.BUILDING
         surface_total += len(surface)
         facade_total += int(facade.sum())

@@ -185,3 +185,24 @@ def test_a_killed_recon_resumes_from_its_spilled_frames(tiny_dataset, tiled_work
     monkeypatch.undo()
     recon_main(dataclasses.replace(conf, pixel_stride=2), tiny_dataset, work, progress=False)
     assert json.loads((work / "recon_report.json").read_text())["resumed_frames"] == 0
+
+
+@pytest.mark.parametrize("n, m", [(0, 5), (5, 0), (1, 1), (2000, 700)])
+def test_distances_within_a_bound_match_the_exhaustive_search(n, m):
+    """The k-d tree pruned at the bound gives Open3D's distances where they are within it, inf
+    beyond it; also with an empty cloud or no query, and far from the world origin."""
+    from recon.evaluate import distances_within, nearest_distances
+
+    rng = np.random.default_rng(n + m)
+    origin = np.array([5e5, 4e6, 0.0])
+    cloud = origin + rng.uniform(0, 3, (n, 3))
+    queries = origin + rng.uniform(-0.5, 3.5, (m, 3))
+    bound = 0.2
+    fast = distances_within(queries, cloud, origin, bound)
+    slow = nearest_distances(queries, cloud, origin)
+    assert fast.shape == (m,) and fast.dtype == np.float64
+    near = slow <= bound
+    np.testing.assert_allclose(fast[near], slow[near], rtol=0, atol=1e-12)
+    assert np.isinf(fast[~near]).all()
+    if n and m == 700:
+        assert near.any() and (~near).any()
