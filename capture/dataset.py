@@ -132,14 +132,15 @@ class Dataset:
         path = self._gt_path(kind, frame, cam)
         raw = load_npy(path, dtype=dtype, shape=(h, w))
         if kind == "depth":  # NaN where nothing is hit; a hit lies in front of the camera
-            bad = ~(np.isnan(raw) | (np.isfinite(raw) & (raw > 0)))
-            if bad.any():
+            # fmin/fmax skip NaN (NaN when all are): two passes find whether a depth is ≤ 0 or inf
+            if np.fmin.reduce(raw, axis=None) <= 0 or np.fmax.reduce(raw, axis=None) == np.inf:
+                bad = ~(np.isnan(raw) | (np.isfinite(raw) & (raw > 0)))
                 raise DataFormatError(path, f"holds {int(bad.sum())} depths that are neither NaN (no hit) nor "
                                             f"a positive distance, e.g. {raw[bad][0]:g}")
         else:  # −1 where nothing is hit, else an object of the scene
             objects = self.num_objects
-            bad = (raw < -1) | (raw >= objects)
-            if bad.any():
+            if raw.min() < -1 or raw.max() >= objects:
+                bad = (raw < -1) | (raw >= objects)
                 raise DataFormatError(path, f"holds {int(bad.sum())} object ids outside −1 (no hit) to {objects - 1} "
                                             f"(the {objects} objects of {self._objects_path}), e.g. {raw[bad][0]}")
         return raw

@@ -69,8 +69,9 @@ from .seen import seen_in_dataset
 
 logger = logging.getLogger(__name__)
 
-#: Capture cameras whose depth :func:`cast_depths` keeps cast.
-CAST_DEPTHS_KEPT = 64
+#: Bytes of capture cameras' depth maps :func:`capture_depths` keeps (views near each other see
+#: through the same cameras: each map is read or cast once while it is needed).
+DEPTHS_KEPT_BYTES = 256 << 20
 #: Base colour (RGB 0–255) per object kind; each object varies it by ±15 % from its seed.
 KIND_COLOURS = {Kind.GROUND: (110, 120, 95), Kind.ROAD: (70, 70, 75), Kind.SIDEWALK: (150, 145, 140),
                 Kind.BUILDING: (190, 160, 130), Kind.PILLAR: (170, 170, 165), Kind.POLE: (60, 60, 60),
@@ -85,15 +86,18 @@ def object_colours(scene) -> np.ndarray:
     return np.clip(base[scene.object_kind] * scale[:, None], 0, 255).astype(np.uint8)
 
 
-def cast_depths(ds, scene) -> Callable[[int, int], np.ndarray]:
-    """depth_of(frame, camera) → (h, w) float32 ground-truth depth of a capture camera cast from
-    ``scene``, for a dataset stored without per-image depth (``synth --no-gt-depth``); the
-    last :data:`CAST_DEPTHS_KEPT` are kept (views near each other share cameras)."""
-    @functools.lru_cache(maxsize=CAST_DEPTHS_KEPT)
-    def depth_of(frame: int, cam: int) -> np.ndarray:
+def capture_depths(ds, scene) -> Callable[[int, int], np.ndarray]:
+    """depth_of(frame, camera) → (h, w) float32 ground-truth depth of a capture camera: the
+    dataset's (:meth:`~capture.dataset.Dataset.gt_depth`), or, for a dataset stored without
+    per-image depth (``synth --no-gt-depth``), cast from ``scene``; the most recent maps are
+    kept, up to :data:`DEPTHS_KEPT_BYTES`."""
+    w, h = max(ds.rig.sizes, key=lambda s: s[0] * s[1])
+
+    def cast(frame: int, cam: int) -> np.ndarray:
         return truth_view(scene, ds.rig.intrinsics[cam], ds.world_from_cam(frame, cam), tuple(ds.rig.sizes[cam]),
                           spp=1)[1]
-    return depth_of
+    return functools.lru_cache(maxsize=max(1, DEPTHS_KEPT_BYTES // (4 * w * h)))(
+        ds.gt_depth if ds.has_gt_depth else cast)
 
 
 def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config: EvalConfig = EvalConfig(),
@@ -104,7 +108,7 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
     if not ds.has_ground_truth:
         raise InputError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
     scene = load_scene(dataset_dir)
-    depth_of = None if ds.has_gt_depth else cast_depths(ds, scene)
+    depth_of = capture_depths(ds, scene)
     K, size, _ = view_camera(ds.rig, config.size)
     views = []
     poses = [(f, where, pose) for f in frames
