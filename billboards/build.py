@@ -96,7 +96,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
         layer = build_layer(points, passes, block_size, grid_origin, views.centres, conf.layer,
                             cameras=(views.K, views.world_from_cam, views.sizes))
         stages["layer_s"] = time.perf_counter() - t1
-        layer, wall_depth = grow_side_walls(layer, points, views, sky, block_size, conf.layer.wall_depth)
+        layer, wall_depth = grow_side_walls(layer, points, views, sky, block_size, conf.layer.wall_depth,
+                                            executor)
         layer = refine_ground(layer, points, block_size, (views.K, views.world_from_cam, views.sizes),
                               conf.layer.resolution, conf.sampling.tile)
         layer_counts = layer_report(layer, passes, points, inputs.dataset, conf.layer)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -470,17 +471,18 @@ def refine_ground(layer: Layer, cloud: np.ndarray, size: float, cameras: tuple, 
                  split[parent], layer.cell[parent], corner_dz)
 
 
-def grow_side_walls(layer: Layer, cloud: np.ndarray, views, sky, size: float, config: WallDepthConfig
-                    ) -> tuple[Layer, dict]:
+def grow_side_walls(layer: Layer, cloud: np.ndarray, views, sky, size: float, config: WallDepthConfig,
+                    executor: Executor | None = None) -> tuple[Layer, dict]:
     """``layer`` with its side walls as deep and as high as the images show them, and walls where
     its fronts step down (:mod:`billboards.wall_depth`; views: the capture's
-    :class:`~billboards.views.Views`, sky: the model's sky or None), and the report of that."""
+    :class:`~billboards.views.Views`, read in parallel by ``executor``; sky: the model's sky or
+    None), and the report of that."""
     fronts = np.flatnonzero((layer.kind == FACADE) & ~layer.side_wall & ~layer.kerb)
     # the facade rows' grid: a front block's centre is half a block above a grid line
     grid_z0 = float(layer.centres[fronts[0], 2] - size / 2) if len(fronts) else 0.0
     steps = front_steps(layer.columns, size, grid_z0, config.step) if len(fronts) else []
     c, y, report = deepen_side_walls(layer.centres[layer.side_wall], layer.base_yaw[layer.side_wall], cloud, views,
-                                     sky, size, config, steps)
+                                     sky, size, config, steps, executor)
     if not len(c):
         return layer, report
     b = len(c)

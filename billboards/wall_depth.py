@@ -42,11 +42,13 @@ side wall, facing its open side, textured like the rest by sampling and the fit.
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from core.errors import InputError
+from core.tasks import executor_workers, ordered_results
 
 from .voxels import zbuffer
 from .sky import Sky, ray_elevation
@@ -253,15 +255,31 @@ def upward_blocks(observed: np.ndarray, holds: np.ndarray) -> np.ndarray:
     return rows[None, :] <= highest[:, None]
 
 
+def _view_votes(task) -> tuple[np.ndarray, np.ndarray]:
+    """Votes of a run of views: (sees, solid) (c,) int64 counts over all c candidates, each view
+    voting on the candidate ids it was asked about (:func:`wall_votes`)."""
+    views, asks, points, normal, sample, centre, sky, config = task
+    sees = np.zeros(len(points), np.int64)
+    solid = np.zeros(len(points), np.int64)
+    for v, ids in asks:
+        K, pose = views.K[v], views.world_from_cam[v]
+        _, nearest = zbuffer(sample, centre, K, pose, tuple(int(s) for s in views.sizes[v]), config.zbuffer_scale)
+        s, d = wall_votes(points[ids], normal[ids], K, pose, views.image(v), nearest, sky, config)
+        sees[ids] += s
+        solid[ids] += d
+    return sees, solid
+
+
 def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarray, views, sky: Sky | None,
-                      size: float, config: WallDepthConfig = WallDepthConfig(), steps: list[Wall] = ()
-                      ) -> tuple[np.ndarray, np.ndarray, dict]:
+                      size: float, config: WallDepthConfig = WallDepthConfig(), steps: list[Wall] = (),
+                      executor: Executor | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The blocks that side walls grow by where the images show them: centres (b, 3) float64,
     base_yaw (b,) float64, and a JSON-ready report. centres (s, 3), base_yaw (s,): the side
     walls' blocks; cloud (N, 3) float64 world points (occlusion); views:
     :class:`billboards.views.Views` of the capture; sky: the model's sky (None: nothing
     grows); size: the blocks' edge (m); steps: walls at the fronts' steps (:func:`front_steps`),
-    each taken unless a side wall already stands on its plane facing its way."""
+    each taken unless a side wall already stands on its plane facing its way. executor: the
+    views are read in parallel (None: here); the blocks are the same either way."""
     report = {"walls": 0, "walls_grown": 0, "blocks": 0, "views_read": 0, "steps": 0}
     none = (np.zeros((0, 3)), np.zeros(0), report)
     k = int(np.floor(config.reach / size + 1e-9))
@@ -313,15 +331,17 @@ def deepen_side_walls(centres: np.ndarray, base_yaw: np.ndarray, cloud: np.ndarr
     sample = cloud[::max(1, -(-len(cloud) // config.zbuffer_points))]
     centre = sample.mean(axis=0) if len(sample) else np.zeros(3)
     sample = (sample - centre).astype(np.float32)
+    # the views in runs, one per worker (each task carries the cloud's sample); votes are counts,
+    # so their sum is the same in any order
+    order = sorted(chosen.items())
+    runs = np.array_split(np.arange(len(order)), max(1, min(len(order), executor_workers(executor))))
+    asks = [[(v, np.flatnonzero(np.isin(owner, mine))) for v, mine in (order[i] for i in run)] for run in runs]
+    tasks = [(views, ask, points, normal, sample, centre, sky, config) for ask in asks if ask]
     sees = np.zeros(len(points), np.int64)
     solid = np.zeros(len(points), np.int64)
-    for v, mine in sorted(chosen.items()):
-        ids = np.flatnonzero(np.isin(owner, mine))
-        K, pose = views.K[v], views.world_from_cam[v]
-        _, nearest = zbuffer(sample, centre, K, pose, tuple(int(s) for s in views.sizes[v]), config.zbuffer_scale)
-        s, d = wall_votes(points[ids], normal[ids], K, pose, views.image(v), nearest, sky, config)
-        sees[ids] += s
-        solid[ids] += d
+    for s, d in ordered_results(_view_votes, tasks, executor, desc="side walls", progress=False):
+        sees += s
+        solid += d
     report["views_read"] = len(chosen)
     observed = sees >= config.min_views
     holds = observed & (solid >= config.agree * sees)

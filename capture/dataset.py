@@ -182,7 +182,8 @@ class Dataset:
                 if flat[c]:
                     first[c] = rgb[0, 0].copy() if first[c] is None else first[c]
                     flat[c] = bool((rgb == first[c]).all())
-        for c in np.flatnonzero(flat):
+        if any(flat):
+            c = flat.index(True)
             raise DataFormatError(self.image_path(0, c).parent,
                                   f"every image of camera {c} is the one flat colour {tuple(first[c].tolist())}: "
                                   "nothing to reconstruct or texture")

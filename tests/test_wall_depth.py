@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,6 +80,10 @@ def test_a_wall_grows_to_its_rear_where_the_images_show_it_and_no_farther():
     depths = np.unique(np.round(-c[:, 1], 3))
     assert np.isclose(depths.min(), 8.25) and np.isclose(depths.max(), 14.75)   # the rear is at 15 m
     assert c[:, 2].max() < 10.0
+    # the views read in runs by a pool of workers: the same blocks
+    with ThreadPoolExecutor(3) as pool:
+        c_pool, y_pool, report_pool = deepen_side_walls(centres, yaw, cloud, views, sky, 0.5, executor=pool)
+    assert np.array_equal(c_pool, c) and np.array_equal(y_pool, y) and report_pool == report
     # against a sky-coloured wall nothing grows; without a sky nothing either
     plain = _Views(views.K, views.world_from_cam, views.sizes,
                    [np.broadcast_to((np.array(SKY) * 255).round().astype(np.uint8), i.shape).copy() for i in views.images])

@@ -8,10 +8,14 @@ from pathlib import Path
 def add(sub) -> None:
     """The ``check`` command on the subcommands ``sub``."""
     p = sub.add_parser("check", help="validate a dataset (rig, poses, every image)",
-                       description="""Validate rig.json, poses.json and that every image exists; with --deep also
-                                      decode every image and ground-truth array.""")
+                       description="""Validate rig.json, poses.json, dataset.json and that every image exists, and
+                                      what recon needs of the rig and poses (stereo pairs that rectify; a
+                                      one-camera capture's stereo partners); with --deep also decode every
+                                      image and ground-truth array (sizes, a camera's images not all one
+                                      flat colour, depth not all NaN, object ids of the scene). A dataset
+                                      that passes --deep runs through recon, build and eval.""")
     p.add_argument("dataset", type=Path, help="dataset directory")
-    p.add_argument("--deep", action="store_true", help="decode every image (slow)")
+    p.add_argument("--deep", action="store_true", help="decode every image and ground-truth array (slow)")
     p.set_defaults(func=run)
 
 
