@@ -539,7 +539,7 @@ def test_sfm_of_photos_with_unknown_poses_is_level_and_step_scaled(one_camera_st
     from recon.sfm import SfmConfig, poses_sfm
     original = load_dataset(one_camera_street)
     ds = load_dataset(_import_as_photos(one_camera_street, tmp_path, step=1.4))
-    res = poses_sfm(ds, tmp_path / "sfm", SfmConfig(num_threads=2), progress=False)
+    res = poses_sfm(ds, tmp_path / "sfm", SfmConfig(num_threads=1), progress=False)
     assert res.num_registered == ds.num_frames
     cams = np.array([ds.rig.world_from_cam(T, 0) for T in res.world_from_rig])
     truth = _camera_poses(original)

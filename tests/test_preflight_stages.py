@@ -4,7 +4,7 @@ Variants of one tiny synthetic dataset, each what a user's capture may hold (ima
 PNG kinds, a black frame, no dataset.json, gaps in the frame numbering, a frame without a pose,
 a lens, world coordinates of a UTM zone, no per-image ground truth, no ground truth at all, two
 cameras, one frame, a lazy dataset), are combined into a few datasets. Each must pass ``check --deep``, and then
-recon, build and eval must all run on it with their defaults (exit 0): nothing that check
+recon, build and eval must all run on it (exit 0; fast settings): nothing that check
 passed may fail on input in a stage. What check refuses is in tests/test_check_preflight.py.
 
 One case lies beyond any pre-flight, and its test says so: images that contradict their rig
@@ -28,6 +28,7 @@ from core.fileio import read_png, write_png
 #: the fast settings of the stages (the variants are about input, not quality)
 RECON = ("--voxel-size", "0.1", "--workers", "1")
 BUILD = ("--voxel-size", "0.5", "--tile", "8", "--directions", "4", "--workers", "1")
+EVAL = ("--workprecision-depths",)  # the Poisson baseline at depth 10 only
 
 
 @pytest.fixture(scope="module")
@@ -138,13 +139,13 @@ VARIANTS = {"images and metadata": ("stored", images_and_metadata), "real captur
 
 
 def _stages(root, tmp_path) -> dict[str, int]:
-    """Exit codes of check --deep, recon, build and eval with their defaults on ``root``."""
+    """Exit codes of check --deep, recon, build and eval on ``root`` (fast settings of the stages)."""
     work, model = tmp_path / "work", tmp_path / "model"
     codes = {"check": main(["check", str(root), "--deep"])}
     codes["recon"] = main(["-q", "recon", str(root), "--out", str(work), *RECON])
     codes["build"] = main(["-q", "build", str(work), "--out", str(model), *BUILD]) if codes["recon"] == 0 else None
-    codes["eval"] = (main(["-q", "eval", str(model), str(root), "--cloud", str(work / "cloud.ply"), "--out",
-                           str(tmp_path / "eval")]) if codes["build"] == 0 else None)
+    codes["eval"] = (main(["-q", "eval", str(model), str(root), "--cloud", str(work / "cloud.ply"), *EVAL,
+                           "--out", str(tmp_path / "eval")]) if codes["build"] == 0 else None)
     return codes
 
 

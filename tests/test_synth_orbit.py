@@ -214,7 +214,7 @@ def _partner_share(dataset: Path, tmp_path: Path, step: float) -> tuple[float, d
     photos = tmp_path / "photos"
     assert main(["-q", "import", "photos", str(dataset / "images" / "cam0"), "--out", str(photos), "--intrinsics",
                  str(tmp_path / "K.txt"), "--step-length", repr(step)]) == 0
-    world_from_rig, report, depths = estimate_poses(ReconConfig(poses="sfm", sfm=SfmConfig(num_threads=2)), photos,
+    world_from_rig, report, depths = estimate_poses(ReconConfig(poses="sfm", sfm=SfmConfig(num_threads=1)), photos,
                                                     tmp_path / "work")
     rig = load_dataset(photos).rig
     world_from_cam = world_from_rig @ np.linalg.inv(rig.cam_from_rig[0])
