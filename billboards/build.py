@@ -107,7 +107,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     t1 = time.perf_counter()
     if layer is not None and len(layer.centres):
         octree_conf = replace(conf.octree, voxel_size=size, depth=None)
-        placed = place_hybrid(points, octree_conf, views.centres, layer, block_size, grid_origin)
+        placed = place_hybrid(points, octree_conf, views.centres, layer, block_size, grid_origin, conf.planes)
         octree = placed.octree
     else:
         octree = build_octree(points, conf.octree)
@@ -131,7 +131,7 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     state = temp_dir(model_dir.parent, f".{hidden_name(model_dir.name)}.build-")
     try:
         if placed is None:
-            placed = place_billboards(points, octree, views.centres if views is not None else None)
+            placed = place_billboards(points, octree, views.centres if views is not None else None, conf.planes)
         base_yaw, quads, kind, unseen, split = placed.base_yaw, placed.quads, placed.kind, placed.unseen, placed.split
         corner_dz = placed.corner_dz
         node_range = placed.node_range

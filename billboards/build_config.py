@@ -16,6 +16,7 @@ from .layer import LayerConfig
 from .octree import OctreeConfig
 from .pca import PcaConfig
 from .photometry import PhotometryConfig
+from .planes import PlaneConfig
 from .sampling import SamplingConfig
 
 #: Where textures come from: the captured images, or the cloud's own points.
@@ -38,6 +39,8 @@ class BuildConfig:
     error_stride: int = 4        # decode PSNR is measured on every n-th billboard (1: all)
     holdout: int = 0             # leave every n-th frame's images out of the sampling (for novel-view tests; 0: none)
     layer: LayerConfig | None = field(default_factory=LayerConfig)  # the facade layer (None: billboards only)
+    planes: PlaneConfig | None = None  # planar leaves as quads in their plane (None: every leaf a billboard;
+                                       # off by default: measured no better, docs/surfaces/README.md)
     photometry: PhotometryConfig | None = field(default_factory=PhotometryConfig)  # per-image gains divided out
                                                                                   # before sampling (None: off)
     fit: FitConfig | None = field(default_factory=FitConfig)  # textures fitted to the training images through
@@ -82,5 +85,9 @@ def config_from_json(data: dict) -> BuildConfig:
     fit = data.get("fit")
     if fit is not None:
         fit = FitConfig(**fit)
+    planes = data.get("planes")
+    if planes is not None:
+        planes = PlaneConfig(**planes)
     return BuildConfig(**{**data, "octree": OctreeConfig(**data["octree"]), "sampling": sampling,
-                          "pca": PcaConfig(**data["pca"]), "layer": layer, "photometry": photometry, "fit": fit})
+                          "pca": PcaConfig(**data["pca"]), "layer": layer, "photometry": photometry, "fit": fit,
+                          "planes": planes})

@@ -12,7 +12,7 @@ from core.metrics import psnr_from_mse
 
 from .build_config import BuildConfig
 from .facade_truth import facade_depth_report
-from .geometry import GROUND
+from .geometry import GROUND, PLANE
 from .layer import Layer, LayerConfig
 from .octree import Octree
 
@@ -80,6 +80,7 @@ class Totals:
         return {
             "billboards": model.num_billboards, "voxels": octree.num_voxels, "octree_depth": octree.depth, "voxel_size": octree.voxel_size,
             "synthesised": int(np.count_nonzero(model.synthesised)),
+            "planes": int(np.count_nonzero(model.kind == PLANE)),
             "nodes": int(octree.num_nodes), "views": num_views, "directions": conf.sampling.directions.num_directions,
             "tile": conf.sampling.tile, "slots": model.num_slots, "pages": len(model.pages),
             "rank_histogram": {str(r): int(c) for r, c in enumerate(self.ranks[:last + 1])},

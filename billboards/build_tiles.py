@@ -214,14 +214,15 @@ class _TileBuild:
         if layer is not None and len(layer.centres):
             own_block = np.all(self.grid.tile_of(layer.centres) == np.asarray(index), axis=1)
             mine, keep = own_layer(layer, own_block, own)
-            placed = place_hybrid(points[keep], octree_conf, viewpoints, mine, self.block_size, self.grid_origin)
+            placed = place_hybrid(points[keep], octree_conf, viewpoints, mine, self.block_size, self.grid_origin,
+                                  conf.planes)
             context = place_hybrid(points, octree_conf, viewpoints, layer, self.block_size, self.grid_origin)
             counts = {"facade_blocks": int((mine.kind == FACADE).sum()),
                       "ground_blocks": int((mine.kind == GROUND).sum())}
         else:
             mine_points = points[own]
             octree = build_octree(mine_points, octree_conf, self.grid_origin)
-            placed = place_billboards(mine_points, octree, viewpoints)
+            placed = place_billboards(mine_points, octree, viewpoints, conf.planes)
             context = place_billboards(points, build_octree(points, octree_conf, self.grid_origin), viewpoints)
             keep = own
             counts = {}

@@ -17,8 +17,10 @@ so row 0 is the top and the texture reads like an image seen from the viewer.
 Blocks of the facade layer are quads of the same size that do not turn: a FACADE
 block is vertical and faces its base yaw ψ₀ (r = (−sin ψ₀, cos ψ₀, 0), u = z); a
 GROUND block lies flat (normal z, the same r, u = (−cos ψ₀, −sin ψ₀, 0): its rows
-run away from the capture path). Their textures are sampled over the same
-directions as a billboard's.
+run away from the capture path). A PLANE quad is an octree leaf whose points lie on
+one vertical plane (:mod:`billboards.planes`): a quad of the voxel's edge in that
+plane, vertical and facing its base yaw like a FACADE block. Their textures are
+sampled over the same directions as a billboard's.
 
 The ground is a height field: a GROUND block's four corners carry their own heights above its
 centre (``corner_dz`` (4,), in world order x−y−, x+y−, x−y+, x+y+; a block's edges run along the
@@ -38,9 +40,12 @@ import numpy as np
 from core.errors import InputError
 
 
-#: Quad kinds: one quad of the voxel edge each, the same textures and decode.
-BILLBOARD, FACADE, GROUND = 0, 1, 2
-KINDS = (BILLBOARD, FACADE, GROUND)
+#: Quad kinds: one quad each, the same textures and decode.
+BILLBOARD, FACADE, GROUND, PLANE = 0, 1, 2, 3
+KINDS = (BILLBOARD, FACADE, GROUND, PLANE)
+#: The kinds whose edge is the voxel's (the octree's leaves) and the facade layer's blocks.
+LEAF_KINDS = (BILLBOARD, PLANE)
+LAYER_KINDS = (FACADE, GROUND)
 #: A ground block is drawn this share of its edge larger on every side (the renderer's
 #: GROUND_OVERLAP), hiding the small steps between blocks of a sloping road.
 GROUND_OVERLAP = 0.08
@@ -122,7 +127,7 @@ def quad_frames(yaw: np.ndarray, pitch: np.ndarray, pitched: bool = False
 def kind_frames(kind: np.ndarray, base_yaw: np.ndarray, yaw: np.ndarray, pitch: np.ndarray,
                 pitched: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normal, right and up axes (..., 3) float64 of quads of ``kind`` (...) seen from yaw/pitch (...):
-    billboards face the viewer (:func:`quad_frames`), layer blocks stay at ``base_yaw`` (...)."""
+    billboards face the viewer (:func:`quad_frames`), layer blocks and planes stay at ``base_yaw`` (...)."""
     kind, base_yaw = np.broadcast_to(kind, yaw.shape), np.broadcast_to(base_yaw, yaw.shape)
     normal, right, up = quad_frames(yaw, pitch, pitched)
     fixed = kind != BILLBOARD
@@ -143,10 +148,11 @@ def billboard_radius(voxel_size: float) -> float:
 
 
 def quad_edges(kind: np.ndarray, split: np.ndarray | None, voxel_size: float, block_size: float) -> np.ndarray:
-    """(n,) float64 edge (m) of each quad: ``voxel_size`` for a billboard, ``block_size`` for a
-    layer block, halved ``split`` (n,) uint8 times (None: never). kind (n,) uint8."""
+    """(n,) float64 edge (m) of each quad: ``voxel_size`` for a leaf's quad (a billboard or a
+    plane), ``block_size`` for a layer block, halved ``split`` (n,) uint8 times (None: never).
+    kind (n,) uint8."""
     kind = np.asarray(kind)
-    edge = np.where(kind == BILLBOARD, float(voxel_size), float(block_size))
+    edge = np.where(np.isin(kind, LEAF_KINDS), float(voxel_size), float(block_size))
     if split is None:
         return edge
     return np.ldexp(edge, -np.asarray(split, np.int64))
@@ -196,6 +202,25 @@ def texel_points(centres: np.ndarray, size, right: np.ndarray, up: np.ndarray, t
         points[..., 2] += surface_dz(np.asarray(corner_dz, np.float64)[:, None, None, :],
                                      unit[..., 0] + 0.5, unit[..., 1] + 0.5)
     return points
+
+
+def quad_grid_points(centres: np.ndarray, edges: np.ndarray, right: np.ndarray, up: np.ndarray,
+                     corner_dz: np.ndarray | None, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fixed quads as points: quad i (centre (b, 3) float64, edge (b,) m, axes right/up (b, 3),
+    corners corner_dz (b, 4) above the centre, None: flat) sampled at the centres of a grid of
+    counts[i] × counts[i] (b,) int cells (:func:`texel_points` of that many texels). Returns points
+    (Σ counts², 3) float64, quad by quad, and begin (b + 1,) int64 each quad's first row."""
+    centres = np.asarray(centres, np.float64).reshape(-1, 3)
+    counts = np.asarray(counts, np.int64)
+    begin = np.concatenate([[0], np.cumsum(counts * counts)]).astype(np.int64)
+    points = np.zeros((int(begin[-1]), 3))
+    dz = np.zeros((len(centres), 4)) if corner_dz is None else np.asarray(corner_dz, np.float64)
+    for n in np.unique(counts):
+        quads = np.flatnonzero(counts == n)
+        points[(begin[quads][:, None] + np.arange(n * n)).ravel()] = texel_points(
+            centres[quads], np.asarray(edges, np.float64)[quads], right[quads], up[quads], int(n),
+            dz[quads]).reshape(-1, 3)
+    return points, begin
 
 
 def base_yaw_toward(centres: np.ndarray, viewpoints: np.ndarray, chunk: int = 4096) -> np.ndarray:

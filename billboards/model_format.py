@@ -9,8 +9,9 @@ Layout of a model directory::
     base_yaw.npy         (n,) float32 world yaw (radians) that yaw offset 0 looks from
     kind.npy             (n,) uint8 what the quad is: BILLBOARD (turns toward the eye about the
                          vertical), FACADE (a fixed vertical block of the facade layer facing
-                         base_yaw) or GROUND (a fixed horizontal block; texture rows run away from
-                         base_yaw)
+                         base_yaw), GROUND (a fixed horizontal block; texture rows run away from
+                         base_yaw) or PLANE (a planar leaf: fixed, vertical, facing base_yaw, of
+                         the voxel's edge)
     rank.npy             (n,) uint8 eigen images per billboard
     synthesised.npy      (n,) uint8 1: a ground block no camera saw, its texture synthesised from
                          ground nearby (optional: a model without it has none)

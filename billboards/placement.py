@@ -11,6 +11,7 @@ import numpy as np
 from .geometry import BILLBOARD, base_yaw_toward, default_quad_arrays
 from .layer import Layer
 from .octree import Octree, OctreeConfig, build_octree
+from .planes import PlaneConfig, with_planes
 from .sampling import ImageSampler, SamplingConfig
 from .splat import PointSampler
 from .views import Views
@@ -70,19 +71,23 @@ class Billboards:
         return PointSampler(self.voxels, self.voxel_colours(colours), self.base_yaw, config, centres=self.quads)
 
 
-def place_billboards(points: np.ndarray, octree: Octree, viewpoints: np.ndarray | None) -> Billboards:
+def place_billboards(points: np.ndarray, octree: Octree, viewpoints: np.ndarray | None,
+                     planes: PlaneConfig | None = None) -> Billboards:
     """Group ``points`` (N, 3) float64 by the voxels of ``octree`` and place their quads,
-    facing ``viewpoints`` (v, 3) float64 camera centres (None: base yaw 0)."""
+    facing ``viewpoints`` (v, 3) float64 camera centres (None: base yaw 0); planar leaves
+    become quads in their plane by ``planes`` (None: none, :func:`~billboards.planes.with_planes`)."""
     centres = octree.centres()
     leaf = octree.leaves_of_points(points)
     voxels = voxel_points(points, leaf, centres, octree.origin, octree.voxel_size)
     base_yaw = base_yaw_toward(centres, np.zeros((0, 3)) if viewpoints is None else viewpoints)
-    return Billboards(octree, leaf, voxels, base_yaw, quad_centres(voxels, base_yaw),
-                      np.full(len(centres), BILLBOARD, np.uint8), octree.node_range.astype(np.int64))
+    return with_planes(Billboards(octree, leaf, voxels, base_yaw, quad_centres(voxels, base_yaw),
+                                  np.full(len(centres), BILLBOARD, np.uint8), octree.node_range.astype(np.int64)),
+                       planes)
 
 
 def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarray, layer: Layer,
-                 block_size: float | None = None, grid_origin: np.ndarray | None = None) -> Billboards:
+                 block_size: float | None = None, grid_origin: np.ndarray | None = None,
+                 planes: PlaneConfig | None = None) -> Billboards:
     """Billboards where the cloud departs from the facade ``layer``, and the layer's blocks.
 
     points (N, 3) float64 world; viewpoints (v, 3) float64 camera centres; block_size: edge of
@@ -91,7 +96,8 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     ``min_points`` times, so every block's cell is a leaf; on the voxel grid from ``grid_origin``
     when given, see :func:`~billboards.octree.build_octree`); a leaf gets a billboard when
     at least ``min_points`` unexplained points fall in it. Billboards are ordered by leaf
-    (Morton order), a leaf's billboard before its blocks.
+    (Morton order), a leaf's billboard before its blocks; planar leaves become quads in their
+    plane by ``planes`` (None: none, :func:`~billboards.planes.with_planes`).
     """
     points = np.asarray(points, np.float64)
     free = np.flatnonzero(~layer.explained)
@@ -140,5 +146,5 @@ def place_hybrid(points: np.ndarray, config: OctreeConfig, viewpoints: np.ndarra
     cell[blocks] = layer.cell[source[blocks]]
     corner_dz = np.zeros((len(item_kind), 4))
     corner_dz[blocks] = layer.corner_dz[source[blocks]]
-    return Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen, split, cell,
-                      corner_dz)
+    return with_planes(Billboards(octree, owner, voxels, base_yaw, quads, item_kind, node_range, block_size, unseen,
+                                  split, cell, corner_dz), planes)

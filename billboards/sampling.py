@@ -34,12 +34,12 @@ import numpy as np
 
 from core.errors import InputError
 
-from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, DirectionConfig, direction_angles, kind_frames,
-                       quad_edges, surface_dz, texel_offsets, unit_vectors)
+from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, LAYER_KINDS, PLANE, DirectionConfig, direction_angles,
+                       kind_frames, quad_edges, surface_dz, texel_offsets, unit_vectors)
 from .texels import (OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, close_holes, fill_directions, reject_transients,
                      stack_filter)
 from .views import Views
-from .voxels import VoxelPoints, zbuffer
+from .voxels import VoxelPoints, layer_points, zbuffer
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +58,8 @@ class SamplingConfig:
     zbuffer_scale: int = 2          # z-buffer pixel = this many image pixels per side
     own_points: bool = True         # the voxel's own points mark what lies on a texel's ray (closes z-buffer holes)
     slab_margin: float = 0.5        # surfaces this many voxel edges beyond the voxel still show (no parallax gaps)
+    fill_below: bool = True         # a billboard's texel whose ray points down, with neither cloud nor the layer's
+                                    # blocks behind it, shows the image (the ray ends on something: the leaf)
     reproject: bool = False         # texels via the surface point seen from the sampled direction (else the
                                     # quad projected into the camera, as the billboards paper)
     cache_views: int = 128          # images and z-buffers kept per process (about 1.5 MB each at 640×480)
@@ -80,14 +82,16 @@ class SamplingConfig:
 
 
 class _ViewCache:
-    """Per-process LRU of decoded image pyramids and z-buffers."""
+    """Per-process LRU of decoded image pyramids and z-buffers: the cloud's (filled and nearest)
+    and, with ``layer`` (the facade layer's blocks as points), the layer's (filled; None without)."""
 
-    def __init__(self, views: Views, voxels: VoxelPoints | None, config: SamplingConfig):
-        self.views, self.voxels, self.config = views, voxels, config
+    def __init__(self, views: Views, voxels: VoxelPoints | None, config: SamplingConfig,
+                 layer: VoxelPoints | None = None):
+        self.views, self.voxels, self.config, self.layer = views, voxels, config, layer
         self._entries: OrderedDict[int, tuple] = OrderedDict()
         self.loads = 0  # views decoded and z-buffered so far (misses)
 
-    def get(self, i: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    def get(self, i: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray | None]:
         if i in self._entries:
             self._entries.move_to_end(i)
             return self._entries[i]
@@ -102,7 +106,11 @@ class _ViewCache:
             filled, nearest = zbuffer(pts, self.voxels.origin, K, pose, size, self.config.zbuffer_scale)
         else:
             filled = nearest = None
-        entry = (pyramid, filled, nearest)
+        layer = None
+        if self.layer is not None:
+            pts = self.layer.in_view(K, pose, size, self.config.max_distance)
+            layer = zbuffer(pts, self.layer.origin, K, pose, size, self.config.zbuffer_scale)[0]
+        entry = (pyramid, filled, nearest, layer)
         self._entries[i] = entry
         if len(self._entries) > self.config.cache_views:
             self._entries.popitem(last=False)
@@ -129,9 +137,11 @@ class ImageSampler:
     centres (n, 3) float64 world quad centres; size: voxel edge (m); base_yaw (n,) float64; voxels: the
     cloud grouped by voxel (z-buffers and own points); box_centres (n, 3) float64 voxel cube centres
     when the quads sit elsewhere (see :func:`quad_centres`), default the quad centres; kind (n,) uint8
-    quad kinds (:data:`geometry.KINDS`, default all billboards). A layer block (kind ≠ BILLBOARD) is a
+    quad kinds (:data:`geometry.KINDS`, default all billboards). A layer block (FACADE, GROUND) is a
     surface: every texel shows what the camera sees through it unless something stands in front of its
-    cube (then the next camera is tried), never see-through; its edge is ``block_size`` (default:
+    cube (then the next camera is tried), never see-through; a PLANE quad's texel shows what the camera
+    sees within half an edge of it (or the leaf's own points on its ray), else it is see-through (the
+    plane's edge); a block's edge is ``block_size`` (default:
     ``size``) halved ``split`` (n,) uint8 times (default never); a ground block's surface rises to its
     corners' heights ``corner_dz`` (n, 4) float64 (:func:`~billboards.geometry.surface_dz`; default
     flat). occluders: the points the z-buffers are made of, when more than ``voxels`` (a tile of a
@@ -155,7 +165,13 @@ class ImageSampler:
         self.sizes = quad_edges(self.kind, split, self.size, self.size if block_size is None else block_size)
         self.corner_dz = None if corner_dz is None or not np.any(corner_dz) else np.asarray(corner_dz, np.float32)
         self.voxels = voxels
-        self.cache = _ViewCache(views, voxels if occluders is None else occluders, config)
+        layer = None
+        if config.fill_below:
+            blocks = np.flatnonzero(np.isin(self.kind, LAYER_KINDS))
+            layer = layer_points(self.centres[blocks], self.sizes[blocks], self.kind[blocks], self.base_yaw[blocks],
+                                 None if self.corner_dz is None else self.corner_dz[blocks], views, voxels.origin,
+                                 config.zbuffer_scale, config.max_distance)
+        self.cache = _ViewCache(views, voxels if occluders is None else occluders, config, layer)
 
     # -- choosing cameras ------------------------------------------------------------
     def _candidates(self, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
@@ -257,14 +273,31 @@ class ImageSampler:
         zw = max(e[1].shape[1] for e in entries)
         filled = np.full((len(unique), zh, zw), np.inf, dtype=np.float32)
         nearest = np.full((len(unique), zh, zw), np.inf, dtype=np.float32)
-        for i, (_, f, n) in enumerate(entries):
+        for i, (_, f, n, _) in enumerate(entries):
             filled[i, :f.shape[0], :f.shape[1]] = f
             nearest[i, :n.shape[0], :n.shape[1]] = n
-        scale = np.float32(1.0 / self.config.zbuffer_scale)
+        pix = self._pixels(local, u, v, zh, zw, self.config.zbuffer_scale)
+        return filled.ravel()[pix], nearest.ravel()[pix], entries, local
+
+    @staticmethod
+    def _pixels(local, u, v, zh, zw, zbuffer_scale):
+        """Flat indices into stacked (views, zh, zw) z-buffers of ``zbuffer_scale`` image pixels per
+        side, of pixels (u, v) of views ``local``."""
+        scale = np.float32(1.0 / zbuffer_scale)
         iu = np.clip((u + 0.5) * scale, 0, zw - 1).astype(np.int32)
         iv = np.clip((v + 0.5) * scale, 0, zh - 1).astype(np.int32)
-        pix = (local.astype(np.int32)[:, None, None] * zh + iv) * zw + iu
-        return filled.ravel()[pix], nearest.ravel()[pix], entries, local
+        return (local.astype(np.int32)[:, None, None] * zh + iv) * zw + iu
+
+    def _layer_at(self, entries, local, u, v):
+        """The layer's z-buffer at pixels (u, v) (m, t, t) float32 (inf: no block there, or no layer)."""
+        if self.cache.layer is None:
+            return np.full(u.shape, np.inf, np.float32)
+        zh = max(e[3].shape[0] for e in entries)
+        zw = max(e[3].shape[1] for e in entries)
+        layer = np.full((len(entries), zh, zw), np.inf, dtype=np.float32)
+        for i, e in enumerate(entries):
+            layer[i, :e[3].shape[0], :e[3].shape[1]] = e[3]
+        return layer.ravel()[self._pixels(local, u, v, zh, zw, self.config.zbuffer_scale)]
 
     def _colours(self, entries, local, u, v, footprint):
         """Bilinear colours (m, t, t, 3) uint8 at (u, v), each sample from the pyramid level
@@ -272,7 +305,7 @@ class ImageSampler:
         t = self.config.tile
         level = np.floor(np.log2(np.maximum(footprint, 1.0))).astype(np.int64)
         colour = np.empty(u.shape + (3,), dtype=np.uint8)
-        for i, (pyramid, _, _) in enumerate(entries):
+        for i, (pyramid, *_) in enumerate(entries):
             mine = local == i
             lv_all = np.minimum(level, len(pyramid) - 1)
             for lv in np.unique(lv_all[mine]):
@@ -343,6 +376,8 @@ class ImageSampler:
                 near, far = np.fmin(lo, hi), np.fmax(lo, hi)
                 t_in = near if t_in is None else np.fmax(t_in, near)
                 t_out = far if t_out is None else np.fmin(t_out, far)
+                if k == 2:
+                    below = (world_k + dz if dz is not None else world_k) < 0   # the ray points down
         tol = np.float32(cfg.abs_tolerance) + np.float32(cfg.rel_tolerance) * z
         filled, nearest, entries, local = self._depth_at(views, u, v)
         # The surface the camera sees through the texel belongs to the billboard if it lies in
@@ -358,7 +393,24 @@ class ImageSampler:
             hit = np.isfinite(self._own_depth(ids[board], np.zeros((len(board), 3)), c[board], right[board], up[board]))
             beyond = np.isfinite(nearest[board]) & (nearest[board] > t_out[board] + tol[board] + margin[board])
             own[board] = (own[board] | hit) & ~beyond
-        own[self.kind[ids] != BILLBOARD] = True   # a layer block is a surface: glass and paint show, never see-through
+        if cfg.fill_below and len(board):
+            # A ray that points down ends on something: where neither the cloud nor the layer (the
+            # plain road, glass) lies behind a billboard's texel (a sparse far leaf, a hedge stereo
+            # barely saw), the texel shows it.
+            behind = self._layer_at(entries, local[board], u[board], v[board])
+            empty = ~np.isfinite(filled[board]) & ~np.isfinite(behind) & below[board]
+            own[board] |= empty & (t_in[board] <= t_out[board])
+        plane = np.flatnonzero(self.kind[ids] == PLANE)
+        if len(plane):
+            # A plane's texels lie on its surface: a texel shows the surface where the camera sees
+            # something within half an edge of it, or the leaf's own points on its ray.
+            slab = (s[plane] / 2).astype(np.float32)[:, None, None]
+            t_in[plane] = z[plane] - slab
+            hit = np.isfinite(self._own_depth(ids[plane], np.zeros((len(plane), 3)), c[plane], right[plane], up[plane]))
+            fp = filled[plane]
+            own[plane] = hit | (np.isfinite(fp) & (np.abs(fp - z[plane]) <= tol[plane] + slab))
+        layer = np.isin(self.kind[ids], LAYER_KINDS)
+        own[layer] = True   # a layer block is a surface: glass and paint show, never see-through
         status = np.where(own, np.uint8(VISIBLE), np.uint8(TRANSPARENT))
         if cfg.occlusion:
             # Ground seen at a grazing angle changes depth by decimetres per pixel row: the
@@ -476,6 +528,7 @@ class ImageSampler:
                                               cfg.transient_threshold, cfg.transient_mads, cfg.transient_min_views)
             stats["transient_texels"] = before - int((status == VISIBLE).sum())
         rgba = fill_directions(colour, status, dirs.count)
-        if layer.any():
-            rgba[layer] = close_holes(rgba[layer])
+        blocks = np.isin(self.kind[ids], LAYER_KINDS)   # a plane's edge may be open (a wall's corner)
+        if blocks.any():
+            rgba[blocks] = close_holes(rgba[blocks])
         return SampledTextures(rgba, view_used, distance, elevation, stats)

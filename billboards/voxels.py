@@ -1,5 +1,6 @@
 """The cloud grouped by voxel (:class:`VoxelPoints`) and what is made of it: quad centres on
-its surface and z-buffers splatted from it.
+its surface and z-buffers splatted from it; the facade layer's blocks as points
+(:func:`layer_points`), splatted into a z-buffer of their own.
 
 The z-buffer is the fused cloud splatted at reduced resolution: a min-reduction per pixel,
 small holes inside surfaces closed from their neighbours, and a 3×3 minimum (one z-buffer
@@ -13,6 +14,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from .geometry import kind_frames, quad_grid_points
+from .resolution import capture_footprint
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,6 +86,31 @@ def quad_centres(voxels: VoxelPoints, base_yaw: np.ndarray) -> np.ndarray:
     shift = np.einsum("nk,nk->n", centroid - voxels.centres, toward)
     shift = np.clip(shift, -voxels.size / 2, voxels.size / 2)
     return voxels.centres + shift[:, None] * toward
+
+
+def layer_points(centres: np.ndarray, edges: np.ndarray, kind: np.ndarray, base_yaw: np.ndarray,
+                 corner_dz: np.ndarray | None, views, origin: np.ndarray, zbuffer_scale: int,
+                 max_distance: float) -> VoxelPoints | None:
+    """The facade layer's blocks as points (the ground on its height field), for a z-buffer of the
+    layer (``--fill-below``: the road and the glass stereo found no point on are still surfaces
+    behind a billboard). Blocks at centres (b, 3) float64 with edges (b,), kinds (b,) uint8, base
+    yaws (b,) and corner_dz (b, 4) (None: flat); views: the capture (K, world_from_cam, sizes).
+    Each block is sampled with a point per pixel of a z-buffer ``zbuffer_scale`` image pixels wide
+    of the finest camera that sees it (:func:`~billboards.resolution.capture_footprint`), 2 to 32
+    points a side, so that the near road leaves no holes (the z-buffer closes single missing
+    pixels). None without blocks."""
+    if len(centres) == 0:
+        return None
+    edges = np.asarray(edges, np.float64)
+    footprint = capture_footprint(centres, float(edges.max()) / 2, views.K, views.world_from_cam, views.sizes,
+                                  max_distance)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        counts = np.ceil(edges / (footprint * zbuffer_scale))
+    counts = np.clip(np.nan_to_num(counts, nan=2.0), 2, 32).astype(np.int64)
+    _, right, up = kind_frames(kind, base_yaw, base_yaw, np.zeros(len(centres)))
+    points, begin = quad_grid_points(centres, edges, right, up, corner_dz, counts)
+    return VoxelPoints(np.asarray(origin, np.float64), (points - origin).astype(np.float32), begin,
+                       np.asarray(centres, np.float64), float(edges.max()))
 
 
 def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,

@@ -14,6 +14,7 @@ import numpy as np
 from billboards.decode import decode_directions
 from billboards.fit import quads_of
 from billboards.fit_cast import cast_view
+from billboards.geometry import KINDS
 from billboards.model_set import ModelSet
 
 from .baselines import PoissonMesh
@@ -23,9 +24,9 @@ BACKGROUND = (0.0, 0.0, 0.0)
 #: A method: (K (3, 3), world_from_cam (4, 4), size (w, h)) → (h, w, 3) uint8.
 Method = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
 
-#: Not a kind of quad: ground blocks whose texture was synthesised (no camera saw them);
-#: :meth:`ModelMethod.kinds` marks their pixels so.
-SYNTHESISED = 3
+#: Not a kind of quad (one past them): ground blocks whose texture was synthesised (no camera
+#: saw them); :meth:`ModelMethod.kinds` marks their pixels so.
+SYNTHESISED = max(KINDS) + 1
 _UNUSED_COLOUR = (1.0, 0.0, 1.0)  # background for finding the pixels a model draws (magenta, absent from streets)
 
 

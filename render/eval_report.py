@@ -133,15 +133,16 @@ def markdown(report: dict) -> str:
                                        ("psnr_geometry", ".2f"), ("ssim_geometry", ".3f"), ("seen_fraction", ".0%"),
                                        ("coverage_seen", ".1%")), nbytes=report["bytes"])
     split = {name: m for name, m in report["summary"].items()
-             if any(m.get(f"psnr_seen_{k}") is not None for k in ("facade", "ground", "billboard"))}
+             if any(m.get(f"psnr_seen_{k}") is not None for k in ("facade", "ground", "billboard", "plane"))}
     if split:
         lines += ["", "## The model's error by the kind of quad drawing a pixel (PSNR over seen pixels, dB)", "",
                   "Synthesised ground: blocks no camera of the capture saw, textured from ground nearby; "
                   "PSNR over the pixels with geometry it draws, and their share.", "",
-                  "| method, viewpoints | facade blocks | ground blocks | billboards | synthesised ground | "
-                  "its share |", "|---|---|---|---|---|---|"]
+                  "| method, viewpoints | facade blocks | ground blocks | billboards | planes | synthesised ground | "
+                  "its share |", "|---|---|---|---|---|---|---|"]
         lines += _rows(split, (("psnr_seen_facade", ".2f"), ("psnr_seen_ground", ".2f"), ("psnr_seen_billboard", ".2f"),
-                               ("psnr_geometry_synthesised", ".2f"), ("synthesised_fraction", ".1%")))
+                               ("psnr_seen_plane", ".2f"), ("psnr_geometry_synthesised", ".2f"),
+                               ("synthesised_fraction", ".1%")))
     near = {name: m["psnr_seen_near"] for name, m in report["summary"].items()
             if isinstance(m.get("psnr_seen_near"), float) and math.isfinite(m["psnr_seen_near"])}
     if near:

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from billboards.geometry import BILLBOARD, FACADE, GROUND
+from billboards.geometry import BILLBOARD, FACADE, GROUND, PLANE
 from core.metrics import psnr, ssim
 
 from .eval_config import TRAINING, WHERE
@@ -21,7 +21,7 @@ logger = logging.getLogger(__name__)
 METRICS = ("psnr", "psnr_geometry", "psnr_seen", "psnr_covered", "ssim", "ssim_geometry", "ssim_seen", "ssim_covered")
 #: The model's error split by the kind of quad that draws a pixel (PSNR over seen pixels), and for a
 #: real capture by the horizon (PSNR over covered pixels above and below it).
-KIND_NAMES = {FACADE: "facade", GROUND: "ground", BILLBOARD: "billboard"}
+KIND_NAMES = {FACADE: "facade", GROUND: "ground", BILLBOARD: "billboard", PLANE: "plane"}
 #: … and synthesised ground apart: over the pixels with geometry (no capture camera saw it, so it
 #: draws no seen pixel), with the share of those pixels it draws.
 SPLIT_METRICS = tuple(f"psnr_seen_{name}" for name in KIND_NAMES.values()) + (

@@ -88,7 +88,7 @@ def test_decoded_model_matches_a_fresh_sampling(tiny_dataset, tiny_cloud, tiny_m
     octree = build_octree(points, conf.octree)
     centres = octree.centres()
     views = views_from_dataset(load_dataset(tiny_dataset))
-    placed = place_billboards(points, octree, views.centres)
+    placed = place_billboards(points, octree, views.centres, conf.planes)
     quads = placed.quads
     sampler = placed.image_sampler(views, conf.sampling)
     sampled = sampler.sample(np.arange(len(quads))).rgba

@@ -8,7 +8,9 @@ import shutil
 import numpy as np
 import pytest
 
+from billboards.geometry import KINDS
 from render.camera import look_at
+from render.eval_methods import SYNTHESISED
 from render.seen import back_project, seen_mask
 
 from .conftest import tiny_config, write_ground_truth_cloud
@@ -207,7 +209,7 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
         assert 5 < m["psnr"] < 100 and -1 <= m["ssim"] <= 1, name
         assert 5 < m["psnr_seen"] < 100 and 0 < m["seen_fraction"] <= 1, name  # (a training view sees all)
         assert 0 <= m["coverage_seen"] <= 1, name
-    on, off = report["summary"]["model, on path"], report["summary"]["model, off path"]
+    on = report["summary"]["model, on path"]
     assert on["seen_fraction"] > 0.3 and on["psnr_seen"] > on["psnr_geometry"] - 3
     assert on["coverage_seen"] > 0.5   # the model draws most of what the capture saw
     assert report["summary"]["model: model, on path"]["psnr_seen"] == pytest.approx(on["psnr_seen"])
@@ -216,12 +218,13 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
     assert report["bytes"]["Poisson depth 6"] < report["bytes"]["Poisson mesh"]
     assert {"model", "Poisson mesh", "point projection"} <= {p["family"] for p in report["work_precision"]}
     assert (out / "workprecision.png").is_file() and "off path" in (out / "eval.md").read_text()
-    split = [report["summary"]["model, on path"][f"psnr_seen_{k}"] for k in ("facade", "ground", "billboard")]
+    split = [report["summary"]["model, on path"][f"psnr_seen_{k}"] for k in ("facade", "ground", "billboard", "plane")]
     assert any(v is not None for v in split) and all(v is None or 5 < v <= 100 for v in split)
     assert report["summary"]["Poisson mesh, on path"]["psnr_seen_facade"] is None   # (a model's quads only)
     assert "kind of quad" in (out / "eval.md").read_text()
-    # synthesised ground (none in this model) is scored apart: no pixel, no score
+    # synthesised ground (none in this model) is scored apart: no pixel, no score (its mark is no kind)
     assert on["synthesised_fraction"] == 0 and on["psnr_geometry_synthesised"] is None
+    assert SYNTHESISED not in KINDS
     # the near field: seen pixels nearer than 5 m, for every method
     assert report["config"]["near"] == 5.0 and "The near field" in (out / "eval.md").read_text()
     assert all(m["psnr_seen_near"] is None or 5 < m["psnr_seen_near"] <= 100 for m in report["summary"].values())

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from billboards.build import BuildConfig, main as build_main
-from billboards.geometry import BILLBOARD, FACADE, GROUND, DirectionConfig, kind_frames
+from billboards.geometry import BILLBOARD, FACADE, GROUND, PLANE, DirectionConfig, kind_frames
 from billboards.layer import LayerConfig, build_layer, facade_columns, plane_max, plane_max_reference
 from billboards.octree import OctreeConfig
 from billboards.pca import PcaConfig
@@ -187,10 +187,12 @@ def test_hybrid_split_pillar_in_front_of_a_wall():
 
 
 def test_kind_frames_of_blocks():
-    yaw = np.array([0.3, 0.3, 0.3])
-    base = np.array([1.0, 1.0, 1.0])
-    kind = np.array([BILLBOARD, FACADE, GROUND], np.uint8)
-    n, r, u = kind_frames(kind, base, yaw, np.zeros(3))
+    yaw = np.array([0.3, 0.3, 0.3, 0.3])
+    base = np.array([1.0, 1.0, 1.0, 1.0])
+    kind = np.array([BILLBOARD, FACADE, GROUND, PLANE], np.uint8)
+    n, r, u = kind_frames(kind, base, yaw, np.zeros(4))
+    for axis in (n, r, u):   # a plane stands like a facade block
+        np.testing.assert_array_equal(axis[3], axis[1])
     np.testing.assert_allclose(n[0], [np.cos(0.3), np.sin(0.3), 0], atol=1e-12)
     np.testing.assert_allclose(n[1], [np.cos(1.0), np.sin(1.0), 0], atol=1e-12)
     np.testing.assert_allclose(u[1], [0, 0, 1])
@@ -262,7 +264,7 @@ def test_slits_on_a_street_match_the_ground_truth(layer_street, layer_cloud, tmp
     assert layer["facade_blocks"] > 100
     assert layer["facade_depth"]["epi"]["median_pct"] <= 2.0
     model = billboard_model.load(result.model)
-    assert set(np.unique(model.kind)) <= {BILLBOARD, FACADE, GROUND} and (model.kind == FACADE).any()
+    assert set(np.unique(model.kind)) <= {BILLBOARD, FACADE, GROUND, PLANE} and (model.kind == FACADE).any()
     # the road between the two passes is in no image: continued, synthesised, marked, opaque
     from billboards.decode import decode_directions
 
@@ -301,13 +303,15 @@ def test_slits_on_a_street_match_the_ground_truth(layer_street, layer_cloud, tmp
           f"{empty[wall].mean():.2%} / {np.all(plain == 0, axis=-1)[wall].mean():.2%}")
 
 
-@pytest.mark.parametrize("decode, voxel_size", [("gpu", 0.5), ("cpu", 0.5), ("gpu", 0.25), ("cpu", 0.25)])
-def test_no_seams_on_a_flat_textured_wall(ctx, decode, voxel_size):
+@pytest.mark.parametrize("decode, voxel_size, kind", [("gpu", 0.5, FACADE), ("cpu", 0.5, FACADE), ("gpu", 0.25, FACADE),
+                                                       ("cpu", 0.25, FACADE), ("gpu", 0.5, PLANE), ("cpu", 0.5, PLANE)])
+def test_no_seams_on_a_flat_textured_wall(ctx, decode, voxel_size, kind):
     """A wall of 4 × 3 facade blocks whose tiles continue one smooth texture, seen frontally
     and obliquely: no background pixel inside the wall, and no colour step between neighbouring
     pixels larger than one texel of the texture's own gradient (bilinear texels never read a
     neighbouring tile; at a block edge the two border texels meet). The blocks are 0.5 m,
-    in models of 0.5 m voxels and of 0.25 m voxels (blocks larger than the billboards)."""
+    in models of 0.5 m voxels and of 0.25 m voxels (blocks larger than the billboards); the
+    same wall of planar leaves' quads (PLANE, the voxel's edge) is drawn the same way."""
     from billboards.atlas import pack_rows, pack_tiles
     from billboards.model import BillboardModel
     from render.camera import look_at
@@ -336,7 +340,7 @@ def test_no_seams_on_a_flat_textured_wall(ctx, decode, voxel_size):
         coef_offset=np.zeros(n, np.float32), pages=pack_tiles(tiles, 64), coef_pages=pack_rows(np.zeros((n, 3), np.float32), 64),
         node_level=np.zeros(1, np.uint8), node_bounds=np.array([[[0, -0.1, 0], [2, 0.1, 1.5]]], np.float32),
         node_children=-np.ones((1, 8), np.int32), node_range=np.array([[0, n]], np.int32), info={},
-        kind=np.full(n, FACADE, np.uint8))
+        kind=np.full(n, kind, np.uint8))
     model.check()
     K, size = np.array([[400.0, 0, 159.5], [0, 400.0, 119.5], [0, 0, 1]]), (320, 240)
     with BillboardRenderer(ctx, model, decode, background=(1.0, 0.0, 1.0)) as renderer:
@@ -452,3 +456,34 @@ def test_side_walls_on_a_street_stand_on_the_ground_truth_walls_facing_out(layer
                           LayerConfig(side_walls=False, kerbs=False), cameras=cameras)
     assert not without.side_wall.any() and not without.kerb.any()
     assert without.explained.sum() < layer.explained.sum()
+
+
+def test_quad_grid_points_lie_on_each_quad_at_its_own_density():
+    """Layer blocks as points (the layer's z-buffer of --fill-below): counts² points per quad,
+    inside its square, a ground block's on its bilinear height field (surface_dz), a facade
+    block's in its vertical plane."""
+    from billboards.geometry import quad_grid_points, surface_dz
+
+    rng = np.random.default_rng(3)
+    centres = np.column_stack([rng.uniform(-5, 5, (6, 2)), rng.uniform(0, 1, 6)])
+    edges = np.array([0.5, 0.25, 0.5, 1.0, 0.5, 0.125])
+    yaw = rng.choice([0.0, np.pi / 2, np.pi, -np.pi / 2], 6)
+    kind = np.array([GROUND, GROUND, GROUND, FACADE, FACADE, GROUND], np.uint8)
+    dz = np.where((kind == GROUND)[:, None], rng.uniform(-0.05, 0.05, (6, 4)), 0.0)
+    counts = np.array([2, 5, 32, 3, 2, 7])
+    normal, right, up = kind_frames(kind, yaw, yaw, np.zeros(6))
+    points, begin = quad_grid_points(centres, edges, right, up, dz, counts)
+    assert np.array_equal(np.diff(begin), counts ** 2) and len(points) == begin[-1]
+    for i in range(6):
+        p = points[begin[i]:begin[i + 1]] - centres[i]
+        a, b = p @ right[i] / edges[i] + 0.5, p @ up[i] / edges[i] + 0.5
+        assert np.all((a > 0) & (a < 1) & (b > 0) & (b < 1))
+        assert len(np.unique(np.round(a, 9))) == counts[i]
+        if kind[i] == GROUND:   # world x, y fractions on an axis-aligned block
+            f = p[:, :2] / edges[i] + 0.5
+            np.testing.assert_allclose(p[:, 2], surface_dz(dz[i], f[:, 0], f[:, 1]), atol=1e-12)
+        else:
+            np.testing.assert_allclose(p @ normal[i], 0, atol=1e-12)
+    empty, begin = quad_grid_points(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), None,
+                                    np.zeros(0, np.int64))
+    assert empty.shape == (0, 3) and begin.tolist() == [0]

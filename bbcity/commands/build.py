@@ -63,6 +63,10 @@ def add(sub) -> None:
     p.add_argument("--tile", type=int_range(1, MAX_TILE), default=sampling.tile,
                    help=f"texels per billboard side, at most --page-size and {MAX_TILE} (default {sampling.tile})")
     p.add_argument("--naive", action="store_true", help="nearest-frame sampling without the occlusion test")
+    p.add_argument("--fill-below", choices=("on", "off"), default=_on_off(sampling.fill_below),
+                   help="a billboard's texel whose ray points down shows the image where neither the cloud nor the "
+                        "facade layer (the ground, the facades) lies behind it (a sparse far leaf; default "
+                        f"{_on_off(sampling.fill_below)})")
     p.add_argument("--ratio", type=float_range(0.0, 1.0), default=None,
                    help="PCA cumulative contribution ratio (default: the PcaConfig's)")
     p.add_argument("--max-error", type=nonnegative_float, default=None,
@@ -108,6 +112,9 @@ def add(sub) -> None:
     p.add_argument("--kerbs", choices=("on", "off"), default=_on_off(layer.kerbs),
                    help="a fixed face on each step between two ground levels (a kerb) instead of billboards "
                         f"(default {_on_off(layer.kerbs)})")
+    p.add_argument("--planes", choices=("on", "off"), default=_on_off(d.planes),
+                   help="a leaf whose points lie on one vertical plane (a wall, a car's side) gets a fixed quad in "
+                        f"that plane instead of a view-facing billboard (default {_on_off(d.planes)})")
     p.add_argument("--photometry", choices=("on", "off"), default=_on_off(d.photometry),
                    help="estimate per-image exposure and white-balance gains from the overlaps and divide them "
                         f"out before sampling textures (default {_on_off(d.photometry)})")
@@ -137,6 +144,7 @@ def build_config_from_args(args):
     from billboards.octree import OctreeConfig
     from billboards.pca import PcaConfig
     from billboards.photometry import PhotometryConfig
+    from billboards.planes import PlaneConfig
     from billboards.resolution import ResolutionConfig
     from billboards.sampling import SamplingConfig
     from billboards.wall_depth import WallDepthConfig
@@ -156,7 +164,8 @@ def build_config_from_args(args):
                                  pitched_quads=args.pitched_quads)
     octree = OctreeConfig(voxel_size=None if args.depth is not None else args.voxel_size, depth=args.depth,
                           min_points=args.min_points)
-    sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive)
+    sampling = SamplingConfig(tile=args.tile, directions=directions, occlusion=not args.naive,
+                              fill_below=args.fill_below == "on")
     layer = None if args.layer == "none" else LayerConfig(
         facades="facades" in args.layer, ground="ground" in args.layer, block_size=args.block_size,
         ground_reach=args.ground_reach, side_walls=args.side_walls == "on", kerbs=args.kerbs == "on",
@@ -164,7 +173,7 @@ def build_config_from_args(args):
         wall_depth=WallDepthConfig(reach=args.wall_reach, rise=args.wall_rise))
     return BuildConfig(octree=octree, sampling=sampling, pca=pca, source=args.texture_source,
                        tile_mode=args.tile_mode, coef_mode=args.coef_mode, page_size=args.page_size,
-                       holdout=args.holdout, layer=layer,
+                       holdout=args.holdout, layer=layer, planes=PlaneConfig() if args.planes == "on" else None,
                        photometry=PhotometryConfig() if args.photometry == "on" else None,
                        fit=FitConfig(seconds=args.fit_seconds, alpha=args.fit_alpha == "on") if args.fit == "on"
                        else None,
