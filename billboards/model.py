@@ -51,7 +51,7 @@ class BillboardModel:
     node_children: np.ndarray  # (k, 8) int32, −1 = none
     node_range: np.ndarray  # (k, 2) int32 [begin, end) billboards
     info: dict  # free-form build info (JSON-serialisable)
-    kind: np.ndarray | None = None  # (n,) uint8 BILLBOARD | FACADE | GROUND; None: all BILLBOARD
+    kind: np.ndarray | None = None  # (n,) uint8 BILLBOARD | FACADE | GROUND | PLANE; None: all BILLBOARD
     block_size: float | None = None  # edge of FACADE and GROUND blocks (m); None: voxel_size
     synthesised: np.ndarray | None = None  # (n,) uint8 1: texture synthesised (no camera saw it); None: none
     split: np.ndarray | None = None  # (n,) uint8 edge halved this many times (ground near the path); None: never

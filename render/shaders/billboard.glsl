@@ -35,7 +35,7 @@ in int in_view;
 
 in vec3 in_centre;       // model coordinates (m)
 in float in_base_yaw;    // world yaw (radians) a layer block faces
-in int in_kind;          // 0 billboard, 1 facade block (or slit), 2 ground block
+in int in_kind;          // 0 billboard, 1 facade block (or slit), 2 ground block, 3 plane (a planar leaf)
 in float in_size;        // edge of the quad (a slit: of each of its blocks), m
 in int in_blocks;        // blocks in the run (1 unless a slit)
 in vec2 in_origin;       // top-left texel of the run's top block in the atlas drawn from (slot 0)

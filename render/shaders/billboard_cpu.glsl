@@ -10,7 +10,7 @@
 in vec3 in_centre;     // model coordinates (m)
 in float in_base_yaw;  // world yaw (radians) a layer block faces
 in int in_tile;        // tile index in the frame atlas
-in int in_kind;        // 0 billboard, 1 facade block, 2 ground block
+in int in_kind;        // 0 billboard, 1 facade block, 2 ground block, 3 plane (a planar leaf)
 in float in_size;      // edge of the quad (m)
 in vec4 in_corner_dz;  // a ground block's corners above its centre (m; zeros otherwise)
 

@@ -9,8 +9,9 @@
 //   right  r = (−sin ψ, cos ψ, 0)
 //   up     u = (0, 0, 1), or n × r for spherical facing (u_spherical)
 // where ψ, φ are the yaw and pitch of the vector from the centre to the eye. Blocks of the
-// facade layer stay fixed at ψ = base yaw: a facade block (kind 1) is vertical with the same
-// r and u; a ground block (kind 2) lies flat with u = (−cos ψ, −sin ψ, 0), so its rows run
+// facade layer stay fixed at ψ = base yaw: a facade block (kind 1) and a planar leaf (kind 3,
+// billboards.planes) are vertical with the same r and u; a ground block (kind 2) lies flat with
+// u = (−cos ψ, −sin ψ, 0), so its rows run
 // away from the capture path. Texel (row, col) of a t×t tile lies at
 // centre + ((col+½)/t − ½)·s·r + (½ − (row+½)/t)·s·u. A ground block is drawn
 // GROUND_OVERLAP of its edge larger on every side, repeating its border texels: on a
