@@ -269,35 +269,20 @@ class ImageSampler:
         Also returns the views' cache entries and each sample's index into them."""
         unique, local = np.unique(views, return_inverse=True)
         entries = [self.cache.get(int(i)) for i in unique]
-        zh = max(e[1].shape[0] for e in entries)
-        zw = max(e[1].shape[1] for e in entries)
-        filled = np.full((len(unique), zh, zw), np.inf, dtype=np.float32)
-        nearest = np.full((len(unique), zh, zw), np.inf, dtype=np.float32)
-        for i, (_, f, n, _) in enumerate(entries):
-            filled[i, :f.shape[0], :f.shape[1]] = f
-            nearest[i, :n.shape[0], :n.shape[1]] = n
-        pix = self._pixels(local, u, v, zh, zw, self.config.zbuffer_scale)
-        return filled.ravel()[pix], nearest.ravel()[pix], entries, local
+        return self._zbuffer_at(entries, 1, local, u, v), self._zbuffer_at(entries, 2, local, u, v), entries, local
 
-    @staticmethod
-    def _pixels(local, u, v, zh, zw, zbuffer_scale):
-        """Flat indices into stacked (views, zh, zw) z-buffers of ``zbuffer_scale`` image pixels per
-        side, of pixels (u, v) of views ``local``."""
-        scale = np.float32(1.0 / zbuffer_scale)
+    def _zbuffer_at(self, entries, slot, local, u, v):
+        """The z-buffer ``slot`` of the cache ``entries`` (1 filled, 2 nearest, 3 the layer's) at
+        pixels (u, v) (m, t, t) of views ``local`` (m,): (m, t, t) float32, inf = empty."""
+        zh = max(e[slot].shape[0] for e in entries)
+        zw = max(e[slot].shape[1] for e in entries)
+        stack = np.full((len(entries), zh, zw), np.inf, dtype=np.float32)
+        for i, e in enumerate(entries):
+            stack[i, :e[slot].shape[0], :e[slot].shape[1]] = e[slot]
+        scale = np.float32(1.0 / self.config.zbuffer_scale)
         iu = np.clip((u + 0.5) * scale, 0, zw - 1).astype(np.int32)
         iv = np.clip((v + 0.5) * scale, 0, zh - 1).astype(np.int32)
-        return (local.astype(np.int32)[:, None, None] * zh + iv) * zw + iu
-
-    def _layer_at(self, entries, local, u, v):
-        """The layer's z-buffer at pixels (u, v) (m, t, t) float32 (inf: no block there, or no layer)."""
-        if self.cache.layer is None:
-            return np.full(u.shape, np.inf, np.float32)
-        zh = max(e[3].shape[0] for e in entries)
-        zw = max(e[3].shape[1] for e in entries)
-        layer = np.full((len(entries), zh, zw), np.inf, dtype=np.float32)
-        for i, e in enumerate(entries):
-            layer[i, :e[3].shape[0], :e[3].shape[1]] = e[3]
-        return layer.ravel()[self._pixels(local, u, v, zh, zw, self.config.zbuffer_scale)]
+        return stack.ravel()[(local.astype(np.int32)[:, None, None] * zh + iv) * zw + iu]
 
     def _colours(self, entries, local, u, v, footprint):
         """Bilinear colours (m, t, t, 3) uint8 at (u, v), each sample from the pyramid level
@@ -397,7 +382,8 @@ class ImageSampler:
             # A ray that points down ends on something: where neither the cloud nor the layer (the
             # plain road, glass) lies behind a billboard's texel (a sparse far leaf, a hedge stereo
             # barely saw), the texel shows it.
-            behind = self._layer_at(entries, local[board], u[board], v[board])
+            behind = (self._zbuffer_at(entries, 3, local[board], u[board], v[board]) if self.cache.layer is not None
+                      else np.full(u[board].shape, np.inf, np.float32))
             empty = ~np.isfinite(filled[board]) & ~np.isfinite(behind) & below[board]
             own[board] |= empty & (t_in[board] <= t_out[board])
         plane = np.flatnonzero(self.kind[ids] == PLANE)
