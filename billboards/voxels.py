@@ -127,11 +127,11 @@ def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_ca
     R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
     cam = transform_points(points, R.T, R.T @ (origin - C))
     z = cam[:, 2]
-    front = z > 1e-3
-    cam, z = cam[front], z[front]
-    u = (K[0, 0] * cam[:, 0] / z + K[0, 2] + 0.5) / scale
-    v = (K[1, 1] * cam[:, 1] / z + K[1, 2] + 0.5) / scale
-    inside = (u >= 0) & (u < zw) & (v >= 0) & (v < zh)
+    # every point projected, those behind the eye (nonsense pixels) left out with the ones outside
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (K[0, 0] * cam[:, 0] / z + K[0, 2] + 0.5) / scale
+        v = (K[1, 1] * cam[:, 1] / z + K[1, 2] + 0.5) / scale
+    inside = np.flatnonzero((z > 1e-3) & (u >= 0) & (u < zw) & (v >= 0) & (v < zh))
     pix = v[inside].astype(np.int64) * zw + u[inside].astype(np.int64)
     depth = np.full(zw * zh, np.inf, dtype=np.float32)
     np.minimum.at(depth, pix, z[inside])

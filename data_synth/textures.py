@@ -9,9 +9,10 @@ that stereo has something to match at street distances. Colours are floats in
 
 from __future__ import annotations
 
-import numpy as np
-
 from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
 
 from .noise import fbm, rand01, value_noise
 from .scene import Kind, Scene
@@ -41,15 +42,17 @@ class Hits:
         """(n, 3) float64 unit eye → hit directions (−normal where no view was given)."""
         return -self.normal if self.view is None else self.view
 
-    @property
+    @cached_property
     def lo(self) -> np.ndarray:
+        """(n, 3) float64 minimum of each hit's object box."""
         return self.scene.object_bounds[self.obj, 0]
 
-    @property
+    @cached_property
     def hi(self) -> np.ndarray:
+        """(n, 3) float64 maximum of each hit's object box."""
         return self.scene.object_bounds[self.obj, 1]
 
-    @property
+    @cached_property
     def seed(self) -> np.ndarray:
         """(n,) int64 texture seed of each hit's object."""
         return self.scene.object_seed[self.obj].astype(np.int64)
@@ -344,23 +347,36 @@ def shade(scene: Scene, p: np.ndarray, normal: np.ndarray, obj: np.ndarray,
     where some colours are already radiance and are not lit again.
     Returns (n, 3) float64 in [0, 1].
     """
-    normal = normal.astype(np.float64)
-    if view is not None:
-        view = np.asarray(view, dtype=np.float64)
-        view = view / np.linalg.norm(view, axis=1, keepdims=True)
-    colour = np.zeros((len(p), 3))
-    radiance = np.zeros(len(p), dtype=bool)
+    n = len(p)
+    if n == 0:
+        return np.zeros((0, 3))
     kinds = scene.object_kind[obj]
-    for kind in np.unique(kinds):
-        m = kinds == kind
-        out = _MATERIALS[Kind(int(kind))](Hits(p[m], normal[m], obj[m], scene, None if view is None else view[m]))
+    # the hits grouped by kind (one gather each, then contiguous slices): every hit's colour is
+    # computed from its own values alone, so the order it is computed in changes no byte
+    order = np.argsort(kinds, kind="stable")
+    kinds = kinds[order]
+    p, normal, obj = p[order], normal[order].astype(np.float64), obj[order]
+    if view is not None:
+        view = np.asarray(view, dtype=np.float64)[order]
+        view = view / np.linalg.norm(view, axis=1, keepdims=True)
+    colour = np.empty((n, 3))
+    radiance = np.zeros(n, dtype=bool)
+    ends = np.append(np.flatnonzero(kinds[1:] != kinds[:-1]) + 1, n)
+    start = 0
+    for end in ends:
+        group = slice(start, end)
+        out = _MATERIALS[Kind(int(kinds[start]))](
+            Hits(p[group], normal[group], obj[group], scene, None if view is None else view[group]))
         if isinstance(out, tuple):
-            colour[m], radiance[m] = out
+            colour[group], radiance[group] = out
         else:
-            colour[m] = out
+            colour[group] = out
+        start = end
     light = AMBIENT + (1.0 - AMBIENT) * np.clip(normal @ SUN, 0.0, 1.0)
     light[radiance] = 1.0
-    return np.clip(colour * light[:, None], 0.0, 1.0)
+    shaded = np.empty((n, 3))
+    shaded[order] = np.clip(colour * light[:, None], 0.0, 1.0)
+    return shaded
 
 
 def sky(directions: np.ndarray) -> np.ndarray:

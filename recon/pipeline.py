@@ -396,18 +396,55 @@ def main(conf: ReconConfig, dataset_dir: os.PathLike | str, work_dir: os.PathLik
         "stereo_seconds_per_frame": float(np.median([s["stereo_s"] for s in frame_stats])) if frame_stats else None,
         "peak_memory": peak_memory(),
     }
-    if conf.evaluate and ds.has_ground_truth and not ds.has_gt_depth:
-        logger.info("%s has no per-image ground-truth depth (gt/depth, gt/ids): the cloud is not scored", ds.root)
-    if conf.evaluate and ds.has_gt_depth:
+    if conf.evaluate:
         t3 = time.perf_counter()
-        max_depth = conf.trinocular.stereo.max_depth
-        tiles = read_cloud_tiles(cloud_path) if num_points else None
-        if tiles is not None:  # tile by tile: memory flat in the street's length
-            report["accuracy"] = evaluate_cloud_tiles(tiles, ds, truth_scenes(ds), max_depth=max_depth)
-        else:
-            points = np.zeros((0, 3))
-            report["accuracy"] = evaluate_cloud(points, ds, truth_scene(ds), max_depth=max_depth)
-        stages["evaluate_s"] = time.perf_counter() - t3
+        accuracy = score_cloud(ds, cloud_path, num_points, conf.trinocular.stereo.max_depth)
+        if accuracy is not None:
+            report["accuracy"] = accuracy
+            stages["evaluate_s"] = time.perf_counter() - t3
     write_json(work / REPORT, report)
     logger.info("cloud: %d points → %s", num_points, cloud_path)
     return cloud_path
+
+
+def score_cloud(ds: Dataset, cloud_path: Path, num_points: int, max_depth: float) -> dict | None:
+    """The accuracy and completeness of the cloud at ``cloud_path`` (``num_points`` points)
+    against ``ds``'s ground truth, surfaces up to ``max_depth`` metres
+    (:func:`~recon.evaluate.evaluate_cloud_tiles`); None for a dataset without per-image
+    ground-truth depth."""
+    if not ds.has_gt_depth:
+        if ds.has_ground_truth:
+            logger.info("%s has no per-image ground-truth depth (gt/depth, gt/ids): the cloud is not scored", ds.root)
+        return None
+    tiles = read_cloud_tiles(cloud_path) if num_points else None
+    if tiles is not None:  # tile by tile: memory flat in the street's length
+        return evaluate_cloud_tiles(tiles, ds, truth_scenes(ds), max_depth=max_depth)
+    return evaluate_cloud(np.zeros((0, 3)), ds, truth_scene(ds), max_depth=max_depth)
+
+
+def score_work(dataset_dir: os.PathLike | str, work_dir: os.PathLike | str) -> Path:
+    """Score the finished reconstruction in ``work_dir`` (``recon --no-eval``) against the
+    ground truth of ``dataset_dir``, the dataset it was made from: its ``recon_report.json``
+    gains ``accuracy`` and the stage ``evaluate_s``, as a run without ``--no-eval`` writes them.
+    DataFormatError naming the report when there is none or it describes another dataset.
+    Returns the report's path."""
+    work = Path(work_dir)
+    path = work / REPORT
+    if not path.is_file():
+        raise DataFormatError(path, "no finished reconstruction to score (run recon without --eval-only first)")
+    report = read_json(path)
+    try:
+        digest, points = report["dataset_digest"], int(report["points"])
+        max_depth = report["config"]["trinocular"]["stereo"]["max_depth"]
+        max_depth = np.inf if max_depth is None else float(max_depth)
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataFormatError(path, f"not a recon report ({e})") from None
+    if digest != dataset_digest(dataset_dir):
+        raise DataFormatError(path, f"describes another dataset than {dataset_dir}")
+    t0 = time.perf_counter()
+    accuracy = score_cloud(load_dataset(dataset_dir), work / "cloud.ply", points, max_depth)
+    if accuracy is not None:
+        report["accuracy"] = accuracy
+        report.setdefault("stages", {})["evaluate_s"] = time.perf_counter() - t0
+        write_json(path, report)
+    return path

@@ -31,8 +31,10 @@ def _env() -> dict:
 def test_every_demo_step_is_a_command_the_parser_accepts(tmp_path):
     parser = build_parser()
     steps = demo_steps(tmp_path) + comparison_steps(tmp_path)
-    assert [s.name for s in steps] == ["synth", "recon", "build", "render", "export", "eval", "build-billboards",
-                                       "eval-layer"]
+    assert [s.name for s in steps] == ["synth", "recon", "build", "recon-eval", "render", "export", "eval",
+                                       "build-billboards", "eval-layer"]
+    # recon leaves the score of its cloud to the step beside the build
+    assert "--no-eval" in steps[1].argv and "--eval-only" in steps[3].argv and steps[3].alongside
     for step in steps:
         args = parser.parse_args(list(step.argv))
         assert args.out.is_relative_to(tmp_path), step
@@ -122,4 +124,4 @@ def test_a_step_alongside_runs_with_the_one_before(tmp_path):
     assert second.wall_s < first.wall_s  # its own time, not the time until the first ended
     total = cost_table(costs).splitlines()[-1].split("|")
     assert float(total[3]) == pytest.approx(max(c.start_s + c.wall_s for c in costs), abs=0.1)
-    assert [s.alongside for s in demo_steps(tmp_path)] == [False, False, False, False, True, True]
+    assert [s.alongside for s in demo_steps(tmp_path)] == [False, False, False, True, False, True, True]

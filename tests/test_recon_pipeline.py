@@ -83,6 +83,28 @@ def test_cli_with_a_process_pool_writes_the_same_cloud(tiny_dataset, tiny_recon,
     assert cli(["-q", "recon", str(tiny_dataset), "--out", str(tmp_path / "w"), "--workers", "2",
                 "--voxel-size", "0.05", "--no-eval"]) == 0
     assert (tmp_path / "w" / "cloud.ply").read_bytes() == tiny_recon[0].read_bytes()
+    report = json.loads((tmp_path / "w" / "recon_report.json").read_text())
+    assert "accuracy" not in report and "evaluate_s" not in report["stages"]
+    # the demo scores the cloud later, beside the build: the same figures as scoring it at once
+    assert cli(["-q", "recon", str(tiny_dataset), "--out", str(tmp_path / "w"), "--eval-only"]) == 0
+    report = json.loads((tmp_path / "w" / "recon_report.json").read_text())
+    assert report["accuracy"] == tiny_recon[1]["accuracy"] and report["stages"]["evaluate_s"] > 0
+
+
+def test_eval_only_needs_a_finished_reconstruction_of_the_dataset(tiny_dataset, tmp_path, caplog, capsys):
+    from bbcity.cli import main as cli
+
+    work = tmp_path / "w"
+    assert cli(["-q", "recon", str(tiny_dataset), "--out", str(work), "--eval-only"]) == 2
+    assert "recon_report.json" in caplog.text and "no finished reconstruction" in caplog.text
+    with pytest.raises(SystemExit) as stop:
+        cli(["-q", "recon", str(tiny_dataset), "--out", str(work), "--eval-only", "--no-eval"])
+    assert stop.value.code == 2 and "contradict" in capsys.readouterr().err
+    work.mkdir(exist_ok=True)
+    (work / "recon_report.json").write_text(json.dumps({"dataset_digest": "another", "points": 0, "config": {
+        "trinocular": {"stereo": {"max_depth": 60.0}}}}))
+    assert cli(["-q", "recon", str(tiny_dataset), "--out", str(work), "--eval-only"]) == 2
+    assert "another dataset" in caplog.text
 
 
 @pytest.mark.slow

@@ -9,8 +9,9 @@ import pytest
 
 from capture import load_dataset
 from recon.rectify import rectify_rig, splat_depth, splat_depth_reference
-from recon.trinocular import (FrameDepth, TrinocularConfig, evaluate_depth, frame_depth, fuse_depths,
-                              fuse_depths_reference)
+from recon.stereo import PRESETS
+from recon.trinocular import (UNIQUENESS, FrameDepth, TrinocularConfig, evaluate_depth, frame_depth, fuse_depths,
+                              fuse_depths_reference, pair_stereo)
 
 
 LOOSE = TrinocularConfig(min_agree=2)
@@ -150,6 +151,24 @@ def test_fuse_matches_reference(seed, fusion, min_agree):
     assert np.isfinite(fast[0]).any()
     if min_agree > 1:
         assert np.isnan(fast[0]).any()
+
+
+def test_three_pairs_that_must_agree_match_without_their_own_left_right_check(tiny_frames):
+    strict = TrinocularConfig()
+    three = pair_stereo(strict, 3)
+    assert strict.stereo == PRESETS["accurate"] and PRESETS["accurate"].lr_check
+    assert three == replace(strict.stereo, lr_check=False, uniqueness_ratio=UNIQUENESS)
+    # two pairs may agree, or there are fewer than three: each pair keeps its own check
+    assert pair_stereo(LOOSE, 3) == LOOSE.stereo and pair_stereo(strict, 1) == strict.stereo
+    assert pair_stereo(replace(strict, three_pair_lr_check=True, three_pair_uniqueness=None), 3) == strict.stereo
+    with pytest.raises(ValueError, match="three_pair_uniqueness"):
+        TrinocularConfig(three_pair_uniqueness=101)
+    # the fused depth of a frame is the same whichever way the pairs' settings are given
+    ds, pairs, _ = tiny_frames
+    images = [ds.image(1, c) for c in range(3)]
+    a = frame_depth(images, pairs, strict)
+    b = frame_depth(images, pairs, replace(strict, stereo=three, three_pair_lr_check=False, three_pair_uniqueness=None))
+    assert np.array_equal(a.depth, b.depth, equal_nan=True)
 
 
 def test_fuse_degenerate_inputs():

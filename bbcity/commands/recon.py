@@ -24,7 +24,8 @@ def add(sub) -> None:
     p = io_parser(
         sub, "recon", "dataset", "dataset directory (rig.json, poses.json, images/)", "work directory",
         help="stereo (rig of 1, 2 or 3 cameras) → fused coloured point cloud (cloud.ply)",
-        description="""Rectify each camera pair, match by SGBM with a left-right check, fuse the pairs per frame
+        description="""Rectify each camera pair, match by SGBM (with a left-right check, unless three pairs must
+                       agree), fuse the pairs per frame
                        (three cameras: three pairs that must agree; two: one pair; one: neighbouring frames), merge
                        all frames by voxel hashing, remove outliers and write WORK/cloud.ply and
                        WORK/recon_report.json (with accuracy and completeness when the dataset has ground truth).""",
@@ -56,6 +57,9 @@ def add(sub) -> None:
                         f"(default {ReconConfig.max_image_size}; 0: full size); a pair that does not fit in the "
                         "memory free is matched at half that, and half again")
     p.add_argument("--no-eval", action="store_true", help="skip the ground-truth evaluation")
+    p.add_argument("--eval-only", action="store_true",
+                   help="score the cloud an earlier run with --no-eval left in WORK against the dataset's ground "
+                        "truth, into its recon_report.json (the demo scores it while the build runs)")
     p.set_defaults(func=run, check_options=config_from_args, own_output=WORK_FILES)
 
 
@@ -66,6 +70,8 @@ def config_from_args(args):
     from recon.stereo import PRESETS
     from recon.trinocular import TrinocularConfig
 
+    if args.eval_only and args.no_eval:
+        raise UsageError("--eval-only and --no-eval contradict each other")
     if args.poses not in POSE_SOURCES:
         raise UsageError(f"--poses takes {', '.join(POSE_SOURCES)}; got {args.poses!r}")
     if args.poses == "colmap" and args.colmap_model is None:
@@ -91,6 +97,10 @@ def run(args) -> int:
     from recon.pipeline import main as recon_main
 
     conf = config_from_args(args)
+    if args.eval_only:
+        from recon.pipeline import score_work
+        logger.info("scored %s into %s", args.out / "cloud.ply", score_work(args.dataset, args.out))
+        return 0
     with command_executor(args) as ex:
         cloud = recon_main(conf, args.dataset, args.out, executor=ex)
     logger.info("wrote %s and %s", cloud, cloud.with_name("recon_report.json"))
