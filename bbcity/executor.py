@@ -108,7 +108,21 @@ def executor_scope(workers: int | None = None, *, kind: str = "local", scheduler
     (a running Dask scheduler's workers finish the tasks they run). Either way no
     pool or embedded cluster process outlives the command.
     """
-    executor = make_executor(workers, kind=kind, scheduler=scheduler, retries=retries)
+    with _cleaned_up(make_executor(workers, kind=kind, scheduler=scheduler, retries=retries)) as executor:
+        yield executor
+
+
+@contextmanager
+def process_scope(workers: int = 1) -> Iterator[Executor]:
+    """A :class:`WorkerPool` of ``workers`` processes, one included (:func:`make_executor` runs a
+    single worker's tasks in this process), for a ``with`` block, cleaned up as
+    :func:`executor_scope` cleans up: work that must leave this process (it holds the GIL)."""
+    with _cleaned_up(WorkerPool(workers)) as executor:
+        yield executor
+
+
+@contextmanager
+def _cleaned_up(executor: Executor) -> Iterator[Executor]:
     try:
         yield executor
     except (KeyboardInterrupt, SystemExit):

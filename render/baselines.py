@@ -71,61 +71,86 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, viewpoints: np.ndarr
     return out
 
 
-class PoissonMesh:
-    """The cloud as a screened Poisson mesh with vertex colours, ray cast to images.
+def poisson_arrays(points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None = None, *,
+                   depth: int = 10, trim_quantile: float = 0.05, viewpoints: np.ndarray | None = None) -> dict:
+    """The cloud as a screened Poisson mesh with vertex colours (Open3D), as arrays.
 
     points (N, 3) float64 world; colours (N, 3) uint8; normals (N, 3) or None (then
     estimated from 30 neighbours and turned toward the nearest of ``viewpoints`` (v, 3),
     e.g. the capture camera centres); depth: Poisson octree depth (cells of the
     bounding cube's edge / 2^depth); trim_quantile: vertices of lower density removed.
-    ``vertices`` (V, 3) float32 relative to ``origin``, ``vertex_colours`` (V, 3) uint8,
-    ``triangles`` (T, 3) int32; ``seconds``: time to mesh.
+    Returns {"depth", "origin" (3,) float64, "vertices" (V, 3) float32 relative to it,
+    "vertex_colours" (V, 3) uint8, "triangles" (T, 3) int32, "seconds"}: small enough to
+    come back from a worker process (Open3D's Poisson holds the GIL while it meshes).
+    """
+    import open3d as o3d
+
+    if not 1 <= int(depth) <= 16:
+        raise InputError(f"Poisson depth must be in [1, 16], got {depth}")
+    if not 0 <= trim_quantile < 1:
+        raise InputError(f"trim_quantile must be in [0, 1), got {trim_quantile}")
+    t0 = time.perf_counter()
+    points = np.asarray(points, np.float64)
+    extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+    if not extent > 0:  # Open3D's Poisson crashes (SIGSEGV) on a cloud of one point repeated
+        raise InputError(f"a Poisson mesh needs points spread in space: the cloud's {len(points)} points "
+                         f"span {extent:g} m")
+    origin = points.mean(axis=0)
+    local = points - origin
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(local))
+    pcd.colors = o3d.utility.Vector3dVector(np.asarray(colours, np.float64) / 255.0)
+    if normals is None:
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
+        vp = np.zeros((0, 3)) if viewpoints is None else np.asarray(viewpoints, np.float64) - origin
+        pcd.normals = o3d.utility.Vector3dVector(orient_normals(local, np.asarray(pcd.normals), vp))
+    else:
+        pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
+    del local
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=int(depth))
+    del pcd
+    density = np.asarray(density)
+    if trim_quantile > 0 and len(density):
+        mesh.remove_vertices_by_mask(density < np.quantile(density, trim_quantile))
+    vertices = np.asarray(mesh.vertices).astype(np.float32)
+    vertex_colours = np.clip(np.rint(np.asarray(mesh.vertex_colors) * 255), 0, 255).astype(np.uint8)
+    if len(vertex_colours) != len(vertices):  # Open3D gives no colours for a colourless cloud
+        vertex_colours = np.zeros((len(vertices), 3), np.uint8)
+    return {"depth": int(depth), "origin": origin, "vertices": vertices, "vertex_colours": vertex_colours,
+            "triangles": np.asarray(mesh.triangles).astype(np.int32), "seconds": time.perf_counter() - t0}
+
+
+class PoissonMesh:
+    """The cloud as a screened Poisson mesh with vertex colours, ray cast to images.
+
+    The arguments are :func:`poisson_arrays`'s (:meth:`from_arrays`: its result, made
+    elsewhere). ``vertices`` (V, 3) float32 relative to ``origin``, ``vertex_colours``
+    (V, 3) uint8, ``triangles`` (T, 3) int32; ``seconds``: time to mesh.
     """
 
     def __init__(self, points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None = None, *,
                  depth: int = 10, trim_quantile: float = 0.05, viewpoints: np.ndarray | None = None):
+        self._adopt(poisson_arrays(points, colours, normals, depth=depth, trim_quantile=trim_quantile,
+                                   viewpoints=viewpoints))
+
+    @classmethod
+    def from_arrays(cls, arrays: dict) -> "PoissonMesh":
+        """The mesh of :func:`poisson_arrays`' result."""
+        mesh = cls.__new__(cls)
+        mesh._adopt(arrays)
+        return mesh
+
+    def _adopt(self, arrays: dict) -> None:
         import open3d as o3d
 
-        if not 1 <= int(depth) <= 16:
-            raise InputError(f"Poisson depth must be in [1, 16], got {depth}")
-        if not 0 <= trim_quantile < 1:
-            raise InputError(f"trim_quantile must be in [0, 1), got {trim_quantile}")
-        t0 = time.perf_counter()
         self._o3d = o3d
-        self.depth = int(depth)
-        points = np.asarray(points, np.float64)
-        extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
-        if not extent > 0:  # Open3D's Poisson crashes (SIGSEGV) on a cloud of one point repeated
-            raise InputError(f"a Poisson mesh needs points spread in space: the cloud's {len(points)} points "
-                             f"span {extent:g} m")
-        self.origin = points.mean(axis=0) if len(points) else np.zeros(3)
-        local = points - self.origin
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(local))
-        pcd.colors = o3d.utility.Vector3dVector(np.asarray(colours, np.float64) / 255.0)
-        if normals is None:
-            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
-            vp = np.zeros((0, 3)) if viewpoints is None else np.asarray(viewpoints, np.float64) - self.origin
-            pcd.normals = o3d.utility.Vector3dVector(orient_normals(local, np.asarray(pcd.normals), vp))
-        else:
-            pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
-        del local
-        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=self.depth)
-        del pcd
-        density = np.asarray(density)
-        if trim_quantile > 0 and len(density):
-            mesh.remove_vertices_by_mask(density < np.quantile(density, trim_quantile))
-        self.vertices = np.asarray(mesh.vertices).astype(np.float32)
-        self.vertex_colours = np.clip(np.rint(np.asarray(mesh.vertex_colors) * 255), 0, 255).astype(np.uint8)
-        if len(self.vertex_colours) != len(self.vertices):  # Open3D gives no colours for a colourless cloud
-            self.vertex_colours = np.zeros((len(self.vertices), 3), np.uint8)
-        self.triangles = np.asarray(mesh.triangles).astype(np.int32)
-        del mesh
+        self.depth, self.origin, self.seconds = arrays["depth"], arrays["origin"], arrays["seconds"]
+        self.vertices, self.vertex_colours = arrays["vertices"], arrays["vertex_colours"]
+        self.triangles = arrays["triangles"]
         self.nbytes = len(self.vertices) * (3 * 4 + 3) + len(self.triangles) * 3 * 4
         self.scene = o3d.t.geometry.RaycastingScene()
         if len(self.triangles):
             self.scene.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles.astype(np.uint32)))
-        self.seconds = time.perf_counter() - t0
         logger.info("Poisson mesh, depth %d: %d vertices, %d triangles, %.1f MB, %.1f s", self.depth,
                     len(self.vertices), len(self.triangles), self.nbytes / 1e6, self.seconds)
 

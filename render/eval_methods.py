@@ -6,7 +6,7 @@ size. A billboard model (:class:`ModelMethod`) and a Poisson mesh built on first
 
 from __future__ import annotations
 
-import threading
+from concurrent.futures import Executor, Future
 from typing import Callable
 
 import numpy as np
@@ -17,7 +17,9 @@ from billboards.fit_cast import cast_view
 from billboards.geometry import KINDS
 from billboards.model_set import ModelSet
 
-from .baselines import PoissonMesh
+from recon.cloud_io import read_oriented_cloud
+
+from .baselines import PoissonMesh, poisson_arrays
 
 BACKGROUND = (0.0, 0.0, 0.0)
 
@@ -113,45 +115,48 @@ def neighbour_gains(exposure: dict | None, frames, camera: int = 0) -> dict[int,
     return out
 
 
+def mesh_arrays(cloud: dict, depth: int, trim_quantile: float) -> dict:
+    """:func:`~render.baselines.poisson_arrays` of a cloud as :func:`render.evaluate.read_cloud_for_baselines`
+    gives it (a worker's task); one given by its ``path`` alone (and ``viewpoints``) is read here."""
+    if "points" not in cloud:
+        points, colours, normals = read_oriented_cloud(cloud["path"], require_colours=True)
+        cloud = {**cloud, "points": points, "colours": colours, "normals": normals}
+    return poisson_arrays(cloud["points"], cloud["colours"], cloud["normals"], depth=depth,
+                          trim_quantile=trim_quantile, viewpoints=cloud["viewpoints"])
+
+
 class LazyPoisson:
     """A :class:`PoissonMesh` method built on first use (meshing takes seconds to minutes), or
-    in the background from :meth:`start`, freed by :meth:`release` once its views are scored."""
+    in a worker process from :meth:`start`, freed by :meth:`release` once its views are scored."""
 
     def __init__(self, cloud: dict, depth: int, trim_quantile: float):
         self.cloud, self.depth, self.trim_quantile = cloud, int(depth), float(trim_quantile)
         self.mesh: PoissonMesh | None = None
         self.nbytes: int | None = None
         self.seconds: float | None = None
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
+        self._future: Future | None = None
 
-    def start(self) -> "LazyPoisson":
-        """Mesh in a background thread while the caller goes on (Open3D's Poisson step lets go
-        of the GIL: the other core meshes while this one draws); the first call waits for it."""
-        def build() -> None:
-            try:
-                self._build()
-            except BaseException as e:  # raised again by the first call, in the caller's thread
-                self._error = e
-
-        self._thread = threading.Thread(target=build, name=f"Poisson depth {self.depth}", daemon=True)
-        self._thread.start()
+    def start(self, executor: Executor) -> "LazyPoisson":
+        """Mesh in ``executor`` (a process pool: Open3D's Poisson holds the GIL, so a thread of
+        this process would stop it drawing) while the caller goes on; the first call waits for
+        it, and raises what the meshing raised. A cloud read from a file is read again there
+        (a path crosses to the worker, not the points)."""
+        task = {"path": self.cloud["path"], "viewpoints": self.cloud["viewpoints"]} if "path" in self.cloud \
+            else self.cloud
+        self._future = executor.submit(mesh_arrays, task, self.depth, self.trim_quantile)
         return self
 
-    def _build(self) -> None:
-        self.mesh = PoissonMesh(self.cloud["points"], self.cloud["colours"], self.cloud["normals"],
-                                depth=self.depth, trim_quantile=self.trim_quantile,
-                                viewpoints=self.cloud["viewpoints"])
-        self.nbytes, self.seconds = self.mesh.nbytes, self.mesh.seconds
+    def _adopt(self, mesh: PoissonMesh) -> None:
+        self.mesh, self.nbytes, self.seconds = mesh, mesh.nbytes, mesh.seconds
 
     def __call__(self, K, world_from_cam, size) -> np.ndarray:
-        if self._thread is not None:
-            self._thread.join()
-            self._thread = None
-            if self._error is not None:
-                raise self._error
+        if self._future is not None:
+            future, self._future = self._future, None
+            self._adopt(PoissonMesh.from_arrays(future.result()))
         if self.mesh is None:
-            self._build()
+            self._adopt(PoissonMesh(self.cloud["points"], self.cloud["colours"], self.cloud["normals"],
+                                    depth=self.depth, trim_quantile=self.trim_quantile,
+                                    viewpoints=self.cloud["viewpoints"]))
         return self.mesh.render(K, world_from_cam, size)
 
     def release(self) -> None:

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from concurrent.futures import Executor
 import logging
 import os
 import time
@@ -109,14 +110,19 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
         raise InputError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
     scene = load_scene(dataset_dir)
     depth_of = capture_depths(ds, scene)
-    K, size, _ = view_camera(ds.rig, config.size)
+    K, size, native = view_camera(ds.rig, config.size)
     views = []
     poses = [(f, where, pose) for f in frames
              for where, pose in (("on path", ds.world_from_cam(int(f), 0)),
                                  ("off path", off_path(ds.world_from_cam(int(f), 0), config.sideways, config.up)))]
     poses += [(f, TRAINING, ds.world_from_cam(int(f), 0)) for f in training]
+    # a capture camera's own viewpoint: its stored image and depth are the scene rendered there
+    stored = size == native and ds.rig.distortions is None and ds.has_gt_depth
     for f, where, pose in poses:
-        truth, depth = truth_view(scene, K, pose, size)
+        if stored and where != "off path":
+            truth, depth = ds.image(int(f), 0), depth_of(int(f), 0)
+        else:
+            truth, depth = truth_view(scene, K, pose, size)
         seen = seen_in_dataset(depth, K, pose, ds, texture_frames, config.seen, depth_of)
         near = seen & (np.nan_to_num(depth, nan=np.inf) < config.near)
         views.append(EvalView(int(f), where, K, pose, size, truth, np.isfinite(depth), seen, near=near))
@@ -127,17 +133,19 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
 
 def read_cloud_for_baselines(cloud_path: os.PathLike | str, viewpoints: np.ndarray | None = None) -> dict:
     """The cloud as arrays: points (N, 3) float64, colours (N, 3) uint8, normals (N, 3)
-    float64 or None, and ``viewpoints`` (v, 3) to orient estimated normals toward."""
+    float64 or None, ``viewpoints`` (v, 3) to orient estimated normals toward, and its ``path``."""
     from recon.cloud_io import read_oriented_cloud
 
     points, colours, normals = read_oriented_cloud(cloud_path, require_colours=True)
-    return {"points": points, "colours": colours, "normals": normals, "viewpoints": viewpoints}
+    return {"points": points, "colours": colours, "normals": normals, "viewpoints": viewpoints,
+            "path": str(cloud_path)}
 
 
 def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLike | str | None = None,
                    views: int | None = None, size: tuple[int, int] | None = None, *, sky=None,
                    billboards_only=None, extra_models: dict | None = None, extra_methods: dict[str, Method] | None = None,
-                   config: EvalConfig | None = None, out_dir: os.PathLike | str | None = None) -> dict:
+                   config: EvalConfig | None = None, out_dir: os.PathLike | str | None = None,
+                   executor: Executor | None = None) -> dict:
     """Novel-view scores of ``model`` (a :class:`billboards.model.BillboardModel` or a tiled
     :class:`billboards.model_set.ModelSet`, drawn over ``sky`` when given) and the baselines of the cloud at ``cloud_path`` (none without one);
     a JSON-ready dict (NaN as None).
@@ -147,7 +155,9 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
     label → model or (model, sky), scored as methods "model: label" (points of the
     work-precision diagram). extra_methods:
     name → :data:`Method` (e.g. a variant renderer), scored like the rest. out_dir: where
-    the side-by-side images "ground truth | model | Poisson mesh" go (none if None).
+    the side-by-side images "ground truth | model | Poisson mesh" go (none if None). executor:
+    a process pool that meshes the Poisson baseline while the views are prepared and the
+    models scored (None: meshed when it is first drawn).
     The viewpoints and the seen masks follow ``model.info`` (held-out frames).
     """
     t0 = time.perf_counter()
@@ -174,8 +184,9 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         if not len(cloud["points"]) or not np.ptp(cloud["points"], axis=0).max() > 0:
             raise DataFormatError(cloud_path, f"its {len(cloud['points'])} points span no space: the Poisson "
                                               "mesh and the point projection need a cloud spread in space")
-        # the first mesh is made while the views are prepared and the models scored
-        baselines[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile).start()
+        baselines[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile)
+        if executor is not None:  # the first mesh is made while the views are prepared and the models scored
+            baselines[poisson_name].start(executor)
         for d in config.workprecision_depths:
             if int(d) != config.poisson_depth:
                 baselines[f"Poisson depth {int(d)}"] = LazyPoisson(cloud, int(d), config.trim_quantile)

@@ -241,6 +241,7 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
 
 
 def test_poisson_meshed_in_the_background_is_drawn_and_its_error_raised_by_the_call():
+    from bbcity.executor import process_scope
     from core.errors import InputError
     from render.eval_methods import LazyPoisson
 
@@ -249,13 +250,16 @@ def test_poisson_meshed_in_the_background_is_drawn_and_its_error_raised_by_the_c
     cloud = {"points": np.c_[xy, np.full(len(xy), 5.0)], "colours": np.full((len(xy), 3), 200, np.uint8),
              "normals": np.tile([0.0, 0.0, -1.0], (len(xy), 1)), "viewpoints": None}
     K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
-    started = LazyPoisson(cloud, 6, 0.05).start()
-    image = started(K, np.eye(4), (64, 48))
-    assert started.seconds > 0 and started.nbytes > 0
-    assert image.shape == (48, 64, 3) and (image[20:28, 28:36] > 150).all()  # the plane, in front
-    bad = LazyPoisson(cloud, 17, 0.05).start()  # refused in the thread: raised by the first call
-    with pytest.raises(InputError, match="depth"):
-        bad(K, np.eye(4), (64, 48))
+    with process_scope(1) as pool:
+        started = LazyPoisson(cloud, 6, 0.05).start(pool)
+        image = started(K, np.eye(4), (64, 48))
+        assert started.seconds > 0 and started.nbytes > 0
+        assert image.shape == (48, 64, 3) and (image[20:28, 28:36] > 150).all()  # the plane, in front
+        # meshed here on first use: the same image
+        assert np.array_equal(LazyPoisson(cloud, 6, 0.05)(K, np.eye(4), (64, 48)), image)
+        bad = LazyPoisson(cloud, 17, 0.05).start(pool)  # refused in the worker: raised by the first call
+        with pytest.raises(InputError, match="depth"):
+            bad(K, np.eye(4), (64, 48))
 
 
 def test_seen_masks_without_per_image_depth_are_cast_from_the_scene(tiny_dataset, tmp_path):
@@ -273,3 +277,10 @@ def test_seen_masks_without_per_image_depth_are_cast_from_the_scene(tiny_dataset
     cast = prepare_views(copy, [1], [0, 1, 2], config)
     for a, b in zip(stored, cast, strict=True):
         assert a.seen.any() and np.mean(a.seen != b.seen) <= 0.005
+    # at the capture camera's own size a viewpoint of the capture takes its stored image and depth:
+    # the renders the copy without stored depth makes, bit for bit
+    stored = prepare_views(tiny_dataset, [1], [0, 1, 2], EvalConfig(), training=[2])
+    cast = prepare_views(copy, [1], [0, 1, 2], EvalConfig(), training=[2])
+    assert [v.where for v in stored] == ["on path", "off path", "training"]
+    for a, b in zip(stored, cast, strict=True):
+        assert np.array_equal(a.truth, b.truth) and np.array_equal(a.geometry, b.geometry)

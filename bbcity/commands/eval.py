@@ -100,6 +100,8 @@ def run(args) -> int:
     """Evaluate the model(s) into the report directory (written whole); log each one's scores."""
     from billboards.sky import read_sky
     from core.fileio import atomic_dir
+
+    from ..executor import process_scope
     from render.eval_report import write_report
     from render.evaluate import evaluate_views
 
@@ -109,9 +111,11 @@ def run(args) -> int:
     only = None if args.billboards_only is None else (load_drawable(args.billboards_only, False),
                                                       read_sky(args.billboards_only))
     model = load_drawable(args.model, False)
-    with atomic_dir(args.out) as report_dir:  # a failed or interrupted run leaves no partial report
+    # the Poisson baseline is meshed in a worker process while this one prepares the views
+    with atomic_dir(args.out) as report_dir, process_scope(1) as pool:
         report = evaluate_views(model, _eval_dataset(model, args.dataset), args.cloud, sky=read_sky(args.model),
-                                extra_models=extra, billboards_only=only, config=config, out_dir=report_dir)
+                                extra_models=extra, billboards_only=only, config=config, out_dir=report_dir,
+                                executor=pool)
         write_report(report, report_dir)
     _log_summary(report)
     logger.info("wrote %s", args.out / "eval.md")

@@ -24,8 +24,8 @@ def add(sub) -> None:
     p = io_parser(
         sub, "recon", "dataset", "dataset directory (rig.json, poses.json, images/)", "work directory",
         help="stereo (rig of 1, 2 or 3 cameras) → fused coloured point cloud (cloud.ply)",
-        description="""Rectify each camera pair, match by SGBM (with a left-right check, unless three pairs must
-                       agree), fuse the pairs per frame
+        description="""Rectify each camera pair, match by SGBM with a left-right check (three pairs that must
+                       agree: the widest pair's), fuse the pairs per frame
                        (three cameras: three pairs that must agree; two: one pair; one: neighbouring frames), merge
                        all frames by voxel hashing, remove outliers and write WORK/cloud.ply and
                        WORK/recon_report.json (with accuracy and completeness when the dataset has ground truth).""",
