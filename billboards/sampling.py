@@ -26,6 +26,7 @@ The z-buffers are :func:`billboards.voxels.zbuffer`; the images are
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import cv2
@@ -37,9 +38,8 @@ from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, LAYER_KINDS, PLANE, Dir
                        kind_frames, quad_edges, surface_dz, texel_offsets, unit_vectors)
 from .texels import (OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, close_holes, fill_directions, reject_transients,
                      stack_filter)
-from .view_cache import ViewCache
 from .views import Views
-from .voxels import VoxelPoints, layer_points
+from .voxels import VoxelPoints, layer_points, zbuffer
 
 logger = logging.getLogger(__name__)
 
@@ -62,8 +62,7 @@ class SamplingConfig:
                                     # blocks behind it, shows the image (the ray ends on something: the leaf)
     reproject: bool = False         # texels via the surface point seen from the sampled direction (else the
                                     # quad projected into the camera, as the billboards paper)
-    cache_views: int = 1024         # images and z-buffers kept per process (about 2 MB each at 416×736: the fit
-    cache_share: float = 0.125      # reads them again), within this share of the memory free at its start
+    cache_views: int = 128          # images and z-buffers kept per process (about 1.5 MB each at 640×480)
     transients: bool = True         # a layer block's texel that disagrees with its other directions (a passing
                                     # car, a pedestrian) is refilled from them (see reject_transients)
     transient_threshold: float = 40.0   # ... disagrees: off the median of its directions by this many grey
@@ -74,14 +73,48 @@ class SamplingConfig:
     def __post_init__(self):
         if isinstance(self.tile, bool):
             raise InputError(f"tile must be an integer, got {self.tile!r}")
-        if self.tile < 1 or self.candidates < 1 or self.zbuffer_scale < 1 or self.cache_views < 1:
-            raise InputError("tile, candidates, zbuffer_scale and cache_views must be ≥ 1")
-        if not 0 < self.cache_share <= 1:
-            raise InputError(f"cache_share must be in (0, 1], got {self.cache_share!r}")
+        if self.tile < 1 or self.candidates < 1 or self.zbuffer_scale < 1:
+            raise InputError("tile, candidates and zbuffer_scale must be ≥ 1")
         if not (0 < self.max_angle_deg <= 180) or self.max_distance <= 0:
             raise InputError("max_angle_deg must be in (0, 180] and max_distance > 0")
         if self.transient_threshold < 0 or self.transient_mads < 0 or self.transient_min_views < 3:
             raise InputError("transient_threshold and transient_mads must be ≥ 0, transient_min_views ≥ 3")
+
+
+class _ViewCache:
+    """Per-process LRU of decoded image pyramids and z-buffers: the cloud's (filled and nearest)
+    and, with ``layer`` (the facade layer's blocks as points), the layer's (filled; None without)."""
+
+    def __init__(self, views: Views, voxels: VoxelPoints | None, config: SamplingConfig,
+                 layer: VoxelPoints | None = None):
+        self.views, self.voxels, self.config, self.layer = views, voxels, config, layer
+        self._entries: OrderedDict[int, tuple] = OrderedDict()
+        self.loads = 0  # views decoded and z-buffered so far (misses)
+
+    def get(self, i: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray | None]:
+        if i in self._entries:
+            self._entries.move_to_end(i)
+            return self._entries[i]
+        self.loads += 1
+        image = self.views.image(i)
+        pyramid = [image]
+        while min(pyramid[-1].shape[:2]) >= 16 and len(pyramid) < 6:
+            pyramid.append(cv2.pyrDown(pyramid[-1]))
+        K, pose, size = self.views.K[i], self.views.world_from_cam[i], self.views.sizes[i]
+        if self.voxels is not None:
+            pts = self.voxels.in_view(K, pose, size, self.config.max_distance)
+            filled, nearest = zbuffer(pts, self.voxels.origin, K, pose, size, self.config.zbuffer_scale)
+        else:
+            filled = nearest = None
+        layer = None
+        if self.layer is not None:
+            pts = self.layer.in_view(K, pose, size, self.config.max_distance)
+            layer = zbuffer(pts, self.layer.origin, K, pose, size, self.config.zbuffer_scale)[0]
+        entry = (pyramid, filled, nearest, layer)
+        self._entries[i] = entry
+        if len(self._entries) > self.config.cache_views:
+            self._entries.popitem(last=False)
+        return entry
 
 
 @dataclass(frozen=True, eq=False)
@@ -138,7 +171,7 @@ class ImageSampler:
             layer = layer_points(self.centres[blocks], self.sizes[blocks], self.kind[blocks], self.base_yaw[blocks],
                                  None if self.corner_dz is None else self.corner_dz[blocks], views, voxels.origin,
                                  config.zbuffer_scale, config.max_distance)
-        self.cache = ViewCache(views, voxels if occluders is None else occluders, config, layer)
+        self.cache = _ViewCache(views, voxels if occluders is None else occluders, config, layer)
 
     # -- choosing cameras ------------------------------------------------------------
     def _candidates(self, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:

@@ -370,27 +370,3 @@ def test_fill_below_shows_a_sparse_leaf_where_its_ray_points_down_and_nothing_li
                            np.concatenate([street["base_yaw"], np.zeros(len(blocks))]), sparse, config, kind=kind)
     behind = sampler.sample(low)
     np.testing.assert_array_equal(behind.rgba[..., 3], low_off.rgba[..., 3])
-
-
-def test_the_view_cache_keeps_views_within_its_count_and_its_memory(tmp_path):
-    from billboards.view_cache import ViewCache
-
-    paths = []
-    for i in range(3):
-        write_png(tmp_path / f"{i}.png", np.full((32, 48, 3), 40 * i, np.uint8))
-        paths.append(tmp_path / f"{i}.png")
-    K = np.array([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]])
-    views = Views(np.repeat(K[None], 3, 0), np.repeat(np.eye(4)[None], 3, 0), np.tile([48, 32], (3, 1)), tuple(paths))
-    cache = ViewCache(views, None, SamplingConfig(cache_views=2))
-    for i in (0, 1, 0, 2, 0):
-        pyramid, filled, nearest, layer = cache.get(i)
-        assert (pyramid[0] == 40 * i).all() and filled is nearest is layer is None
-    assert cache.loads == 3 and cache.nbytes == 2 * sum(p.nbytes for p in cache.get(0)[0])  # view 1 went first
-    cache.get(1)
-    assert cache.loads == 4
-    small = ViewCache(views, None, SamplingConfig(cache_share=1e-15))  # no room: the latest view alone
-    for i in (0, 1, 0):
-        small.get(i)
-    assert small.loads == 3 and small.nbytes == sum(p.nbytes for p in small.get(0)[0])
-    with pytest.raises(ValueError, match="cache_share"):
-        SamplingConfig(cache_share=0)
