@@ -21,7 +21,7 @@ import numpy as np
 
 from .bench_config import BenchConfig
 from .bench_report import Report
-from .executor import executor_scope
+from .executor import executor_scope, process_scope
 
 logger = logging.getLogger(__name__)
 
@@ -217,8 +217,10 @@ def bench_novel_views(cfg: BenchConfig, report: Report, dataset: Path, work: Pat
         build_main(full, work / "cloud.ply", dataset, full_dir, executor=ex)
     config = EvalConfig(views=3 if cfg.quick else 8, workprecision_depths=(8, 10) if cfg.quick else (8, 9, 10, 11),
                         panel_width=0)
-    res = evaluate_views(model, dataset, work / "cloud.ply", sky=read_sky(model_dir),
-                         extra_models={"uncompressed": (load(full_dir), read_sky(full_dir))}, config=config)
+    with process_scope(1) as pool:  # the Poisson baseline meshed beside the views' preparation, as eval does
+        res = evaluate_views(model, dataset, work / "cloud.ply", sky=read_sky(model_dir),
+                             extra_models={"uncompressed": (load(full_dir), read_sky(full_dir))}, config=config,
+                             executor=pool)
     names = {"model": "billboards", "model: uncompressed": "uncompressed billboards",
              "point projection": "point projection (baseline)",
              "Poisson mesh": f"Poisson mesh, depth {config.poisson_depth} (baseline)"}

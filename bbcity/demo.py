@@ -36,7 +36,8 @@ class Step:
     """One command of the demo: its name (a file name: its profile's directory) and its
     ``bbcity`` arguments; ``fresh``: a directory the step writes whole, removed before it runs
     (the web site: export refuses an existing one); ``alongside``: it runs at the same time as
-    the step before it (both read what earlier steps wrote, neither what the other writes)."""
+    the step before it (both read what earlier steps wrote; neither reads what the other
+    writes, save a file replaced whole, whose reader sees it before or after)."""
 
     name: str
     argv: tuple[str, ...]
@@ -66,7 +67,7 @@ def demo_steps(out: Path) -> list[Step]:
     return [
         Step("synth", ("synth", "street", "--out", str(street))),
         # the cloud scored against the ground truth while the build runs: the build's serial stretches leave a
-        # core free (the build reads the report once, at its start; the score is written into it atomically)
+        # core free (the build reads the report at its start; the score replaces it whole, the same but for it)
         Step("recon", ("recon", str(street), "--out", str(work), "--no-eval")),
         Step("build", ("build", str(work), "--out", str(model), "--holdout", str(HOLDOUT))),
         Step("recon-eval", ("recon", str(street), "--out", str(work), "--eval-only"), alongside=True),

@@ -108,21 +108,7 @@ def executor_scope(workers: int | None = None, *, kind: str = "local", scheduler
     (a running Dask scheduler's workers finish the tasks they run). Either way no
     pool or embedded cluster process outlives the command.
     """
-    with _cleaned_up(make_executor(workers, kind=kind, scheduler=scheduler, retries=retries)) as executor:
-        yield executor
-
-
-@contextmanager
-def process_scope(workers: int = 1) -> Iterator[Executor]:
-    """A :class:`WorkerPool` of ``workers`` processes, one included (:func:`make_executor` runs a
-    single worker's tasks in this process), for a ``with`` block, cleaned up as
-    :func:`executor_scope` cleans up: work that must leave this process (it holds the GIL)."""
-    with _cleaned_up(WorkerPool(workers)) as executor:
-        yield executor
-
-
-@contextmanager
-def _cleaned_up(executor: Executor) -> Iterator[Executor]:
+    executor = make_executor(workers, kind=kind, scheduler=scheduler, retries=retries)
     try:
         yield executor
     except (KeyboardInterrupt, SystemExit):
@@ -132,5 +118,20 @@ def _cleaned_up(executor: Executor) -> Iterator[Executor]:
         raise
     except BaseException:
         executor.shutdown(wait=True, cancel_futures=True)
+        raise
+    executor.shutdown(wait=True)
+
+
+@contextmanager
+def process_scope(workers: int = 1) -> Iterator[Executor]:
+    """A :class:`WorkerPool` of ``workers`` processes, a real process even for one worker
+    (:func:`make_executor` runs a single worker's tasks in this process), for work that must
+    leave this process (it holds the GIL), for a ``with`` block; on any error its workers are
+    killed, not waited for."""
+    executor = WorkerPool(workers)
+    try:
+        yield executor
+    except BaseException:  # what runs there is of no use now: not waited for
+        executor.stop()
         raise
     executor.shutdown(wait=True)

@@ -13,7 +13,7 @@ Public API:
   orbit's loop); ``SynthConfig(path="orbit")`` circles a street's free-standing building
   (``StreetConfig(square=...)``) instead of driving the street.
 - scenes: ``load_scene(dataset_dir) -> Scene`` (the whole scene, regenerated and checked against
-  the stored digest); ``scene_section(dataset_or_settings, lo, hi) -> Scene``: the objects whose
+  the stored digest); ``stores_truth(dataset_dir)``: its stored images are ``truth_view``'s renders; ``scene_section(dataset_or_settings, lo, hi) -> Scene``: the objects whose
   bounds meet the world box [lo, hi] ((3,) or (2,) x, y; metres; ±inf allowed), generated
   without the rest, with the whole scene's object ids and object table — evaluation of a long
   street goes tile by tile with it; ``section_reference(scene, lo, hi)`` filters a whole scene
@@ -23,7 +23,7 @@ Public API:
 
 
 from .config import SynthConfig, build_scene, frames_for_spacing
-from .dataset import load_scene, write_dataset
+from .dataset import load_scene, stores_truth, write_dataset
 from .lazy import LazyImages
 from .raycast import Renderer, RenderResult, truth_view
 from .rig import RigConfig, make_rig
@@ -35,5 +35,5 @@ from .town import TownConfig, build_town
 __all__ = [
     "Kind", "LazyImages", "Renderer", "RenderResult", "RigConfig", "Scene", "StreetConfig", "SynthConfig",
     "TownConfig", "build_scene", "build_street", "build_town", "frames_for_spacing", "load_scene", "make_rig",
-    "scene_digest", "scene_section", "section_reference", "truth_view", "write_dataset",
+    "scene_digest", "scene_section", "section_reference", "stores_truth", "truth_view", "write_dataset",
 ]

@@ -36,9 +36,10 @@ from core.fileio import DataFormatError, atomic_path, read_json, save_npy, write
 from core.tasks import run_tasks
 from core.workdir import sweep_temporaries, temporary
 
-from .config import SynthConfig, build_scene, capture_path, config_json
+from .config import SynthConfig, build_scene, capture_path, config_from_json, config_json
 from .coverage import street_coverage
-from .lazy import LAZY_IMAGES, TILE_M, LazyImages, view_reach
+from .lazy import LAZY_IMAGES, MAX_REACH_M, TILE_M, LazyImages, view_reach
+from .raycast import TRUTH_SPP
 from .rig import make_rig
 from .scene import Scene
 from .section import SCENE_FORMAT, object_table, scene_digest, scene_settings
@@ -224,6 +225,21 @@ def _write_lazy(cfg: SynthConfig, root: Path) -> Path:
 
 
 # --------------------------------------------------------------------------- the scene
+
+
+def stores_truth(dataset_dir: os.PathLike | str) -> bool:
+    """Whether each stored image (and depth) of the dataset is what :func:`~data_synth.raycast.truth_view`
+    renders at its camera: its frames were cast with the same supersampling, from sections that hold
+    every object a ray of the capture can meet (not capped at the lazy sections' largest reach), and
+    are stored files, not cast when read."""
+    path = Path(dataset_dir) / "gt" / "scene.json"
+    data = read_json(path)
+    try:
+        cfg = config_from_json(data["synth"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataFormatError(path, f"needs the dataset's \"synth\" settings ({e})") from None
+    reach = view_reach(cfg)
+    return cfg.spp == TRUTH_SPP and not cfg.lazy and (reach is None or reach < MAX_REACH_M)
 
 
 def load_scene(dataset_dir: os.PathLike | str) -> Scene:

@@ -309,8 +309,12 @@ _LOCAL_FRAME_BEYOND = 1000.0
 _LAST_RENDERER: Renderer | None = None
 
 
+#: The supersampling (per axis) of :func:`truth_view`: the synthetic capture's default.
+TRUTH_SPP = 2
+
+
 def truth_view(scene: Scene, K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int],
-                spp: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                spp: int = TRUTH_SPP) -> tuple[np.ndarray, np.ndarray]:
     """Render ``scene`` from any pinhole camera (public API used by evaluation).
 
     K: (3, 3) float64; world_from_cam: (4, 4) float64, OpenCV camera convention;

@@ -426,7 +426,8 @@ def score_work(dataset_dir: os.PathLike | str, work_dir: os.PathLike | str) -> P
     """Score the finished reconstruction in ``work_dir`` (``recon --no-eval``) against the
     ground truth of ``dataset_dir``, the dataset it was made from: its ``recon_report.json``
     gains ``accuracy`` and the stage ``evaluate_s``, as a run without ``--no-eval`` writes them.
-    DataFormatError naming the report when there is none or it describes another dataset.
+    DataFormatError naming the report when there is none or it describes another dataset;
+    InputError for a dataset without per-image ground-truth depth.
     Returns the report's path."""
     work = Path(work_dir)
     path = work / REPORT
@@ -441,10 +442,11 @@ def score_work(dataset_dir: os.PathLike | str, work_dir: os.PathLike | str) -> P
         raise DataFormatError(path, f"not a recon report ({e})") from None
     if digest != dataset_digest(dataset_dir):
         raise DataFormatError(path, f"describes another dataset than {dataset_dir}")
+    ds = load_dataset(dataset_dir)
+    if not ds.has_gt_depth:
+        raise InputError(f"{dataset_dir}: no per-image ground-truth depth (gt/depth): nothing to score the cloud by")
     t0 = time.perf_counter()
-    accuracy = score_cloud(load_dataset(dataset_dir), work / "cloud.ply", points, max_depth)
-    if accuracy is not None:
-        report["accuracy"] = accuracy
-        report.setdefault("stages", {})["evaluate_s"] = time.perf_counter() - t0
-        write_json(path, report)
+    report["accuracy"] = score_cloud(ds, work / "cloud.ply", points, max_depth)
+    report.setdefault("stages", {})["evaluate_s"] = time.perf_counter() - t0
+    write_json(path, report)
     return path

@@ -1,12 +1,12 @@
 """The methods a novel-view evaluation scores: callables ``(K (3, 3), world_from_cam (4, 4),
 size (w, h)) → (h, w, 3) uint8``; a callable's ``nbytes`` attribute (when it has one) is its
-size. A billboard model (:class:`ModelMethod`) and a Poisson mesh built on first use
-(:class:`LazyPoisson`); the point projection is :class:`render.baselines.PointProjector`.
+size. A billboard model (:class:`ModelMethod`) and a Poisson mesh built on first use or
+elsewhere (:class:`LazyPoisson`); the point projection is :class:`render.baselines.PointProjector`.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import Executor, Future
+from concurrent.futures import Future
 from typing import Callable
 
 import numpy as np
@@ -17,9 +17,7 @@ from billboards.fit_cast import cast_view
 from billboards.geometry import KINDS
 from billboards.model_set import ModelSet
 
-from recon.cloud_io import read_oriented_cloud
-
-from .baselines import PoissonMesh, poisson_arrays
+from .baselines import PoissonMesh
 
 BACKGROUND = (0.0, 0.0, 0.0)
 
@@ -115,44 +113,27 @@ def neighbour_gains(exposure: dict | None, frames, camera: int = 0) -> dict[int,
     return out
 
 
-def mesh_arrays(cloud: dict, depth: int, trim_quantile: float) -> dict:
-    """:func:`~render.baselines.poisson_arrays` of a cloud as :func:`render.evaluate.read_cloud_for_baselines`
-    gives it (a worker's task); one given by its ``path`` alone (and ``viewpoints``) is read here."""
-    if "points" not in cloud:
-        points, colours, normals = read_oriented_cloud(cloud["path"], require_colours=True)
-        cloud = {**cloud, "points": points, "colours": colours, "normals": normals}
-    return poisson_arrays(cloud["points"], cloud["colours"], cloud["normals"], depth=depth,
-                          trim_quantile=trim_quantile, viewpoints=cloud["viewpoints"])
-
-
 class LazyPoisson:
     """A :class:`PoissonMesh` method built on first use (meshing takes seconds to minutes), or
-    in a worker process from :meth:`start`, freed by :meth:`release` once its views are scored."""
+    taken from ``pending``, a future of :func:`~render.baselines.poisson_arrays`' result meshed
+    elsewhere (a worker process: Open3D's Poisson holds the GIL, so a thread of this process
+    would stop it drawing; the first call waits for it and raises what the meshing raised);
+    freed by :meth:`release` once its views are scored."""
 
-    def __init__(self, cloud: dict, depth: int, trim_quantile: float):
+    def __init__(self, cloud: dict, depth: int, trim_quantile: float, pending: Future | None = None):
         self.cloud, self.depth, self.trim_quantile = cloud, int(depth), float(trim_quantile)
         self.mesh: PoissonMesh | None = None
         self.nbytes: int | None = None
         self.seconds: float | None = None
-        self._future: Future | None = None
-
-    def start(self, executor: Executor) -> "LazyPoisson":
-        """Mesh in ``executor`` (a process pool: Open3D's Poisson holds the GIL, so a thread of
-        this process would stop it drawing) while the caller goes on; the first call waits for
-        it, and raises what the meshing raised. A cloud read from a file is read again there
-        (a path crosses to the worker, not the points)."""
-        task = {"path": self.cloud["path"], "viewpoints": self.cloud["viewpoints"]} if "path" in self.cloud \
-            else self.cloud
-        self._future = executor.submit(mesh_arrays, task, self.depth, self.trim_quantile)
-        return self
+        self._pending = pending
 
     def _adopt(self, mesh: PoissonMesh) -> None:
         self.mesh, self.nbytes, self.seconds = mesh, mesh.nbytes, mesh.seconds
 
     def __call__(self, K, world_from_cam, size) -> np.ndarray:
-        if self._future is not None:
-            future, self._future = self._future, None
-            self._adopt(PoissonMesh.from_arrays(future.result()))
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
+            self._adopt(PoissonMesh.from_arrays(pending.result()))
         if self.mesh is None:
             self._adopt(PoissonMesh(self.cloud["points"], self.cloud["colours"], self.cloud["normals"],
                                     depth=self.depth, trim_quantile=self.trim_quantile,

@@ -3,7 +3,9 @@
 Viewpoints: capture viewpoints (camera 0 of frames spread along the path; the frames
 the model was built without, ``bbcity build --holdout N``, when it has them: "on path")
 and the same cameras moved 2 m sideways, away from the facade they look at, and 1 m up
-("off path"). The ground truth of each is :func:`data_synth.truth_view`.
+("off path"). The ground truth of each is :func:`data_synth.truth_view` (at a capture
+camera's own viewpoint, the dataset's stored image and depth when they are its renders,
+:func:`data_synth.stores_truth`).
 
 Methods are a dict name → callable ``(K (3, 3), world_from_cam (4, 4), size (w, h)) →
 (h, w, 3) uint8``; a callable's ``nbytes`` attribute (when it has one) is its size.
@@ -45,10 +47,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from concurrent.futures import Executor
 import logging
 import os
 import time
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Callable
 
@@ -57,10 +59,10 @@ import numpy as np
 from core.errors import InputError
 from core.fileio import DataFormatError, json_ready
 from capture.dataset import load_dataset
-from data_synth import load_scene, truth_view
+from data_synth import load_scene, stores_truth, truth_view
 from data_synth.scene import Kind
 
-from .baselines import PointProjector
+from .baselines import PointProjector, poisson_arrays
 from .eval_config import TRAINING, EvalConfig
 from .eval_methods import LazyPoisson, Method, ModelMethod, neighbour_gains
 from .eval_panels import write_side_by_side
@@ -104,7 +106,8 @@ def capture_depths(ds, scene) -> Callable[[int, int], np.ndarray]:
 def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config: EvalConfig = EvalConfig(),
                   progress: Callable[[str], None] | None = None, training=()) -> list[EvalView]:
     """Ground truth, geometry and seen masks of each frame's camera-0 viewpoint, on and off path;
-    and of each of ``training`` (frames the textures came from) at the capture camera itself."""
+    and of each of ``training`` (frames the textures came from) at the capture camera itself
+    (the stored image and depth there, when they are the renders: no render twice)."""
     ds = load_dataset(dataset_dir)
     if not ds.has_ground_truth:
         raise InputError(f"{dataset_dir}: evaluation needs a dataset with ground truth (gt/)")
@@ -117,7 +120,7 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
                                  ("off path", off_path(ds.world_from_cam(int(f), 0), config.sideways, config.up)))]
     poses += [(f, TRAINING, ds.world_from_cam(int(f), 0)) for f in training]
     # a capture camera's own viewpoint: its stored image and depth are the scene rendered there
-    stored = size == native and ds.rig.distortions is None and ds.has_gt_depth
+    stored = size == native and ds.rig.distortions is None and ds.has_gt_depth and stores_truth(dataset_dir)
     for f, where, pose in poses:
         if stored and where != "off path":
             truth, depth = ds.image(int(f), 0), depth_of(int(f), 0)
@@ -133,12 +136,20 @@ def prepare_views(dataset_dir: os.PathLike | str, frames, texture_frames, config
 
 def read_cloud_for_baselines(cloud_path: os.PathLike | str, viewpoints: np.ndarray | None = None) -> dict:
     """The cloud as arrays: points (N, 3) float64, colours (N, 3) uint8, normals (N, 3)
-    float64 or None, ``viewpoints`` (v, 3) to orient estimated normals toward, and its ``path``."""
+    float64 or None, and ``viewpoints`` (v, 3) to orient estimated normals toward."""
     from recon.cloud_io import read_oriented_cloud
 
     points, colours, normals = read_oriented_cloud(cloud_path, require_colours=True)
-    return {"points": points, "colours": colours, "normals": normals, "viewpoints": viewpoints,
-            "path": str(cloud_path)}
+    return {"points": points, "colours": colours, "normals": normals, "viewpoints": viewpoints}
+
+
+def mesh_cloud_file(cloud_path: os.PathLike | str, viewpoints: np.ndarray | None, depth: int,
+                    trim_quantile: float) -> dict:
+    """:func:`~render.baselines.poisson_arrays` of the cloud at ``cloud_path`` (a worker's task: the
+    path crosses to it, not the points)."""
+    cloud = read_cloud_for_baselines(cloud_path, viewpoints)
+    return poisson_arrays(cloud["points"], cloud["colours"], cloud["normals"], depth=depth,
+                          trim_quantile=trim_quantile, viewpoints=viewpoints)
 
 
 def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLike | str | None = None,
@@ -184,9 +195,10 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         if not len(cloud["points"]) or not np.ptp(cloud["points"], axis=0).max() > 0:
             raise DataFormatError(cloud_path, f"its {len(cloud['points'])} points span no space: the Poisson "
                                               "mesh and the point projection need a cloud spread in space")
-        baselines[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile)
-        if executor is not None:  # the first mesh is made while the views are prepared and the models scored
-            baselines[poisson_name].start(executor)
+        # the first mesh is made while the views are prepared and the models scored (the worker reads the cloud)
+        pending = None if executor is None else executor.submit(
+            mesh_cloud_file, cloud_path, viewpoints, config.poisson_depth, config.trim_quantile)
+        baselines[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile, pending)
         for d in config.workprecision_depths:
             if int(d) != config.poisson_depth:
                 baselines[f"Poisson depth {int(d)}"] = LazyPoisson(cloud, int(d), config.trim_quantile)

@@ -243,6 +243,7 @@ def test_eval_cli_on_the_tiny_street(street, tmp_path):
 def test_poisson_meshed_in_the_background_is_drawn_and_its_error_raised_by_the_call():
     from bbcity.executor import process_scope
     from core.errors import InputError
+    from render.baselines import poisson_arrays
     from render.eval_methods import LazyPoisson
 
     rng = np.random.default_rng(0)
@@ -250,14 +251,17 @@ def test_poisson_meshed_in_the_background_is_drawn_and_its_error_raised_by_the_c
     cloud = {"points": np.c_[xy, np.full(len(xy), 5.0)], "colours": np.full((len(xy), 3), 200, np.uint8),
              "normals": np.tile([0.0, 0.0, -1.0], (len(xy), 1)), "viewpoints": None}
     K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    def meshed(pool, depth):
+        return pool.submit(poisson_arrays, cloud["points"], cloud["colours"], cloud["normals"], depth=depth)
+
     with process_scope(1) as pool:
-        started = LazyPoisson(cloud, 6, 0.05).start(pool)
+        started = LazyPoisson(cloud, 6, 0.05, meshed(pool, 6))
         image = started(K, np.eye(4), (64, 48))
         assert started.seconds > 0 and started.nbytes > 0
         assert image.shape == (48, 64, 3) and (image[20:28, 28:36] > 150).all()  # the plane, in front
         # meshed here on first use: the same image
         assert np.array_equal(LazyPoisson(cloud, 6, 0.05)(K, np.eye(4), (64, 48)), image)
-        bad = LazyPoisson(cloud, 17, 0.05).start(pool)  # refused in the worker: raised by the first call
+        bad = LazyPoisson(cloud, 17, 0.05, meshed(pool, 17))  # refused in the worker: raised by the first call
         with pytest.raises(InputError, match="depth"):
             bad(K, np.eye(4), (64, 48))
 
@@ -284,3 +288,13 @@ def test_seen_masks_without_per_image_depth_are_cast_from_the_scene(tiny_dataset
     assert [v.where for v in stored] == ["on path", "off path", "training"]
     for a, b in zip(stored, cast, strict=True):
         assert np.array_equal(a.truth, b.truth) and np.array_equal(a.geometry, b.geometry)
+    # the stored images are the renders only as truth_view makes them: its supersampling, not cast when read
+    from data_synth import stores_truth
+
+    assert stores_truth(tiny_dataset)
+    scene = json.loads((tiny_dataset / "gt" / "scene.json").read_text())
+    for change in ({"spp": 1}, {"lazy": True}):
+        other = tmp_path / f"other_{next(iter(change))}"
+        (other / "gt").mkdir(parents=True)
+        (other / "gt" / "scene.json").write_text(json.dumps({**scene, "synth": {**scene["synth"], **change}}))
+        assert not stores_truth(other)

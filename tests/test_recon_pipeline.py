@@ -14,6 +14,7 @@ from core.fileio import write_png
 from recon.cloud_io import read_cloud
 from recon.fusion import FusionConfig
 from recon.pipeline import ReconConfig, main as recon_main
+from recon.work import dataset_digest
 
 # 160×120 pixels are about 5 cm on a facade 5 m away: a 5 cm grid, single observations kept.
 TINY = ReconConfig(fusion=FusionConfig(voxel_size=0.05, min_observations=1))
@@ -105,6 +106,13 @@ def test_eval_only_needs_a_finished_reconstruction_of_the_dataset(tiny_dataset, 
         "trinocular": {"stereo": {"max_depth": 60.0}}}}))
     assert cli(["-q", "recon", str(tiny_dataset), "--out", str(work), "--eval-only"]) == 2
     assert "another dataset" in caplog.text
+    # a dataset without per-image ground-truth depth has nothing to score a cloud by
+    bare = tmp_path / "bare"
+    shutil.copytree(tiny_dataset, bare, ignore=shutil.ignore_patterns("depth", "ids"))
+    report = json.loads((work / "recon_report.json").read_text())
+    (work / "recon_report.json").write_text(json.dumps({**report, "dataset_digest": dataset_digest(bare)}))
+    assert cli(["-q", "recon", str(bare), "--out", str(work), "--eval-only"]) == 2
+    assert "no per-image ground-truth depth" in caplog.text
 
 
 @pytest.mark.slow

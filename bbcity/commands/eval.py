@@ -100,10 +100,10 @@ def run(args) -> int:
     """Evaluate the model(s) into the report directory (written whole); log each one's scores."""
     from billboards.sky import read_sky
     from core.fileio import atomic_dir
-
-    from ..executor import process_scope
     from render.eval_report import write_report
     from render.evaluate import evaluate_views
+
+    from ..executor import process_scope
 
     config = config_from_args(args)
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]

@@ -59,7 +59,8 @@ def add(sub) -> None:
     p.add_argument("--no-eval", action="store_true", help="skip the ground-truth evaluation")
     p.add_argument("--eval-only", action="store_true",
                    help="score the cloud an earlier run with --no-eval left in WORK against the dataset's ground "
-                        "truth, into its recon_report.json (the demo scores it while the build runs)")
+                        "truth, with that run's settings, into its recon_report.json (the demo scores it while the "
+                        "build runs)")
     p.set_defaults(func=run, check_options=config_from_args, own_output=WORK_FILES)
 
 
