@@ -231,13 +231,12 @@ def stores_truth(dataset_dir: os.PathLike | str) -> bool:
     """Whether each stored image (and depth) of the dataset is what :func:`~data_synth.raycast.truth_view`
     renders at its camera: its frames were cast with the same supersampling, from sections that hold
     every object a ray of the capture can meet (not capped at the lazy sections' largest reach), and
-    are stored files, not cast when read."""
-    path = Path(dataset_dir) / "gt" / "scene.json"
-    data = read_json(path)
+    are stored files, not cast when read. False where its ``gt/scene.json`` keeps no settings."""
+    data = read_json(Path(dataset_dir) / "gt" / "scene.json")
     try:
         cfg = config_from_json(data["synth"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise DataFormatError(path, f"needs the dataset's \"synth\" settings ({e})") from None
+    except (KeyError, TypeError, ValueError):  # written before the settings were kept: not known
+        return False
     reach = view_reach(cfg)
     return cfg.spp == TRUTH_SPP and not cfg.lazy and (reach is None or reach < MAX_REACH_M)
 

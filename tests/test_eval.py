@@ -293,8 +293,9 @@ def test_seen_masks_without_per_image_depth_are_cast_from_the_scene(tiny_dataset
 
     assert stores_truth(tiny_dataset)
     scene = json.loads((tiny_dataset / "gt" / "scene.json").read_text())
-    for change in ({"spp": 1}, {"lazy": True}):
-        other = tmp_path / f"other_{next(iter(change))}"
+    for name, synth in (("spp", {**scene["synth"], "spp": 1}), ("lazy", {**scene["synth"], "lazy": True}),
+                        ("none", None)):
+        other = tmp_path / f"other_{name}"
         (other / "gt").mkdir(parents=True)
-        (other / "gt" / "scene.json").write_text(json.dumps({**scene, "synth": {**scene["synth"], **change}}))
+        (other / "gt" / "scene.json").write_text(json.dumps({**scene, "synth": synth}))
         assert not stores_truth(other)
