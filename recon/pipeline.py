@@ -39,7 +39,7 @@ from .sfm import SfmConfig, poses_sfm
 from .trajectory import align_components, trajectory_rmse
 from .stereo import MEMORY_SHARE, MIN_DEPTH
 from .trinocular import TrinocularConfig, frame_depth
-from .work import REPORT, WORK_POSES, dataset_digest, file_digest
+from .work import REPORT, WORK_POSES, Work, dataset_digest, file_digest
 from .working_size import resize_image, scaled_rig, working_scale
 
 logger = logging.getLogger(__name__)
@@ -429,24 +429,18 @@ def score_work(dataset_dir: os.PathLike | str, work_dir: os.PathLike | str) -> P
     DataFormatError naming the report when there is none or it describes another dataset;
     InputError for a dataset without per-image ground-truth depth.
     Returns the report's path."""
-    work = Path(work_dir)
-    path = work / REPORT
+    path = Path(work_dir) / REPORT
     if not path.is_file():
         raise DataFormatError(path, "no finished reconstruction to score (run recon without --eval-only first)")
-    report = read_json(path)
-    try:
-        digest, points = report["dataset_digest"], int(report["points"])
-        max_depth = report["config"]["trinocular"]["stereo"]["max_depth"]
-        max_depth = np.inf if max_depth is None else float(max_depth)
-    except (KeyError, TypeError, ValueError) as e:
-        raise DataFormatError(path, f"not a recon report ({e})") from None
-    if digest != dataset_digest(dataset_dir):
+    work = Work.open(work_dir)
+    report, max_depth = work.report, work.max_depth()
+    if report.get("dataset_digest") != dataset_digest(dataset_dir):
         raise DataFormatError(path, f"describes another dataset than {dataset_dir}")
     ds = load_dataset(dataset_dir)
     if not ds.has_gt_depth:
         raise InputError(f"{dataset_dir}: no per-image ground-truth depth (gt/depth): nothing to score the cloud by")
     t0 = time.perf_counter()
-    report["accuracy"] = score_cloud(ds, work / "cloud.ply", points, max_depth)
+    report["accuracy"] = score_cloud(ds, work.cloud, int(report.get("points", 0)), max_depth)
     report.setdefault("stages", {})["evaluate_s"] = time.perf_counter() - t0
     write_json(path, report)
     return path

@@ -13,6 +13,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from core.fileio import DataFormatError, read_json
 
 #: The report recon writes into WORK.
@@ -123,3 +125,13 @@ class Work:
             raise DataFormatError(self.report_path, f"config.holdout must be 0 (none) or an integer ≥ 2, "
                                                     f"got {holdout!r}")
         return holdout
+
+    def max_depth(self) -> float:
+        """The farthest depth WORK's stereo kept, metres (inf: no limit; the report writes it
+        "Infinity"); a missing or malformed one is an error naming the report."""
+        try:
+            value = self.report["config"]["trinocular"]["stereo"]["max_depth"]
+            return np.inf if value is None else float(value)
+        except (KeyError, TypeError, ValueError) as e:
+            raise DataFormatError(self.report_path, f"config.trinocular.stereo.max_depth is missing or no "
+                                                    f"number ({e})") from None

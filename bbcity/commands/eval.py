@@ -8,6 +8,7 @@ from pathlib import Path
 
 from core.errors import InputError
 
+from ..executor import process_scope
 from ..options import EVAL_BYTES_PER_PIXEL, MAX_FRAMES, MAX_PANEL_WIDTH, int_range
 from .common import OwnOutput, check_own_output, load_drawable, logger, size_parent
 
@@ -102,8 +103,6 @@ def run(args) -> int:
     from core.fileio import atomic_dir
     from render.eval_report import write_report
     from render.evaluate import evaluate_views
-
-    from ..executor import process_scope
 
     config = config_from_args(args)
     labels = [m.name if [x.name for x in args.models].count(m.name) == 1 else str(m) for m in args.models]
