@@ -55,8 +55,9 @@ $(NPM_STAMP): $(SYSDEPS_STAMP) tests/npm/package-lock.json
 	npm ci --prefix tests/npm --no-audit --no-fund --loglevel=error
 	@touch $@
 
+# Two pytest workers (pytest-xdist), a test file each at a time: a file's module fixtures are made once.
 test: $(INSTALL_STAMP) $(NPM_STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 bench: $(INSTALL_STAMP)
 	$(BIN)/bbcity bench --out $(BENCH_DIR)
