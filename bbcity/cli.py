@@ -7,14 +7,14 @@ import argparse
 from pathlib import Path
 
 from . import __version__, lifecycle
-from .commands import bench, build, check, demo, export, fps, import_, recon, render, sampling_eval, serve, \
-    stereo_sweep, synth, texture_sweep, view
+from .commands import bench, build, check, demo, export, fps, import_, mesh, recon, render, sampling_eval, \
+    serve, stereo_sweep, synth, texture_sweep, view
 from .commands import eval as eval_
 from .options import CommandParser
 
 #: The commands in the order ``bbcity --help`` lists them.
 COMMANDS = (synth, import_, export, recon, build, texture_sweep, sampling_eval, stereo_sweep, check, bench, fps,
-            view, render, eval_, serve, demo)
+            view, render, mesh, eval_, serve, demo)
 
 
 def build_parser() -> argparse.ArgumentParser:

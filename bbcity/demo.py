@@ -37,12 +37,19 @@ class Step:
     ``bbcity`` arguments; ``fresh``: a directory the step writes whole, removed before it runs
     (the web site: export refuses an existing one); ``alongside``: it runs at the same time as
     the step before it (both read what earlier steps wrote; neither reads what the other
-    writes, save a file replaced whole, whose reader sees it before or after)."""
+    writes, save a file replaced whole, whose reader sees it before or after); ``after``: an
+    alongside step starts when this step of its group has ended (a queue on the core the
+    group's first step leaves free), not at once."""
 
     name: str
     argv: tuple[str, ...]
     fresh: Path | None = None
     alongside: bool = False
+    after: str | None = None
+
+    def __post_init__(self):
+        if self.after is not None and not self.alongside:
+            raise ValueError(f"step {self.name}: 'after' needs 'alongside'")
 
 
 @dataclass(frozen=True)
@@ -71,6 +78,8 @@ def demo_steps(out: Path) -> list[Step]:
         Step("recon", ("recon", str(street), "--out", str(work), "--no-eval")),
         Step("build", ("build", str(work), "--out", str(model), "--holdout", str(HOLDOUT))),
         Step("recon-eval", ("recon", str(street), "--out", str(work), "--eval-only"), alongside=True),
+        # then eval's Poisson baseline, kept beside the cloud: eval takes it made
+        Step("mesh", ("mesh", str(work / "cloud.ply")), alongside=True, after="recon-eval"),
         Step("render", ("render", str(model), "--path", "capture", "--frames", str(FLYTHROUGH_FRAMES),
                         "--out", str(out / "flythrough.mp4"))),
         # the three read the model and write apart: side by side, the two cores are kept busy
@@ -110,23 +119,16 @@ def run_steps(steps: list[Step], out: Path, profile: Path | None = None) -> list
     costs: list[StepCost] = []
     t0 = time.perf_counter()
     for group in groups:
-        running = []
+        running = {}
         try:
             for step in group:
-                if step.fresh is not None and step.fresh.exists():
-                    shutil.rmtree(step.fresh)
-                argv = [sys.executable, "-m", "bbcity.cli"]
-                if profile is not None:
-                    argv += ["--profile", str(profile / step.name)]
-                shown = "bbcity " + shlex.join(step.argv)
-                logger.info("==> %s%s", shown, " (alongside the step before)" if step.alongside else "")
-                running.append((step, shown, time.perf_counter(), subprocess.Popen(argv + list(step.argv))))
-            waiting = {child.pid: (step, shown, started, child) for step, shown, started, child in running}
-            while waiting:  # in the order they end: each one's wall time is its own
+                if step.after is None:
+                    running.update(_start(step, profile))
+            while running:  # in the order they end: each one's wall time is its own
                 pid, status, usage = os.wait4(-1, 0)
-                if pid not in waiting:
+                if pid not in running:
                     continue
-                step, shown, started, child = waiting.pop(pid)
+                step, shown, started, child = running.pop(pid)
                 child.returncode = os.waitstatus_to_exitcode(status)
                 cost = StepCost(step.name, shown, started - t0, time.perf_counter() - started,
                                 usage.ru_utime + usage.ru_stime, usage.ru_maxrss * 1024, child.returncode)
@@ -135,13 +137,31 @@ def run_steps(steps: list[Step], out: Path, profile: Path | None = None) -> list
                 if cost.exit_code == 0:
                     logger.info("<== %s: %.1f s wall, %.1f s CPU, peak memory %.2f GB", step.name, cost.wall_s,
                                 cost.cpu_s, cost.peak_bytes / 1e9)
+                    for queued in group:
+                        if queued.after == step.name:
+                            running.update(_start(queued, profile))
         except KeyboardInterrupt:
-            for _, _, _, child in running:
+            for _, _, _, child in running.values():
                 child.wait()  # it got the same Ctrl-C: let it clean up
             raise
         if any(c.exit_code != 0 for c in costs):
             break
     return costs
+
+
+def _start(step: Step, profile: Path | None) -> dict[int, tuple]:
+    """Start ``step`` as ``python -m bbcity.cli`` (profiled into ``profile/<step>`` when given):
+    {pid: (step, the command as shown, start time, Popen)}."""
+    if step.fresh is not None and step.fresh.exists():
+        shutil.rmtree(step.fresh)
+    argv = [sys.executable, "-m", "bbcity.cli"]
+    if profile is not None:
+        argv += ["--profile", str(profile / step.name)]
+    shown = "bbcity " + shlex.join(step.argv)
+    logger.info("==> %s%s", shown, f" (alongside, after {step.after})" if step.after
+                else " (alongside the step before)" if step.alongside else "")
+    child = subprocess.Popen(argv + list(step.argv))
+    return {child.pid: (step, shown, time.perf_counter(), child)}
 
 
 def cost_table(costs: list[StepCost]) -> str:

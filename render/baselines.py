@@ -19,12 +19,16 @@ coordinates keep their centimetres.
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import time
+from pathlib import Path
 
 import numpy as np
 
 from core.errors import InputError
+from core.fileio import atomic_path
 
 logger = logging.getLogger(__name__)
 
@@ -120,6 +124,23 @@ def poisson_arrays(points: np.ndarray, colours: np.ndarray, normals: np.ndarray 
             "triangles": np.asarray(mesh.triangles).astype(np.int32), "seconds": time.perf_counter() - t0}
 
 
+def write_poisson_ply(path: os.PathLike | str, mesh: dict) -> Path:
+    """Write a :func:`poisson_arrays` result atomically as a binary PLY mesh (float64 world
+    vertices, vertex colours); OSError naming ``path`` when Open3D cannot write it."""
+    import open3d as o3d
+
+    out = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(mesh["vertices"].astype(np.float64) + mesh["origin"]),
+        o3d.utility.Vector3iVector(mesh["triangles"].astype(np.int32)))
+    out.vertex_colors = o3d.utility.Vector3dVector(mesh["vertex_colours"].astype(np.float64) / 255.0)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), out, write_ascii=False, compressed=False,
+                                          write_vertex_normals=False, write_vertex_colors=True):
+            raise OSError(errno.EIO, "Open3D could not write the mesh", str(path))
+    return path
+
+
 class PoissonMesh:
     """The cloud as a screened Poisson mesh with vertex colours, ray cast to images.
 
@@ -151,8 +172,9 @@ class PoissonMesh:
         self.scene = o3d.t.geometry.RaycastingScene()
         if len(self.triangles):
             self.scene.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles.astype(np.uint32)))
-        logger.info("Poisson mesh, depth %d: %d vertices, %d triangles, %.1f MB, %.1f s", self.depth,
-                    len(self.vertices), len(self.triangles), self.nbytes / 1e6, self.seconds)
+        logger.info("Poisson mesh, depth %d: %d vertices, %d triangles, %.1f MB, %.1f s%s", self.depth,
+                    len(self.vertices), len(self.triangles), self.nbytes / 1e6, self.seconds,
+                    " (made earlier, from the cloud's cache)" if arrays.get("cached") else "")
 
     def render(self, K: np.ndarray, world_from_cam: np.ndarray, size) -> np.ndarray:
         """(h, w, 3) uint8: the first triangle hit through each pixel centre, its vertex

@@ -18,6 +18,7 @@ from billboards.geometry import KINDS
 from billboards.model_set import ModelSet
 
 from .baselines import PoissonMesh
+from .poisson_cache import PoissonCache, cached_poisson
 
 BACKGROUND = (0.0, 0.0, 0.0)
 
@@ -118,10 +119,14 @@ class LazyPoisson:
     taken from ``pending``, a future of :func:`~render.baselines.poisson_arrays`' result meshed
     elsewhere (a worker process: Open3D's Poisson holds the GIL, so a thread of this process
     would stop it drawing; the first call waits for it and raises what the meshing raised);
-    freed by :meth:`release` once its views are scored."""
+    built on first use, it is taken from ``cache`` (a :class:`~render.poisson_cache.PoissonCache`
+    of the cloud) when that holds it, and kept there when made; freed by :meth:`release` once
+    its views are scored."""
 
-    def __init__(self, cloud: dict, depth: int, trim_quantile: float, pending: Future | None = None):
+    def __init__(self, cloud: dict, depth: int, trim_quantile: float, pending: Future | None = None,
+                 cache: PoissonCache | None = None):
         self.cloud, self.depth, self.trim_quantile = cloud, int(depth), float(trim_quantile)
+        self.cache = cache
         self.mesh: PoissonMesh | None = None
         self.nbytes: int | None = None
         self.seconds: float | None = None
@@ -135,9 +140,8 @@ class LazyPoisson:
             pending, self._pending = self._pending, None
             self._adopt(PoissonMesh.from_arrays(pending.result()))
         if self.mesh is None:
-            self._adopt(PoissonMesh(self.cloud["points"], self.cloud["colours"], self.cloud["normals"],
-                                    depth=self.depth, trim_quantile=self.trim_quantile,
-                                    viewpoints=self.cloud["viewpoints"]))
+            self._adopt(PoissonMesh.from_arrays(cached_poisson(self.cache, lambda: self.cloud, self.depth,
+                                                               self.trim_quantile, self.cloud["viewpoints"])))
         return self.mesh.render(K, world_from_cam, size)
 
     def release(self) -> None:

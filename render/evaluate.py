@@ -62,12 +62,13 @@ from capture.dataset import load_dataset
 from data_synth import load_scene, stores_truth, truth_view
 from data_synth.scene import Kind
 
-from .baselines import PointProjector, poisson_arrays
+from .baselines import PointProjector
 from .eval_config import TRAINING, EvalConfig
 from .eval_methods import LazyPoisson, Method, ModelMethod, neighbour_gains
 from .eval_panels import write_side_by_side
 from .eval_scores import evaluate_methods, summarise, work_precision_points
 from .eval_views import EvalView, choose_frames, off_path, prepare_real_views, training_frames, view_camera
+from .poisson_cache import PoissonCache, cached_poisson
 from .seen import seen_in_dataset
 
 logger = logging.getLogger(__name__)
@@ -143,13 +144,11 @@ def read_cloud_for_baselines(cloud_path: os.PathLike | str, viewpoints: np.ndarr
     return {"points": points, "colours": colours, "normals": normals, "viewpoints": viewpoints}
 
 
-def mesh_cloud_file(cloud_path: os.PathLike | str, viewpoints: np.ndarray | None, depth: int,
-                    trim_quantile: float) -> dict:
-    """:func:`~render.baselines.poisson_arrays` of the cloud at ``cloud_path`` (a worker's task: the
-    path crosses to it, not the points)."""
-    cloud = read_cloud_for_baselines(cloud_path, viewpoints)
-    return poisson_arrays(cloud["points"], cloud["colours"], cloud["normals"], depth=depth,
-                          trim_quantile=trim_quantile, viewpoints=viewpoints)
+def mesh_cloud_file(cache: PoissonCache, viewpoints: np.ndarray | None, depth: int, trim_quantile: float) -> dict:
+    """:func:`~render.poisson_cache.cached_poisson` of the cloud whose cache is ``cache`` (a worker's
+    task: the cloud's path crosses to it, not the points; read only when the cache misses)."""
+    return cached_poisson(cache, lambda: read_cloud_for_baselines(cache.cloud, viewpoints), depth, trim_quantile,
+                          viewpoints)
 
 
 def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLike | str | None = None,
@@ -195,13 +194,14 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
         if not len(cloud["points"]) or not np.ptp(cloud["points"], axis=0).max() > 0:
             raise DataFormatError(cloud_path, f"its {len(cloud['points'])} points span no space: the Poisson "
                                               "mesh and the point projection need a cloud spread in space")
+        cache = PoissonCache.of(cloud_path)  # each mesh is made once for this cloud (bbcity mesh, earlier evals)
         # the first mesh is made while the views are prepared and the models scored (the worker reads the cloud)
         pending = None if executor is None else executor.submit(
-            mesh_cloud_file, cloud_path, viewpoints, config.poisson_depth, config.trim_quantile)
-        baselines[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile, pending)
+            mesh_cloud_file, cache, viewpoints, config.poisson_depth, config.trim_quantile)
+        baselines[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile, pending, cache)
         for d in config.workprecision_depths:
             if int(d) != config.poisson_depth:
-                baselines[f"Poisson depth {int(d)}"] = LazyPoisson(cloud, int(d), config.trim_quantile)
+                baselines[f"Poisson depth {int(d)}"] = LazyPoisson(cloud, int(d), config.trim_quantile, cache=cache)
         baselines["point projection"] = PointProjector(cloud["points"], cloud["colours"])
     if real:
         if not held_out:

@@ -31,13 +31,15 @@ def _env() -> dict:
 def test_every_demo_step_is_a_command_the_parser_accepts(tmp_path):
     parser = build_parser()
     steps = demo_steps(tmp_path) + comparison_steps(tmp_path)
-    assert [s.name for s in steps] == ["synth", "recon", "build", "recon-eval", "render", "export", "eval",
+    assert [s.name for s in steps] == ["synth", "recon", "build", "recon-eval", "mesh", "render", "export", "eval",
                                        "build-billboards", "eval-layer"]
-    # recon leaves the score of its cloud to the step beside the build
+    # recon leaves the score of its cloud to the step beside the build, then eval's mesh is made there
     assert "--no-eval" in steps[1].argv and "--eval-only" in steps[3].argv and steps[3].alongside
+    assert steps[4].alongside and steps[4].after == "recon-eval"
     for step in steps:
         args = parser.parse_args(list(step.argv))
-        assert args.out.is_relative_to(tmp_path), step
+        assert (args.out if args.out is not None else args.cloud).is_relative_to(tmp_path), step
+    assert parser.parse_args(list(steps[4].argv)).cloud == parser.parse_args(list(steps[7].argv)).cloud
     # the comparison reads what the demo wrote, and scores the layer against the model without it
     assert "--billboards-only" in comparison_steps(tmp_path)[1].argv
 
@@ -124,4 +126,19 @@ def test_a_step_alongside_runs_with_the_one_before(tmp_path):
     assert second.wall_s < first.wall_s  # its own time, not the time until the first ended
     total = cost_table(costs).splitlines()[-1].split("|")
     assert float(total[3]) == pytest.approx(max(c.start_s + c.wall_s for c in costs), abs=0.1)
-    assert [s.alongside for s in demo_steps(tmp_path)] == [False, False, False, True, False, True, True]
+    assert [s.alongside for s in demo_steps(tmp_path)] == [False, False, False, True, True, False, True, True]
+
+
+def test_a_step_after_another_starts_when_it_has_ended(tmp_path):
+    bad = ("synth", "street", "--length", "-1")
+    steps = [Step("first", (*TINY, "--out", str(tmp_path / "a"))),
+             Step("second", (*bad, "--out", str(tmp_path / "b")), alongside=True),
+             Step("third", (*bad, "--out", str(tmp_path / "c")), alongside=True, after="first"),
+             Step("never", (*bad, "--out", str(tmp_path / "d")), alongside=True, after="second")]
+    costs = {c.name: c for c in run_steps(steps, tmp_path)}
+    assert set(costs) == {"first", "second", "third"}  # a step after one that failed never starts
+    first, second, third = costs["first"], costs["second"], costs["third"]
+    assert second.start_s < first.start_s + first.wall_s  # alongside: at once
+    assert third.start_s >= first.start_s + first.wall_s  # after: once the first has ended
+    with pytest.raises(ValueError, match="needs 'alongside'"):
+        Step("x", bad, after="first")
