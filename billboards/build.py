@@ -45,6 +45,7 @@ from .placement import place_billboards, place_hybrid
 from .prune import prune_ranges
 from .sky import estimate_sky, write_sky
 from .texture_tasks import sample_textures, save_worker_state, texture_tasks, write_textures
+from .views import with_image_cache
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +66,19 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     if conf.tile_metres is not None:  # a model set, tile by tile
         return build_tiled(conf, cloud_path, dataset_dir, model_dir, executor, progress, poses)
     model_dir = Path(model_dir)
+    # the build's state, the workers read it; the images as read are kept there too (a killed run's is swept)
+    state = temp_dir(model_dir.parent, f".{hidden_name(model_dir.name)}.build-")
+    try:
+        return _build(conf, cloud_path, dataset_dir, model_dir, executor, progress, poses, state)
+    finally:
+        shutil.rmtree(state, ignore_errors=True)
+
+
+def _build(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathLike | str | None, model_dir: Path,
+           executor: Executor | None, progress: bool | None, poses: os.PathLike | str | None,
+           state: Path) -> BuildResult:
+    """:func:`main` of one model, its temporary state in the directory ``state`` (removed
+    once the textures are written)."""
     stages: dict[str, float] = {}
     t0 = time.perf_counter()
     points, colours = read_cloud_arrays(cloud_path, require_colours=True)
@@ -77,6 +91,8 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     if inputs.exposure is not None:
         stages["photometry_s"] = time.perf_counter() - t1
     views, cameras = inputs.views, inputs.cameras
+    if views is not None and conf.source == "images":
+        views = with_image_cache(views, state / "images")
 
     t1 = time.perf_counter()
     # The sky behind the model, from the capture's own sky pixels (the whole cloud marks what is not sky).
@@ -128,7 +144,6 @@ def main(conf: BuildConfig, cloud_path: os.PathLike | str, dataset_dir: os.PathL
     conf = replace(conf, sampling=sampling)
 
     t2 = time.perf_counter()
-    state = temp_dir(model_dir.parent, f".{hidden_name(model_dir.name)}.build-")
     try:
         if placed is None:
             placed = place_billboards(points, octree, views.centres if views is not None else None, conf.planes)

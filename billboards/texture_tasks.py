@@ -110,6 +110,7 @@ def save_worker_state(state: Path, conf: BuildConfig, placed: Billboards, views:
             views.rig.save(state / "rig.json")
             np.save(state / "cams.npy", views.cams)
         meta["paths"] = [str(p) for p in views.paths]
+        meta["image_cache"] = None if views.cache is None else str(views.cache)
     (state / "meta.json").write_text(json.dumps(meta))
 
 
@@ -131,8 +132,9 @@ def _worker_state(state_dir: str):
         lens = {}
         if (root / "rig.json").exists():  # distorted cameras: the views undistort their raw images
             lens = dict(rig=Rig.load(root / "rig.json"), cams=np.load(root / "cams.npy"))
+        cache = meta.get("image_cache")
         views = Views(np.load(root / "K.npy"), np.load(root / "world_from_cam.npy"), np.load(root / "sizes.npy"),
-                      tuple(Path(p) for p in meta["paths"]), gains, **lens)
+                      tuple(Path(p) for p in meta["paths"]), gains, **lens, cache=None if cache is None else Path(cache))
         occluders = None
         if "occluders" in meta:
             occluders = VoxelPoints(np.asarray(meta["occluders"]["origin"], dtype=np.float64),

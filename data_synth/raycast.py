@@ -19,7 +19,7 @@ from capture.distortion import Distortion, undistort
 from core.errors import InputError
 
 from .scene import Scene
-from .textures import shade, sky
+from .textures import kind_order, shade, shade_grouped, sky
 
 #: Upper bound on rays cast at once (bounds memory: about 100 bytes per ray).
 MAX_RAYS_PER_CHUNK = 1 << 16
@@ -79,9 +79,13 @@ class Renderer:
         hit = np.isfinite(t)
         colour = np.empty((len(t), 3))
         colour[~hit] = sky(directions[~hit])
-        if hit.any():
-            p = origin + t[hit, None] * directions[hit]
-            colour[hit] = shade(self.scene, p, normal[hit], self.scene.triangle_object[prim[hit]], directions[hit])
+        # the hits gathered once, grouped by kind (as shade groups them)
+        rows = np.flatnonzero(hit)
+        obj = self.scene.triangle_object[prim[rows]]
+        order = kind_order(self.scene, obj)
+        rows, obj = rows[order], obj[order]
+        d = directions[rows]
+        colour[rows] = shade_grouped(self.scene, origin + t[rows, None] * d, normal[rows], obj, d)
         return colour
 
     def render(self, K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int],

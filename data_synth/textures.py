@@ -347,17 +347,30 @@ def shade(scene: Scene, p: np.ndarray, normal: np.ndarray, obj: np.ndarray,
     where some colours are already radiance and are not lit again.
     Returns (n, 3) float64 in [0, 1].
     """
+    # the hits grouped by kind (one gather each, then contiguous slices): every hit's colour is
+    # computed from its own values alone, so the order it is computed in changes no byte
+    order = kind_order(scene, obj)
+    shaded = np.empty((len(p), 3))
+    shaded[order] = shade_grouped(scene, p[order], normal[order], obj[order], None if view is None else view[order])
+    return shaded
+
+
+def kind_order(scene: Scene, obj: np.ndarray) -> np.ndarray:
+    """(n,) int64: the order that groups hits on objects ``obj`` (n,) by their kind (stable)."""
+    return np.argsort(scene.object_kind[obj], kind="stable")
+
+
+def shade_grouped(scene: Scene, p: np.ndarray, normal: np.ndarray, obj: np.ndarray,
+                  view: np.ndarray | None = None) -> np.ndarray:
+    """:func:`shade` of hits already grouped by their objects' kind (:func:`kind_order`), in
+    their order: a caller that gathers its hits anyway gathers them once."""
     n = len(p)
     if n == 0:
         return np.zeros((0, 3))
     kinds = scene.object_kind[obj]
-    # the hits grouped by kind (one gather each, then contiguous slices): every hit's colour is
-    # computed from its own values alone, so the order it is computed in changes no byte
-    order = np.argsort(kinds, kind="stable")
-    kinds = kinds[order]
-    p, normal, obj = p[order], normal[order].astype(np.float64), obj[order]
+    normal = normal.astype(np.float64)
     if view is not None:
-        view = np.asarray(view, dtype=np.float64)[order]
+        view = np.asarray(view, dtype=np.float64)
         view = view / np.linalg.norm(view, axis=1, keepdims=True)
     colour = np.empty((n, 3))
     radiance = np.zeros(n, dtype=bool)
@@ -374,9 +387,7 @@ def shade(scene: Scene, p: np.ndarray, normal: np.ndarray, obj: np.ndarray,
         start = end
     light = AMBIENT + (1.0 - AMBIENT) * np.clip(normal @ SUN, 0.0, 1.0)
     light[radiance] = 1.0
-    shaded = np.empty((n, 3))
-    shaded[order] = np.clip(colour * light[:, None], 0.0, 1.0)
-    return shaded
+    return np.clip(colour * light[:, None], 0.0, 1.0)
 
 
 def sky(directions: np.ndarray) -> np.ndarray:

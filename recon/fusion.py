@@ -166,11 +166,45 @@ class TileSpill:
         shutil.rmtree(self.root, ignore_errors=True)
 
 
-def _filter_and_normals(points: np.ndarray, colours: np.ndarray, own: np.ndarray, cfg: FusionConfig,
-                        cameras: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Outlier removal and normals on a tile with context. points: (n, 3) float64
-    relative to the origin; own: (n,) bool, the tile's own points. Returns the own
-    points kept, their colours and normals (or None)."""
+def outlier_mask(points: np.ndarray, cfg: FusionConfig) -> np.ndarray:
+    """(n,) bool: the points (n, 3) float64 that both of ``cfg``'s outlier tests keep, from one
+    k-nearest-neighbour search (Open3D's), not the two that Open3D's filters make
+    (:func:`outlier_mask_reference`); the same points, bit for bit (a test compares them).
+
+    Statistical: a point's mean distance to its ``outlier_neighbours`` nearest points (itself
+    among them) is above zero and below the cloud's mean of those plus ``outlier_std_ratio``
+    sample standard deviations (of the means above zero, over n − 1), summed in Open3D's order. Radius: more than
+    ``radius_min_points`` points (itself among them) lie closer than 3 voxels."""
+    n = len(points)
+    keep = np.ones(n, bool)
+    stat = cfg.outlier_neighbours > 0 and n > cfg.outlier_neighbours
+    radius = cfg.radius_min_points > 0 and n > 0
+    if not (stat or radius):
+        return keep
+    k = min(n, max(cfg.outlier_neighbours if stat else 1, cfg.radius_min_points + 1 if radius else 1))
+    search = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float64)))
+    search.knn_index()
+    _, d2 = search.knn_search(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float64)), k)
+    d2 = d2.numpy()  # (n, k) float64 squared distances, nearest first
+    if stat:
+        d = np.sqrt(d2[:, :cfg.outlier_neighbours])
+        total = d[:, 0].copy()
+        for j in range(1, d.shape[1]):  # left to right, as std::accumulate adds
+            total += d[:, j]
+        mean = total / d.shape[1]
+        valid = mean > 0  # a point with as many duplicates as neighbours is dropped, and adds no deviation
+        cloud_mean = np.cumsum(mean)[-1] / n
+        sq = np.cumsum(np.where(valid, (mean - cloud_mean) * (mean - cloud_mean), 0.0))[-1]
+        threshold = cloud_mean + cfg.outlier_std_ratio * np.sqrt(sq / (n - 1))
+        keep &= valid & (mean < threshold)
+    if radius:
+        r = 3.0 * cfg.voxel_size
+        keep &= d2[:, cfg.radius_min_points] < r * r if k > cfg.radius_min_points else False
+    return keep
+
+
+def outlier_mask_reference(points: np.ndarray, cfg: FusionConfig) -> np.ndarray:
+    """:func:`outlier_mask` by Open3D's own filters, one search each (for tests)."""
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     keep = np.ones(len(points), bool)
     if cfg.outlier_neighbours > 0 and len(points) > cfg.outlier_neighbours:
@@ -183,10 +217,19 @@ def _filter_and_normals(points: np.ndarray, colours: np.ndarray, own: np.ndarray
         m = np.zeros(len(points), bool)
         m[np.asarray(idx, dtype=np.int64)] = True
         keep &= m
+    return keep
+
+
+def _filter_and_normals(points: np.ndarray, colours: np.ndarray, own: np.ndarray, cfg: FusionConfig,
+                        cameras: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Outlier removal and normals on a tile with context. points: (n, 3) float64
+    relative to the origin; own: (n,) bool, the tile's own points. Returns the own
+    points kept, their colours and normals (or None)."""
+    keep = outlier_mask(points, cfg)
     sel = keep & own
     normals = np.zeros((0, 3)) if cfg.normals else None
     if cfg.normals and sel.any():
-        kept = pcd.select_by_index(np.flatnonzero(keep))
+        kept = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[keep]))
         kept.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * cfg.voxel_size, max_nn=16))
         n_all = np.asarray(kept.normals)
         normals = n_all[own[keep]]

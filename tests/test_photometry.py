@@ -3,7 +3,9 @@ grey stays grey, moving objects do not bias, degenerate inputs, and the build ga
 
 from __future__ import annotations
 
+import pickle
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -272,3 +274,31 @@ def test_cli_photometry_option():
     assert build_config_from_args(parser.parse_args(base + ["--photometry", "off"])).photometry is None
     with pytest.raises(SystemExit):
         parser.parse_args(base + ["--photometry", "maybe"])
+
+
+def test_views_kept_in_a_cache_read_back_the_same_in_any_process(street, perturbed, tmp_path, monkeypatch):
+    from billboards import views as views_module
+    from billboards.views import with_image_cache
+
+    dataset, gains = perturbed
+    plain = replace(views_from_dataset(load_dataset(dataset)), gains=gains)
+    cached = with_image_cache(plain, tmp_path / "images")
+    assert cached.cache == tmp_path / "images" and plain.cache is None
+    first = [cached.image(i) for i in range(len(cached))]  # decoded and kept
+    assert len(list((tmp_path / "images").glob("*.npy"))) == len(cached)
+    assert all(np.array_equal(first[i], plain.read_image(i)) for i in range(len(cached)))
+    again = pickle.loads(pickle.dumps(cached))  # as a worker has it: read back, not decoded
+    monkeypatch.setattr(views_module, "read_png", lambda *a: pytest.fail("decoded a kept image"))
+    for i in range(len(cached)):
+        assert np.array_equal(again.image(i), first[i])
+    monkeypatch.undo()
+    # other gains are other images; a damaged file is read and kept again
+    other = replace(cached, gains=gains * 1.1)
+    assert not np.array_equal(other.image(0), first[0])
+    damaged = sorted((tmp_path / "images").glob("000001-*.npy"))
+    for path in damaged:
+        path.write_bytes(b"\x93NUMPY garbage")
+    assert np.array_equal(cached.image(1), first[1]) and np.load(damaged[0]).shape == first[1].shape
+    # images that do not fit: no cache
+    monkeypatch.setattr(views_module, "IMAGE_CACHE_BYTES", 1000)
+    assert with_image_cache(plain, tmp_path / "small").cache is None

@@ -8,8 +8,8 @@ import pytest
 
 from core import DataFormatError
 from recon.cloud_io import PlyStreamWriter, read_cloud, write_cloud
-from recon.fusion import (FusionConfig, TileSpill, merge_to_cloud, pack_keys, reduce_records,
-                          reduce_records_reference, unpack_keys, voxel_sums)
+from recon.fusion import (FusionConfig, TileSpill, merge_to_cloud, outlier_mask, outlier_mask_reference, pack_keys,
+                          reduce_records, reduce_records_reference, unpack_keys, voxel_sums)
 from recon.points import depth_to_points, depth_to_points_reference
 
 
@@ -41,6 +41,31 @@ def test_reduce_matches_reference(n, k):
     b_keys, b = reduce_records_reference(keys, records)
     np.testing.assert_array_equal(a_keys, b_keys)
     np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+
+
+def _clouds() -> dict:
+    rng = np.random.default_rng(1)
+    lattice = np.stack(np.meshgrid(*[np.arange(20) * 0.06] * 2, [0.0]), -1).reshape(-1, 3)  # neighbours at 3 voxels
+    street = np.c_[rng.uniform(0, 4, (20_000, 2)), rng.normal(0, 0.004, 20_000)]
+    street[:200] += rng.normal(0, 0.3, (200, 3))  # strays
+    return {"none": np.zeros((0, 3)), "one": np.zeros((1, 3)), "five": rng.normal(size=(5, 3)) * 0.01,
+            "sixteen": rng.normal(size=(16, 3)) * 0.03, "seventeen": rng.normal(size=(17, 3)) * 0.03,
+            "lattice": lattice, "lattice far away": np.stack(np.meshgrid(*[np.arange(30) * 0.02] * 3), -1)
+            .reshape(-1, 3) + 1e5, "duplicates": np.repeat(rng.normal(size=(200, 3)), 20, axis=0),
+            "some duplicated": np.r_[street, np.repeat(street[:3], 16, axis=0)], "street": street}
+
+
+@pytest.mark.parametrize("name", sorted(_clouds()))
+@pytest.mark.parametrize("cfg", [FusionConfig(), FusionConfig(outlier_neighbours=0),
+                                 FusionConfig(radius_min_points=0), FusionConfig(outlier_neighbours=3, radius_min_points=9,
+                                                                                 outlier_std_ratio=0.5)])
+def test_outlier_mask_keeps_the_points_open3d_filters_keep(name, cfg):
+    points = _clouds()[name]
+    keep = outlier_mask(points, cfg)
+    assert keep.dtype == bool and keep.shape == (len(points),)
+    assert np.array_equal(keep, outlier_mask_reference(points, cfg))
+    if name == "street" and cfg == FusionConfig():
+        assert 19_000 < keep.sum() < 20_000 and keep[:200].mean() < 0.5  # most strays go, the plane stays
 
 
 def test_pack_unpack_roundtrip_and_range():
