@@ -50,7 +50,7 @@ import functools
 import logging
 import os
 import time
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from pathlib import Path
 from typing import Callable
 
@@ -195,9 +195,17 @@ def evaluate_views(model, dataset_dir: os.PathLike | str, cloud_path: os.PathLik
             raise DataFormatError(cloud_path, f"its {len(cloud['points'])} points span no space: the Poisson "
                                               "mesh and the point projection need a cloud spread in space")
         cache = PoissonCache.of(cloud_path)  # each mesh is made once for this cloud (bbcity mesh, earlier evals)
-        # the first mesh is made while the views are prepared and the models scored (the worker reads the cloud)
-        pending = None if executor is None else executor.submit(
-            mesh_cloud_file, cache, viewpoints, config.poisson_depth, config.trim_quantile)
+        # the first mesh is made while the views are prepared and the models scored (the worker reads the cloud),
+        # unless the cloud's cache holds it
+        pending = None
+        if executor is not None:
+            kept = cache.load(config.poisson_depth, config.trim_quantile, viewpoints)
+            if kept is None:
+                pending = executor.submit(mesh_cloud_file, cache, viewpoints, config.poisson_depth,
+                                          config.trim_quantile)
+            else:  # no worker started for it
+                pending = Future()
+                pending.set_result(kept)
         baselines[poisson_name] = LazyPoisson(cloud, config.poisson_depth, config.trim_quantile, pending, cache)
         for d in config.workprecision_depths:
             if int(d) != config.poisson_depth:

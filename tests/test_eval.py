@@ -299,3 +299,29 @@ def test_seen_masks_without_per_image_depth_are_cast_from_the_scene(tiny_dataset
         (other / "gt").mkdir(parents=True)
         (other / "gt" / "scene.json").write_text(json.dumps({**scene, "synth": synth}))
         assert not stores_truth(other)
+
+
+def test_eval_takes_its_poisson_meshes_from_the_clouds_cache(street, tmp_path):
+    import shutil
+    from concurrent.futures import Executor
+
+    from billboards import model_reader as billboard_model
+    from render.eval_config import EvalConfig
+    from render.evaluate import evaluate_views
+    from render.poisson_cache import PoissonCache
+
+    tiny_dataset, tiny_cloud, model = street
+    cloud = shutil.copy(tiny_cloud, tmp_path / "cloud.ply")  # a cache of its own
+    drawable = billboard_model.load(model)
+    config = EvalConfig(views=1, poisson_depth=7, workprecision_depths=(6,), panel_width=0, training_views=0)
+
+    class NoWorkers(Executor):
+        def submit(self, fn, /, *args, **kwargs):
+            raise AssertionError("a worker was asked to mesh a cloud whose mesh is kept")
+
+    first = evaluate_views(drawable, tiny_dataset, cloud, config=config)
+    cache = PoissonCache.of(cloud)
+    assert cache.path(7, config.trim_quantile).is_file() and cache.path(6, config.trim_quantile).is_file()
+    again = evaluate_views(drawable, tiny_dataset, cloud, config=config, executor=NoWorkers())
+    for name in ("Poisson mesh, on path", "Poisson depth 6, off path"):
+        assert again["summary"][name]["psnr"] == first["summary"][name]["psnr"], name
