@@ -74,6 +74,13 @@ def _render_frame(task: tuple[str, LazyImages, int, int, bool]) -> float:
     return time.perf_counter() - start
 
 
+def _timed_coverage(scene: Scene, rig: Rig, world_from_rig: np.ndarray) -> tuple[dict, float]:
+    """:func:`~data_synth.coverage.street_coverage` and the seconds it took (a worker's task)."""
+    start = time.perf_counter()
+    coverage = street_coverage(scene, rig, world_from_rig)
+    return coverage, time.perf_counter() - start
+
+
 def write_mesh_ply(path: Path, scene: Scene) -> Path:
     """Atomically write the scene's triangle mesh (float64 vertices) as binary PLY."""
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(scene.vertices),
@@ -164,19 +171,25 @@ def write_dataset(cfg: SynthConfig, out_dir: os.PathLike | str, executor: Execut
             for i, n in enumerate(names)
             if not all(p.exists() for p in _frame_files(root, n, rig.num_cameras, cfg.ground_truth_depth))]
     logger.info("rendering %d of %d frames × %d cameras", len(todo), len(names), rig.num_cameras)
+    # (the street's surfaces beside a drive: an orbit sees its building, not the street), in a worker
+    # beside the frames when there are workers: it needs none of them
+    covered = cfg.scene == "street" and cfg.path == "drive"
+    pending = executor.submit(_timed_coverage, scene, rig, world_from_rig) if covered and executor is not None else None
     t1 = time.perf_counter()
     frame_seconds = run_tasks(_render_frame, todo, executor, desc="render", progress=progress)
     t_render = time.perf_counter() - t1
-    t2 = time.perf_counter()
-    # (the street's surfaces beside a drive: an orbit sees its building, not the street)
-    coverage = street_coverage(scene, rig, world_from_rig) if cfg.scene == "street" and cfg.path == "drive" else None
+    if not covered:
+        coverage, t_coverage = None, 0.0
+    elif pending is not None:
+        coverage, t_coverage = pending.result()
+    else:
+        coverage, t_coverage = _timed_coverage(scene, rig, world_from_rig)
     if coverage is not None:
         pct = {k: "n/a" if coverage[k] is None else f"{100 * coverage[k]:.1f} %"
                for k in ("road_sidewalk", "road_sidewalk_outboard", "facade", "facade_top_1m")}
         logger.info("the rig sees %s of road + sidewalk (%s of the part beside its paths), %s of the facades, "
                     "%s of their top metre", pct["road_sidewalk"], pct["road_sidewalk_outboard"], pct["facade"],
                     pct["facade_top_1m"])
-    t_coverage = time.perf_counter() - t2
 
     write_json(root / "dataset.json", {
         "format": DATASET_FORMAT, "version": FORMAT_VERSION, "scene": cfg.scene,
