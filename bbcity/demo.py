@@ -11,6 +11,7 @@ process, from the kernel's accounting of the ended process tree), and writes the
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shlex
@@ -29,6 +30,8 @@ logger = logging.getLogger("bbcity")
 HOLDOUT = 10
 #: Frames of the demo's fly-through.
 FLYTHROUGH_FRAMES = 300
+#: The lower CPU priority of a step beside the one its group waits for (a nice increment).
+SIDE = 10
 
 
 @dataclass(frozen=True)
@@ -39,13 +42,16 @@ class Step:
     the step before it (both read what earlier steps wrote; neither reads what the other
     writes, save a file replaced whole, whose reader sees it before or after); ``after``: an
     alongside step starts when this step of its group has ended (a queue on the core the
-    group's first step leaves free), not at once."""
+    group's first step leaves free), not at once; ``nice``: the step runs at this much lower CPU
+    priority (its workers too), so that the step of its group the others wait for is not slowed
+    by it: it takes the cycles that step leaves idle."""
 
     name: str
     argv: tuple[str, ...]
     fresh: Path | None = None
     alongside: bool = False
     after: str | None = None
+    nice: int = 0
 
     def __post_init__(self):
         if self.after is not None and not self.alongside:
@@ -77,13 +83,15 @@ def demo_steps(out: Path) -> list[Step]:
         # core free (the build reads the report at its start; the score replaces it whole, the same but for it)
         Step("recon", ("recon", str(street), "--out", str(work), "--no-eval")),
         Step("build", ("build", str(work), "--out", str(model), "--holdout", str(HOLDOUT))),
-        Step("recon-eval", ("recon", str(street), "--out", str(work), "--eval-only"), alongside=True),
+        Step("recon-eval", ("recon", str(street), "--out", str(work), "--eval-only"), alongside=True, nice=SIDE),
         # then eval's Poisson baseline, kept beside the cloud: eval takes it made
-        Step("mesh", ("mesh", str(work / "cloud.ply")), alongside=True, after="recon-eval"),
+        Step("mesh", ("mesh", str(work / "cloud.ply")), alongside=True, after="recon-eval", nice=SIDE),
+        # the three read the model and write apart: side by side, the two cores are kept busy (eval, the longest,
+        # first)
         Step("render", ("render", str(model), "--path", "capture", "--frames", str(FLYTHROUGH_FRAMES),
-                        "--out", str(out / "flythrough.mp4"))),
-        # the three read the model and write apart: side by side, the two cores are kept busy
-        Step("export", ("export", "web", str(model), "--out", str(out / "site")), fresh=out / "site", alongside=True),
+                        "--out", str(out / "flythrough.mp4")), nice=SIDE),
+        Step("export", ("export", "web", str(model), "--out", str(out / "site")), fresh=out / "site", alongside=True,
+             nice=SIDE),
         # the model against Poisson depth 10 (the comparison's eval adds depths 8, 9 and 11)
         Step("eval", ("eval", str(model), str(street), "--cloud", str(work / "cloud.ply"), "--workprecision-depths",
                       "--out", str(out / "eval")), alongside=True),
@@ -161,6 +169,9 @@ def _start(step: Step, profile: Path | None) -> dict[int, tuple]:
     logger.info("==> %s%s", shown, f" (alongside, after {step.after})" if step.after
                 else " (alongside the step before)" if step.alongside else "")
     child = subprocess.Popen(argv + list(step.argv))
+    if step.nice:  # before it starts its workers (they inherit it): it is still importing
+        with contextlib.suppress(ProcessLookupError):
+            os.setpriority(os.PRIO_PROCESS, child.pid, os.getpriority(os.PRIO_PROCESS, 0) + step.nice)
     return {child.pid: (step, shown, time.perf_counter(), child)}
 
 

@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -142,3 +143,32 @@ def test_a_step_after_another_starts_when_it_has_ended(tmp_path):
     assert third.start_s >= first.start_s + first.wall_s  # after: once the first has ended
     with pytest.raises(ValueError, match="needs 'alongside'"):
         Step("x", bad, after="first")
+
+
+def test_a_step_with_nice_runs_at_lower_priority(tmp_path):
+    """The priority is read off the running step's process (/proc), as the kernel schedules it."""
+    import threading
+
+    out = tmp_path / "low"
+    seen: set[int] = set()
+    done = threading.Event()
+
+    def watch():
+        while not done.is_set():
+            for proc in Path("/proc").glob("[0-9]*"):
+                try:
+                    if str(out) in (proc / "cmdline").read_bytes().decode(errors="replace"):
+                        seen.add(int((proc / "stat").read_text().rsplit(")", 1)[1].split()[16]))
+                except (OSError, ValueError, IndexError):
+                    pass
+            time.sleep(0.02)
+
+    watcher = threading.Thread(target=watch)
+    watcher.start()
+    try:
+        costs = run_steps([Step("low", (*TINY, "--out", str(out)), nice=7)], tmp_path)
+    finally:
+        done.set()
+        watcher.join()
+    assert costs[0].exit_code == 0
+    assert min(19, os.getpriority(os.PRIO_PROCESS, 0) + 7) in seen  # (the kernel caps it at 19)
