@@ -22,7 +22,7 @@ import numpy as np
 
 from capture.rig import Rig
 from core.errors import InputError
-from core.tasks import executor_workers, ordered_results
+from core.tasks import executor_workers, in_flight, ordered_results
 
 from .atlas import reserved_memmap
 from .build_config import BuildConfig, config_from_json, config_to_json
@@ -255,7 +255,7 @@ def sample_textures(state: Path, conf: BuildConfig, tasks: list[TextureTask], ki
     s, n = conf.sampling, len(kind)
     # its blocks reserved: a full disk is an OSError naming the file, not a worker killed by SIGBUS
     reserved_memmap(state / "rgba.npy", np.uint8, (n, s.directions.num_directions, s.tile, s.tile, 4)).flush()
-    stats = [st for chunk in ordered_results(_run_task, tasks, executor, window=2 * executor_workers(executor),
+    stats = [st for chunk in ordered_results(_run_task, tasks, executor, window=in_flight(executor),
                                              desc=desc, progress=progress) for st in chunk]
     rgba = np.load(state / "rgba.npy", mmap_mode="r+")
     front = int(np.argmin(np.abs(s.directions.yaw_offsets)))
@@ -278,7 +278,7 @@ def compressed_textures(tasks: list[TextureTask], executor: Executor | None, pro
     """The compressed chunks of the sampled textures, task by task in order (lists of
     (arrays for the model writer, statistics))."""
     return ordered_results(_run_task, [replace(t, stage="compress") for t in tasks], executor,
-                           window=2 * executor_workers(executor), desc=desc, progress=progress)
+                           window=in_flight(executor), desc=desc, progress=progress)
 
 
 def fit_textures(conf: BuildConfig, state: Path, tasks: list[TextureTask], num_views: int, append,
@@ -289,7 +289,7 @@ def fit_textures(conf: BuildConfig, state: Path, tasks: list[TextureTask], num_v
     (its neighbours' quads are unknown: a hit behind the tile's context is no measurement, and
     alpha stays as sampled, since what a see-through texel shows may be a neighbour's). Returns
     the build report's "fit" with its "stages" seconds."""
-    window = 2 * executor_workers(executor)
+    window = in_flight(executor)
     who = "" if tile is None else f"{tile}: "
     t0 = time.perf_counter()
     per = conf.fit_views_per_task

@@ -31,6 +31,18 @@ def executor_workers(executor: Executor | None) -> int:
     return 1
 
 
+#: Tasks kept in flight per worker by :func:`in_flight`.
+IN_FLIGHT_PER_WORKER = 8
+
+
+def in_flight(executor: Executor | None) -> int:
+    """The ``window`` of :func:`ordered_results` for tasks of uneven sizes whose results are small
+    (statistics, a file's name): results are taken in task order, so with a window of a few
+    tasks per worker a long task leaves the other workers idle once they have run the tasks
+    behind it; :data:`IN_FLIGHT_PER_WORKER` per worker keeps them busy."""
+    return IN_FLIGHT_PER_WORKER * executor_workers(executor)
+
+
 def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: Executor | None = None,
               desc: str = "", progress: bool | None = None) -> list[R]:
     """Apply ``fn`` to every task; results in completion order.

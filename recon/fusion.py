@@ -24,7 +24,7 @@ import open3d as o3d
 from core.arrays import unique_rows
 from core.errors import InputError
 from core.fileio import load_npy, save_npy
-from core.tasks import executor_workers, ordered_results, run_tasks
+from core.tasks import in_flight, ordered_results, run_tasks
 
 from .cloud_io import RowsFile, TileGrid, ply_rows, ply_vertex_dtype, write_rows_file
 
@@ -330,7 +330,7 @@ def merge_tiles(spill: TileSpill, camera_centres: np.ndarray,
     save_npy(spill.root / CAMERAS, np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3) - spill.origin)
     run_tasks(_reduce_tile, [(spill, t) for t in tiles], executor, desc="reduce", progress=False)
     total = 0
-    window = 2 * executor_workers(executor)
+    window = in_flight(executor)  # a finished tile is a file, not points in memory
     tasks = [(spill, t, tuple(n for n in _neighbours(t) if n in present)) for t in tiles]
     finished = ordered_results(_finish_tile, tasks, executor, window=window, desc="merge", progress=False)
     for tile, part in zip(tiles, finished):
