@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -40,6 +41,7 @@ from .texels import (OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, close_holes, fill_d
                      stack_filter)
 from .views import Views
 from .voxels import VoxelPoints, layer_points, zbuffer
+from .zbuffer_store import ZbufferStore, store_key
 
 logger = logging.getLogger(__name__)
 
@@ -86,8 +88,8 @@ class _ViewCache:
     and, with ``layer`` (the facade layer's blocks as points), the layer's (filled; None without)."""
 
     def __init__(self, views: Views, voxels: VoxelPoints | None, config: SamplingConfig,
-                 layer: VoxelPoints | None = None):
-        self.views, self.voxels, self.config, self.layer = views, voxels, config, layer
+                 layer: VoxelPoints | None = None, store: ZbufferStore | None = None):
+        self.views, self.voxels, self.config, self.layer, self.store = views, voxels, config, layer, store
         self._entries: OrderedDict[int, tuple] = OrderedDict()
         self.loads = 0  # views decoded and z-buffered so far (misses)
 
@@ -100,21 +102,27 @@ class _ViewCache:
         pyramid = [image]
         while min(pyramid[-1].shape[:2]) >= 16 and len(pyramid) < 6:
             pyramid.append(cv2.pyrDown(pyramid[-1]))
-        K, pose, size = self.views.K[i], self.views.world_from_cam[i], self.views.sizes[i]
-        if self.voxels is not None:
-            pts = self.voxels.in_view(K, pose, size, self.config.max_distance)
-            filled, nearest = zbuffer(pts, self.voxels.origin, K, pose, size, self.config.zbuffer_scale)
-        else:
-            filled = nearest = None
-        layer = None
-        if self.layer is not None:
-            pts = self.layer.in_view(K, pose, size, self.config.max_distance)
-            layer = zbuffer(pts, self.layer.origin, K, pose, size, self.config.zbuffer_scale)[0]
+        kept = None if self.store is None else self.store.load(i)
+        filled, nearest, layer = kept if kept is not None else self._zbuffers(i)
         entry = (pyramid, filled, nearest, layer)
         self._entries[i] = entry
         if len(self._entries) > self.config.cache_views:
             self._entries.popitem(last=False)
         return entry
+
+    def _zbuffers(self, i: int) -> tuple:
+        """View ``i``'s z-buffers (filled, nearest, the layer's), made, and kept in the store."""
+        K, pose, size = self.views.K[i], self.views.world_from_cam[i], self.views.sizes[i]
+        filled = nearest = layer = None
+        if self.voxels is not None:
+            pts = self.voxels.in_view(K, pose, size, self.config.max_distance)
+            filled, nearest = zbuffer(pts, self.voxels.origin, K, pose, size, self.config.zbuffer_scale)
+        if self.layer is not None:
+            pts = self.layer.in_view(K, pose, size, self.config.max_distance)
+            layer = zbuffer(pts, self.layer.origin, K, pose, size, self.config.zbuffer_scale)[0]
+        if self.store is not None:
+            self.store.save(i, (filled, nearest, layer))
+        return filled, nearest, layer
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,14 +153,17 @@ class ImageSampler:
     ``size``) halved ``split`` (n,) uint8 times (default never); a ground block's surface rises to its
     corners' heights ``corner_dz`` (n, 4) float64 (:func:`~billboards.geometry.surface_dz`; default
     flat). occluders: the points the z-buffers are made of, when more than ``voxels`` (a tile of a
-    street with its neighbours' points).
+    street with its neighbours' points). shared: a directory where the z-buffers of each view are
+    kept for every process sampling the same points (:mod:`~billboards.zbuffer_store`); None: each
+    process makes its own.
     """
 
     def __init__(self, views: Views, centres: np.ndarray, size: float, base_yaw: np.ndarray,
                  voxels: VoxelPoints, config: SamplingConfig = SamplingConfig(),
                  box_centres: np.ndarray | None = None, kind: np.ndarray | None = None,
                  block_size: float | None = None, occluders: VoxelPoints | None = None,
-                 split: np.ndarray | None = None, corner_dz: np.ndarray | None = None):
+                 split: np.ndarray | None = None, corner_dz: np.ndarray | None = None,
+                 shared: Path | None = None):
         self.views, self.config = views, config
         self.centres = np.asarray(centres, dtype=np.float64)
         # The voxel cubes (the slab of each billboard); the quads may sit off their centres.
@@ -171,7 +182,13 @@ class ImageSampler:
             layer = layer_points(self.centres[blocks], self.sizes[blocks], self.kind[blocks], self.base_yaw[blocks],
                                  None if self.corner_dz is None else self.corner_dz[blocks], views, voxels.origin,
                                  config.zbuffer_scale, config.max_distance)
-        self.cache = _ViewCache(views, voxels if occluders is None else occluders, config, layer)
+        behind = voxels if occluders is None else occluders
+        store = None
+        if shared is not None:  # the workers' z-buffers of these points, layer and settings, on disk
+            store = ZbufferStore(Path(shared) / store_key(
+                len(behind.points), behind.origin, behind.size, None if layer is None else layer.origin,
+                None if layer is None else np.asarray(layer.points), config.zbuffer_scale, config.max_distance))
+        self.cache = _ViewCache(views, behind, config, layer, store)
 
     # -- choosing cameras ------------------------------------------------------------
     def _candidates(self, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:

@@ -141,9 +141,11 @@ def _worker_state(state_dir: str):
                                     np.load(root / "occluder_points.npy", mmap_mode="r"),
                                     np.load(root / "occluder_begin.npy"), np.load(root / "occluder_centres.npy"),
                                     meta["voxel_size"], meta["occluders"]["reach"])
+        # the workers share their z-buffers where the images fit on disk (Views.cache)
         sampler = ImageSampler(views, quads, meta["voxel_size"], base_yaw, voxels, conf.sampling, box_centres=centres,
                                kind=kind, block_size=meta["block_size"], occluders=occluders,
-                               split=np.load(root / "split.npy"), corner_dz=np.load(root / "corner_dz.npy"))
+                               split=np.load(root / "split.npy"), corner_dz=np.load(root / "corner_dz.npy"),
+                               shared=None if views.cache is None else root / "zbuffers")
     else:
         sampler = PointSampler(voxels, np.load(root / "colours.npy", mmap_mode="r"), base_yaw, conf.sampling,
                                centres=quads)

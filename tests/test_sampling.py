@@ -370,3 +370,30 @@ def test_fill_below_shows_a_sparse_leaf_where_its_ray_points_down_and_nothing_li
                            np.concatenate([street["base_yaw"], np.zeros(len(blocks))]), sparse, config, kind=kind)
     behind = sampler.sample(low)
     np.testing.assert_array_equal(behind.rgba[..., 3], low_off.rgba[..., 3])
+
+
+def test_zbuffers_shared_through_a_store_sample_the_same_textures(street, tmp_path, monkeypatch):
+    from billboards import sampling as sampling_module
+
+    c, config = street["centres"], _config()
+    some = np.arange(0, len(c), 7)
+    alone = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], config).sample(some)
+    first = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], config, shared=tmp_path)
+    made = first.sample(some)
+    kept = list(tmp_path.glob("*/*.npz"))
+    assert kept and len(list(tmp_path.iterdir())) == 1
+    # another process's sampler of the same points reads the z-buffers: none made again
+    second = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], config, shared=tmp_path)
+    monkeypatch.setattr(sampling_module, "zbuffer", lambda *a, **k: pytest.fail("a kept z-buffer was made again"))
+    again = second.sample(some)
+    monkeypatch.undo()
+    for sampled in (made, again):
+        assert np.array_equal(sampled.rgba, alone.rgba) and np.array_equal(sampled.view, alone.view)
+    # other settings are another store; a damaged entry is made again
+    other = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], _config(zbuffer_scale=4),
+                         shared=tmp_path)
+    other.sample(some[:3])
+    assert len(list(tmp_path.iterdir())) == 2
+    kept[0].write_bytes(b"PK damaged")
+    third = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], config, shared=tmp_path)
+    assert np.array_equal(third.sample(some).rgba, alone.rgba)
