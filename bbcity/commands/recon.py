@@ -11,7 +11,8 @@ from ..options import MIN_LENGTH, UsageError, float_range, holdout, length, nonn
 from .common import OwnOutput, command_executor, io_parser, logger, workers_parent
 
 #: What a recon's WORK directory holds: a recon writes its cloud there and resumes what it finds.
-WORK_FILES = OwnOutput(re.compile(r"cloud\.ply|cloud_tiles\.json|poses\.json|recon_report\.json|sfm|spill"),
+# (cache: what is made of the cloud and kept beside it, e.g. bbcity mesh's Poisson meshes)
+WORK_FILES = OwnOutput(re.compile(r"cloud\.ply|cloud_tiles\.json|poses\.json|recon_report\.json|sfm|spill|cache"),
                        "a recon work directory's", "a recon writes its cloud there and resumes what it finds")
 
 
