@@ -277,6 +277,7 @@ def _commands(tmp):
         ("eval", nx, nx, "--out", out): {"--views": 1, "--size": 2, "--poisson-depth": 1,
                                          "--workprecision-depths": "+", "--panel-width": 1,
                                          "--training-views": 1},
+        ("mesh", nx): {"--depth": 1},
         ("fps", nx): {"--size": 2, "--gpu-frames": 1, "--cpu-frames": 1, "--path-step": 1, "--path-frames": 1,
                       "--gpu-budget": 1, "--walk-step": 1, "--walk-frames": 1},
     }

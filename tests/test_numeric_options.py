@@ -88,6 +88,7 @@ def valid_commands(paths) -> dict[str, list[str]]:
         "render": ["render", m, "--out", "O", "--frames", "2", "--size", "32", "24"],
         "eval": ["eval", m, d, "--out", "O", "--views", "1", "--size", "32", "24"],
         "fps": ["fps", m, "--size", "32", "24", "--gpu-frames", "1", "--cpu-frames", "1", "--path-frames", "2"],
+        "mesh": ["mesh", str(paths["W"] / "cloud.ply"), "--depth", "5"],
     }
 
 
