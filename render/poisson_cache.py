@@ -31,7 +31,7 @@ logger = logging.getLogger(__name__)
 
 #: Where a cloud's meshes are kept, relative to the cloud's directory.
 CACHE_DIR = Path("cache") / "poisson"
-#: An entry's arrays (those of :func:`render.baselines.poisson_arrays`' result) and its keys.
+#: The arrays an entry keeps (those of :func:`render.baselines.poisson_arrays`' result).
 ARRAYS = ("origin", "vertices", "vertex_colours", "triangles")
 
 

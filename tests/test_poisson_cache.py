@@ -114,3 +114,14 @@ def test_bbcity_mesh_refuses_bad_input_in_one_line(tmp_path, capsys, caplog, arg
     lines += [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert code == 2 and len(lines) == 1 and message in lines[0]
     assert not (tmp_path / CACHE_DIR).exists()
+
+
+def test_bbcity_mesh_that_cannot_keep_the_mesh_still_writes_out_or_says_why(tmp_path, caplog):
+    cloud = _write_cloud(tmp_path / "cloud.ply", normals=True)
+    (tmp_path / "cache").write_text("a file where the cache directory goes")
+    out = tmp_path / "mesh.ply"
+    assert cli_main(["-q", "mesh", str(cloud), "--depth", str(DEPTH), "--out", str(out)]) == 0
+    assert len(o3d.io.read_triangle_mesh(str(out)).triangles) > 100
+    with caplog.at_level(logging.ERROR):
+        assert cli_main(["-q", "mesh", str(cloud), "--depth", str(DEPTH)]) == 2
+    assert "could not be kept there, and no --out was given" in caplog.text

@@ -49,13 +49,15 @@ def run(args) -> int:
     cache = PoissonCache.of(args.cloud)
     trim = EvalConfig.trim_quantile
     mesh = mesh_cloud_file(cache, None, args.depth, trim)
-    kept = cache.path(args.depth, trim)
-    if not kept.is_file():
-        raise InputError(f"{kept}: the mesh could not be kept there (see the warning above)")
-    logger.info("Poisson mesh of %s, depth %d: %d vertices, %d triangles%s → %s", args.cloud, args.depth,
-                len(mesh["vertices"]), len(mesh["triangles"]), " (kept from before)" if mesh.get("cached") else "",
-                kept)
     if args.out is not None:
         write_poisson_ply(args.out, mesh)
         logger.info("wrote %s", args.out)
+    kept = cache.path(args.depth, trim)
+    if not kept.is_file():  # (the cache's warning said why)
+        if args.out is None:
+            raise InputError(f"{kept}: the mesh could not be kept there, and no --out was given")
+        return 0
+    logger.info("Poisson mesh of %s, depth %d: %d vertices, %d triangles%s → %s", args.cloud, args.depth,
+                len(mesh["vertices"]), len(mesh["triangles"]), " (kept from before)" if mesh.get("cached") else "",
+                kept)
     return 0
