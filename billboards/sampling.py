@@ -26,7 +26,6 @@ The z-buffers are :func:`billboards.voxels.zbuffer`; the images are
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,8 +39,8 @@ from .geometry import (BILLBOARD, GROUND, HALF_DIAGONAL, LAYER_KINDS, PLANE, Dir
 from .texels import (OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, close_holes, fill_directions, reject_transients,
                      stack_filter)
 from .views import Views
-from .voxels import VoxelPoints, layer_points, zbuffer
-from .zbuffer_store import ZbufferStore, store_key
+from .voxels import VoxelPoints, layer_points
+from .view_cache import ViewCache, ZbufferStore, store_key
 
 logger = logging.getLogger(__name__)
 
@@ -83,48 +82,6 @@ class SamplingConfig:
             raise InputError("transient_threshold and transient_mads must be ≥ 0, transient_min_views ≥ 3")
 
 
-class _ViewCache:
-    """Per-process LRU of decoded image pyramids and z-buffers: the cloud's (filled and nearest)
-    and, with ``layer`` (the facade layer's blocks as points), the layer's (filled; None without)."""
-
-    def __init__(self, views: Views, voxels: VoxelPoints | None, config: SamplingConfig,
-                 layer: VoxelPoints | None = None, store: ZbufferStore | None = None):
-        self.views, self.voxels, self.config, self.layer, self.store = views, voxels, config, layer, store
-        self._entries: OrderedDict[int, tuple] = OrderedDict()
-        self.loads = 0  # views decoded and z-buffered so far (misses)
-
-    def get(self, i: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray | None]:
-        if i in self._entries:
-            self._entries.move_to_end(i)
-            return self._entries[i]
-        self.loads += 1
-        image = self.views.image(i)
-        pyramid = [image]
-        while min(pyramid[-1].shape[:2]) >= 16 and len(pyramid) < 6:
-            pyramid.append(cv2.pyrDown(pyramid[-1]))
-        kept = None if self.store is None else self.store.load(i)
-        filled, nearest, layer = kept if kept is not None else self._zbuffers(i)
-        entry = (pyramid, filled, nearest, layer)
-        self._entries[i] = entry
-        if len(self._entries) > self.config.cache_views:
-            self._entries.popitem(last=False)
-        return entry
-
-    def _zbuffers(self, i: int) -> tuple:
-        """View ``i``'s z-buffers (filled, nearest, the layer's), made, and kept in the store."""
-        K, pose, size = self.views.K[i], self.views.world_from_cam[i], self.views.sizes[i]
-        filled = nearest = layer = None
-        if self.voxels is not None:
-            pts = self.voxels.in_view(K, pose, size, self.config.max_distance)
-            filled, nearest = zbuffer(pts, self.voxels.origin, K, pose, size, self.config.zbuffer_scale)
-        if self.layer is not None:
-            pts = self.layer.in_view(K, pose, size, self.config.max_distance)
-            layer = zbuffer(pts, self.layer.origin, K, pose, size, self.config.zbuffer_scale)[0]
-        if self.store is not None:
-            self.store.save(i, (filled, nearest, layer))
-        return filled, nearest, layer
-
-
 @dataclass(frozen=True, eq=False)
 class SampledTextures:
     """rgba (B, d, t, t, 4) uint8 (alpha 0 or 255); view (B, d) int64 first
@@ -154,7 +111,7 @@ class ImageSampler:
     corners' heights ``corner_dz`` (n, 4) float64 (:func:`~billboards.geometry.surface_dz`; default
     flat). occluders: the points the z-buffers are made of, when more than ``voxels`` (a tile of a
     street with its neighbours' points). shared: a directory where the z-buffers of each view are
-    kept for every process sampling the same points (:mod:`~billboards.zbuffer_store`); None: each
+    kept for every process sampling the same points (:mod:`~billboards.view_cache`); None: each
     process makes its own.
     """
 
@@ -188,7 +145,7 @@ class ImageSampler:
             store = ZbufferStore(Path(shared) / store_key(
                 len(behind.points), behind.origin, behind.size, None if layer is None else layer.origin,
                 None if layer is None else np.asarray(layer.points), config.zbuffer_scale, config.max_distance))
-        self.cache = _ViewCache(views, behind, config, layer, store)
+        self.cache = ViewCache(views, behind, config, layer, store)
 
     # -- choosing cameras ------------------------------------------------------------
     def _candidates(self, ids: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:

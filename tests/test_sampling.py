@@ -373,7 +373,7 @@ def test_fill_below_shows_a_sparse_leaf_where_its_ray_points_down_and_nothing_li
 
 
 def test_zbuffers_shared_through_a_store_sample_the_same_textures(street, tmp_path, monkeypatch):
-    from billboards import sampling as sampling_module
+    from billboards import view_cache as view_cache_module
 
     c, config = street["centres"], _config()
     some = np.arange(0, len(c), 7)
@@ -384,7 +384,7 @@ def test_zbuffers_shared_through_a_store_sample_the_same_textures(street, tmp_pa
     assert kept and len(list(tmp_path.iterdir())) == 1
     # another process's sampler of the same points reads the z-buffers: none made again
     second = ImageSampler(street["views"], c, SIZE, street["base_yaw"], street["voxels"], config, shared=tmp_path)
-    monkeypatch.setattr(sampling_module, "zbuffer", lambda *a, **k: pytest.fail("a kept z-buffer was made again"))
+    monkeypatch.setattr(view_cache_module, "zbuffer", lambda *a, **k: pytest.fail("a kept z-buffer was made again"))
     again = second.sample(some)
     monkeypatch.undo()
     for sampled in (made, again):
