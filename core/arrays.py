@@ -3,6 +3,12 @@
 :func:`unique_rows` is ``np.unique(rows, axis=0, ...)`` for integer and boolean rows, about
 ten times faster: numpy sorts rows through a structured view, one field compare at a time;
 here each row becomes one 64-bit key whose order is the rows' lexicographic order.
+
+:func:`put_rows`, :func:`select_rows`, :func:`mix_rows` and :func:`row_norms` are
+``out[index] = rows``, ``a[mask]``, ``np.where(mask[:, None], b, a)`` and
+``np.linalg.norm(a, axis=1)`` on 2-D arrays (n, k), the same values several times faster: numpy moves the rows of a 2-D fancy index one element at a time (and broadcasts
+a (n, 1) mask element by element, and reduces each short row in a loop of its own); these move
+each row as one item, or work column by column.
 """
 
 from __future__ import annotations
@@ -60,3 +66,46 @@ def _row_keys(rows: np.ndarray):
     weight = np.cumprod(np.r_[span[1:], 1][::-1])[::-1].astype(np.int64)  # the last column weighs 1
     keys = ((rows.astype(np.int64) - lo) * weight).sum(axis=1)
     return keys, lambda u: ((u[:, None] // weight) % span + lo).astype(rows.dtype)
+
+
+def _row_items(a: np.ndarray) -> np.ndarray:
+    """A C-contiguous 2-D array (n, k) as (n,) items of k elements' bytes (a view)."""
+    return a.view(np.dtype((np.void, a.shape[1] * a.itemsize))).reshape(len(a))
+
+
+def put_rows(out: np.ndarray, index: np.ndarray, rows: np.ndarray) -> None:
+    """``out[index] = rows``: out (n, k) C-contiguous, index (m,) int, rows (m, k) (cast to
+    out's dtype as the assignment would: same-kind)."""
+    if out.ndim != 2 or not out.flags.c_contiguous or out.shape[1] == 0:
+        out[index] = rows
+        return
+    rows = np.ascontiguousarray(np.broadcast_to(rows, (len(index), out.shape[1])), dtype=out.dtype)
+    np.put(_row_items(out), index, _row_items(rows))
+
+
+def select_rows(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``a[mask]`` for a (n, ...) and mask (n,) bool."""
+    return np.compress(mask, a, axis=0)
+
+
+def mix_rows(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``np.where(mask[:, None], b, a)``: a (n, k) where mask (n,) bool is False, b (broadcast
+    to a's shape) where True, in their result dtype."""
+    a = np.asarray(a)
+    b = np.broadcast_to(b, a.shape)
+    out = np.empty(a.shape, np.result_type(a, b))
+    for j in range(a.shape[1]):
+        out[:, j] = np.where(mask, b[:, j], a[:, j])
+    return out
+
+
+def row_norms(a: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(a, axis=1)`` of a float array (n, k), bit for bit: the squares added left
+    to right, as numpy's reduction over a row of fewer than 8 adds them (longer rows: numpy's
+    own, whose sums are pairwise)."""
+    if a.shape[1] >= 8:
+        return np.linalg.norm(a, axis=1)
+    total = a[:, 0] * a[:, 0] if a.shape[1] else np.zeros(len(a), a.dtype)
+    for j in range(1, a.shape[1]):
+        total += a[:, j] * a[:, j]
+    return np.sqrt(total)

@@ -16,6 +16,7 @@ import numpy as np
 import open3d as o3d
 
 from capture.distortion import Distortion, undistort
+from core.arrays import put_rows
 from core.errors import InputError
 
 from .scene import Scene
@@ -78,14 +79,16 @@ class Renderer:
         t, prim, normal = self._cast(origin, directions)
         hit = np.isfinite(t)
         colour = np.empty((len(t), 3))
-        colour[~hit] = sky(directions[~hit])
+        missed = np.flatnonzero(~hit)
+        put_rows(colour, missed, sky(np.take(directions, missed, axis=0)))
         # the hits gathered once, grouped by kind (as shade groups them)
         rows = np.flatnonzero(hit)
         obj = self.scene.triangle_object[prim[rows]]
         order = kind_order(self.scene, obj)
         rows, obj = rows[order], obj[order]
-        d = directions[rows]
-        colour[rows] = shade_grouped(self.scene, origin + t[rows, None] * d, normal[rows], obj, d)
+        d = np.take(directions, rows, axis=0)
+        put_rows(colour, rows, shade_grouped(self.scene, origin + t[rows, None] * d, np.take(normal, rows, axis=0),
+                                             obj, d))
         return colour
 
     def render(self, K: np.ndarray, world_from_cam: np.ndarray, size: tuple[int, int],

@@ -14,6 +14,8 @@ from functools import cached_property
 
 import numpy as np
 
+from core.arrays import mix_rows, put_rows, row_norms, select_rows
+
 from .noise import fbm, rand01, value_noise
 from .scene import Kind, Scene
 
@@ -45,12 +47,12 @@ class Hits:
     @cached_property
     def lo(self) -> np.ndarray:
         """(n, 3) float64 minimum of each hit's object box."""
-        return self.scene.object_bounds[self.obj, 0]
+        return np.take(self.scene.object_bounds[:, 0], self.obj, axis=0)
 
     @cached_property
     def hi(self) -> np.ndarray:
         """(n, 3) float64 maximum of each hit's object box."""
-        return self.scene.object_bounds[self.obj, 1]
+        return np.take(self.scene.object_bounds[:, 1], self.obj, axis=0)
 
     @cached_property
     def seed(self) -> np.ndarray:
@@ -64,23 +66,23 @@ class Hits:
     def palette(self, key: int, colours: np.ndarray) -> np.ndarray:
         """One of ``colours`` (p, 3) per object → (n, 3)."""
         idx = (rand01(self.scene.object_seed, key) * len(colours)).astype(np.int64)
-        return colours[idx[self.obj]]
+        return np.take(colours[idx], self.obj, axis=0)
 
     def subset(self, mask: np.ndarray) -> "Hits":
-        return Hits(self.p[mask], self.normal[mask], self.obj[mask], self.scene,
-                    None if self.view is None else self.view[mask])
+        return Hits(select_rows(self.p, mask), select_rows(self.normal, mask), self.obj[mask], self.scene,
+                    None if self.view is None else select_rows(self.view, mask))
 
 
 def _mix(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Colour a (n, 3) where t (n,) bool is False, b where True."""
-    return np.where(t[:, None], b, a)
+    return mix_rows(a, b, t)
 
 
 def _where(mask: np.ndarray, colour: np.ndarray, fn, *args) -> None:
     """colour[mask] = fn(*(arg[mask] for arg in args)): evaluate costly detail only where it shows."""
     if mask.any():
-        colour[mask] = fn(*(a[mask] if isinstance(a, np.ndarray) and a.ndim and len(a) == len(mask) else a
-                            for a in args))
+        put_rows(colour, np.flatnonzero(mask), fn(*(select_rows(a, mask) if isinstance(a, np.ndarray) and a.ndim
+                                                    and len(a) == len(mask) else a for a in args)))
 
 
 _PLASTER = np.array([[0.86, 0.80, 0.70], [0.78, 0.74, 0.68], [0.90, 0.86, 0.78], [0.72, 0.62, 0.52],
@@ -194,7 +196,8 @@ def facade(h: Hits, house: bool = False) -> tuple[np.ndarray, np.ndarray]:
     in_cols = (col >= 0) & (col < n_cols)
 
     cornice = (fy < 0.12) & (storey >= 1)
-    colour[cornice] = colour[cornice] * 0.7 + 0.1
+    cornice = np.flatnonzero(cornice)
+    put_rows(colour, cornice, np.take(colour, cornice, axis=0) * 0.7 + 0.1)
 
     upper = (storey >= 1) & in_cols & (v < hi[:, 2] - 0.6)
     sill_y, border = 0.9, 0.07
@@ -209,7 +212,7 @@ def facade(h: Hits, house: bool = False) -> tuple[np.ndarray, np.ndarray]:
     radiance = pane.copy()
     colour = _mix(colour, frame_col, mullion)
     sill = upper & (np.abs(fx) < win_w / 2 + 0.08) & (fy > sill_y - 0.08) & (fy <= sill_y)
-    colour[sill] = 0.85
+    put_rows(colour, np.flatnonzero(sill), 0.85)
 
     ground = (storey == 0) & in_cols
     door = ground & (col == np.floor(h.param(9, 0, 1) * n_cols)) & (np.abs(fx) < 0.55) & (fy < 2.2)
@@ -319,7 +322,7 @@ def house(h: Hits) -> tuple[np.ndarray, np.ndarray]:
     colour, radiance = facade(h, house=True)
     sloped = (h.normal[:, 2] > 0.2) & (h.normal[:, 2] < 0.99)
     if sloped.any():
-        colour[sloped] = roof(h.subset(sloped))
+        put_rows(colour, np.flatnonzero(sloped), roof(h.subset(sloped)))
     return colour, radiance & ~sloped
 
 
@@ -371,7 +374,7 @@ def shade_grouped(scene: Scene, p: np.ndarray, normal: np.ndarray, obj: np.ndarr
     normal = normal.astype(np.float64)
     if view is not None:
         view = np.asarray(view, dtype=np.float64)
-        view = view / np.linalg.norm(view, axis=1, keepdims=True)
+        view = view / row_norms(view)[:, None]
     colour = np.empty((n, 3))
     radiance = np.zeros(n, dtype=bool)
     ends = np.append(np.flatnonzero(kinds[1:] != kinds[:-1]) + 1, n)
@@ -392,7 +395,7 @@ def shade_grouped(scene: Scene, p: np.ndarray, normal: np.ndarray, obj: np.ndarr
 
 def sky(directions: np.ndarray) -> np.ndarray:
     """Smooth, textureless sky. directions: (n, 3) world ray directions → (n, 3) colour."""
-    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    d = directions / row_norms(directions)[:, None]
     t = np.clip(d[:, 2], 0.0, 1.0)[:, None]
     horizon = np.array([0.80, 0.86, 0.92])
     zenith = np.array([0.42, 0.58, 0.84])

@@ -1,11 +1,12 @@
-"""unique_rows against numpy's np.unique(axis=0), on the rows the stages meet and on the edge cases."""
+"""unique_rows against numpy's np.unique(axis=0), and the row helpers against the numpy expressions they
+stand for, on the rows the stages meet and on the edge cases."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from core.arrays import unique_rows
+from core.arrays import mix_rows, put_rows, row_norms, select_rows, unique_rows
 
 
 def _numpy(rows):
@@ -41,3 +42,58 @@ def test_unique_rows_of_nothing():
     assert unique_rows(empty).shape == (0, 3)
     u, c = unique_rows(empty, return_counts=True)
     assert u.shape == (0, 3) and c.shape == (0,)
+
+
+_RNG = np.random.default_rng(7)
+
+
+@pytest.mark.parametrize("a", [
+    _RNG.random((1000, 3)),                                   # colours, points
+    _RNG.random((1000, 3)).astype(np.float32),                # normals as cast
+    _RNG.integers(-9, 9, (1000, 4)),                          # integer rows
+    _RNG.random((1000, 1)),                                   # one column
+    np.asfortranarray(_RNG.random((1000, 3))),                # not C-contiguous: numpy's own path
+    np.zeros((0, 3)),                                         # nothing
+])
+@pytest.mark.parametrize("density", [0.0, 0.03, 0.5, 1.0])
+def test_row_helpers_are_numpys(a, density):
+    rng = np.random.default_rng(int(density * 100))
+    mask = rng.random(len(a)) < density
+    index = np.flatnonzero(mask)
+    assert np.array_equal(select_rows(a, mask), a[mask])
+    b = rng.random(a.shape).astype(a.dtype) * 50
+    for other in (b, b[:1], np.full(a.shape[1], 3, a.dtype), a.dtype.type(2)):  # rows, one row, a row, a scalar
+        rows = other[index] if np.ndim(other) == 2 and len(other) == len(a) else other
+        got, want = a.copy(), a.copy()
+        put_rows(got, index, rows)
+        want[index] = rows
+        assert np.array_equal(got, want)
+        mixed = mix_rows(a, other, mask)
+        assert mixed.dtype == np.where(mask[:, None], other, a).dtype
+        assert np.array_equal(mixed, np.where(mask[:, None], other, a))
+    got = a.copy()
+    put_rows(got, index[::-1], b[index][::-1])  # any order of rows
+    want = a.copy()
+    want[index] = b[index]
+    assert np.array_equal(got, want)
+
+
+def test_put_rows_casts_as_assignment_does():
+    out = np.zeros((5, 3), np.uint8)
+    put_rows(out, np.array([1, 3]), np.array([[1.7, 2.2, 255.0], [0.4, 9.9, 3.0]]))
+    want = np.zeros((5, 3), np.uint8)
+    want[[1, 3]] = np.array([[1.7, 2.2, 255.0], [0.4, 9.9, 3.0]])
+    assert np.array_equal(out, want)
+
+
+@pytest.mark.parametrize("k", [0, 1, 2, 3, 4, 7, 8, 9, 16])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_row_norms_are_numpys_bit_for_bit(k, dtype):
+    rng = np.random.default_rng(k)
+    # magnitudes over forty decades: rounding, overflow to inf and underflow to 0 all as numpy's
+    a = (rng.standard_normal((5000, k)) * 10.0 ** rng.integers(-20, 20, (5000, k))).astype(dtype)
+    a[:3] = [np.nan, np.inf, 0.0][:1] * k if k else a[:3]
+    with np.errstate(over="ignore", invalid="ignore"):
+        assert np.array_equal(row_norms(a), np.linalg.norm(a, axis=1), equal_nan=True)
+        f = np.asfortranarray(a)
+        assert np.array_equal(row_norms(f), np.linalg.norm(f, axis=1), equal_nan=True)
