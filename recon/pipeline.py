@@ -99,16 +99,35 @@ class _FrameTask:
 
 
 _PAIRS_CACHE: dict = {}
+_DATASET_CACHE: dict = {}
+
+
+def _worker_dataset(path: str):
+    """The dataset at ``path``, opened once per worker while its rig.json, poses.json and
+    dataset.json keep their size and time (a long-lived cluster worker may see a dataset
+    rewritten at the same path): opening checks every image file, each frame's task reads two."""
+    key = (path,) + tuple((s.st_mtime_ns, s.st_size) if (s := _stat(Path(path) / name)) else None
+                          for name in ("rig.json", "poses.json", "dataset.json"))
+    if key not in _DATASET_CACHE:
+        _DATASET_CACHE.clear()
+        _DATASET_CACHE[key] = load_dataset(path)
+    return _DATASET_CACHE[key]
+
+
+def _stat(path: Path) -> os.stat_result | None:
+    try:
+        return path.stat()
+    except OSError:
+        return None
 
 
 def _process_frame(task: _FrameTask) -> dict:
     """Stereo for one frame, then spill its points. Runs in a worker process."""
     t0 = time.perf_counter()
-    ds = load_dataset(task.dataset)
+    ds = _worker_dataset(task.dataset)
     if ds.rig.num_cameras == 1:  # one camera: stereo with neighbouring frames
         return _process_frame_motion(task, ds, t0)
-    # rectification maps: once per rig and worker (a long-lived cluster worker may see a dataset
-    # rewritten at the same path: its rig.json's size and time tell)
+    # rectification maps: once per rig and worker (as the dataset above)
     rig = scaled_rig(ds.rig, working_scale(ds.rig.sizes[0], task.max_image_size))
     rig_file = Path(task.dataset) / "rig.json"
     key = ((task.dataset, rig_file.stat().st_mtime_ns, rig_file.stat().st_size) if rig_file.is_file()

@@ -248,7 +248,9 @@ def texture_mask(image: np.ndarray, window: int, threshold: float) -> np.ndarray
     |∂I/∂x| (grey levels per pixel, grey = channel mean) over a window × window
     box is at least ``threshold``.
     """
-    grey = image.astype(np.float32).mean(axis=2)
+    # the channel mean (exact integer sums in float32, divided as mean divides them), without a
+    # reduction over three-element rows
+    grey = (image[..., 0].astype(np.float32) + image[..., 1] + image[..., 2]) / np.float32(3)
     gx = np.abs(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)) / 8.0
     energy = cv2.boxFilter(gx, -1, (window, window), normalize=True, borderType=cv2.BORDER_REPLICATE)
     return energy >= threshold
