@@ -46,6 +46,7 @@ from functools import cached_property
 import numpy as np
 from scipy import sparse
 
+from core.arrays import scale_rows
 from core.errors import InputError
 
 from .decode import direction_corners, view_direction_index
@@ -212,12 +213,29 @@ def blended(quads: Quads, values: np.ndarray, quad: np.ndarray, corner: np.ndarr
     → (r, ...) float32, the bracket's directions blended and each filtered bilinearly
     (:func:`column_taps`)."""
     tap_quad, taps, tap_w = column_taps(quads, quad, texel)
+    n, d, tt = values.shape[:3]
+    # one gather of whole items from the values as rows (n·d·t², ...), where they are laid out so
+    flat = values.reshape((n * d * tt,) + values.shape[3:]) if values.flags.c_contiguous else None
     out = 0.0
     for s in range(corner.shape[1]):
-        v = np.asarray(values[tap_quad, corner[:, s:s + 1], taps], np.float32)        # (r, 4, ...)
-        w = (weight[:, s:s + 1] * tap_w).reshape(tap_w.shape + (1,) * (v.ndim - 2))
-        out = out + (w * v).sum(axis=1)
+        if flat is None:
+            v = np.asarray(values[tap_quad, corner[:, s:s + 1], taps], np.float32)    # (r, 4, ...)
+        else:
+            v = np.take(flat, (tap_quad * d + corner[:, s:s + 1]) * tt + taps, axis=0).astype(np.float32)
+        w = weight[:, s:s + 1] * tap_w                                                 # (r, 4)
+        # the taps' products added left to right, as (w·v).sum(axis=1) adds its four
+        total = _tap(w, v, 0)
+        for k in range(1, w.shape[1]):
+            total += _tap(w, v, k)
+        out = out + total
     return out
+
+
+def _tap(w: np.ndarray, v: np.ndarray, k: int) -> np.ndarray:
+    """w[:, k] times v[:, k] (r, ...): weights (r, 4), values (r, 4, ...)."""
+    if v.ndim == 2:
+        return w[:, k] * v[:, k]
+    return scale_rows(v[:, k].reshape(len(v), math.prod(v.shape[2:])), w[:, k]).reshape(v[:, k].shape)
 
 
 @dataclass(frozen=True, eq=False)
@@ -327,9 +345,9 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, iterations: int,
     seconds = [time.perf_counter() - t0]
     weight = prior * prob.prior_weight()                        # (N,) the prior's diagonal
     diagonal = prob.diagonal() + weight
-    precondition = 1.0 / diagonal[:, None]
+    precondition = 1.0 / diagonal
     r = -prob.adjoint(e)                                        # the right-hand side, as d = 0
-    z = precondition * r
+    z = scale_rows(r, precondition)
     p = z.copy()
     rz = (r * z).sum(axis=0)
     for _ in range(iterations):
@@ -338,21 +356,30 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, iterations: int,
         if not np.any(rz > 1e-24):
             break                                               # converged (or nothing measured)
         Ap = prob.apply(p)
-        Mp = prob.adjoint(Ap) + weight[:, None] * p
+        Mp = prob.adjoint(Ap) + scale_rows(p, weight)
         pMp = (p * Mp).sum(axis=0)
         step = np.where(pMp > 0, rz / np.where(pMp > 0, pMp, 1.0), 0.0)
-        x += step * p
-        e += step * Ap
-        r -= step * Mp
-        z = precondition * r
+        x += _per_column(step, p)
+        e += _per_column(step, Ap)
+        r -= _per_column(step, Mp)
+        z = scale_rows(r, precondition)
         rz_new = (r * z).sum(axis=0)
-        p = z + np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0) * p
+        p = z + _per_column(np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0), p)
         rz = rz_new
         history.append(float(np.square(e).sum()))
         seconds.append(time.perf_counter() - t0)
     if clip:
         np.clip(x, 0.0, 1.0, out=x)
     return x, history, seconds
+
+
+def _per_column(c: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``c * a``: c (k,) times each column of a (N, k), a column at a time (numpy broadcasts
+    a short row element by element)."""
+    out = np.empty(a.shape, np.result_type(c, a))
+    for j in range(a.shape[1]):
+        np.multiply(a[:, j], c[j], out=out[:, j])
+    return out
 
 
 def solve_reference(prob: Problem, x0: np.ndarray, prior: float) -> np.ndarray:

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.arrays import row_dots, scale_rows
+
 from .fit import Quads, blended, record_dtype
 from .geometry import surface_dz
 
@@ -123,18 +125,20 @@ def trace(qs: QuadScene, alpha: np.ndarray | None, direction: np.ndarray, start:
     for _ in range(see_through + 1 if alpha is not None else 1):
         if len(todo) == 0:
             break
-        origin = direction[todo] * start[todo, None]
-        rays = np.concatenate([origin, direction[todo]], axis=1).astype(np.float32)
+        ahead = np.take(direction, todo, axis=0)
+        rays = np.empty((len(todo), 6), np.float32)
+        rays[:, :3] = scale_rows(ahead, start[todo])
+        rays[:, 3:] = ahead
         hit = qs.scene.cast_rays(o3d.core.Tensor(rays))
         t_hit = hit["t_hit"].numpy().astype(np.float64)
         met = np.isfinite(t_hit)
         todo, t_hit = todo[met], t_hit[met]
         prim = hit["primitive_ids"].numpy()[met].astype(np.int64)
         local = prim % n_tri                                       # triangle k and n_tri + k are quad k's
-        point = direction[todo] * (start[todo] + t_hit)[:, None] - qs.rel[local]
+        point = scale_rows(np.take(direction, todo, axis=0), start[todo] + t_hit) - np.take(qs.rel, local, axis=0)
         scale = quads.sizes(ids[local])
-        col = (point * qs.right[local]).sum(axis=1) / scale + 0.5
-        row = 0.5 - (point * qs.up[local]).sum(axis=1) / scale
+        col = row_dots(point, np.take(qs.right, local, axis=0)) / scale + 0.5
+        row = 0.5 - row_dots(point, np.take(qs.up, local, axis=0)) / scale
         texel = (np.stack([col, row], axis=1) * quads.tile).astype(np.float32)
         corner, weight = quads.brackets(ids[local], qs.eye)
         opaque = (np.ones(len(todo), bool) if alpha is None

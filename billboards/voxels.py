@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from core.arrays import row_norms
+
 from .geometry import kind_frames, quad_grid_points
 from .resolution import capture_footprint
 
@@ -42,7 +44,7 @@ class VoxelPoints:
         radius = max(self.size * 0.8660254, self.reach or 0.0)
         z = cam[:, 2]
         # Conservative frustum test of the voxel's bounding sphere.
-        ok = (z > -radius) & (np.linalg.norm(cam, axis=1) < max_distance + radius)
+        ok = (z > -radius) & (row_norms(cam) < max_distance + radius)
         zc = np.maximum(z, 1e-6)
         for axis, focal, centre, extent in ((0, K[0, 0], K[0, 2], w), (1, K[1, 1], K[1, 2], h)):
             margin = radius * focal / zc + 1
@@ -52,7 +54,7 @@ class VoxelPoints:
         starts, ends = self.begin[voxels], self.begin[voxels + 1]
         lengths = ends - starts
         index = np.arange(int(lengths.sum())) + np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
-        return self.points[index]
+        return np.take(self.points, index, axis=0)
 
 
 def voxel_points(points: np.ndarray, leaf: np.ndarray, centres: np.ndarray, origin: np.ndarray,

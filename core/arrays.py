@@ -4,9 +4,10 @@
 ten times faster: numpy sorts rows through a structured view, one field compare at a time;
 here each row becomes one 64-bit key whose order is the rows' lexicographic order.
 
-:func:`put_rows`, :func:`select_rows`, :func:`mix_rows` and :func:`row_norms` are
-``out[index] = rows``, ``a[mask]``, ``np.where(mask[:, None], b, a)`` and
-``np.linalg.norm(a, axis=1)`` on 2-D arrays (n, k), the same values several times faster: numpy moves the rows of a 2-D fancy index one element at a time (and broadcasts
+:func:`put_rows`, :func:`select_rows`, :func:`mix_rows`, :func:`scale_rows`, :func:`row_dots`
+and :func:`row_norms` are ``out[index] = rows``, ``a[mask]``, ``np.where(mask[:, None], b, a)``,
+``a * s[:, None]``, ``(a * b).sum(axis=1)`` and ``np.linalg.norm(a, axis=1)`` on 2-D arrays
+(n, k), the same values several times faster: numpy moves the rows of a 2-D fancy index one element at a time (and broadcasts
 a (n, 1) mask element by element, and reduces each short row in a loop of its own); these move
 each row as one item, or work column by column.
 """
@@ -97,6 +98,28 @@ def mix_rows(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> np.ndarray:
     for j in range(a.shape[1]):
         out[:, j] = np.where(mask, b[:, j], a[:, j])
     return out
+
+
+def scale_rows(a: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """``a * s[:, None]``: each row of a (n, k) times s (n,), in their result dtype."""
+    a, s = np.asarray(a), np.asarray(s)
+    out = np.empty(a.shape, np.result_type(a, s))
+    for j in range(a.shape[1]):
+        np.multiply(a[:, j], s, out=out[:, j])
+    return out
+
+
+def row_dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(a * b).sum(axis=1)`` of a, b (n, k), k < 8, bit for bit: the products added left to
+    right, as numpy's reduction over a short row adds them (longer rows: numpy's own)."""
+    if a.shape[1] >= 8:
+        return (a * b).sum(axis=1)
+    if a.shape[1] == 0:
+        return np.zeros(len(a), np.result_type(a, b))
+    total = a[:, 0] * b[:, 0]
+    for j in range(1, a.shape[1]):
+        total += a[:, j] * b[:, j]
+    return total
 
 
 def row_norms(a: np.ndarray) -> np.ndarray:

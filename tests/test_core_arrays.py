@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.arrays import mix_rows, put_rows, row_norms, select_rows, unique_rows
+from core.arrays import mix_rows, put_rows, row_dots, row_norms, scale_rows, select_rows, unique_rows
 
 
 def _numpy(rows):
@@ -97,3 +97,17 @@ def test_row_norms_are_numpys_bit_for_bit(k, dtype):
         assert np.array_equal(row_norms(a), np.linalg.norm(a, axis=1), equal_nan=True)
         f = np.asfortranarray(a)
         assert np.array_equal(row_norms(f), np.linalg.norm(f, axis=1), equal_nan=True)
+
+
+@pytest.mark.parametrize("k", [0, 1, 3, 4, 7, 8, 12])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_row_dots_and_scales_are_numpys_bit_for_bit(k, dtype):
+    rng = np.random.default_rng(k)
+    a = (rng.standard_normal((3000, k)) * 10.0 ** rng.integers(-8, 8, (3000, k))).astype(dtype)
+    b = (rng.standard_normal((3000, k)) * 10.0 ** rng.integers(-8, 8, (3000, k))).astype(dtype)
+    s = rng.standard_normal(3000)
+    assert np.array_equal(row_dots(a, b), (a * b).sum(axis=1))
+    assert row_dots(a, b).dtype == (a * b).sum(axis=1).dtype
+    for scale in (s, s.astype(np.float32)):
+        assert np.array_equal(scale_rows(a, scale), a * scale[:, None])
+        assert scale_rows(a, scale).dtype == (a * scale[:, None]).dtype
