@@ -181,7 +181,10 @@ class ImageSampler:
                          np.round(K[None, :, 0, 0] * HALF_DIAGONAL * self.sizes[ids][:, None]
                                   / np.maximum(z, 1e-9), 3), 0.0)
         usable = ((z > 0.3) & (dist < cfg.max_distance) & (u >= -m) & (u <= w - 1 + m) & (v >= -m) & (v <= h - 1 + m))
-        dyaw = np.round(np.angle(np.exp(1j * (cam_yaw[:, None, :] - yaw[:, :, None]))), 6)  # (B, d, V), wrapped
+        # (B, d, V), wrapped; only where the camera is usable (elsewhere it ranks last, whatever its angle)
+        seen = np.broadcast_to(usable[:, None, :], yaw.shape + usable.shape[1:])
+        dyaw = np.zeros(seen.shape)
+        dyaw[seen] = np.round(np.angle(np.exp(1j * (cam_yaw[:, None, :] - yaw[:, :, None])[seen])), 6)
         several_rows = len(cfg.directions.pitches_deg) > 1
         dpitch = np.round(cam_pitch[:, None, :] - pitch[:, :, None], 6)
         cost = np.abs(dyaw) + (1.0 if several_rows else 0.1) * np.abs(dpitch)
