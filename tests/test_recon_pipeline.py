@@ -161,3 +161,18 @@ def test_max_depth_inf_means_no_limit_and_the_report_is_strict_json(tiny_dataset
     assert main(["recon", str(tiny_dataset), "--out", str(work), "--eval-only"]) == 0
     scored = json.loads((work / "recon_report.json").read_text())
     assert scored["accuracy"]["surface_max_depth_m"] is None and scored["accuracy"]["points"] == report["points"]
+
+
+def test_a_worker_opens_a_dataset_once_until_it_is_rewritten(tiny_dataset, tmp_path):
+    from recon.pipeline import _worker_dataset
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dataset, copy)
+    first = _worker_dataset(str(copy))
+    assert _worker_dataset(str(copy)) is first  # every frame's task: no second open
+    poses = json.loads((copy / "poses.json").read_text())
+    poses["frames"][0]["world_from_rig"][0][3] += 0.25  # the same path rewritten: frame 0 moved
+    (copy / "poses.json").write_text(json.dumps(poses))
+    again = _worker_dataset(str(copy))
+    assert again is not first
+    assert again.world_from_rig[0][0, 3] == first.world_from_rig[0][0, 3] + 0.25
