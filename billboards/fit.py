@@ -46,7 +46,7 @@ from functools import cached_property
 import numpy as np
 from scipy import sparse
 
-from core.arrays import scale_rows
+from core.arrays import scale_columns, scale_rows
 from core.errors import InputError
 
 from .decode import direction_corners, view_direction_index
@@ -359,27 +359,18 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, iterations: int,
         Mp = prob.adjoint(Ap) + scale_rows(p, weight)
         pMp = (p * Mp).sum(axis=0)
         step = np.where(pMp > 0, rz / np.where(pMp > 0, pMp, 1.0), 0.0)
-        x += _per_column(step, p)
-        e += _per_column(step, Ap)
-        r -= _per_column(step, Mp)
+        x += scale_columns(p, step)
+        e += scale_columns(Ap, step)
+        r -= scale_columns(Mp, step)
         z = scale_rows(r, precondition)
         rz_new = (r * z).sum(axis=0)
-        p = z + _per_column(np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0), p)
+        p = z + scale_columns(p, np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0))
         rz = rz_new
         history.append(float(np.square(e).sum()))
         seconds.append(time.perf_counter() - t0)
     if clip:
         np.clip(x, 0.0, 1.0, out=x)
     return x, history, seconds
-
-
-def _per_column(c: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """``c * a``: c (k,) times each column of a (N, k), a column at a time (numpy broadcasts
-    a short row element by element)."""
-    out = np.empty(a.shape, np.result_type(c, a))
-    for j in range(a.shape[1]):
-        np.multiply(a[:, j], c[j], out=out[:, j])
-    return out
 
 
 def solve_reference(prob: Problem, x0: np.ndarray, prior: float) -> np.ndarray:

@@ -4,12 +4,13 @@
 ten times faster: numpy sorts rows through a structured view, one field compare at a time;
 here each row becomes one 64-bit key whose order is the rows' lexicographic order.
 
-:func:`put_rows`, :func:`select_rows`, :func:`mix_rows`, :func:`scale_rows`, :func:`row_dots`
-and :func:`row_norms` are ``out[index] = rows``, ``a[mask]``, ``np.where(mask[:, None], b, a)``,
-``a * s[:, None]``, ``(a * b).sum(axis=1)`` and ``np.linalg.norm(a, axis=1)`` on 2-D arrays
-(n, k), the same values several times faster: numpy moves the rows of a 2-D fancy index one element at a time (and broadcasts
-a (n, 1) mask element by element, and reduces each short row in a loop of its own); these move
-each row as one item, or work column by column.
+:func:`put_rows`, :func:`select_rows`, :func:`mix_rows`, :func:`scale_rows`,
+:func:`scale_columns`, :func:`row_dots` and :func:`row_norms` are ``out[index] = rows``,
+``a[mask]``, ``np.where(mask[:, None], b, a)``, ``a * s[:, None]``, ``a * c``,
+``(a * b).sum(axis=1)`` and ``np.linalg.norm(a, axis=1)`` on 2-D arrays (n, k), the same values
+several times faster: numpy moves the rows of a 2-D fancy index one element at a time, and
+broadcasts or reduces over a short last axis (three colour channels, three coordinates) in a
+loop per row; these move each row as one item, or work a column at a time.
 """
 
 from __future__ import annotations
@@ -75,8 +76,8 @@ def _row_items(a: np.ndarray) -> np.ndarray:
 
 
 def put_rows(out: np.ndarray, index: np.ndarray, rows: np.ndarray) -> None:
-    """``out[index] = rows``: out (n, k) C-contiguous, index (m,) int, rows (m, k) (cast to
-    out's dtype as the assignment would: same-kind)."""
+    """``out[index] = rows``: out (n, k), index (m,) int, rows (m, k) or anything that broadcasts
+    to it (cast to out's dtype as the assignment casts)."""
     if out.ndim != 2 or not out.flags.c_contiguous or out.shape[1] == 0:
         out[index] = rows
         return
@@ -106,6 +107,15 @@ def scale_rows(a: np.ndarray, s: np.ndarray) -> np.ndarray:
     out = np.empty(a.shape, np.result_type(a, s))
     for j in range(a.shape[1]):
         np.multiply(a[:, j], s, out=out[:, j])
+    return out
+
+
+def scale_columns(a: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``a * c``: each column j of a (n, k) times c[j], c (k,), in their result dtype."""
+    a, c = np.asarray(a), np.asarray(c)
+    out = np.empty(a.shape, np.result_type(a, c))
+    for j in range(a.shape[1]):
+        np.multiply(a[:, j], c[j], out=out[:, j])
     return out
 
 

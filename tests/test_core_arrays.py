@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.arrays import mix_rows, put_rows, row_dots, row_norms, scale_rows, select_rows, unique_rows
+from core.arrays import (mix_rows, put_rows, row_dots, row_norms, scale_columns, scale_rows, select_rows,
+                         unique_rows)
 
 
 def _numpy(rows):
@@ -111,3 +112,5 @@ def test_row_dots_and_scales_are_numpys_bit_for_bit(k, dtype):
     for scale in (s, s.astype(np.float32)):
         assert np.array_equal(scale_rows(a, scale), a * scale[:, None])
         assert scale_rows(a, scale).dtype == (a * scale[:, None]).dtype
+        c = scale[:k]
+        assert np.array_equal(scale_columns(a, c), a * c) and scale_columns(a, c).dtype == (a * c).dtype
