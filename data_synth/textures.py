@@ -195,8 +195,7 @@ def facade(h: Hits, house: bool = False) -> tuple[np.ndarray, np.ndarray]:
     fx = (cu - col - 0.5) * pitch  # metres from the window axis
     in_cols = (col >= 0) & (col < n_cols)
 
-    cornice = (fy < 0.12) & (storey >= 1)
-    cornice = np.flatnonzero(cornice)
+    cornice = np.flatnonzero((fy < 0.12) & (storey >= 1))
     put_rows(colour, cornice, np.take(colour, cornice, axis=0) * 0.7 + 0.1)
 
     upper = (storey >= 1) & in_cols & (v < hi[:, 2] - 0.6)

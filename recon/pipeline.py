@@ -102,23 +102,25 @@ _PAIRS_CACHE: dict = {}
 _DATASET_CACHE: dict = {}
 
 
-def _worker_dataset(path: str):
+def _worker_dataset(path: str) -> Dataset:
     """The dataset at ``path``, opened once per worker while its rig.json, poses.json and
     dataset.json keep their size and time (a long-lived cluster worker may see a dataset
     rewritten at the same path): opening checks every image file, each frame's task reads two."""
-    key = (path,) + tuple((s.st_mtime_ns, s.st_size) if (s := _stat(Path(path) / name)) else None
-                          for name in ("rig.json", "poses.json", "dataset.json"))
+    key = (path,) + tuple(_stamp(Path(path) / name) for name in ("rig.json", "poses.json", "dataset.json"))
     if key not in _DATASET_CACHE:
         _DATASET_CACHE.clear()
         _DATASET_CACHE[key] = load_dataset(path)
     return _DATASET_CACHE[key]
 
 
-def _stat(path: Path) -> os.stat_result | None:
+def _stamp(path: Path) -> tuple[int, int] | None:
+    """(modification time ns, size) of a file, None where it cannot be read: what tells a
+    rewritten file."""
     try:
-        return path.stat()
+        s = path.stat()
     except OSError:
         return None
+    return s.st_mtime_ns, s.st_size
 
 
 def _process_frame(task: _FrameTask) -> dict:
@@ -129,9 +131,7 @@ def _process_frame(task: _FrameTask) -> dict:
         return _process_frame_motion(task, ds, t0)
     # rectification maps: once per rig and worker (as the dataset above)
     rig = scaled_rig(ds.rig, working_scale(ds.rig.sizes[0], task.max_image_size))
-    rig_file = Path(task.dataset) / "rig.json"
-    key = ((task.dataset, rig_file.stat().st_mtime_ns, rig_file.stat().st_size) if rig_file.is_file()
-           else (task.dataset,)) + (rig.sizes,)
+    key = (task.dataset, _stamp(Path(task.dataset) / "rig.json"), rig.sizes)
     if key not in _PAIRS_CACHE:
         _PAIRS_CACHE.clear()
         _PAIRS_CACHE[key] = rectify_rig(rig)
