@@ -43,7 +43,7 @@ import time
 
 import numpy as np
 
-from core.arrays import unique_rows
+from core.arrays import sorted_span, unique_rows
 from core.fileio import atomic_path
 
 from .fit import FitConfig, Quads, blended
@@ -145,7 +145,7 @@ def read_alpha_rows(paths, begin: int, end: int, per_quad: int) -> np.ndarray:
     parts = []
     for path in paths:
         rows = np.load(path, mmap_mode="r")
-        lo, hi = np.searchsorted(rows["key"], [begin * per_quad, end * per_quad])
+        lo, hi = sorted_span(rows["key"], begin * per_quad, end * per_quad)
         parts.append(np.array(rows[lo:hi]))
     rows = np.concatenate(parts) if parts else np.zeros(0, ALPHA_DTYPE)
     keys, inverse = np.unique(rows["key"], return_inverse=True)

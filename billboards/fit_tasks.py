@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from core.arrays import sorted_span
 from core.fileio import atomic_path
 from core.metrics import psnr_from_mse
 
@@ -80,7 +81,7 @@ def read_records(paths, begin: int, end: int) -> np.ndarray:
         rec = np.load(path, mmap_mode="r")
         if len(rec) == 0:
             continue
-        lo, hi = np.searchsorted(rec["quad"], [begin, end])
+        lo, hi = sorted_span(rec["quad"], begin, end)
         parts.append(np.array(rec[lo:hi]))
     return np.concatenate(parts) if parts else None
 

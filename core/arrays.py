@@ -11,9 +11,15 @@ here each row becomes one 64-bit key whose order is the rows' lexicographic orde
 several times faster: numpy moves the rows of a 2-D fancy index one element at a time, and
 broadcasts or reduces over a short last axis (three colour channels, three coordinates) in a
 loop per row; these move each row as one item, or work a column at a time.
+
+:func:`sorted_span` is ``np.searchsorted(column, [lo, hi])`` by bisection on the column as it
+lies: numpy copies a strided column (a field of a memory-mapped record file) whole before it
+searches, which costs a read of the whole file for two lookups.
 """
 
 from __future__ import annotations
+
+import bisect
 
 import numpy as np
 
@@ -142,3 +148,11 @@ def row_norms(a: np.ndarray) -> np.ndarray:
     for j in range(1, a.shape[1]):
         total += a[:, j] * a[:, j]
     return np.sqrt(total)
+
+
+def sorted_span(column: np.ndarray, lo, hi) -> tuple[int, int]:
+    """``tuple(np.searchsorted(column, [lo, hi]))`` (side "left") of a sorted 1-D ``column`` of any
+    strides (a field of a memory-mapped structured array): O(log n) elements read, none copied."""
+    if column.ndim != 1:
+        raise ValueError(f"sorted_span wants a 1-D column, got shape {column.shape}")
+    return bisect.bisect_left(column, lo), bisect.bisect_left(column, hi)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.arrays import (mix_rows, put_rows, row_dots, row_norms, scale_columns, scale_rows, select_rows,
+from core.arrays import (mix_rows, put_rows, row_dots, row_norms, scale_columns, scale_rows, select_rows, sorted_span,
                          unique_rows)
 
 
@@ -114,3 +114,16 @@ def test_row_dots_and_scales_are_numpys_bit_for_bit(k, dtype):
         assert scale_rows(a, scale).dtype == (a * scale[:, None]).dtype
         c = scale[:k]
         assert np.array_equal(scale_columns(a, c), a * c) and scale_columns(a, c).dtype == (a * c).dtype
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 1000])
+def test_sorted_span_is_searchsorted_on_a_memory_mapped_field(tmp_path, n):
+    rng = np.random.default_rng(n)
+    records = np.zeros(n, [("quad", "<i4"), ("colour", "u1", (3,))])
+    records["quad"] = np.sort(rng.integers(-5, 40, n))  # repeats, negatives
+    np.save(tmp_path / "r.npy", records)
+    column = np.load(tmp_path / "r.npy", mmap_mode="r")["quad"]
+    for lo, hi in [(-100, -50), (-5, 0), (0, 0), (3, 17), (10, 5), (39, 40), (40, 1000), (-100, 1000)]:
+        assert sorted_span(column, lo, hi) == tuple(np.searchsorted(records["quad"], [lo, hi]))
+    with pytest.raises(ValueError, match="1-D"):
+        sorted_span(np.zeros((2, 2)), 0, 1)
