@@ -115,29 +115,61 @@ def layer_points(centres: np.ndarray, edges: np.ndarray, kind: np.ndarray, base_
                        np.asarray(centres, np.float64), float(edges.max()))
 
 
-def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
-            image_size, scale: int) -> tuple[np.ndarray, np.ndarray]:
-    """Splat points into a reduced-resolution depth buffer.
-
-    points (m, 3) float32 relative to ``origin`` (3,) float64 → (filled, nearest), each
-    (ceil(h/scale), ceil(w/scale)) float32 z-depth with inf where empty. ``filled``
-    closes one-pixel holes inside surfaces (pixels with at least 5 of 8 neighbours
-    set); ``nearest`` is the 3×3 minimum of ``filled``, a conservative occluder depth.
-    """
+def splat(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
+          image_size, scale: int) -> np.ndarray:
+    """The nearest z-depth of ``points`` (m, 3) float32 (relative to ``origin`` (3,) float64) in
+    each pixel of a view's depth buffer ``scale`` image pixels a side: (ceil(h/scale),
+    ceil(w/scale)) float32, inf where none lands. Points less than 1 mm in front of the eye
+    are left out."""
     w, h = (int(s) for s in image_size)
     zw, zh = -(-w // scale), -(-h // scale)
     R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
     cam = transform_points(points, R.T, R.T @ (origin - C))
     z = cam[:, 2]
-    # every point projected, those behind the eye (nonsense pixels) left out with the ones outside
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = (K[0, 0] * cam[:, 0] / z + K[0, 2] + 0.5) / scale
-        v = (K[1, 1] * cam[:, 1] / z + K[1, 2] + 0.5) / scale
-    inside = np.flatnonzero((z > 1e-3) & (u >= 0) & (u < zw) & (v >= 0) & (v < zh))
-    pix = v[inside].astype(np.int64) * zw + u[inside].astype(np.int64)
+    # the points in front of the eye projected, then kept where u and then v fall inside (a view
+    # sees a small part of what it is given: each test narrows what the next one computes)
+    inside = np.flatnonzero(z > 1e-3)
+    z_in = z[inside].astype(np.float64)  # exact: as the float64 products below promote z
+    u = (K[0, 0] * cam[inside, 0] / z_in + K[0, 2] + 0.5) / scale
+    keep = (u >= 0) & (u < zw)
+    inside, u, z_in = inside[keep], u[keep], z_in[keep]
+    v = (K[1, 1] * cam[inside, 1] / z_in + K[1, 2] + 0.5) / scale
+    keep = (v >= 0) & (v < zh)
+    inside = inside[keep]
+    pix = v[keep].astype(np.int64) * zw + u[keep].astype(np.int64)
     depth = np.full(zw * zh, np.inf, dtype=np.float32)
     np.minimum.at(depth, pix, z[inside])
-    depth = depth.reshape(zh, zw)
+    return depth.reshape(zh, zw)
+
+
+def splat_reference(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
+                    image_size, scale: int) -> np.ndarray:
+    """:func:`splat` one point at a time (for tests)."""
+    w, h = (int(s) for s in image_size)
+    zw, zh = -(-w // scale), -(-h // scale)
+    R, C = world_from_cam[:3, :3], world_from_cam[:3, 3]
+    cam = transform_points(points, R.T, R.T @ (origin - C))
+    depth = np.full((zh, zw), np.inf, dtype=np.float32)
+    for x, y, z in cam:
+        if not z > 1e-3:
+            continue
+        u = (K[0, 0] * x / np.float64(z) + K[0, 2] + 0.5) / scale
+        v = (K[1, 1] * y / np.float64(z) + K[1, 2] + 0.5) / scale
+        if 0 <= u < zw and 0 <= v < zh:
+            depth[int(v), int(u)] = min(depth[int(v), int(u)], z)
+    return depth
+
+
+def zbuffer(points: np.ndarray, origin: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray,
+            image_size, scale: int) -> tuple[np.ndarray, np.ndarray]:
+    """Splat points into a reduced-resolution depth buffer.
+
+    points (m, 3) float32 relative to ``origin`` (3,) float64 → (filled, nearest), each
+    (ceil(h/scale), ceil(w/scale)) float32 z-depth with inf where empty (:func:`splat`).
+    ``filled`` closes one-pixel holes inside surfaces (pixels with at least 5 of 8 neighbours
+    set); ``nearest`` is the 3×3 minimum of ``filled``, a conservative occluder depth.
+    """
+    depth = splat(points, origin, K, world_from_cam, image_size, scale)
     valid = np.isfinite(depth).astype(np.float32)
     neighbours = cv2.boxFilter(valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT) - valid
     kernel = np.ones((3, 3), np.uint8)

@@ -10,7 +10,7 @@ from billboards.geometry import DirectionConfig, base_yaw_toward
 from billboards.sampling import ImageSampler, SamplingConfig
 from billboards.texels import OCCLUDED, TRANSPARENT, UNSEEN, VISIBLE, fill_directions
 from billboards.views import Views
-from billboards.voxels import voxel_points, zbuffer
+from billboards.voxels import splat, splat_reference, voxel_points, zbuffer
 from billboards.splat import PointSampler
 from billboards.truth import texture_psnr, truth_textures
 from data_synth.raycast import Renderer
@@ -211,6 +211,23 @@ def test_zbuffer_of_a_plane_and_its_margins():
     assert finite.mean() > 0.5
     np.testing.assert_allclose(filled[finite], 5.0, atol=1e-3)
     assert np.all(nearest <= filled)
+
+
+def test_splat_is_its_per_point_reference():
+    """Points behind, beside and in front of a view, some on the buffer's edges, many to a pixel."""
+    rng = np.random.default_rng(5)
+    K = np.array([[70.0, 0, 40.5], [0, 70.0, 29.5], [0, 0, 1]])
+    pose = _pose([2.0, -1.0, 1.5], 0.3)
+    origin = np.array([3e5, -1e5, 12.0])
+    cam = np.concatenate([rng.uniform([-8, -6, -3], [8, 6, 12], (4000, 3)),
+                          [[0, 0, 1e-3], [0, 0, 2e-3], [-40.5 / 70, -29.5 / 70, 1.0], [0, 0, 0], [0, 0, -1]]])
+    world = cam @ pose[:3, :3].T + pose[:3, 3]
+    points = (world - origin).astype(np.float32)
+    for scale in (1, 2, 3):
+        got = splat(points, origin, K, pose, (81, 59), scale)
+        assert got.shape == (-(-59 // scale), -(-81 // scale)) and np.isfinite(got).any()
+        assert np.array_equal(got, splat_reference(points, origin, K, pose, (81, 59), scale))
+    assert np.all(np.isinf(splat(points[:0], origin, K, pose, (81, 59), 2)))
 
 
 def test_a_view_that_sees_no_point_has_an_empty_zbuffer():
