@@ -64,18 +64,22 @@ class Subspace:
 
 def expansion(coefficients: np.ndarray, rank: np.ndarray, texels: int) -> sparse.csr_matrix:
     """B: the (count·d·t², count·(1+R)·t²) sparse map from slots to per-direction texels.
-    coefficients (count, d, R) float, rank (count,) int."""
+    coefficients (count, d, R) float, rank (count,) int.
+
+    Built row by row in CSR order: the row of quad q, direction c and texel t holds its
+    mean slot (1) and then its eigen slots k < rank[q] (coefficient k), in ascending columns."""
     count, d, R = coefficients.shape
-    q, c, t = (a.ravel() for a in np.meshgrid(np.arange(count), np.arange(d), np.arange(texels), indexing="ij"))
-    row = (q * d + c) * texels + t
-    rows, cols, vals = [row], [(q * (1 + R)) * texels + t], [np.ones(len(row))]
-    for k in range(R):
-        used = rank[q] > k
-        rows.append(row[used])
-        cols.append((q[used] * (1 + R) + 1 + k) * texels + t[used])
-        vals.append(coefficients[q[used], c[used], k].astype(np.float64))
-    return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                             shape=(count * d * texels, count * (1 + R) * texels))
+    q = np.repeat(np.arange(count), d * texels)  # (rows,) each row's quad
+    t = np.tile(np.arange(texels), count * d)  # ... and texel
+    slot = np.arange(1 + R)
+    cols = (q[:, None] * (1 + R) + slot) * texels + t[:, None]  # (rows, 1 + R) int64
+    vals = np.empty(cols.shape)
+    vals[:, 0] = 1.0
+    vals[:, 1:] = np.repeat(coefficients.reshape(count * d, R), texels, axis=0)
+    used = slot <= np.asarray(rank)[q][:, None]  # the mean always, eigen slot k where k < rank
+    indptr = np.zeros(len(q) + 1, np.int64)
+    np.cumsum(used.sum(axis=1), out=indptr[1:])
+    return sparse.csr_matrix((vals[used], cols[used], indptr), shape=(count * d * texels, count * (1 + R) * texels))
 
 
 def subspace(prob: Problem, eig: EigenTextures) -> Subspace:
