@@ -46,7 +46,7 @@ from functools import cached_property
 import numpy as np
 from scipy import sparse
 
-from core.arrays import scale_columns, scale_rows
+from core.arrays import column_sums, scale_columns, scale_rows
 from core.errors import InputError
 
 from .decode import direction_corners, view_direction_index
@@ -349,7 +349,7 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, iterations: int,
     r = -prob.adjoint(e)                                        # the right-hand side, as d = 0
     z = scale_rows(r, precondition)
     p = z.copy()
-    rz = (r * z).sum(axis=0)
+    rz = column_sums(r * z)
     for _ in range(iterations):
         if deadline is not None and time.time() > deadline:
             break
@@ -357,13 +357,13 @@ def solve(prob: Problem, x0: np.ndarray, prior: float, iterations: int,
             break                                               # converged (or nothing measured)
         Ap = prob.apply(p)
         Mp = prob.adjoint(Ap) + scale_rows(p, weight)
-        pMp = (p * Mp).sum(axis=0)
+        pMp = column_sums(p * Mp)
         step = np.where(pMp > 0, rz / np.where(pMp > 0, pMp, 1.0), 0.0)
         x += scale_columns(p, step)
         e += scale_columns(Ap, step)
         r -= scale_columns(Mp, step)
         z = scale_rows(r, precondition)
-        rz_new = (r * z).sum(axis=0)
+        rz_new = column_sums(r * z)
         p = z + scale_columns(p, np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0))
         rz = rz_new
         history.append(float(np.square(e).sum()))

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.arrays import (mix_rows, put_rows, row_dots, row_norms, scale_columns, scale_rows, select_rows, sorted_span,
-                         unique_rows)
+from core.arrays import (column_sums, mix_rows, put_rows, row_dots, row_norms, scale_columns, scale_rows, select_rows,
+                         sorted_span, unique_rows)
 
 
 def _numpy(rows):
@@ -127,3 +127,20 @@ def test_sorted_span_is_searchsorted_on_a_memory_mapped_field(tmp_path, n):
         assert sorted_span(column, lo, hi) == tuple(np.searchsorted(records["quad"], [lo, hi]))
     with pytest.raises(ValueError, match="1-D"):
         sorted_span(np.zeros((2, 2)), 0, 1)
+
+
+@pytest.mark.parametrize("k", [0, 1, 2, 3, 7, 8, 12])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_column_sums_are_numpys_bit_for_bit(k, dtype):
+    rng = np.random.default_rng(k)
+    a = (rng.standard_normal((20000, k)) * 10.0 ** rng.integers(-20, 20, (20000, k))).astype(dtype)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for b in (a, a[:1], a[:0], np.asfortranarray(a), a[::2]):
+            assert np.array_equal(column_sums(b), b.sum(axis=0)) and column_sums(b).dtype == b.sum(axis=0).dtype
+        # signed zeros, NaN and infinities: the first column all −0.0 (numpy's sum is +0.0)
+        special = np.array([[-0.0, np.nan, 1.0, np.inf, -0.0, 0.0, 5.0],
+                            [-0.0, 1.0, np.inf, -np.inf, 0.0, -0.0, -5.0],
+                            [-0.0, 2.0, -np.inf, 1.0, -0.0, -0.0, -0.0]], dtype)[:, :k]
+        got, want = column_sums(special), special.sum(axis=0)
+        assert np.array_equal(got, want, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(want))
+    assert np.array_equal(column_sums(np.arange(12).reshape(4, 3)), np.arange(12).reshape(4, 3).sum(axis=0))
