@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.arrays import row_dots, scale_rows
+from core.arrays import row_dots, row_norms, scale_rows
 
 from .fit import Quads, blended, record_dtype
 from .geometry import surface_dz
@@ -28,7 +28,7 @@ def visible_quads(quads: Quads, K: np.ndarray, world_from_cam: np.ndarray, size,
     cam = (quads.centres - C) @ R
     radius = 0.75 * quads.edges(np.arange(len(quads.kind)))
     z = cam[:, 2]
-    ok = (z > -radius) & (np.linalg.norm(cam, axis=1) < max_distance + radius)
+    ok = (z > -radius) & (row_norms(cam) < max_distance + radius)
     zc = np.maximum(z, 1e-6)
     for axis, focal, centre, extent in ((0, K[0, 0], K[0, 2], w), (1, K[1, 1], K[1, 2], h)):
         margin = np.where(z > radius, radius * focal / zc + 1, np.inf)
@@ -161,7 +161,7 @@ def pixel_rays(K: np.ndarray, world_from_cam: np.ndarray, size, stride: int) -> 
     u, v = u.ravel(), v.ravel()
     rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=1)
     direction = rays_cam @ np.asarray(world_from_cam, np.float64)[:3, :3].T
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    direction /= row_norms(direction)[:, None]
     return np.stack([u, v], axis=1).astype(np.int64), direction
 
 

@@ -44,7 +44,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from core.arrays import unique_rows
+from core.arrays import row_norms, unique_rows
 from core.errors import InputError
 from core.tasks import executor_workers, ordered_results
 
@@ -258,7 +258,7 @@ def _observe_views(task) -> list[tuple[int, np.ndarray, np.ndarray]]:
         with np.errstate(divide="ignore", invalid="ignore"):
             u = K[0, 0] * cam[:, 0] / z + K[0, 2]
             v = K[1, 1] * cam[:, 1] / z + K[1, 2]
-        ok = (z > 0.1) & (np.linalg.norm(cam, axis=1) < config.max_distance)
+        ok = (z > 0.1) & (row_norms(cam) < config.max_distance)
         ok &= (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
         sel = np.flatnonzero(ok)
         if len(sel) == 0:
