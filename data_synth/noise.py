@@ -44,8 +44,8 @@ _TABLE_MASK = (1 << TABLE_BITS) - 1
 # (1024 lattice cells, 10 m at 1 cm) is far beyond any stereo search range.
 _TABLE = np.random.default_rng(0x5EED).random(1 << (2 * TABLE_BITS))
 # Each entry beside the next one along the row (wrapping): the real part is _TABLE[k], the
-# imaginary part _TABLE's next column, so two gathers fetch a cell's four corners (random
-# gathers from the 8 MB table are most of value_noise's time).
+# imaginary part _TABLE's next column, so two gathers fetch a cell's four corners (the random
+# gathers from the 8 MB table are a large part of value_noise's time).
 _PAIRS = _TABLE + 1j * _TABLE.reshape(-1, 1 << TABLE_BITS)[:, np.r_[1:1 << TABLE_BITS, 0]].ravel()
 
 
