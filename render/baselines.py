@@ -110,8 +110,10 @@ def poisson_arrays(points: np.ndarray, colours: np.ndarray, normals: np.ndarray 
     else:
         pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
     del local
+    # one thread: Open3D's Poisson with several races (a random SIGSEGV, Open3D issue 6828, and meshes
+    # that differ from run to run); with one it is the same mesh every time
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=int(depth))
+        mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=int(depth), n_threads=1)
     del pcd
     density = np.asarray(density)
     if trim_quantile > 0 and len(density):

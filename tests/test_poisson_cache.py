@@ -9,6 +9,7 @@ import open3d as o3d
 import pytest
 
 from bbcity.cli import main as cli_main
+from render.baselines import poisson_arrays
 from render.evaluate import mesh_cloud_file, read_cloud_for_baselines
 from render.poisson_cache import CACHE_DIR, PoissonCache, cached_poisson
 
@@ -125,3 +126,17 @@ def test_bbcity_mesh_that_cannot_keep_the_mesh_still_writes_out_or_says_why(tmp_
     with caplog.at_level(logging.ERROR):
         assert cli_main(["-q", "mesh", str(cloud), "--depth", str(DEPTH)]) == 2
     assert "could not be kept there, and no --out was given" in caplog.text
+
+
+def test_a_poisson_mesh_is_the_same_every_time():
+    """Open3D's Poisson on several threads races (meshes that differ between runs, now and then a
+    crash): the baseline runs it on one, so a cloud gives one mesh, bit for bit."""
+    rng = np.random.default_rng(1)
+    normals = rng.standard_normal((30_000, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = 2.0 * normals + rng.normal(0, 0.005, (len(normals), 3))  # a noisy sphere, normals outward
+    colours = rng.integers(0, 256, (len(points), 3), dtype=np.uint8)
+    first, second = (poisson_arrays(points, colours, normals, depth=7) for _ in range(2))
+    assert len(first["triangles"]) > 1000
+    for key in ("origin", "vertices", "vertex_colours", "triangles"):
+        assert np.array_equal(first[key], second[key])
