@@ -251,14 +251,11 @@ class ImageSampler:
     def _zbuffer_at(self, entries, slot, local, u, v):
         """The z-buffer ``slot`` of the cache ``entries`` (1 filled, 2 nearest, 3 the layer's) at
         pixels (u, v) (m, t, t) of views ``local`` (m,): (m, t, t) float32, inf = empty."""
-        shapes = {e[slot].shape for e in entries}
-        zh, zw = max(s[0] for s in shapes), max(s[1] for s in shapes)
-        if len(shapes) == 1:  # one camera size (the usual): the buffers end to end, nothing to pad
-            stack = np.concatenate([e[slot].ravel() for e in entries])
-        else:
-            stack = np.full((len(entries), zh, zw), np.inf, dtype=np.float32)
-            for i, e in enumerate(entries):
-                stack[i, :e[slot].shape[0], :e[slot].shape[1]] = e[slot]
+        zh = max(e[slot].shape[0] for e in entries)
+        zw = max(e[slot].shape[1] for e in entries)
+        stack = np.full((len(entries), zh, zw), np.inf, dtype=np.float32)
+        for i, e in enumerate(entries):
+            stack[i, :e[slot].shape[0], :e[slot].shape[1]] = e[slot]
         scale = np.float32(1.0 / self.config.zbuffer_scale)
         iu = np.clip((u + 0.5) * scale, 0, zw - 1).astype(np.int32)
         iv = np.clip((v + 0.5) * scale, 0, zh - 1).astype(np.int32)
